@@ -1,0 +1,80 @@
+"""The ``omg4`` command: parses arguments, calls library functions, prints.
+
+Each subcommand lives in ``omg4.commands.<module>`` with two functions,
+``configure(parser)`` and ``run(args) -> int``; only the chosen one is imported, so
+``omg4 --help`` and ``omg4 info`` start fast. Errors of the user's making
+(:class:`omg4.errors.OMG4Error`) print one line and exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module in omg4.commands, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("demo", "the whole pipeline on a built-in synthetic scene (synth, train, compress, decode, eval)"),
+    "synth": ("synth", "write the built-in procedural dynamic scene in N3DV layout"),
+    "info": ("info", "summary of a dataset folder, a checkpoint or an .omg4 file"),
+    "train": ("train", "train the Real-Time4DGS baseline"),
+    "import-rt4dgs": ("import_rt4dgs", "convert an official Real-Time4DGS checkpoint"),
+    "compress": ("compress", "run the OMG4 pipeline and write the compressed .omg4 file"),
+    "eval": ("eval", "PSNR, SSIM, LPIPS, FPS, Gaussian count and storage on the test views"),
+    "render": ("render", "render an image (.png/.npy) or a video (.mp4)"),
+    "bench": ("bench", "ablation and size-preset benchmark on one scene"),
+}
+
+
+def _build_parser(command: str | None) -> tuple[argparse.ArgumentParser, dict]:
+    parser = argparse.ArgumentParser(
+        prog="omg4",
+        description="OMG4: train, compress, decode, render and evaluate 4D Gaussian Splatting models.",
+    )
+    parser.add_argument("--version", action="version", version=f"omg4 {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    modules = {}
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == command:
+            mod = importlib.import_module(f"omg4.commands.{module}")
+            mod.configure(p)
+            modules[name] = mod
+    return parser, modules
+
+
+def _version() -> str:
+    from omg4 import __version__
+
+    return __version__
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``omg4`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    if command not in COMMANDS:
+        command = None
+    from omg4.errors import OMG4Error
+
+    try:
+        parser, modules = _build_parser(command)
+    except ModuleNotFoundError as e:  # a command not built yet
+        print(f"omg4: error: command '{command}' is not available ({e})", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    try:
+        return int(modules[args.command].run(args) or 0)
+    except OMG4Error as e:
+        print(f"omg4 {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"omg4 {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

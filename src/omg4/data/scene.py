@@ -1,0 +1,199 @@
+"""The scene model every reader returns: cameras, timed views and the normalized world.
+
+Conventions (DESIGN.md, fixed): OpenCV cameras (x right, y down, z forward), ``viewmat`` is
+the 4×4 world-to-camera matrix, ``K`` is 3×3 in pixels at the image's actual resolution,
+pixel centres at +0.5. Every reader returns its scene in a normalized world (up axis +z,
+centred, mean camera distance 4) and records the transform in :class:`Normalization`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera in the normalized world.
+
+    Attributes:
+        K: [3, 3] intrinsics in pixels at (width, height).
+        viewmat: [4, 4] world-to-camera (OpenCV) matrix.
+        width, height: image size in pixels.
+        name: camera identifier (``cam00``, ``r_000``, ``10``...).
+    """
+
+    K: np.ndarray
+    viewmat: np.ndarray
+    width: int
+    height: int
+    name: str = ""
+
+    @property
+    def center(self) -> np.ndarray:
+        """[3] camera centre in world coordinates."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
+    @property
+    def camtoworld(self) -> np.ndarray:
+        """[4, 4] camera-to-world matrix."""
+        return np.linalg.inv(self.viewmat)
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera at another resolution (intrinsics scaled per axis)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        K[2, :] = (0.0, 0.0, 1.0)
+        return Camera(K=K, viewmat=self.viewmat.copy(), width=int(width), height=int(height), name=self.name)
+
+    def to_json(self) -> dict:
+        """``{name, K, viewmat, width, height}`` with plain lists (the ``CAM.json`` layout)."""
+        return {
+            "name": self.name,
+            "K": np.asarray(self.K, dtype=float).tolist(),
+            "viewmat": np.asarray(self.viewmat, dtype=float).tolist(),
+            "width": int(self.width),
+            "height": int(self.height),
+        }
+
+    @staticmethod
+    def from_json(d: dict) -> "Camera":
+        """Inverse of :meth:`to_json`; ``name`` is optional."""
+        K = np.asarray(d["K"], dtype=np.float64).reshape(3, 3)
+        viewmat = np.asarray(d["viewmat"], dtype=np.float64).reshape(4, 4)
+        return Camera(K=K, viewmat=viewmat, width=int(d["width"]), height=int(d["height"]), name=str(d.get("name", "")))
+
+
+@dataclass
+class View:
+    """One training or test image: a camera at a timestamp, its image loaded lazily.
+
+    Attributes:
+        camera: the camera.
+        timestamp: time in the dataset's units (N3DV: seconds; D-NeRF: [0, 1]).
+        frame_index: index of the frame in its sequence.
+        loader: returns the image as float32 [H, W, 3] in [0, 1].
+    """
+
+    camera: Camera
+    timestamp: float
+    frame_index: int
+    loader: Callable[[], np.ndarray] = field(repr=False)
+
+    def image(self) -> np.ndarray:
+        """float32 [H, W, 3] in [0, 1] at the camera's resolution."""
+        return self.loader()
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """Similarity transform from the dataset's world to the normalized world.
+
+    ``x_norm = scale * (rotation @ x_orig + translation)``.
+    """
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    @staticmethod
+    def identity() -> "Normalization":
+        return Normalization(1.0, np.eye(3), np.zeros(3))
+
+    def apply_points(self, x: np.ndarray) -> np.ndarray:
+        """Map points [..., 3] from the original world to the normalized world."""
+        return self.scale * (x @ self.rotation.T + self.translation)
+
+    def invert_points(self, x: np.ndarray) -> np.ndarray:
+        """Map points [..., 3] from the normalized world back to the original world."""
+        return (x / self.scale - self.translation) @ self.rotation
+
+    def apply_viewmat(self, viewmat: np.ndarray) -> np.ndarray:
+        """World-to-camera [4, 4] of the original world → of the normalized world.
+
+        Camera coordinates are scaled by ``scale`` too, which leaves every projection
+        unchanged and keeps the rotation block orthonormal.
+        """
+        Rc, tc = viewmat[:3, :3], viewmat[:3, 3]
+        out = np.eye(4)
+        out[:3, :3] = Rc @ self.rotation.T
+        out[:3, 3] = self.scale * (tc - out[:3, :3] @ self.translation)
+        return out
+
+    def to_json(self) -> dict:
+        return {
+            "scale": float(self.scale),
+            "rotation": np.asarray(self.rotation, dtype=float).tolist(),
+            "translation": np.asarray(self.translation, dtype=float).tolist(),
+        }
+
+    @staticmethod
+    def from_json(d: dict) -> "Normalization":
+        return Normalization(float(d["scale"]), np.asarray(d["rotation"], dtype=np.float64).reshape(3, 3),
+                             np.asarray(d["translation"], dtype=np.float64).reshape(3))
+
+
+@dataclass
+class PointCloud:
+    """Initial points: positions [M, 3] in the normalized world and colours [M, 3] in [0, 1]."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+
+
+@dataclass
+class Scene:
+    """A dynamic multi-view scene in the normalized world.
+
+    Attributes:
+        train_views, test_views: the views of each split.
+        time_range: (t0, t1) in the dataset's time units.
+        normalization: original world → normalized world.
+        format: reader that produced it (``n3dv``, ``blender``, ``panoptic``).
+        name: the dataset folder's name.
+        initial_points: points from ``points3d.ply`` when the data has it.
+    """
+
+    train_views: list[View]
+    test_views: list[View]
+    time_range: tuple[float, float]
+    normalization: Normalization
+    format: str
+    name: str = ""
+    initial_points: PointCloud | None = None
+    num_frames: int = 0
+
+    @property
+    def duration(self) -> float:
+        return float(self.time_range[1] - self.time_range[0])
+
+    def train_cameras(self) -> list[Camera]:
+        """The distinct training cameras, in first-seen order."""
+        return _distinct_cameras(self.train_views)
+
+    def test_cameras(self) -> list[Camera]:
+        """The distinct test cameras, in first-seen order."""
+        return _distinct_cameras(self.test_views)
+
+    @property
+    def extent(self) -> float:
+        """Scene extent: 1.1 × the largest distance of a training camera centre from their mean.
+
+        Real-Time4DGS ``getNerfppNorm`` (reference §4.3); learning rates scale with it.
+        """
+        centers = np.stack([c.center for c in self.train_cameras()])
+        radius = np.linalg.norm(centers - centers.mean(0), axis=1).max()
+        return float(1.1 * max(radius, 1e-6))
+
+
+def _distinct_cameras(views: list[View]) -> list[Camera]:
+    seen: dict[str, Camera] = {}
+    for v in views:
+        key = v.camera.name or str(id(v.camera))
+        seen.setdefault(key, v.camera)
+    return list(seen.values())

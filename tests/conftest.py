@@ -1,0 +1,44 @@
+"""Shared test fixtures: where the real test scenes live.
+
+The research-use scenes are read from ``../shared/data`` beside the repository (CI has
+them there too); ``OMG4_SHARED_DATA`` overrides the location. They are never copied
+into the repository.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("OMG4_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+def shared_scene(name: str) -> Path:
+    """Path of a scene in the shared data folder; skips the test when it is absent."""
+    path = SHARED_DATA / name
+    if not path.exists():
+        pytest.skip(f"shared test data {path} not available")
+    return path
+
+
+@pytest.fixture
+def n3dv_basketball() -> Path:
+    return shared_scene("n3dv_basketball")
+
+
+@pytest.fixture
+def panoptic_basketball() -> Path:
+    return shared_scene("panoptic_basketball")
+
+
+@pytest.fixture
+def dnerf_mutant() -> Path:
+    return shared_scene("dnerf_mutant")
+
+
+@pytest.fixture
+def lpips_calibration() -> Path:
+    return shared_scene("lpips_calibration")
