@@ -10,10 +10,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import tempfile
+
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("OMG4_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+# Keep frame caches and converted weights of a test session out of the user's cache folder.
+os.environ.setdefault("OMG4_CACHE_DIR", tempfile.mkdtemp(prefix="omg4-test-cache-"))
 
 
 def shared_scene(name: str) -> Path:

@@ -1,0 +1,38 @@
+"""Argument groups shared by several subcommands."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_scene_arguments(p: argparse.ArgumentParser, positional: bool = True) -> None:
+    """DATA and the reader options (format, resolution, frame range, camera subset)."""
+    if positional:
+        p.add_argument("data", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic layout)")
+    p.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
+    p.add_argument("--downscale", type=float, default=1.0, help="divide the image resolution by this factor")
+    p.add_argument("--frames", type=str, help="frame range START:END (end exclusive), e.g. 0:60")
+    p.add_argument("--cameras", type=str, help="comma-separated camera names to use (default: all)")
+
+
+def parse_frames(text: str | None) -> range | None:
+    """``"a:b"`` → range(a, b); ``None`` → None."""
+    if not text:
+        return None
+    from omg4.errors import OMG4Error
+
+    try:
+        a, b = text.split(":")
+        return range(int(a or 0), int(b))
+    except ValueError:
+        raise OMG4Error(f"--frames expects START:END, got '{text}'") from None
+
+
+def load_scene_from_args(args, background=(0.0, 0.0, 0.0)):
+    """The scene named by ``args.data`` with the reader options of :func:`add_scene_arguments`."""
+    from omg4.data import load_scene
+
+    cameras = [c.strip() for c in args.cameras.split(",")] if getattr(args, "cameras", None) else None
+    return load_scene(args.data, format=args.format, downscale=args.downscale, frames=parse_frames(args.frames),
+                      cameras=cameras, background=background)

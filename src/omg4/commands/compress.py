@@ -1,0 +1,62 @@
+"""``omg4 compress DATA --model CKPT --out FILE.omg4``: run the OMG4 pipeline."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from omg4.commands.common import add_scene_arguments, load_scene_from_args
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    add_scene_arguments(p)
+    p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="output .omg4 file (with --stop-after: a .safetensors checkpoint of the minimized model)")
+    p.add_argument("--preset", default="M", choices=["L", "M", "S", "T"], help="size preset (paper appendix)")
+    p.add_argument("--schedule", default="official", choices=["official", "cpu", "tiny"],
+                   help="fine-tuning lengths: official (1000 per stage, 5000 MLP), cpu (a fifth), tiny (smoke test)")
+    p.add_argument("--stages", default="sample,prune,merge,appearance,svq3d,svq4d",
+                   help="comma-separated stages in order (ablations: e.g. sample,appearance,svq3d,svq4d or "
+                        "sample+prune,merge,appearance,svq3d,svq4d)")
+    p.add_argument("--stop-after", choices=["sample", "prune", "sample+prune", "merge"],
+                   help="stop after this stage and write a checkpoint of the minimized model")
+    p.add_argument("--num-merge", type=int, default=2, help="merge rounds M")
+    p.add_argument("--batch-size", type=int, default=4, help="views per fine-tuning step")
+    p.add_argument("--tau-gs", type=float, help="override the preset's sampling ratio")
+    p.add_argument("--prune-quantile", type=float, help="override the preset's pruning quantile p")
+    p.add_argument("--codec", default="ans", choices=["ans", "paper"],
+                   help="index coding: ans (default, smaller) or paper (Huffman + LZMA as OMG4)")
+    p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
+    p.add_argument("--official-score-quirk", action="store_true",
+                   help="accumulate the time gradient without zeroing, as the official release does")
+    p.add_argument("--baseline-iterations", type=int, default=30000,
+                   help="iterations the baseline was trained for (the position learning rate continues its decay)")
+    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"], help="rasterizer backend")
+    p.add_argument("--seed", type=int, default=6666)
+    p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
+
+
+def run(args) -> int:
+    from omg4.atomic import write_text_atomic
+    from omg4.compress.api import compress_to_file
+    from omg4.compress.pipeline import CompressConfig
+    from omg4.gaussians.checkpoint import load_gaussians
+
+    scene = load_scene_from_args(args)
+    baseline, _ = load_gaussians(args.model)
+    cfg = CompressConfig(preset=args.preset, stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()),
+                         schedule=args.schedule, num_merge=args.num_merge, batch_size=args.batch_size,
+                         seed=args.seed, official_score_quirk=args.official_score_quirk,
+                         baseline_iterations=args.baseline_iterations, backend=args.backend, tau_gs=args.tau_gs,
+                         prune_quantile=args.prune_quantile)
+    report = compress_to_file(baseline, scene, cfg, args.out, codec=args.codec, stop_after=args.stop_after,
+                              scores_path=args.scores)
+    for r in report["stages"]:
+        print(f"  {r['stage']:<13} at iteration {r['iteration']:>6}: {r['num_gaussians']:>8} Gaussians")
+    print(f"wrote {args.out} ({report['file_bytes'] / 2**20:.3f} MB, {report['num_gaussians']} Gaussians, "
+          f"{report['wall_time_s']:.0f} s)")
+    if args.json:
+        write_text_atomic(args.json, json.dumps(report, indent=2))
+    return 0

@@ -1,0 +1,96 @@
+"""``omg4 info PATH [--json FILE]``: summary of a dataset folder (checkpoints and ``.omg4`` later).
+
+The path's kind picks a summarizer (:data:`SUMMARIZERS`); each returns a JSON-ready dict and
+a human-readable text. Dataset summaries come from the readers with ``decode=False``: video
+sizes and frame counts are read from stream metadata, no frame is decoded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Callable
+
+from omg4.atomic import write_text_atomic
+from omg4.errors import OMG4Error
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("path", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic layout)")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
+    parser.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
+
+
+def run(args) -> int:
+    summary, text = summarize(args.path, format=args.format)
+    print(text)
+    if args.json:
+        write_text_atomic(args.json, json.dumps(summary, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def summarize(path: Path, **options) -> tuple[dict, str]:
+    """(JSON-ready summary, text) of ``path`` by the first summarizer that accepts its kind."""
+    for accepts, summarizer in SUMMARIZERS:
+        if accepts(path):
+            return summarizer(path, **options)
+    if not path.exists():
+        raise OMG4Error(f"{path} does not exist")
+    raise OMG4Error(f"{path} is not a dataset folder; checkpoint/.omg4 summaries are not available yet")
+
+
+def dataset_summary(path: Path, format: str | None = None) -> tuple[dict, str]:
+    """Summary of a dataset folder: counts, time range, normalization and every camera.
+
+    JSON keys: ``kind`` ("dataset"), ``path``, ``name``, ``format``, ``num_frames``,
+    ``time_range``, ``num_train_views``, ``num_test_views``, ``extent``, ``normalization``
+    {scale, rotation 3×3, translation 3}, ``initial_points`` (count or null) and ``cameras``:
+    ``[{name, split, K, viewmat, width, height}]`` in the normalized world.
+    """
+    from omg4.data import load_scene
+
+    scene = load_scene(path, format=format, decode=False, progress=False)
+    cameras = [{**cam.to_json(), "split": split}
+               for split, cams in (("train", scene.train_cameras()), ("test", scene.test_cameras())) for cam in cams]
+    summary = {
+        "kind": "dataset",
+        "path": str(path),
+        "name": scene.name,
+        "format": scene.format,
+        "num_frames": scene.num_frames,
+        "time_range": [float(t) for t in scene.time_range],
+        "num_train_views": len(scene.train_views),
+        "num_test_views": len(scene.test_views),
+        "extent": scene.extent if scene.train_views else None,
+        "normalization": scene.normalization.to_json(),
+        "initial_points": None if scene.initial_points is None else int(len(scene.initial_points.xyz)),
+        "cameras": cameras,
+    }
+    return summary, _dataset_text(summary)
+
+
+def _dataset_text(s: dict) -> str:
+    sizes = sorted({(c["width"], c["height"]) for c in s["cameras"]})
+    n_train = sum(c["split"] == "train" for c in s["cameras"])
+    n_test = len(s["cameras"]) - n_train
+    norm = s["normalization"]
+    lines = [
+        f"dataset      {s['path']} ({s['format']})",
+        f"frames       {s['num_frames']}, time range [{s['time_range'][0]:g}, {s['time_range'][1]:g}]",
+        f"views        {s['num_train_views']} train, {s['num_test_views']} test",
+        f"cameras      {n_train} train, {n_test} test; "
+        f"{', '.join(f'{w}x{h}' for w, h in sizes[:4])}{' ...' if len(sizes) > 4 else ''}",
+        f"normalized   scale {norm['scale']:.6g}, translation "
+        f"[{', '.join(f'{x:.4g}' for x in norm['translation'])}]"
+        + (f", extent {s['extent']:.4g}" if s["extent"] is not None else ""),
+        f"init points  {s['initial_points'] if s['initial_points'] is not None else 'none (random initialization)'}",
+    ]
+    return "\n".join(lines)
+
+
+#: (accepts(path), summarize(path, **options)) in order; file kinds (checkpoints, .omg4) go here.
+SUMMARIZERS: list[tuple[Callable[[Path], bool], Callable[..., tuple[dict, str]]]] = [
+    (Path.is_dir, dataset_summary),
+]

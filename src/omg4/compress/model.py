@@ -1,0 +1,110 @@
+"""The model that moves through the OMG4 stages.
+
+It starts as a Real-Time4DGS model (explicit parameters) and gains, stage by stage:
+learnable merge proxies (paper §4.3), MLP appearance replacing opacity and SH (§4.4), and
+sub-vector quantizers replacing scale, rotation and appearance features, then the 4D
+attributes (staged SVQ, §4.4). ``slice_at`` always assembles the effective Real-Time4DGS
+parameters and renders them with the baseline's conditioning and 4D SH, so every stage is
+measured with the same renderer.
+"""
+
+from __future__ import annotations
+
+
+import torch
+
+from omg4.gaussians import GaussianConfig, Gaussians4D
+
+# SVQ attribute → the parameter(s) it replaces (reference omg4 §7)
+SVQ_ATTRIBUTES: dict[str, tuple[str, ...]] = {
+    "scale": ("scaling",),
+    "rotation": ("rotation",),
+    "app": ("f_static", "f_view"),
+    "scale_t": ("scaling_t",),
+    "rotation_r": ("rotation_r",),
+}
+SVQ_STAGE_3D = ("scale", "rotation", "app")
+SVQ_STAGE_4D = ("scale_t", "rotation_r")
+
+
+def _logit(p: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    p = p.clamp(eps, 1 - eps)
+    return torch.log(p) - torch.log1p(-p)
+
+
+class CompressibleModel:
+    """Per-Gaussian ``params`` (in the main Adam) plus optional merge proxy, appearance MLP and quantizers."""
+
+    def __init__(self, params: dict[str, torch.Tensor], config: GaussianConfig, active_sh_degree: int,
+                 active_sh_degree_t: int):
+        self.params = params
+        self.config = config
+        self.active_sh_degree = active_sh_degree
+        self.active_sh_degree_t = active_sh_degree_t
+        self.merge = None  # omg4.compress.merging.MergeProxy during a merge round
+        self.appearance = None  # omg4.gaussians.appearance.AppearanceMLP after attribute compression
+        self.quantizers: dict = {}  # SVQ attribute name -> SubVectorQuantizer
+
+    @staticmethod
+    def from_gaussians(model: Gaussians4D) -> "CompressibleModel":
+        params = {k: v.detach().clone() for k, v in model.params.items()}
+        return CompressibleModel(params, model.config, model.active_sh_degree, model.active_sh_degree_t)
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["xyz"].shape[0])
+
+    def time_norm(self, timestamp: float) -> float:
+        t0, t1 = self.config.time_range
+        return (timestamp - t0) / (t1 - t0)
+
+    def explicit_values(self) -> dict[str, torch.Tensor]:
+        """Per-Gaussian values with quantized attributes replaced by their codebook reconstructions."""
+        values = dict(self.params)
+        for attr, q in self.quantizers.items():
+            names = SVQ_ATTRIBUTES[attr]
+            recon = q.values()
+            if len(names) == 1:
+                values[names[0]] = recon.reshape(self.params[names[0]].shape) if names[0] in self.params else recon
+            else:
+                values[names[0]], values[names[1]] = recon[:, :3], recon[:, 3:6]
+        return values
+
+    def effective_gaussians(self, timestamp: float) -> tuple[Gaussians4D, torch.Tensor | None]:
+        """The Real-Time4DGS parameters shown at ``timestamp`` and the row index they came from (None = all)."""
+        values = self.explicit_values()
+        keep = None
+        if self.merge is not None:
+            values, keep = self.merge.apply(values)
+        if self.appearance is not None:
+            dc, rest, opacity = self.appearance(values["xyz"].detach(), self.time_norm(timestamp), values["f_static"],
+                                                values["f_view"])
+            values = {**values, "features_dc": dc, "features_rest": rest, "opacity": _logit(opacity).unsqueeze(-1)}
+        if keep is not None:
+            values = {k: v[keep] for k, v in values.items()}
+        base = {k: values[k] for k in ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r", "opacity",
+                                       "features_dc", "features_rest")}
+        return Gaussians4D(base, self.config, self.active_sh_degree, self.active_sh_degree_t), keep
+
+    def slice_at(self, timestamp: float, camera_center: torch.Tensor):
+        """The :class:`omg4.render.view.TimeSlice` at ``timestamp`` (indices refer to this model's rows)."""
+        g, keep = self.effective_gaussians(timestamp)
+        sl = g.slice_at(timestamp, camera_center)
+        if keep is not None:
+            sl.index = keep[sl.index]
+            sl.num_total = self.num_gaussians
+        return sl
+
+    def to_gaussians(self) -> Gaussians4D:
+        """A plain Real-Time4DGS model (only before attribute compression: appearance must be explicit)."""
+        if self.appearance is not None:
+            raise ValueError("a model with MLP appearance cannot be written as a Real-Time4DGS checkpoint")
+        values = self.explicit_values()
+        if self.merge is not None:
+            values, keep = self.merge.apply(values)
+            values = {k: v[keep] for k, v in values.items()}
+        params = {k: v.detach().clone() for k, v in values.items()}
+        return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
+
+
+__all__ = ["CompressibleModel", "SVQ_ATTRIBUTES", "SVQ_STAGE_3D", "SVQ_STAGE_4D"]

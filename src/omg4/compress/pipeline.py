@@ -1,0 +1,293 @@
+"""The OMG4 compression pipeline: a trained Real-Time4DGS model → a minimal, quantized model.
+
+Runs the events of :mod:`omg4.compress.schedule` and fine-tunes in between with the
+baseline loss (paper §5.1): each iteration renders ``batch_size`` random training views,
+back-propagates ``loss_v / B`` and steps every optimizer (main Adam over per-Gaussian
+tensors and merge logits; MLP Adam with its schedule; codebook Adam).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from omg4.compress import appearance_stage, merging
+from omg4.compress.model import SVQ_ATTRIBUTES, SVQ_STAGE_3D, SVQ_STAGE_4D, CompressibleModel
+from omg4.compress.presets import SizePreset, size_preset
+from omg4.compress.pruning import pruning_mask
+from omg4.compress.sampling import sampling_mask
+from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
+from omg4.compress.score import SDScores, compute_sd_scores
+from omg4.compress.svq import SubVectorQuantizer
+from omg4.data.scene import Scene
+from omg4.errors import OMG4Error
+from omg4.gaussians import Gaussians4D
+from omg4.gaussians.appearance import AppearanceMLP
+from omg4.render.view import render_view
+from omg4.train.loss import photometric_loss
+from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, replace_param
+from omg4.train.trainer import step_generator, view_image
+
+FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
+
+
+@dataclass
+class CompressConfig:
+    """Everything that decides an OMG4 run; ``preset`` sets τ_GS, p and the codebook sizes."""
+
+    preset: str = "M"
+    stages: tuple[str, ...] = FULL_STAGES
+    schedule: str = "official"
+    lengths: StageLengths | None = None
+    num_merge: int = 2
+    batch_size: int = 4
+    seed: int = 6666
+    merge: merging.MergeConfig = field(default_factory=merging.MergeConfig)
+    official_score_quirk: bool = False
+    baseline_iterations: int = 30_000  # the xyz learning rate continues the baseline's decay
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    codebook_lr: float = 1e-4
+    backend: str = "auto"
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tau_gs: float | None = None  # overrides of the preset
+    prune_quantile: float | None = None
+
+    def size(self) -> SizePreset:
+        p = size_preset(self.preset)
+        return replace(p, tau_gs=self.tau_gs if self.tau_gs is not None else p.tau_gs,
+                       prune_quantile=self.prune_quantile if self.prune_quantile is not None else p.prune_quantile)
+
+    def stage_lengths(self) -> StageLengths:
+        if self.lengths is not None:
+            return self.lengths
+        if self.schedule not in SCHEDULES:
+            raise OMG4Error(f"unknown schedule '{self.schedule}' (choose from {', '.join(SCHEDULES)})")
+        return SCHEDULES[self.schedule]
+
+
+@dataclass
+class StageRecord:
+    """One row of the pipeline's log: the stage, when it ran, and the Gaussian count after it."""
+
+    stage: str
+    iteration: int
+    num_gaussians: int
+    seconds: float
+
+
+class CompressionPipeline:
+    """Runs OMG4 on ``baseline`` for ``scene``; see :func:`compress`."""
+
+    def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
+                 progress: bool = True, log=print):
+        if not scene.train_views:
+            raise OMG4Error("the scene has no training views")
+        self.scene, self.cfg, self.progress, self.log = scene, cfg, progress, log
+        self.size = cfg.size()
+        self.model = CompressibleModel.from_gaussians(baseline)
+        self.background = torch.tensor(cfg.background, dtype=torch.float32)
+        self.extent = scene.extent
+        self.scores = scores
+        self.records: list[StageRecord] = []
+        for p in self.model.params.values():
+            p.requires_grad_(True)
+        self.optimizer = torch.optim.Adam(self._main_groups(), lr=0.0, eps=1e-15)
+        self.mlp_optimizer = None
+        self.mlp_scheduler = None
+        self.codebook_optimizer = None
+        self.events, self.total_iterations = build_events(cfg.stages, cfg.stage_lengths(), cfg.num_merge)
+
+    # ----------------------------------------------------------------- optimizers
+    def _main_groups(self) -> list[dict]:
+        lrs = baseline_lrs_for(self.model.params, self.extent)
+        return [{"params": [self.model.params[k]], "lr": lrs[k], "name": k} for k in self.model.params]
+
+    def _rebuild_main_optimizer(self) -> None:
+        """New main Adam over the current params (+ merge logits), keeping moments of surviving tensors."""
+        old = self.optimizer
+        groups = self._main_groups()
+        if self.model.merge is not None:
+            groups += self.model.merge.param_groups(self.cfg.merge.logit_lr)
+        new = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        for g in new.param_groups:
+            p = g["params"][0]
+            if p in old.state:
+                new.state[p] = old.state[p]
+        self.optimizer = new
+
+    def _set_position_lr(self, step: int) -> None:
+        total = self.cfg.baseline_iterations + self.total_iterations
+        lr = expon_lr(self.cfg.baseline_iterations + step, self.cfg.position_lr_init * self.extent,
+                      self.cfg.position_lr_final * self.extent, total)
+        for g in self.optimizer.param_groups:
+            if g["name"] == "xyz":
+                g["lr"] = lr
+
+    # ---------------------------------------------------------------------- stages
+    def _remove(self, keep: torch.Tensor) -> None:
+        keep_rows(self.model.params, self.optimizer, keep)
+        for q in self.model.quantizers.values():
+            q.select(keep)
+        if self.scores is not None:
+            self.scores = self.scores.select(keep)
+
+    def _ensure_scores(self) -> SDScores:
+        if self.scores is None:
+            self.scores = compute_sd_scores(self.model, self.scene.train_views, background=self.background,
+                                            backend=self.cfg.backend, official_quirk=self.cfg.official_score_quirk,
+                                            progress=self.progress)
+        return self.scores
+
+    def stage_sample(self) -> None:
+        """Gaussian Sampling (paper §4.1)."""
+        self._remove(sampling_mask(self._ensure_scores(), self.size.tau_gs))
+
+    def stage_prune(self) -> None:
+        """Gaussian Pruning (paper §4.2) on the stored scores of the sampled set."""
+        self._remove(pruning_mask(self._ensure_scores(), self.size.prune_quantile))
+
+    def stage_sample_prune(self) -> None:
+        """Sampling and pruning applied at once (the paper's GS+GP ablation row)."""
+        scores = self._ensure_scores()
+        keep = sampling_mask(scores, self.size.tau_gs)
+        keep[keep.clone()] = pruning_mask(scores.select(keep), self.size.prune_quantile)
+        self._remove(keep)
+
+    def _bake_merge(self) -> None:
+        proxy = self.model.merge
+        if proxy is None:
+            return
+        baked, keep = proxy.bake(self.model.params)
+        for name in ("xyz", "features_dc", "features_rest"):
+            replace_param(self.model.params, self.optimizer, name, baked[name], reset_state=False)
+        self.model.merge = None
+        self._rebuild_main_optimizer()
+        self._remove(keep)
+
+    def stage_merge(self, round_index: int) -> None:
+        """One Gaussian Merging round (paper §4.3): bake the previous round, build new groups and proxies."""
+        self._bake_merge()
+        mc = self.cfg.merge
+        grid = mc.grid_size * mc.grid_growth ** round_index
+        p = self.model.params
+        groups = merging.build_merge_groups(p["xyz"].detach(), p["t"].detach(), p["features_dc"].detach(),
+                                            self.model.config.time_range, grid, mc)
+        self.model.merge = merging.MergeProxy(groups, self.model.num_gaussians)
+        self._rebuild_main_optimizer()
+
+    def stage_appearance(self) -> None:
+        """Replace opacity and SH by the time-conditioned MLPs and per-Gaussian features (paper §4.4)."""
+        self._bake_merge()
+        features = appearance_stage.init_appearance_features(self.model.params)
+        for name in ("opacity", "features_dc", "features_rest"):
+            self.model.params.pop(name)
+        for name, value in features.items():
+            self.model.params[name] = value.detach().clone().requires_grad_(True)
+        torch.manual_seed(self.cfg.seed)
+        self.model.appearance = AppearanceMLP()
+        lengths = self.cfg.stage_lengths()
+        remaining = self._remaining_after("appearance", lengths)
+        self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
+            self.model.appearance, total_iterations=remaining)
+        self._rebuild_main_optimizer()
+
+    def _remaining_after(self, name: str, lengths: StageLengths) -> int:
+        start = next(e.iteration for e in self.events if e.name == name)
+        return self.total_iterations - start
+
+    def _quantize(self, attributes: tuple[str, ...]) -> None:
+        self._bake_merge()
+        for attr in attributes:
+            names = SVQ_ATTRIBUTES[attr]
+            if not all(n in self.model.params for n in names):
+                raise OMG4Error(f"SVQ of '{attr}' needs {names}: run the appearance stage first")
+            values = torch.cat([self.model.params[n].detach().reshape(self.model.num_gaussians, -1) for n in names], 1)
+            sub_len, k = self.size.codebook(attr)
+            self.model.quantizers[attr] = SubVectorQuantizer.fit(values, sub_len, k, seed=self.cfg.seed)
+            for n in names:
+                self.model.params.pop(n)
+        self._rebuild_main_optimizer()
+        codebooks = [cb for q in self.model.quantizers.values() for cb in q.parameters()]
+        self.codebook_optimizer = torch.optim.Adam(codebooks, lr=self.cfg.codebook_lr, eps=1e-8)
+
+    def stage_svq3d(self) -> None:
+        """SVQ of scale, rotation and appearance features (paper §4.4, stage 3D)."""
+        self._quantize(SVQ_STAGE_3D)
+
+    def stage_svq4d(self) -> None:
+        """SVQ of the time scale and right quaternion (paper §4.4, stage 4D)."""
+        self._quantize(SVQ_STAGE_4D)
+
+    def apply_event(self, name: str, round_index: int, iteration: int) -> None:
+        t0 = time.perf_counter()
+        {"sample": self.stage_sample, "prune": self.stage_prune, "sample+prune": self.stage_sample_prune,
+         "appearance": self.stage_appearance, "svq3d": self.stage_svq3d, "svq4d": self.stage_svq4d,
+         }.get(name, lambda: self.stage_merge(round_index))()
+        label = f"merge{round_index + 1}" if name == "merge" else name
+        self.records.append(StageRecord(label, iteration, self.model.num_gaussians, time.perf_counter() - t0))
+        self.log(f"{label}: {self.model.num_gaussians} Gaussians")
+
+    # -------------------------------------------------------------------- training
+    def finetune_step(self, step: int) -> float:
+        """One fine-tuning iteration (1-based ``step``); returns the mean batch loss."""
+        self._set_position_lr(step)
+        views = self.scene.train_views
+        order = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2))
+        losses = []
+        for i in order.tolist():
+            view = views[i]
+            rendered, _ = render_view(self.model, view.camera, view.timestamp, background=self.background,
+                                      backend=self.cfg.backend)
+            loss = photometric_loss(rendered.image, view_image(view)) / self.cfg.batch_size
+            if not torch.isfinite(loss):
+                raise OMG4Error(f"compression diverged at iteration {step}: the loss is {float(loss)}")
+            loss.backward()
+            losses.append(float(loss) * self.cfg.batch_size)
+        for opt in (self.optimizer, self.mlp_optimizer, self.codebook_optimizer):
+            if opt is not None:
+                opt.step()
+                opt.zero_grad(set_to_none=True)
+        if self.mlp_scheduler is not None:
+            self.mlp_scheduler.step()
+        return float(np.mean(losses))
+
+    def run(self, stop_after: str | None = None) -> CompressibleModel:
+        """Run every event and the fine-tuning between them; stop after the stage ``stop_after`` if given."""
+        events = list(self.events)
+        stop_iteration = None
+        if stop_after is not None:
+            matching = [i for i, e in enumerate(events) if e.name == stop_after]
+            if not matching:
+                raise OMG4Error(f"--stop-after {stop_after}: that stage is not part of this pipeline")
+            last = matching[-1]
+            stop_iteration = events[last + 1].iteration if last + 1 < len(events) else self.total_iterations
+        end = self.total_iterations if stop_iteration is None else stop_iteration
+        bar = tqdm(total=end, desc="compress", disable=not self.progress, dynamic_ncols=True)
+        loss_ema = None
+        for step in range(1, end + 1):
+            while events and events[0].iteration == step - 1:
+                e = events.pop(0)
+                self.apply_event(e.name, e.round, step - 1)
+                bar.set_description(f"compress [{self.records[-1].stage}]")
+            loss = self.finetune_step(step)
+            loss_ema = loss if loss_ema is None else 0.9 * loss_ema + 0.1 * loss
+            bar.update(1)
+            if step % 10 == 0:
+                bar.set_postfix(loss=f"{loss_ema:.4f}", N=self.model.num_gaussians)
+        bar.close()
+        self._bake_merge()
+        return self.model
+
+
+def baseline_lrs_for(params: dict[str, torch.Tensor], extent: float) -> dict[str, float]:
+    """Learning rates of the per-Gaussian tensors (reference omg4 §9)."""
+    from omg4.train.config import TrainConfig
+
+    lrs = baseline_lrs(TrainConfig(), extent)
+    lrs.update({"f_static": appearance_stage.FEATURE_LR, "f_view": appearance_stage.FEATURE_LR})
+    return {k: lrs[k] for k in params}

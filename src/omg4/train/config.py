@@ -1,0 +1,94 @@
+"""Training configuration of the Real-Time4DGS baseline and its presets.
+
+Defaults follow the official Real-Time4DGS configs (reference rt4dgs §3.3–3.6): 30k
+iterations, densification every 100 iterations from 500 to 15k with gradient threshold
+2e-4, opacity reset every 3000, SH degree +1 every 1000. ``cpu-small`` scales the schedule
+for a 2-core machine and small scenes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Every knob of a baseline training run (iterations count optimizer steps)."""
+
+    iterations: int = 30_000
+    batch_size: int = 4
+    seed: int = 6666
+    # learning rates (rt4dgs §3.3); position ones are multiplied by the scene extent
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    position_lr_max_steps: int = 30_000
+    time_lr: float = 1.6e-4
+    feature_lr: float = 0.0025
+    feature_rest_lr: float = 0.0025 / 20
+    opacity_lr: float = 0.05
+    scaling_lr: float = 0.005
+    rotation_lr: float = 0.001
+    # loss (rt4dgs §3.2)
+    lambda_dssim: float = 0.2
+    # densification (rt4dgs §3.4)
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_interval: int = 100
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    prune_screen_size: float = 20.0
+    prune_world_size: float = 0.1
+    opacity_reset_interval: int = 3000
+    max_gaussians: int = 0  # 0 = unbounded
+    # SH degree schedule: spatial 0→max, then temporal 0→max, one step per interval
+    sh_increase_interval: int = 1000
+    # initialization
+    num_random_points: int = 100_000
+    # evaluation and checkpoints
+    test_interval: int = 0  # 0 = only at the end
+    checkpoint_interval: int = 1000
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    backend: str = "auto"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(TrainConfig)}
+        kwargs = {k: (tuple(v) if k == "background" else v) for k, v in d.items() if k in names}
+        return TrainConfig(**kwargs)
+
+
+PRESETS: dict[str, dict] = {
+    # the official schedule (N3DV configs: batch 4, 30k iterations)
+    "official": {},
+    # a 2-core laptop on a small scene (≈ 256×192, a few dozen thousand Gaussians)
+    "cpu-small": dict(
+        iterations=3000,
+        batch_size=2,
+        position_lr_max_steps=3000,
+        densify_from=150,
+        densify_until=2000,
+        densify_interval=100,
+        opacity_reset_interval=1000,
+        sh_increase_interval=250,
+        num_random_points=20_000,
+        max_gaussians=60_000,
+        checkpoint_interval=500,
+    ),
+}
+
+
+def make_config(preset: str = "official", **overrides) -> TrainConfig:
+    """The preset's config with ``overrides`` (``None`` values ignored) applied."""
+    if preset not in PRESETS:
+        from omg4.errors import OMG4Error
+
+        raise OMG4Error(f"unknown training preset '{preset}' (choose from {', '.join(PRESETS)})")
+    cfg = replace(TrainConfig(), **PRESETS[preset])
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if "iterations" in overrides and "position_lr_max_steps" not in overrides:
+        overrides["position_lr_max_steps"] = overrides["iterations"]
+    return replace(cfg, **overrides)

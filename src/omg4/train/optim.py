@@ -1,0 +1,107 @@
+"""Per-parameter Adam groups, learning-rate schedules and optimizer-state surgery.
+
+Real-Time4DGS (reference rt4dgs §3.3) gives every tensor its own Adam group (eps 1e-15);
+the position learning rate decays log-linearly, the others are constant. Densification and
+the OMG4 stages add and remove Gaussians: :func:`keep_rows` and :func:`append_rows` edit the
+parameter tensors *and* their Adam moments together so no stage reaches into another's
+state.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from omg4.train.config import TrainConfig
+
+
+def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
+    """Log-linear interpolation from ``lr_init`` to ``lr_final`` over ``max_steps`` (rt4dgs §3.3)."""
+    if lr_init == lr_final or max_steps <= 0:
+        return lr_final if max_steps <= 0 else lr_init
+    u = min(max(step / max_steps, 0.0), 1.0)
+    return math.exp(math.log(lr_init) * (1 - u) + math.log(lr_final) * u)
+
+
+def baseline_lrs(cfg: TrainConfig, extent: float) -> dict[str, float]:
+    """Initial learning rate of each baseline parameter group (rt4dgs §3.3)."""
+    return {
+        "xyz": cfg.position_lr_init * extent,
+        "t": cfg.time_lr * extent,
+        "features_dc": cfg.feature_lr,
+        "features_rest": cfg.feature_rest_lr,
+        "opacity": cfg.opacity_lr,
+        "scaling": cfg.scaling_lr,
+        "scaling_t": cfg.scaling_lr,
+        "rotation": cfg.rotation_lr,
+        "rotation_r": cfg.rotation_lr,
+    }
+
+
+def make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
+    """One Adam group per named tensor; each group remembers its name."""
+    groups = [{"params": [params[name]], "lr": lr, "name": name} for name, lr in lrs.items() if name in params]
+    return torch.optim.Adam(groups, lr=0.0, eps=eps)
+
+
+def set_position_lr(optimizer: torch.optim.Optimizer, cfg: TrainConfig, extent: float, step: int) -> float:
+    """Apply the position schedule at ``step``; returns the new xyz learning rate."""
+    lr = expon_lr(step, cfg.position_lr_init * extent, cfg.position_lr_final * extent, cfg.position_lr_max_steps)
+    for g in optimizer.param_groups:
+        if g.get("name") == "xyz":
+            g["lr"] = lr
+    return lr
+
+
+def _group(optimizer: torch.optim.Optimizer, name: str) -> dict | None:
+    return next((g for g in optimizer.param_groups if g.get("name") == name), None)
+
+
+def _swap_param(optimizer: torch.optim.Optimizer, group: dict, new: torch.Tensor, edit_state) -> None:
+    old = group["params"][0]
+    state = optimizer.state.pop(old, None)
+    if state:
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                state[key] = edit_state(state[key])
+        optimizer.state[new] = state
+    group["params"][0] = new
+
+
+def keep_rows(params: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None, keep: torch.Tensor,
+              names: list[str] | None = None) -> None:
+    """Keep only the rows ``keep`` (bool [N] or int64 index) of every per-Gaussian tensor, with its Adam moments.
+
+    Tensors in ``params`` are replaced in place (the dict) by new leaf tensors.
+    """
+    for name in names or list(params):
+        old = params[name]
+        new = old.detach()[keep].clone().requires_grad_(old.requires_grad)
+        params[name] = new
+        group = _group(optimizer, name) if optimizer is not None else None
+        if group is not None:
+            _swap_param(optimizer, group, new, lambda s: s[keep].clone())
+
+
+def append_rows(params: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None,
+                extra: dict[str, torch.Tensor]) -> None:
+    """Append new Gaussians (``extra[name]`` rows) with zero Adam moments."""
+    for name, rows in extra.items():
+        old = params[name]
+        new = torch.cat([old.detach(), rows.detach().to(old.dtype)], 0).requires_grad_(old.requires_grad)
+        params[name] = new
+        group = _group(optimizer, name) if optimizer is not None else None
+        if group is not None:
+            _swap_param(optimizer, group, new, lambda s: torch.cat([s, torch.zeros_like(rows, dtype=s.dtype)], 0))
+
+
+def replace_param(params: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None, name: str,
+                  value: torch.Tensor, reset_state: bool = True) -> None:
+    """Replace one tensor's values (same shape), zeroing its Adam moments when ``reset_state``."""
+    old = params[name]
+    new = value.detach().clone().requires_grad_(old.requires_grad)
+    params[name] = new
+    group = _group(optimizer, name) if optimizer is not None else None
+    if group is not None:
+        _swap_param(optimizer, group, new, (lambda s: torch.zeros_like(s)) if reset_state else (lambda s: s))

@@ -1,0 +1,69 @@
+"""Checkpoints of a training run: model, optimizer and densification state, written atomically.
+
+A run folder holds ``config.json``, ``checkpoints/model_XXXXXXX.safetensors`` (the model in
+the safe format of :mod:`omg4.gaussians.checkpoint`) and ``checkpoints/state_XXXXXXX.pt``
+(optimizer moments and densification statistics: tensors and plain numbers only, read back
+with ``torch.load(weights_only=True)``). The state file is written after the model file, so
+a state file's presence marks a complete checkpoint.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import torch
+
+from omg4.atomic import atomic_path
+from omg4.errors import CorruptFileError
+from omg4.gaussians.checkpoint import load_gaussians, save_gaussians
+
+_STATE_RE = re.compile(r"state_(\d{7})\.pt$")
+
+
+def checkpoint_paths(run_dir: Path, iteration: int) -> tuple[Path, Path]:
+    folder = Path(run_dir) / "checkpoints"
+    return folder / f"model_{iteration:07d}.safetensors", folder / f"state_{iteration:07d}.pt"
+
+
+def save_run_checkpoint(run_dir: Path, iteration: int, model, optimizer, stats, metadata: dict,
+                        keep_last: int = 2) -> Path:
+    """Write the checkpoint of ``iteration`` and remove older ones beyond ``keep_last``."""
+    model_path, state_path = checkpoint_paths(run_dir, iteration)
+    save_gaussians(model_path, model, {**metadata, "iteration": iteration})
+    state = {
+        "iteration": iteration,
+        "optimizer": optimizer.state_dict(),
+        "stats": {"grad_sum": stats.grad_sum, "visible_views": stats.visible_views, "max_radii": stats.max_radii},
+    }
+    with atomic_path(state_path) as tmp:
+        torch.save(state, tmp)
+    for old in sorted(_complete_iterations(run_dir))[:-keep_last]:
+        for p in checkpoint_paths(run_dir, old):
+            p.unlink(missing_ok=True)
+    return model_path
+
+
+def _complete_iterations(run_dir: Path) -> list[int]:
+    folder = Path(run_dir) / "checkpoints"
+    if not folder.is_dir():
+        return []
+    its = [int(m.group(1)) for p in folder.iterdir() if (m := _STATE_RE.search(p.name))]
+    return [i for i in its if checkpoint_paths(run_dir, i)[0].exists()]
+
+
+def latest_iteration(run_dir: Path) -> int | None:
+    """The last complete checkpoint's iteration, or None."""
+    its = _complete_iterations(run_dir)
+    return max(its) if its else None
+
+
+def load_run_checkpoint(run_dir: Path, iteration: int):
+    """(model, metadata, state dict) of a saved iteration."""
+    model_path, state_path = checkpoint_paths(run_dir, iteration)
+    model, metadata = load_gaussians(model_path)
+    try:
+        state = torch.load(state_path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many kinds on damaged files
+        raise CorruptFileError(f"{state_path}: cannot read training state ({type(e).__name__})") from None
+    return model, metadata, state
