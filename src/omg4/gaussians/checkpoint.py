@@ -1,0 +1,139 @@
+"""Safe checkpoints of :class:`Gaussians4D` models (safetensors, no pickle).
+
+A checkpoint is a safetensors file holding the nine raw parameters as float32 and one
+metadata entry ``"omg4"``: a JSON object with ``format`` (``"omg4-rt4dgs"``), ``version``,
+``config`` (:class:`GaussianConfig`), the active SH degrees, the Gaussian count and the
+caller's ``metadata`` (scene normalization, time range, iteration, ...). Files are written
+atomically; anything unreadable or of another kind raises :class:`CorruptFileError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from omg4.atomic import atomic_path
+from omg4.errors import CorruptFileError
+from omg4.gaussians.model import PARAM_NAMES, GaussianConfig, Gaussians4D, param_shapes
+
+FORMAT_NAME = "omg4-rt4dgs"
+FORMAT_VERSION = 1
+_META_KEY = "omg4"
+
+
+def save_gaussians(path: str | os.PathLike, model: Gaussians4D, metadata: dict | None = None) -> None:
+    """Write ``model`` (params as float32) and JSON-serializable ``metadata`` to ``path`` atomically."""
+    from safetensors.torch import save_file
+
+    tensors = {k: model.params[k].detach().to("cpu", torch.float32).contiguous() for k in PARAM_NAMES}
+    header = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "config": model.config.to_json(),
+        "active_sh_degree": model.active_sh_degree,
+        "active_sh_degree_t": model.active_sh_degree_t,
+        "num_gaussians": model.num_gaussians,
+        "metadata": metadata or {},
+    }
+    text = json.dumps(header)
+    with atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), metadata={_META_KEY: text})
+
+
+def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
+    """(omg4 header, {tensor name: shape}) without reading tensor data."""
+    from safetensors import safe_open
+
+    if not path.is_file():
+        raise CorruptFileError(f"{path}: no such checkpoint file")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            shapes = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+    except Exception as e:  # safetensors raises several kinds on damaged files
+        raise CorruptFileError(f"{path}: not a readable safetensors checkpoint ({type(e).__name__})") from None
+    try:
+        header = json.loads(meta[_META_KEY])
+    except (KeyError, ValueError):
+        raise CorruptFileError(f"{path}: a safetensors file but not an omg4 checkpoint (no omg4 metadata)") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
+        raise CorruptFileError(f"{path}: not an omg4 Real-Time4DGS checkpoint")
+    if header.get("version") != FORMAT_VERSION:
+        raise CorruptFileError(f"{path}: checkpoint format version {header.get('version')} is not supported "
+                               f"(this omg4 reads version {FORMAT_VERSION})")
+    return header, shapes
+
+
+def _config_of(path: Path, header: dict) -> GaussianConfig:
+    try:
+        return GaussianConfig.from_json(header["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CorruptFileError(f"{path}: invalid model config in checkpoint ({e})") from None
+
+
+def load_gaussians(path: str | os.PathLike) -> tuple[Gaussians4D, dict]:
+    """Read a checkpoint written by :func:`save_gaussians`.
+
+    Returns:
+        (model, metadata): parameters as float32 CPU tensors without gradients, and the
+        caller's metadata dict given at save time.
+    Raises:
+        CorruptFileError: missing, truncated, damaged or wrong-kind file, or non-finite values.
+    """
+    from safetensors import safe_open
+
+    path = Path(path)
+    header, shapes = _read_header(path)
+    config = _config_of(path, header)
+    n = shapes.get("xyz", (0,))[0]
+    expected = param_shapes(n, config)
+    for k in PARAM_NAMES:
+        if shapes.get(k) != expected[k]:
+            raise CorruptFileError(f"{path}: parameter '{k}' has shape {shapes.get(k)}, expected {expected[k]}")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            params = {k: f.get_tensor(k) for k in PARAM_NAMES}
+    except Exception as e:
+        raise CorruptFileError(f"{path}: cannot read checkpoint tensors ({type(e).__name__})") from None
+    for k, v in params.items():
+        if v.dtype != torch.float32:
+            raise CorruptFileError(f"{path}: parameter '{k}' has dtype {v.dtype}, expected float32")
+        if not torch.isfinite(v).all():
+            raise CorruptFileError(f"{path}: parameter '{k}' contains NaN or Inf")
+    try:
+        model = Gaussians4D(params, config, header["active_sh_degree"], header["active_sh_degree_t"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CorruptFileError(f"{path}: inconsistent checkpoint ({e})") from None
+    return model, dict(header.get("metadata") or {})
+
+
+def describe_checkpoint(path: str | os.PathLike) -> dict:
+    """Summary for ``omg4 info`` from the header alone: kind, Gaussian count, degrees, time range, size."""
+    path = Path(path)
+    header, shapes = _read_header(path)
+    config = _config_of(path, header)
+    size = path.stat().st_size
+    meta = header.get("metadata") or {}
+    return {
+        "kind": "rt4dgs-checkpoint",
+        "path": str(path),
+        "format_version": header["version"],
+        "num_gaussians": int(shapes.get("xyz", (0,))[0]),
+        "sh_degree": config.sh_degree,
+        "sh_degree_t": config.sh_degree_t,
+        "active_sh_degree": header.get("active_sh_degree"),
+        "active_sh_degree_t": header.get("active_sh_degree_t"),
+        "time_range": list(config.time_range),
+        "rotation_convention": config.rotation_convention,
+        "sh_direction": config.sh_direction,
+        "file_size_bytes": size,
+        "file_size_mb": size / 2**20,
+        "metadata_keys": sorted(meta),
+        **({"iteration": meta["iteration"]} if "iteration" in meta else {}),
+    }
+
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_gaussians", "load_gaussians", "describe_checkpoint"]

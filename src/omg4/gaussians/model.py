@@ -1,0 +1,225 @@
+"""The Real-Time4DGS model container (reference rt4dgs §1–2, §3.5).
+
+Raw (pre-activation) parameters live in ``params``; activations are applied here only:
+
+| name | shape | activation |
+| --- | --- | --- |
+| xyz | [N, 3] | — |
+| t | [N, 1] | — |
+| scaling | [N, 3] | exp |
+| scaling_t | [N, 1] | exp |
+| rotation | [N, 4] | left quaternion (w, x, y, z), normalized at use |
+| rotation_r | [N, 4] | right quaternion, normalized at use |
+| opacity | [N, 1] | sigmoid |
+| features_dc | [N, 1, 3] | SH coefficient 0 |
+| features_rest | [N, K−1, 3] | SH coefficients 1..K−1 (K = 48 for degrees 3 × 2) |
+
+The trainer replaces entries of ``params`` (densification) and owns ``requires_grad``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from omg4.errors import DataError
+from omg4.gaussians.covariance import covariance_4d, slice_geometry
+from omg4.gaussians.rotation import ROTATION_CONVENTIONS
+from omg4.gaussians.sh import colors_from_sh, num_sh_coeffs, rgb_to_sh, view_directions
+from omg4.render.view import TimeSlice
+
+PARAM_NAMES = ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r", "opacity", "features_dc", "features_rest")
+SH_DIRECTIONS = ("conditioned", "canonical")
+
+
+@dataclass
+class GaussianConfig:
+    """Fixed settings of a model (not learned).
+
+    Attributes:
+        time_range: (t0, t1); T = t1 − t0 is the SH time period (rt4dgs §2).
+        sh_degree, sh_degree_t: maximum spatial / temporal SH degrees.
+        rotation_convention: ``"flip"`` (official current) or ``"legacy"`` (pre-900c592).
+        time_cull: cull Gaussians whose temporal marginal p_t ≤ this (rt4dgs §1.4).
+        sh_direction: SH view direction from the ``"conditioned"`` mean μ_3D(τ) (default,
+            paper-consistent) or the ``"canonical"`` μ_xyz (official CUDA forward, §1.6-1).
+    """
+
+    time_range: tuple[float, float]
+    sh_degree: int = 3
+    sh_degree_t: int = 2
+    rotation_convention: str = "flip"
+    time_cull: float = 0.05
+    sh_direction: str = "conditioned"
+
+    def __post_init__(self):
+        self.time_range = (float(self.time_range[0]), float(self.time_range[1]))
+        if not self.time_range[1] > self.time_range[0]:
+            raise ValueError(f"time_range must be increasing, got {self.time_range}")
+        if not 0 <= self.sh_degree <= 3 or not 0 <= self.sh_degree_t <= 2:
+            raise ValueError(f"SH degrees must be in 0..3 × 0..2, got {self.sh_degree} × {self.sh_degree_t}")
+        if self.rotation_convention not in ROTATION_CONVENTIONS:
+            raise ValueError(f"rotation_convention must be one of {ROTATION_CONVENTIONS}")
+        if self.sh_direction not in SH_DIRECTIONS:
+            raise ValueError(f"sh_direction must be one of {SH_DIRECTIONS}")
+
+    @property
+    def period(self) -> float:
+        """T = t1 − t0."""
+        return self.time_range[1] - self.time_range[0]
+
+    @property
+    def band_size(self) -> int:
+        """SH coefficients per temporal band, (sh_degree + 1)²."""
+        return num_sh_coeffs(self.sh_degree)
+
+    @property
+    def num_coeffs(self) -> int:
+        """K = (sh_degree + 1)² · (sh_degree_t + 1) coefficients per channel."""
+        return self.band_size * (self.sh_degree_t + 1)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["time_range"] = list(self.time_range)
+        return d
+
+    @staticmethod
+    def from_json(d: dict) -> "GaussianConfig":
+        return GaussianConfig(**{**d, "time_range": tuple(d["time_range"])})
+
+
+def param_shapes(n: int, config: GaussianConfig) -> dict[str, tuple[int, ...]]:
+    """Expected raw parameter shapes for ``n`` Gaussians."""
+    return {"xyz": (n, 3), "t": (n, 1), "scaling": (n, 3), "scaling_t": (n, 1), "rotation": (n, 4),
+            "rotation_r": (n, 4), "opacity": (n, 1), "features_dc": (n, 1, 3),
+            "features_rest": (n, config.num_coeffs - 1, 3)}
+
+
+def mean_neighbour_sq_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """Mean squared distance of each point to its ``k`` nearest other points (simple-knn ``distCUDA2``).
+
+    xyz: [M, 3] → [M] (0 for a single point).
+    """
+    from scipy.spatial import cKDTree
+
+    m = xyz.shape[0]
+    kk = min(k, m - 1)
+    if kk == 0:
+        return np.zeros(m)
+    dist, _ = cKDTree(xyz).query(xyz, k=kk + 1)
+    return (dist[:, 1:] ** 2).mean(axis=1)
+
+
+class Gaussians4D:
+    """A Real-Time4DGS model: raw parameters, fixed config and active SH degrees."""
+
+    def __init__(self, params: dict[str, torch.Tensor], config: GaussianConfig,
+                 active_sh_degree: int | None = None, active_sh_degree_t: int | None = None):
+        missing = [k for k in PARAM_NAMES if k not in params]
+        if missing:
+            raise ValueError(f"missing parameters {missing}")
+        n = int(params["xyz"].shape[0])
+        expected = param_shapes(n, config)
+        for k in PARAM_NAMES:
+            if tuple(params[k].shape) != expected[k]:
+                raise ValueError(f"parameter '{k}' has shape {tuple(params[k].shape)}, expected {expected[k]}")
+        self.params = params
+        self.config = config
+        self.active_sh_degree = config.sh_degree if active_sh_degree is None else int(active_sh_degree)
+        self.active_sh_degree_t = config.sh_degree_t if active_sh_degree_t is None else int(active_sh_degree_t)
+        if not (0 <= self.active_sh_degree <= config.sh_degree and 0 <= self.active_sh_degree_t <= config.sh_degree_t):
+            raise ValueError(f"active SH degrees ({self.active_sh_degree}, {self.active_sh_degree_t}) exceed the "
+                             f"maximum ({config.sh_degree}, {config.sh_degree_t})")
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["xyz"].shape[0])
+
+    @classmethod
+    def from_points(cls, xyz: torch.Tensor, rgb: torch.Tensor, config: GaussianConfig, *,
+                    generator: torch.Generator | None = None) -> "Gaussians4D":
+        """Initial model from a point cloud (rt4dgs §3.5).
+
+        t ~ U(t0 − 0.1 D, t1 + 0.1 D); isotropic log-scale log √max(d², 1e-7) with d² the mean
+        squared distance to the 3 nearest neighbours; log time scale log √(D/5); identity
+        quaternions (a static Gaussian); opacity logit(0.1); DC = RGB2SH(rgb), other SH 0.
+
+        Args:
+            xyz: [M, 3] positions; rgb: [M, 3] colours in [0, 1].
+        """
+        xyz = torch.as_tensor(xyz, dtype=torch.float32)
+        rgb = torch.as_tensor(rgb, dtype=torch.float32)
+        m = xyz.shape[0]
+        if m == 0:
+            raise DataError("cannot initialize Gaussians from an empty point cloud")
+        if xyz.shape != (m, 3) or rgb.shape != (m, 3):
+            raise DataError(f"point cloud shapes {tuple(xyz.shape)} / {tuple(rgb.shape)}, expected [M, 3] both")
+        if not (torch.isfinite(xyz).all() and torch.isfinite(rgb).all()):
+            raise DataError("the point cloud contains NaN or Inf values")
+        t0, t1 = config.time_range
+        d = config.period
+        dist2 = torch.from_numpy(mean_neighbour_sq_distance(xyz.double().numpy())).float()
+        log_s = 0.5 * torch.log(dist2.clamp_min(1e-7))
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(m, 1)
+        params = {
+            "xyz": xyz.clone(),
+            "t": (torch.rand(m, 1, generator=generator) * 1.2 - 0.1) * d + t0,
+            "scaling": log_s.unsqueeze(1).repeat(1, 3),
+            "scaling_t": torch.full((m, 1), 0.5 * float(np.log(d / 5.0))),
+            "rotation": identity.clone(),
+            "rotation_r": identity.clone(),
+            "opacity": torch.full((m, 1), float(np.log(0.1 / 0.9))),
+            "features_dc": rgb_to_sh(rgb).unsqueeze(1),
+            "features_rest": torch.zeros(m, config.num_coeffs - 1, 3),
+        }
+        return cls(params, config, active_sh_degree=0, active_sh_degree_t=0)
+
+    # activations -----------------------------------------------------------------------
+    def opacity(self) -> torch.Tensor:
+        """[N] sigmoid(opacity)."""
+        return torch.sigmoid(self.params["opacity"][:, 0])
+
+    def scales(self) -> torch.Tensor:
+        """[N, 4] exp of the log scales, (x, y, z, t)."""
+        return torch.cat([self.params["scaling"], self.params["scaling_t"]], dim=1).exp()
+
+    def features(self) -> torch.Tensor:
+        """[N, K, 3] all SH coefficients (DC first)."""
+        return torch.cat([self.params["features_dc"], self.params["features_rest"]], dim=1)
+
+    def covariance_4d(self) -> torch.Tensor:
+        """[N, 4, 4] Σ4 (rt4dgs §1.3)."""
+        p = self.params
+        return covariance_4d(self.scales(), p["rotation"], p["rotation_r"], self.config.rotation_convention)
+
+    # rendering -------------------------------------------------------------------------
+    def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
+        """The 3D Gaussians shown at ``timestamp`` to a viewer at ``camera_center`` [3].
+
+        rt4dgs §1.4 + §2: conditional mean and covariance, opacity · p_t, cull p_t ≤
+        ``time_cull``; colours max(SH4D + 0.5, 0) with the active degrees only and Δt = μ_t − τ.
+        Differentiable w.r.t. every parameter.
+        """
+        p, cfg = self.params, self.config
+        geom = slice_geometry(p["xyz"], p["t"], self.scales(), p["rotation"], p["rotation_r"], float(timestamp),
+                              convention=cfg.rotation_convention, time_cull=cfg.time_cull)
+        idx = geom.index
+        opacities = torch.sigmoid(p["opacity"][idx, 0]) * geom.marginal
+        origin = geom.means if cfg.sh_direction == "conditioned" else p["xyz"][idx]
+        dirs = view_directions(origin, torch.as_tensor(camera_center))
+        coeffs = torch.cat([p["features_dc"][idx], p["features_rest"][idx]], dim=1)
+        colors = colors_from_sh(coeffs, dirs, geom.dt, cfg.period, self.active_sh_degree,
+                                self.active_sh_degree_t, band_size=cfg.band_size)
+        return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=opacities, index=idx,
+                         num_total=self.num_gaussians)
+
+    def detach_copy(self) -> "Gaussians4D":
+        """An independent copy with detached, cloned parameters."""
+        params = {k: v.detach().clone() for k, v in self.params.items()}
+        return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
+
+
+__all__ = ["PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
+           "mean_neighbour_sq_distance"]

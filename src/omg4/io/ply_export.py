@@ -1,0 +1,168 @@
+"""Standard 3DGS ``.ply`` export of a time slice (reference data_metrics_viewer §5).
+
+Layout read by SuperSplat, PlayCanvas and most viewers: ``binary_little_endian``, one
+``vertex`` element with float properties ``x y z nx ny nz f_dc_0..2 f_rest_0.. opacity
+scale_0..2 rot_0..3``; ``f_rest`` is channel-major (all R coefficients, then G, then B);
+``opacity`` is a logit, ``scale_i`` = log σ_i, ``rot`` a (w, x, y, z) quaternion.
+
+A 4D model at time τ becomes: centre = conditional mean, covariance = conditional
+covariance → log-scales + quaternion (eigendecomposition), opacity = logit(σ(o)·p_t),
+Gaussians with p_t ≤ the cull threshold dropped, and the 4D SH time terms at τ folded into
+3D SH (rt4dgs §1.4, §2). With a :class:`Normalization` the slice is mapped back to the
+dataset's original world (positions, covariances and the SH view directions). Written with
+numpy only (``plyfile`` is GPL).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import torch
+
+from omg4.atomic import atomic_path
+from omg4.data.scene import Normalization
+from omg4.errors import OMG4Error
+from omg4.gaussians.covariance import slice_geometry
+from omg4.gaussians.model import Gaussians4D
+from omg4.gaussians.sh import fold_time_sh, rgb_to_sh, sh_basis
+from omg4.render.view import TimeSlice
+
+
+def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation matrices, inverse of the 3DGS ``build_rotation``.
+
+    Shepperd's method, vectorized: each row uses the largest of the four diagonal
+    combinations. R: [M, 3, 3] proper rotations → [M, 4].
+    """
+    r = R
+    diag = np.stack([1 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2], 1 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2],
+                     1 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2], 1 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2]], axis=1)
+    a = 0.5 * np.sqrt(np.maximum(diag, 1e-30))  # [M, 4] candidate |w|, |x|, |y|, |z|
+    wx, wy, wz = r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]
+    xy, xz, yz = r[:, 0, 1] + r[:, 1, 0], r[:, 0, 2] + r[:, 2, 0], r[:, 1, 2] + r[:, 2, 1]
+    cand = np.stack([
+        np.stack([a[:, 0], wx / (4 * a[:, 0]), wy / (4 * a[:, 0]), wz / (4 * a[:, 0])], 1),
+        np.stack([wx / (4 * a[:, 1]), a[:, 1], xy / (4 * a[:, 1]), xz / (4 * a[:, 1])], 1),
+        np.stack([wy / (4 * a[:, 2]), xy / (4 * a[:, 2]), a[:, 2], yz / (4 * a[:, 2])], 1),
+        np.stack([wz / (4 * a[:, 3]), xz / (4 * a[:, 3]), yz / (4 * a[:, 3]), a[:, 3]], 1),
+    ], axis=1)  # [M, 4 candidates, 4]
+    q = cand[np.arange(len(r)), diag.argmax(axis=1)]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def covariance_to_scale_rotation(covars: np.ndarray, min_var: float = 1e-24) -> tuple[np.ndarray, np.ndarray]:
+    """Log-scales and quaternions with ``R diag(σ²) Rᵀ = Σ`` (eigendecomposition).
+
+    covars: [M, 3, 3] symmetric PSD → (log σ [M, 3], quaternion (w, x, y, z) [M, 4]).
+    Eigenvalues below ``min_var`` are raised to it.
+    """
+    lam, vec = np.linalg.eigh(covars)
+    vec = vec.copy()
+    vec[np.linalg.det(vec) < 0, :, 2] *= -1  # proper rotation
+    return 0.5 * np.log(np.maximum(lam, min_var)), rotation_to_quaternion(vec)
+
+
+def sh_rotation_matrix(rotation: np.ndarray, degree: int, num_samples: int = 64) -> np.ndarray:
+    """Block-diagonal X [K, K], K = (degree+1)², with Σ_j c_j Y_j(R d) = Σ_k (X c)_k Y_k(d) for every d.
+
+    Each degree-l block is the exact linear map between the (2l+1)-dimensional SH spaces,
+    found by least squares on fixed sample directions. rotation: [3, 3] orthogonal.
+    """
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(num_samples, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    A = sh_basis(torch.from_numpy(d), degree).numpy()
+    B = sh_basis(torch.from_numpy(d @ np.asarray(rotation, dtype=np.float64).T), degree).numpy()
+    K = A.shape[1]
+    X = np.zeros((K, K))
+    for l in range(degree + 1):  # at most 4 blocks
+        s = slice(l * l, (l + 1) ** 2)
+        X[s, s] = np.linalg.lstsq(A[:, s], B[:, s], rcond=None)[0]
+    return X
+
+
+def _logit(p: np.ndarray, eps: float = 1e-7) -> np.ndarray:
+    p = np.clip(p, eps, 1 - eps)
+    return np.log(p) - np.log1p(-p)
+
+
+def _to_original_world(means: np.ndarray, covars: np.ndarray, sh: np.ndarray,
+                       normalization: Normalization) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Map a slice from the normalized world (x_n = s (R x + t)) back to the original world."""
+    R, s = np.asarray(normalization.rotation, dtype=np.float64), float(normalization.scale)
+    means = normalization.invert_points(means)
+    covars = np.einsum("ji,njk,kl->nil", R, covars, R) / (s * s)  # Rᵀ Σ R / s²
+    degree = int(round(np.sqrt(sh.shape[1]))) - 1
+    sh = np.einsum("kj,njc->nkc", sh_rotation_matrix(R, degree), sh)  # directions d_n = R d_o
+    return means, covars, sh
+
+
+def write_3dgs_ply(path: str | os.PathLike, means: np.ndarray, covars: np.ndarray, opacities: np.ndarray,
+                   sh: np.ndarray) -> None:
+    """Write Gaussians in the standard 3DGS layout (atomically).
+
+    Args:
+        means: [M, 3]; covars: [M, 3, 3]; opacities: [M] in (0, 1);
+        sh: [M, K, 3] coefficient-major SH (K = 1, 4, 9 or 16; DC first).
+    """
+    m, k = sh.shape[0], sh.shape[1]
+    if k not in (1, 4, 9, 16):
+        raise ValueError(f"{k} SH coefficients is not a 3DGS layout")
+    log_scales, quats = covariance_to_scale_rotation(np.asarray(covars, dtype=np.float64))
+    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(m, 3 * (k - 1))  # channel-major
+    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+             + [f"f_rest_{i}" for i in range(rest.shape[1])]
+             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    columns = np.concatenate([means, np.zeros((m, 3)), sh[:, 0, :], rest, _logit(np.asarray(opacities))[:, None],
+                              log_scales, quats], axis=1).astype("<f4")
+    header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {m}",
+                        *[f"property float {n}" for n in names], "end_header"]) + "\n"
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(np.ascontiguousarray(columns).tobytes())
+
+
+def export_ply(path: str | os.PathLike, model: Gaussians4D, timestamp: float, *,
+               normalization: Normalization | None = None) -> int:
+    """Write the time slice of ``model`` at ``timestamp`` as a standard 3DGS ``.ply``.
+
+    The model's active SH degrees are kept (spatial degree → f_rest count; temporal bands
+    folded at τ). With ``normalization`` the output is in the dataset's original world.
+    Returns the number of Gaussians written.
+    """
+    if not np.isfinite(timestamp):
+        raise OMG4Error(f"export time must be finite, got {timestamp}")
+    cfg = model.config
+    p = {k: v.detach().to("cpu", torch.float64) for k, v in model.params.items()}
+    scales = torch.cat([p["scaling"], p["scaling_t"]], dim=1).exp()
+    geom = slice_geometry(p["xyz"], p["t"], scales, p["rotation"], p["rotation_r"], float(timestamp),
+                          convention=cfg.rotation_convention, time_cull=cfg.time_cull)
+    idx = geom.index
+    coeffs = torch.cat([p["features_dc"][idx], p["features_rest"][idx]], dim=1)
+    sh = fold_time_sh(coeffs, geom.dt, cfg.period, model.active_sh_degree, model.active_sh_degree_t,
+                      band_size=cfg.band_size)
+    opacities = torch.sigmoid(p["opacity"][idx, 0]) * geom.marginal
+    means, covars, sh = geom.means.numpy(), geom.covars.numpy(), sh.numpy()
+    if normalization is not None:
+        means, covars, sh = _to_original_world(means, covars, sh, normalization)
+    write_3dgs_ply(path, means, covars, opacities.numpy(), sh)
+    return int(idx.numel())
+
+
+def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
+                          normalization: Normalization | None = None) -> int:
+    """Write any model's :class:`TimeSlice` (view-dependent colours baked to DC) as a 3DGS ``.ply``."""
+    sl = {k: getattr(time_slice, k).detach().to("cpu", torch.float64).numpy()
+          for k in ("means", "covars", "colors", "opacities")}
+    means, covars, opacities = sl["means"], sl["covars"], sl["opacities"]
+    sh = rgb_to_sh(sl["colors"])[:, None, :]
+    if normalization is not None:
+        means, covars, sh = _to_original_world(means, covars, sh, normalization)
+    write_3dgs_ply(path, means, covars, opacities, sh)
+    return int(means.shape[0])
+
+
+__all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "write_3dgs_ply",
+           "export_ply", "export_time_slice_ply"]
