@@ -17,7 +17,7 @@ from omg4.errors import OMG4Error
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic layout)")
+    parser.add_argument("path", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic), checkpoint (.safetensors) or .omg4 file")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
     parser.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
 
@@ -38,7 +38,7 @@ def summarize(path: Path, **options) -> tuple[dict, str]:
             return summarizer(path, **options)
     if not path.exists():
         raise OMG4Error(f"{path} does not exist")
-    raise OMG4Error(f"{path} is not a dataset folder; checkpoint/.omg4 summaries are not available yet")
+    raise OMG4Error(f"{path} is neither a dataset folder, a .safetensors checkpoint nor an .omg4 file")
 
 
 def dataset_summary(path: Path, format: str | None = None) -> tuple[dict, str]:
@@ -90,7 +90,21 @@ def _dataset_text(s: dict) -> str:
     return "\n".join(lines)
 
 
-#: (accepts(path), summarize(path, **options)) in order; file kinds (checkpoints, .omg4) go here.
+def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
+    """Summary of a Real-Time4DGS checkpoint (``.safetensors``): count, degrees, time range, size."""
+    from omg4.gaussians.checkpoint import describe_checkpoint
+
+    d = {"kind": "checkpoint", "path": str(path), **describe_checkpoint(path)}
+    text = "\n".join(f"{k:<20} {v}" for k, v in d.items() if not isinstance(v, (dict, list)))
+    return d, text
+
+
+def _is_checkpoint(path: Path) -> bool:
+    return path.is_file() and path.suffix == ".safetensors"
+
+
+#: (accepts(path), summarize(path, **options)) in order; each file kind has one entry.
 SUMMARIZERS: list[tuple[Callable[[Path], bool], Callable[..., tuple[dict, str]]]] = [
     (Path.is_dir, dataset_summary),
+    (_is_checkpoint, checkpoint_summary),
 ]

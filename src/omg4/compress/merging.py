@@ -1,0 +1,102 @@
+"""OMG4 Gaussian Merging, learnable proxies and baking (paper §4.3 Eq. 10, appendix Alg. 1).
+
+Each disjoint group (built by :mod:`omg4.compress.merge_clusters`) renders as one proxy in the
+slot of its representative r (smallest index; reference omg4 §6a):
+
+    x̄ = Σ_i w_i^x x_i,   f̄_dc = Σ_i w_i^dc f_dc,i,   f̄_rest = Σ_i w_i^rest f_rest,i,   ā = a_r
+    w_i = (σ(ℓ_i) + 1e-12) / (Σ_{j ∈ group} (σ(ℓ_j) + 1e-12) + 1e-12),   ℓ initialised to 0
+
+(three logit vectors: position, base colour, other colour terms; Adam lr 0.01). At the end of
+the round the proxy values are baked into the representatives and the other members removed.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from omg4.compress.merge_clusters import (MergeConfig, MergeGroups, StarClusters, build_merge_groups,
+                                          build_star_clusters, make_disjoint)
+
+# parameter name → name of its logit vector (reference omg4 §6a: xyz / dc / rest logits)
+MERGED_ATTRIBUTES: dict[str, str] = {
+    "xyz": "merge_xyz_logits",
+    "features_dc": "merge_dc_logits",
+    "features_rest": "merge_rest_logits",
+}
+
+
+class MergeProxy(torch.nn.Module):
+    """Learnable per-member merge weights of one round (paper §4.3, Alg. 1).
+
+    ``apply`` deliberately shadows :meth:`torch.nn.Module.apply` (the API the pipeline calls);
+    this module has no submodules, so the generic recursive ``apply(fn)`` is never needed.
+    """
+
+    def __init__(self, groups: MergeGroups, num_gaussians: int):
+        super().__init__()
+        self.num_gaussians = int(num_gaussians)
+        self.register_buffer("members", groups.members)
+        self.register_buffer("group_of", groups.group_of)
+        self.register_buffer("representative", groups.representative)
+        m = groups.members.shape[0]
+        dev = groups.members.device
+        self.logits = torch.nn.ParameterDict(
+            {logit: torch.nn.Parameter(torch.zeros(m, device=dev)) for logit in MERGED_ATTRIBUTES.values()})
+
+    @property
+    def num_groups(self) -> int:
+        return int(self.representative.shape[0])
+
+    def param_groups(self, lr: float) -> list[dict]:
+        """Adam parameter groups ``{"params": [logits], "lr": lr, "name": "merge_xyz_logits"}``, ...."""
+        return [{"params": [self.logits[name]], "lr": lr, "name": name} for name in MERGED_ATTRIBUTES.values()]
+
+    def weights(self, name: str) -> torch.Tensor:
+        """Normalized member weights w [M] of logit vector ``name`` (sums to 1 within each group)."""
+        s = torch.sigmoid(self.logits[name]) + 1e-12
+        total = torch.zeros(self.num_groups, dtype=s.dtype, device=s.device).index_add(0, self.group_of, s)
+        return s / (total + 1e-12)[self.group_of]
+
+    def keep_mask(self) -> torch.Tensor:
+        """Bool [N]: False for the non-representative members (removed by the merge)."""
+        keep = torch.ones(self.num_gaussians, dtype=torch.bool, device=self.members.device)
+        keep[self.members] = False
+        keep[self.representative] = True
+        return keep
+
+    def apply(self, params: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """Effective parameters with each group as its proxy, and the rows to render.
+
+        params: name → [N, ...]. Returns (values, keep): ``values`` equals ``params`` except that the
+        representatives' xyz / features_dc / features_rest are the weighted group means
+        (differentiable w.r.t. the logits and all members' values); ``keep`` [K] int64 lists the
+        rows to render (all but the non-representative members), ascending.
+        """
+        rows = params["xyz"].shape[0]
+        if rows != self.num_gaussians:
+            raise ValueError(f"merge proxy built for {self.num_gaussians} Gaussians, got {rows}")
+        values = dict(params)
+        for attr, logit in MERGED_ATTRIBUTES.items():
+            if attr not in params:
+                continue
+            v = params[attr]
+            w = self.weights(logit).to(v.dtype).reshape(-1, *([1] * (v.dim() - 1)))
+            proxy = torch.zeros((self.num_groups, *v.shape[1:]), dtype=v.dtype, device=v.device)
+            proxy = proxy.index_add(0, self.group_of, w * v[self.members])
+            values[attr] = v.index_copy(0, self.representative, proxy)
+        return values, torch.nonzero(self.keep_mask()).squeeze(1)
+
+    @torch.no_grad()
+    def bake(self, params: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The proxy values written into the representatives (detached), and the bool keep mask [N].
+
+        Rows selected by the mask are exactly the rows ``apply`` renders, with identical values.
+        xyz / features_dc / features_rest are new tensors; the other entries are detached views
+        of the inputs (unchanged).
+        """
+        values, _ = self.apply(params)
+        return {k: v.detach() for k, v in values.items()}, self.keep_mask()
+
+
+__all__ = ["MERGED_ATTRIBUTES", "MergeConfig", "MergeGroups", "MergeProxy", "StarClusters", "build_merge_groups",
+           "build_star_clusters", "make_disjoint"]
