@@ -1,0 +1,16 @@
+"""The ``.omg4`` file: versioned container, index entropy coders, compressed-model payload.
+
+Decoding needs nothing from training or compression code (DESIGN.md): this package only
+depends on numpy, constriction, dahuffman and the standard library.
+"""
+
+from omg4.codec.container import FORMAT_VERSION, MAGIC, describe_container, read_container, write_container
+from omg4.codec.entropy import decode_indices, decode_uints, encode_indices, encode_uints
+from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
+                                encode_payload)
+
+__all__ = [
+    "FORMAT_VERSION", "MAGIC", "describe_container", "read_container", "write_container",
+    "decode_indices", "decode_uints", "encode_indices", "encode_uints",
+    "CompressedPayload", "QuantizedAttribute", "canonical_order", "decode_payload", "encode_payload",
+]

@@ -1,0 +1,363 @@
+"""What an ``.omg4`` file stores, and its mapping onto container sections (reference omg4 §8).
+
+A :class:`CompressedPayload` holds the explicit per-Gaussian data OMG4 keeps after
+attribute compression (paper §4.4): positions ``xyz`` and time centres ``t`` (fp16), for
+each sub-vector-quantized attribute its fp16 codebooks and index streams, the fp16
+weights of the appearance MLPs, and a JSON-able ``meta`` dict (preset, SH degrees, time
+range, normalization, ...).
+
+Two codecs:
+
+* ``"paper"`` — OMG4's ``encode``: fp16 positions, time centres, codebooks and MLP weights,
+  Huffman-coded indices, everything LZMA-compressed (OMG4 wraps one pickle in xz; here
+  each section is LZMA'd on its own — no pickle). Gaussians keep their order.
+* ``"ans"`` (default) — lossless w.r.t. the same fp16 values and indices, smaller:
+  Gaussians are stored in Morton (Z-order) order of their fp16 positions (a free
+  permutation: Gaussians are unordered), so positions become sorted 48-bit Morton codes
+  whose gaps are hybrid-uint coded; indices are ANS-coded; every float section takes the
+  smallest of raw fp16, LZMA, or byte planes ANS-coded.
+
+``decode_payload`` validates everything (index < codebook size, consistent counts, finite
+floats) and raises :class:`~omg4.errors.CorruptFileError` with one line otherwise.
+"""
+
+from __future__ import annotations
+
+import lzma
+import os
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from omg4.codec.container import read_container, write_container
+from omg4.codec.entropy import (MAX_SYMBOLS, METHODS, decode_indices, decode_uints, encode_indices, encode_uints,
+                                pack_varints, unpack_varints)
+from omg4.errors import CorruptFileError, OMG4Error
+
+KIND = "omg4-compressed-model"
+MAX_GAUSSIANS = 1 << 27
+MAX_SUB_LEN = 64
+MAX_MLP_ELEMENTS = 1 << 24
+_NAME = re.compile(r"^[A-Za-z0-9_]{1,64}$")  # SVQ attribute names
+_MLP_NAME = re.compile(r"^[A-Za-z0-9_.]{1,128}$")  # state-dict style weight names
+_LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
+
+
+@dataclass
+class QuantizedAttribute:
+    """One sub-vector-quantized attribute (paper §4.4; reference omg4 §7).
+
+    ``codebooks[j]: [K_j, s_j]`` (fp16) holds the centroids of sub-vector slot j and
+    ``indices[j]: [N]`` (int) picks a row per Gaussian; the attribute is the concatenation
+    of ``codebooks[j][indices[j]]`` over slots, ``[N, Σ s_j]``.
+    """
+
+    codebooks: list[np.ndarray]
+    indices: list[np.ndarray]
+
+    def reconstruct(self) -> np.ndarray:
+        """The quantized attribute values, float32 ``[N, D]``."""
+        return np.concatenate([cb.astype(np.float32)[ix] for cb, ix in zip(self.codebooks, self.indices)], axis=1)
+
+
+@dataclass
+class CompressedPayload:
+    """Everything an ``.omg4`` file stores (reference omg4 §8).
+
+    xyz: [N, 3] positions; t: [N] time centres; attributes: SVQ attribute name (scale,
+    rotation, app, scale_t, rotation_r) → :class:`QuantizedAttribute`; mlp: weight name →
+    array (any shape); meta: JSON-able settings. Floats are stored in fp16.
+    """
+
+    xyz: np.ndarray
+    t: np.ndarray
+    attributes: dict[str, QuantizedAttribute] = field(default_factory=dict)
+    mlp: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.xyz.shape[0])
+
+    def permuted(self, order: np.ndarray) -> "CompressedPayload":
+        """The same payload with Gaussians reordered: row i of the result is row ``order[i]``."""
+        attrs = {a: QuantizedAttribute(list(q.codebooks), [ix[order] for ix in q.indices])
+                 for a, q in self.attributes.items()}
+        return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta))
+
+    def to_fp16(self) -> "CompressedPayload":
+        """What a decoder returns: floats rounded to fp16 (float16 arrays), indices as int64."""
+        attrs = {a: QuantizedAttribute([np.asarray(cb, np.float16) for cb in q.codebooks],
+                                       [np.asarray(ix).astype(np.int64) for ix in q.indices])
+                 for a, q in self.attributes.items()}
+        return CompressedPayload(np.asarray(self.xyz, np.float16).reshape(-1, 3),
+                                 np.asarray(self.t, np.float16).reshape(-1), attrs,
+                                 {k: np.asarray(v, np.float16) for k, v in self.mlp.items()}, dict(self.meta))
+
+
+# ----------------------------------------------------------------------- Morton order
+def _ordered_key(h: np.ndarray) -> np.ndarray:
+    """fp16 → uint16 whose unsigned order is the float order (sign flip trick)."""
+    bits = h.view(np.uint16)
+    return np.where(bits & 0x8000, ~bits, bits | 0x8000).astype(np.uint16)
+
+
+def _key_to_fp16(key: np.ndarray) -> np.ndarray:
+    bits = np.where(key & 0x8000, key ^ 0x8000, ~key).astype(np.uint16)
+    return bits.view(np.float16)
+
+
+def _spread3(v: np.ndarray) -> np.ndarray:
+    """Insert two zero bits after each of the 16 low bits: b15..b0 → b15 0 0 … b0 (uint64)."""
+    x = v.astype(np.uint64)
+    for shift, mask in ((16, 0x0000FF0000FF), (8, 0x00F00F00F00F), (4, 0x0C30C30C30C3), (2, 0x249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def _compact3(x: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_spread3`."""
+    x = x & np.uint64(0x249249249249)
+    for shift, mask in ((2, 0x0C30C30C30C3), (4, 0x00F00F00F00F), (8, 0x0000FF0000FF), (16, 0xFFFF)):
+        x = (x ^ (x >> np.uint64(shift))) & np.uint64(mask)
+    return x.astype(np.uint16)
+
+
+def morton_codes(xyz16: np.ndarray) -> np.ndarray:
+    """48-bit Z-order codes of fp16 positions ``xyz16: float16 [N, 3]`` → uint64 [N] (x in the lowest bit)."""
+    k = _ordered_key(np.ascontiguousarray(xyz16, dtype=np.float16))
+    return _spread3(k[:, 0]) | (_spread3(k[:, 1]) << np.uint64(1)) | (_spread3(k[:, 2]) << np.uint64(2))
+
+
+def morton_to_xyz(codes: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`morton_codes`: float16 [N, 3]."""
+    keys = np.stack([_compact3(codes >> np.uint64(a)) for a in range(3)], axis=1)
+    return _key_to_fp16(keys)
+
+
+def canonical_order(xyz: np.ndarray) -> np.ndarray:
+    """Stable Morton order of the fp16-rounded positions ``xyz: [N, 3]``: the storage order of the "ans" codec."""
+    return np.argsort(morton_codes(np.asarray(xyz, np.float16)), kind="stable")
+
+
+# ------------------------------------------------------------------ float sections
+def _f16_planes(values: np.ndarray) -> bytes:
+    bits = values.view(np.uint16).ravel()
+    hi = encode_indices(bits >> 8, 256, "ans")
+    return pack_varints(np.array([len(hi)])) + hi + encode_indices(bits & 0xFF, 256, "ans")
+
+
+def _encode_f16(values: np.ndarray, encoding: str) -> bytes:
+    raw = np.ascontiguousarray(values, dtype="<f2")
+    if encoding == "f16":
+        return raw.tobytes()
+    if encoding == "f16-lzma":
+        return lzma.compress(raw.tobytes(), format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+    return _f16_planes(raw)
+
+
+def _decode_f16(data: bytes, encoding: str, count: int) -> np.ndarray:
+    """``count`` fp16 values of a float section; checks length and finiteness."""
+    if encoding == "f16":
+        raw = data
+    elif encoding == "f16-lzma":
+        d = lzma.LZMADecompressor(format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+        try:
+            raw = d.decompress(data, max_length=2 * count)
+        except lzma.LZMAError:
+            raise CorruptFileError("damaged LZMA data") from None
+        if not d.eof or d.unused_data:
+            raise CorruptFileError("damaged LZMA data (wrong length)")
+    elif encoding == "f16-planes":
+        (size,), used = unpack_varints(data, 1, "plane sizes")
+        if size > len(data) - used:
+            raise CorruptFileError("truncated byte planes")
+        hi = decode_indices(data[used:used + int(size)], 256, count, "ans")
+        lo = decode_indices(data[used + int(size):], 256, count, "ans")
+        raw = ((hi << 8) | lo).astype("<u2").tobytes()
+    else:
+        raise CorruptFileError(f"unknown encoding {encoding!r}")
+    if len(raw) != 2 * count:
+        raise CorruptFileError(f"{len(raw)} bytes of fp16 data, expected {2 * count}")
+    values = np.frombuffer(raw, "<f2").astype(np.float16)
+    if not np.isfinite(values).all():
+        raise CorruptFileError("non-finite values")
+    return values
+
+
+def _smallest_f16(values: np.ndarray) -> tuple[str, bytes]:
+    options = [(enc, _encode_f16(values, enc)) for enc in ("f16", "f16-lzma", "f16-planes")]
+    return min(options, key=lambda o: len(o[1]))
+
+
+def _encode_xyz_morton(xyz16: np.ndarray) -> bytes:
+    codes = morton_codes(xyz16)
+    return encode_uints(np.diff(codes, prepend=np.uint64(0)))
+
+
+def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
+    gaps = decode_uints(data, count)
+    codes = np.cumsum(gaps, dtype=np.uint64)
+    if count and (codes[-1] >> np.uint64(48) or (count > 1 and (codes[1:] < codes[:-1]).any())):
+        raise CorruptFileError("damaged Morton codes")
+    xyz = morton_to_xyz(codes)
+    if not np.isfinite(xyz).all():
+        raise CorruptFileError("non-finite positions")
+    return xyz
+
+
+# ------------------------------------------------------------------------ encoding
+def _check_payload(p: CompressedPayload) -> CompressedPayload:
+    """The fp16/int64 form of ``p`` after checking shapes, names, ranges and finiteness (OMG4Error)."""
+    n = int(np.asarray(p.xyz).shape[0]) if np.asarray(p.xyz).ndim == 2 else -1
+    if n < 1 or np.asarray(p.xyz).shape != (n, 3) or np.asarray(p.t).size != n:
+        raise OMG4Error(f"payload needs xyz [N, 3] and t [N] with N >= 1, got {np.shape(p.xyz)} and {np.shape(p.t)}")
+    if n > MAX_GAUSSIANS:
+        raise OMG4Error(f"payload has {n} Gaussians (limit {MAX_GAUSSIANS})")
+    for attr, qa in p.attributes.items():
+        if not all(np.issubdtype(np.asarray(ix).dtype, np.integer) for ix in qa.indices):
+            raise OMG4Error(f"attribute {attr}: index arrays must be integers")
+    with np.errstate(over="ignore"):
+        q = p.to_fp16()
+    for name in q.attributes:
+        if not _NAME.match(name):
+            raise OMG4Error(f"invalid attribute name {name!r} (letters, digits, underscore)")
+    for name in q.mlp:
+        if not _MLP_NAME.match(name):
+            raise OMG4Error(f"invalid MLP weight name {name!r} (letters, digits, underscore, dot)")
+    for name, arr in [("xyz", q.xyz), ("t", q.t), *q.mlp.items()]:
+        if not np.isfinite(arr).all():
+            raise OMG4Error(f"{name} has NaN/Inf or values beyond the fp16 range")
+    for attr, qa in q.attributes.items():
+        if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
+            raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            if cb.ndim != 2 or not 1 <= cb.shape[0] <= MAX_SYMBOLS or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
+                raise OMG4Error(f"attribute {attr}: codebook {j} has shape {cb.shape}")
+            if not np.isfinite(cb).all():
+                raise OMG4Error(f"attribute {attr}: codebook {j} has NaN/Inf or values beyond the fp16 range")
+            if ix.shape != (n,) or ix.min() < 0 or ix.max() >= cb.shape[0]:
+                raise OMG4Error(f"attribute {attr}: index array {j} must be [N] with values in [0, {cb.shape[0]})")
+    return q
+
+
+def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = "ans") -> dict[str, int]:
+    """Write ``p`` to ``path`` (atomically) with ``codec`` "ans" or "paper".
+
+    With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
+    equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
+    ``p.to_fp16()``. Returns the byte size of every section plus ``"header"``; the values
+    sum to the file size.
+    """
+    if codec not in METHODS:
+        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(METHODS)})")
+    q = _check_payload(p)
+    if codec == "ans":
+        q = q.permuted(canonical_order(q.xyz))
+    sections: dict[str, bytes] = {}
+    encodings: dict[str, str] = {}
+
+    def put_float(name: str, values: np.ndarray, fixed: str | None = None) -> None:
+        enc, data = (fixed, _encode_f16(values, fixed)) if fixed else _smallest_f16(values)
+        sections[name], encodings[name] = data, enc
+
+    float_encoding = "f16-lzma" if codec == "paper" else None
+    if codec == "ans":
+        sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
+    else:
+        put_float("xyz", q.xyz, float_encoding)
+    put_float("t", q.t, float_encoding)
+    for attr, qa in q.attributes.items():
+        for j, cb in enumerate(qa.codebooks):
+            put_float(f"svq.{attr}.codebook{j}", cb, float_encoding)
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            name = f"svq.{attr}.index{j}"
+            sections[name], encodings[name] = encode_indices(ix, cb.shape[0], codec), codec
+    for name, w in q.mlp.items():
+        put_float(f"mlp.{name}", w, float_encoding)
+    header = {
+        "kind": KIND, "codec": codec, "order": "morton" if codec == "ans" else "original",
+        "num_gaussians": q.num_gaussians, "meta": q.meta,
+        "attributes": {a: [list(cb.shape) for cb in qa.codebooks] for a, qa in q.attributes.items()},
+        "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
+        "encodings": encodings,
+    }
+    total = write_container(path, header, sections)
+    sizes = {name: len(data) for name, data in sections.items()}
+    sizes["header"] = total - sum(sizes.values())
+    return sizes
+
+
+# ------------------------------------------------------------------------ decoding
+def _is_int(v: object, lo: int, hi: int) -> bool:
+    return type(v) is int and lo <= v <= hi
+
+
+def _check_header(h: dict, section_bytes: int) -> None:
+    """Structural validation of a payload header; raises CorruptFileError."""
+    n = h.get("num_gaussians")
+    ok = (h.get("kind") == KIND and h.get("codec") in METHODS and isinstance(h.get("meta"), dict)
+          and isinstance(h.get("attributes"), dict) and isinstance(h.get("mlp"), dict)
+          and isinstance(h.get("encodings"), dict) and _is_int(n, 1, MAX_GAUSSIANS))
+    if not ok:
+        raise CorruptFileError("not an OMG4 compressed model (header fields missing or invalid)")
+    if n > 64 * section_bytes:
+        raise CorruptFileError(f"header claims {n} Gaussians, more than the file's {section_bytes} data bytes can hold")
+    for attr, shapes in h["attributes"].items():
+        if not (_NAME.match(attr) and isinstance(shapes, list) and shapes and all(
+                isinstance(s, list) and len(s) == 2 and _is_int(s[0], 1, MAX_SYMBOLS) and _is_int(s[1], 1, MAX_SUB_LEN)
+                for s in shapes)):
+            raise CorruptFileError(f"invalid codebook shapes for attribute {attr!r}")
+    for name, shape in h["mlp"].items():
+        ok = (_MLP_NAME.match(name) and isinstance(shape, list) and all(_is_int(s, 0, MAX_MLP_ELEMENTS) for s in shape)
+              and int(np.prod(shape, dtype=np.int64)) <= MAX_MLP_ELEMENTS)
+        if not ok:
+            raise CorruptFileError(f"invalid shape for MLP weight {name!r}")
+
+
+def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
+    """Read an ``.omg4`` file (path or bytes) written by :func:`encode_payload`; fp16 floats, int64 indices.
+
+    Any damage raises a one-line :class:`CorruptFileError` naming the file and section.
+    """
+    header, sections = read_container(source)
+    label = "data" if isinstance(source, (bytes, bytearray, memoryview)) else str(source)
+    try:
+        return _decode_sections(header, sections)
+    except CorruptFileError as exc:
+        raise CorruptFileError(f"{label}: {exc}") from None
+
+
+def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayload:
+    _check_header(header, sum(len(s) for s in sections.values()))
+    n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
+    expected = ["xyz", "t"]
+    expected += [f"svq.{a}.{kind}{j}" for a, shapes in header["attributes"].items()
+                 for kind in ("codebook", "index") for j in range(len(shapes))]
+    expected += [f"mlp.{name}" for name in header["mlp"]]
+    if sorted(expected) != sorted(sections) or sorted(expected) != sorted(enc):
+        raise CorruptFileError("section list does not match the header")
+
+    def decode(name: str, count: int, num_symbols: int = 0) -> np.ndarray:
+        try:
+            if num_symbols:
+                if enc[name] != codec:
+                    raise CorruptFileError(f"encoding {enc[name]!r} does not match the codec {codec!r}")
+                return decode_indices(sections[name], num_symbols, count, codec)
+            if enc[name] == "morton" and name == "xyz":
+                return _decode_xyz_morton(sections[name], count)
+            return _decode_f16(sections[name], enc[name], count)
+        except CorruptFileError as exc:
+            raise CorruptFileError(f"section {name}: {exc}") from None
+
+    xyz = decode("xyz", n if enc["xyz"] == "morton" else 3 * n).reshape(n, 3)
+    t = decode("t", n)
+    attributes = {}
+    for attr, shapes in header["attributes"].items():
+        codebooks = [decode(f"svq.{attr}.codebook{j}", k * s).reshape(k, s) for j, (k, s) in enumerate(shapes)]
+        indices = [decode(f"svq.{attr}.index{j}", n, k) for j, (k, _) in enumerate(shapes)]
+        attributes[attr] = QuantizedAttribute(codebooks, indices)
+    mlp = {name: decode(f"mlp.{name}", int(np.prod(shape, dtype=np.int64))).reshape(shape)
+           for name, shape in header["mlp"].items()}
+    return CompressedPayload(xyz, t, attributes, mlp, header["meta"])

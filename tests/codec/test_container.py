@@ -1,0 +1,186 @@
+"""The .omg4 container: round trip, storage accounting, and every kind of damage → CorruptFileError."""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from omg4.codec.container import FORMAT_VERSION, MAGIC, describe_container, read_container, write_container
+from omg4.errors import CorruptFileError, OMG4Error
+
+HEADER = {"kind": "test", "preset": "M", "time_range": [0.0, 10.0], "note": "ünïcode ✓", "nested": {"a": [1, 2]}}
+SECTIONS = {"xyz": bytes(range(40)), "empty": b"", "svq.scale.index0": b"\x00\xff" * 17, "mlp.cont": b"abc"}
+
+
+def _crafted(doc_bytes: bytes, body: bytes = b"", version: int = FORMAT_VERSION, flags: int = 0,
+             json_len: int | None = None, crc: int | None = None) -> bytes:
+    """A container built by hand (independent of write_container) with arbitrary JSON and fields."""
+    n = len(doc_bytes) if json_len is None else json_len
+    c = zlib.crc32(doc_bytes) if crc is None else crc
+    return struct.pack("<8sHHII", MAGIC, version, flags, n, c) + doc_bytes + body
+
+
+@pytest.fixture
+def written(tmp_path):
+    path = tmp_path / "model.omg4"
+    size = write_container(path, HEADER, SECTIONS)
+    return path, size
+
+
+def test_round_trip_path_and_bytes(written):
+    path, size = written
+    assert size == path.stat().st_size
+    for source in (path, str(path), path.read_bytes()):
+        header, sections = read_container(source)
+        assert header == HEADER
+        assert sections == SECTIONS
+        assert list(sections) == list(SECTIONS)  # order kept
+
+
+def test_layout_matches_spec(written):
+    """Independent parse of the documented layout: prefix, checksummed JSON, sections in order."""
+    data = written[0].read_bytes()
+    magic, version, flags, n, crc = struct.unpack("<8sHHII", data[:20])
+    assert (magic, version, flags) == (MAGIC, FORMAT_VERSION, 0)
+    blob = data[20:20 + n]
+    assert zlib.crc32(blob) == crc
+    doc = json.loads(blob)
+    assert doc["header"] == HEADER
+    pos = 20 + n
+    for name, length, section_crc in doc["sections"]:
+        assert data[pos:pos + length] == SECTIONS[name]
+        assert zlib.crc32(SECTIONS[name]) == section_crc
+        pos += length
+    assert pos == len(data)
+
+
+def test_describe_accounts_for_every_byte(written):
+    path, size = written
+    info = describe_container(path)
+    assert info["total_bytes"] == size == path.stat().st_size
+    assert info["header_bytes"] + sum(info["sections"].values()) == size
+    assert info["sections"] == {k: len(v) for k, v in SECTIONS.items()}
+    assert info["header"] == HEADER
+
+
+def test_no_sections_and_empty_header(tmp_path):
+    path = tmp_path / "e.omg4"
+    write_container(path, {}, {})
+    assert read_container(path) == ({}, {})
+
+
+def test_every_truncation_is_detected(written):
+    data = written[0].read_bytes()
+    for length in range(len(data)):
+        with pytest.raises(CorruptFileError):
+            read_container(data[:length])
+
+
+def test_trailing_bytes_are_detected(written):
+    with pytest.raises(CorruptFileError, match="trailing"):
+        read_container(written[0].read_bytes() + b"\x00")
+
+
+def test_every_single_bit_flip_is_detected(written):
+    data = written[0].read_bytes()
+    for bit in range(8 * len(data)):
+        damaged = bytearray(data)
+        damaged[bit // 8] ^= 1 << (bit % 8)
+        with pytest.raises(CorruptFileError):
+            read_container(bytes(damaged))
+
+
+def test_random_multi_byte_damage_is_detected(written):
+    data = written[0].read_bytes()
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        damaged = bytearray(data)
+        for pos in rng.choice(len(data), size=rng.integers(1, 6), replace=False):
+            damaged[pos] = (damaged[pos] + int(rng.integers(1, 256))) % 256
+        with pytest.raises(CorruptFileError):
+            read_container(bytes(damaged))
+
+
+def test_wrong_magic(tmp_path):
+    path = tmp_path / "x.omg4"
+    path.write_bytes(b"PK\x03\x04" + bytes(100))
+    with pytest.raises(CorruptFileError, match="magic"):
+        read_container(path)
+    with pytest.raises(CorruptFileError, match="magic"):
+        read_container(b"\x80")  # shorter than the prefix, but not a prefix of the magic
+
+
+def test_future_version_and_unknown_flags():
+    doc = json.dumps({"header": {}, "sections": []}).encode()
+    with pytest.raises(CorruptFileError, match="version 2 is from a newer"):
+        read_container(_crafted(doc, version=FORMAT_VERSION + 1))
+    with pytest.raises(CorruptFileError, match="version 0"):
+        read_container(_crafted(doc, version=0))
+    with pytest.raises(CorruptFileError, match="flags"):
+        read_container(_crafted(doc, flags=1))
+
+
+@pytest.mark.parametrize("json_len", [2**32 - 1, 2**31, 10**9, 17 * 2**20])
+def test_absurd_json_length(json_len):
+    doc = json.dumps({"header": {}, "sections": []}).encode()
+    with pytest.raises(CorruptFileError, match="header length"):
+        read_container(_crafted(doc, json_len=json_len))
+
+
+@pytest.mark.parametrize("size", [2**63, 10**15, 2**32 + 4])
+def test_absurd_section_length_is_rejected_before_reading(size):
+    doc = json.dumps({"header": {}, "sections": [["a", size, 0]]}).encode()
+    with pytest.raises(CorruptFileError, match="truncated"):
+        read_container(_crafted(doc, b"abcd"))
+
+
+@pytest.mark.parametrize("doc", [
+    b"[1, 2, 3]", b'"a string"', b"42", b"null", b'{"header": [], "sections": []}', b'{"header": {}}',
+    b'{"header": {}, "sections": [["a", -1, 0]]}', b'{"header": {}, "sections": [["a", 1.5, 0]]}',
+    b'{"header": {}, "sections": [["a", 1, 4294967296]]}', b'{"header": {}, "sections": [["", 0, 0]]}',
+    b'{"header": {}, "sections": [["a", true, 0]]}', b'{"header": {}, "sections": [["a", 0, 0], ["a", 0, 0]]}',
+    b'{"header": {"x": NaN}, "sections": []}', b'{"header": {"x": Infinity}, "sections": []}',
+    b"\xff\xfe not utf-8", b"{not json", b"[" * 200_000 + b"]" * 200_000,
+])
+def test_malformed_json_headers(doc):
+    with pytest.raises(CorruptFileError):
+        read_container(_crafted(doc))
+
+
+def test_section_checksum_mismatch_names_the_section():
+    doc = json.dumps({"header": {}, "sections": [["xyz", 4, zlib.crc32(b"abcd")]]}).encode()
+    assert read_container(_crafted(doc, b"abcd")) == ({}, {"xyz": b"abcd"})
+    with pytest.raises(CorruptFileError, match="'xyz'"):
+        read_container(_crafted(doc, b"abce"))
+
+
+def test_messages_are_one_line_and_name_the_file(tmp_path):
+    path = tmp_path / "bad.omg4"
+    path.write_bytes(MAGIC + b"\x01")
+    with pytest.raises(CorruptFileError) as err:
+        read_container(path)
+    assert "\n" not in str(err.value) and "bad.omg4" in str(err.value)
+
+
+def test_missing_file_and_folder(tmp_path):
+    with pytest.raises(OMG4Error, match="no such file"):
+        read_container(tmp_path / "nope.omg4")
+    with pytest.raises(OMG4Error, match="folder"):
+        read_container(tmp_path)
+
+
+def test_failed_write_keeps_the_old_file(written):
+    path, _ = written
+    before = path.read_bytes()
+    with pytest.raises(OMG4Error, match="JSON"):
+        write_container(path, {"bad": object()}, {"a": b"x"})
+    with pytest.raises(OMG4Error, match="JSON"):
+        write_container(path, {"nan": float("nan")}, {})
+    with pytest.raises(OMG4Error, match="bytes"):
+        write_container(path, {}, {"a": "not bytes"})
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
