@@ -10,7 +10,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# Idle OpenMP threads must not spin: on small machines shared with other work, torch's
+# default busy-waiting made small-image ops 15-30x slower (measured in benchmarks/metrics.py).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # name -> (module in omg4.commands, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -74,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"omg4 {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into a pager or `head` that closed early
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -99,6 +99,48 @@ def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
     return d, text
 
 
+def omg4_summary(path: Path, **_) -> tuple[dict, str]:
+    """Per-section size breakdown of an ``.omg4`` file and its bits per Gaussian.
+
+    Groups: positions, time centres, each attribute's index streams and codebooks, the
+    MLP weights, and the container header; the groups add up to the file size.
+    """
+    from omg4.codec.container import describe_container
+
+    d = describe_container(path)
+    header = d.pop("header")
+    n = int(header.get("num_gaussians", 0))
+    groups: dict[str, int] = {}
+    for name, size in d["sections"].items():
+        parts = name.split(".")
+        if parts[0] == "svq":
+            key = f"{parts[1]} {'indices' if parts[2].startswith('index') else 'codebooks'}"
+        else:
+            key = {"xyz": "positions", "t": "time centres", "mlp": "MLPs"}.get(parts[0], parts[0])
+        groups[key] = groups.get(key, 0) + size
+    groups["header"] = d["header_bytes"]
+    total = d["total_bytes"]
+    summary = {"kind": "omg4", "path": str(path), "codec": header.get("codec"), "num_gaussians": n,
+               "total_bytes": total, "storage_mb": total / 2**20,
+               "bits_per_gaussian": 8 * total / n if n else None, "groups": groups, "sections": d["sections"],
+               "meta": header.get("meta", {})}
+    lines = [f"{path}: OMG4 file, codec {summary['codec']}, {n} Gaussians, {total} bytes "
+             f"({summary['storage_mb']:.4f} MB), {summary['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
+    for key, size in groups.items():
+        lines.append(f"  {key:<22} {size:>10} B  {100 * size / total:5.1f}%  "
+                     f"{8 * size / n if n else 0:7.2f} bits/G")
+    return summary, "\n".join(lines)
+
+
+def _is_omg4(path: Path) -> bool:
+    from omg4.evaluate import OMG4_MAGIC
+
+    if not path.is_file():
+        return False
+    with open(path, "rb") as f:
+        return f.read(len(OMG4_MAGIC)) == OMG4_MAGIC
+
+
 def _is_checkpoint(path: Path) -> bool:
     return path.is_file() and path.suffix == ".safetensors"
 
@@ -107,4 +149,5 @@ def _is_checkpoint(path: Path) -> bool:
 SUMMARIZERS: list[tuple[Callable[[Path], bool], Callable[..., tuple[dict, str]]]] = [
     (Path.is_dir, dataset_summary),
     (_is_checkpoint, checkpoint_summary),
+    (_is_omg4, omg4_summary),
 ]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from omg4.gaussians import GaussianConfig, Gaussians4D
+from omg4.gaussians.appearance import realtime4dgs_values
 
 # SVQ attribute → the parameter(s) it replaces (reference omg4 §7)
 SVQ_ATTRIBUTES: dict[str, tuple[str, ...]] = {
@@ -25,11 +26,6 @@ SVQ_ATTRIBUTES: dict[str, tuple[str, ...]] = {
 }
 SVQ_STAGE_3D = ("scale", "rotation", "app")
 SVQ_STAGE_4D = ("scale_t", "rotation_r")
-
-
-def _logit(p: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    p = p.clamp(eps, 1 - eps)
-    return torch.log(p) - torch.log1p(-p)
 
 
 class CompressibleModel:
@@ -76,14 +72,9 @@ class CompressibleModel:
         keep = None
         if self.merge is not None:
             values, keep = self.merge.apply(values)
-        if self.appearance is not None:
-            dc, rest, opacity = self.appearance(values["xyz"].detach(), self.time_norm(timestamp), values["f_static"],
-                                                values["f_view"])
-            values = {**values, "features_dc": dc, "features_rest": rest, "opacity": _logit(opacity).unsqueeze(-1)}
         if keep is not None:
             values = {k: v[keep] for k, v in values.items()}
-        base = {k: values[k] for k in ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r", "opacity",
-                                       "features_dc", "features_rest")}
+        base = realtime4dgs_values(values, self.appearance, self.time_norm(timestamp))
         return Gaussians4D(base, self.config, self.active_sh_degree, self.active_sh_degree_t), keep
 
     def slice_at(self, timestamp: float, camera_center: torch.Tensor):

@@ -247,7 +247,7 @@ class CompressionPipeline:
             if not torch.isfinite(loss):
                 raise OMG4Error(f"compression diverged at iteration {step}: the loss is {float(loss)}")
             loss.backward()
-            losses.append(float(loss) * self.cfg.batch_size)
+            losses.append(loss.item() * self.cfg.batch_size)
         for opt in (self.optimizer, self.mlp_optimizer, self.codebook_optimizer):
             if opt is not None:
                 opt.step()

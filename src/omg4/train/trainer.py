@@ -156,7 +156,7 @@ class Trainer:
             if densifying and rendered.means2d.grad is not None:
                 self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, view.camera.width,
                                     view.camera.height, cfg.batch_size)
-            losses.append(float(loss) * cfg.batch_size)
+            losses.append(loss.item() * cfg.batch_size)
             psnrs.append(psnr(rendered.image.detach().clamp(0, 1), gt))
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)

@@ -1,0 +1,43 @@
+"""``omg4 eval DATA --model (CKPT|FILE.omg4)``: the paper's metrics on the test views."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from omg4.commands.common import add_scene_arguments, load_scene_from_args
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    add_scene_arguments(p)
+    p.add_argument("--model", required=True, type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
+    p.add_argument("--lpips", default="alex", help="LPIPS backbones, comma-separated: alex, vgg (vgg is slow on CPU)")
+    p.add_argument("--split", default="test", choices=["test", "train"], help="views to evaluate")
+    p.add_argument("--max-views", type=int, help="evaluate at most this many views (evenly spaced)")
+    p.add_argument("--white-background", action="store_true")
+    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"])
+    p.add_argument("--json", type=Path, help="write per-view and mean metrics as JSON")
+
+
+def run(args) -> int:
+    import torch
+
+    from omg4.atomic import write_text_atomic
+    from omg4.evaluate import evaluate, load_model
+
+    model = load_model(args.model)
+    scene = load_scene_from_args(args)
+    views = scene.test_views if args.split == "test" else scene.train_views
+    if args.max_views and len(views) > args.max_views:
+        views = views[:: -(-len(views) // args.max_views)]
+    bg = torch.ones(3) if args.white_background else torch.zeros(3)
+    nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
+    result = evaluate(model, views, storage_bytes=args.model.stat().st_size, lpips_nets=nets, background=bg,
+                      backend=args.backend)
+    cols = ["psnr", "ssim", *[f"lpips_{n}" for n in nets], "fps", "num_gaussians", "storage_mb"]
+    print(" | ".join(f"{c}" for c in cols))
+    print(" | ".join(f"{result[c]:.4g}" if isinstance(result[c], float) else str(result[c]) for c in cols))
+    if args.json:
+        write_text_atomic(args.json, json.dumps({"model": str(args.model), "split": args.split, **result}, indent=2))
+    return 0

@@ -1,0 +1,84 @@
+"""``omg4 render --model M (--data DATA | --camera CAM.json) --time T --out PNG|NPY|MP4``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from omg4.commands.common import add_scene_arguments
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", required=True, type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="dataset folder: render one of its cameras")
+    src.add_argument("--camera", type=Path, help='CAM.json: {"K": 3x3, "viewmat": 4x4, "width": W, "height": H}')
+    add_scene_arguments(p, positional=False)
+    p.add_argument("--camera-name", help="with --data: which camera (default: the first test camera)")
+    p.add_argument("--time", type=float, help="timestamp for an image (default: start of the time range)")
+    p.add_argument("--out", required=True, type=Path, help=".png or .npy (float32 [H,W,3]) image, or .mp4 video "
+                                                           "over the whole time range")
+    p.add_argument("--num-frames", type=int, help="frames of an .mp4 (default: the dataset's frame count, or 60)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate of an .mp4")
+    p.add_argument("--white-background", action="store_true")
+    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"])
+
+
+def _camera(args):
+    from omg4.commands.common import load_scene_from_args
+    from omg4.data.scene import Camera
+    from omg4.errors import OMG4Error
+
+    if args.camera is not None:
+        try:
+            return Camera.from_json(json.loads(args.camera.read_text())), None
+        except FileNotFoundError:
+            raise OMG4Error(f"camera file {args.camera} does not exist") from None
+        except (ValueError, KeyError, TypeError) as e:
+            raise OMG4Error(f"{args.camera}: not a camera JSON ({type(e).__name__}: {e})") from None
+    scene = load_scene_from_args(args)
+    cams = scene.test_cameras() + scene.train_cameras()
+    if args.camera_name:
+        cams = [c for c in cams if c.name == args.camera_name]
+        if not cams:
+            raise OMG4Error(f"no camera named '{args.camera_name}' in {args.data}")
+    return cams[0], scene
+
+
+def run(args) -> int:
+    import numpy as np
+    import torch
+
+    from omg4.errors import OMG4Error
+    from omg4.evaluate import load_model
+    from omg4.io.images import save_npy, save_png
+    from omg4.io.video import write_video
+    from omg4.render.view import render_view
+
+    suffix = args.out.suffix.lower()
+    if suffix not in (".png", ".npy", ".mp4"):
+        raise OMG4Error(f"--out must end in .png, .npy or .mp4, got '{args.out.name}'")
+    model = load_model(args.model)
+    camera, scene = _camera(args)
+    bg = torch.ones(3) if args.white_background else torch.zeros(3)
+    t0, t1 = model.config.time_range
+
+    def frame(t: float) -> np.ndarray:
+        with torch.no_grad():
+            rendered, _ = render_view(model, camera, t, background=bg, backend=args.backend)
+        return rendered.image.clamp(0, 1).cpu().numpy()
+
+    if suffix == ".mp4":
+        n = args.num_frames or (scene.num_frames if scene is not None and scene.num_frames else 60)
+        times = [t0 + (t1 - t0) * i / n for i in range(n)]
+        from tqdm.auto import tqdm
+
+        count = write_video(args.out, (frame(t) for t in tqdm(times, desc="render")), fps=args.fps)
+        print(f"wrote {args.out} ({count} frames, {camera.width}x{camera.height}, camera {camera.name or 'custom'})")
+        return 0
+    t = t0 if args.time is None else args.time
+    img = frame(t)
+    (save_png if suffix == ".png" else save_npy)(args.out, img)
+    print(f"wrote {args.out} ({camera.width}x{camera.height}, camera {camera.name or 'custom'}, t={t:g})")
+    return 0

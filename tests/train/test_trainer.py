@@ -1,0 +1,79 @@
+"""Baseline training: the loss falls, resuming equals an uninterrupted run, checkpoints round-trip."""
+
+import json
+
+import torch
+
+from omg4.gaussians.checkpoint import load_gaussians
+from omg4.train import Trainer, make_config
+from omg4.train.trainer import active_sh_degrees
+
+
+def small_config(**kw):
+    base = dict(iterations=12, batch_size=2, densify_from=2, densify_interval=3, densify_until=10,
+                opacity_reset_interval=9, sh_increase_interval=2, checkpoint_interval=0, backend="cpu",
+                densify_grad_threshold=1e-6)
+    base.update(kw)
+    return make_config("cpu-small", **base)
+
+
+def test_sh_degree_schedule_is_spatial_then_temporal():
+    assert [active_sh_degrees(s, 1000, 3, 2) for s in (0, 999, 1000, 3000, 4000, 5000, 9000)] == [
+        (0, 0), (0, 0), (1, 0), (3, 0), (3, 1), (3, 2), (3, 2)]
+
+
+def test_training_lowers_loss(tiny_scene, tmp_path):
+    cfg = small_config(iterations=40, densify_until=0, opacity_reset_interval=1000)
+    trainer = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None)
+    losses = [trainer.train_step(s)[0] for s in range(1, 41)]
+    assert sum(losses[-5:]) / 5 < 0.85 * sum(losses[:5]) / 5
+
+
+def test_densification_counts_are_consistent(tiny_scene, tmp_path):
+    from omg4.train import densify
+
+    cfg = small_config(iterations=10)
+    trainer = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None)
+    for s in range(1, 3):  # accumulate gradient statistics without a densification event
+        trainer.cfg = small_config(densify_from=100)
+        trainer.train_step(s)
+    n0 = trainer.model.num_gaussians
+    grads = trainer.stats.mean_grad()
+    assert (grads > 0).any()
+    counts = densify.densify_and_prune(
+        trainer.model, trainer.optimizer, trainer.stats, grad_threshold=1e-12, percent_dense=0.01,
+        extent=trainer.extent, prune_opacity=0.0, max_screen_size=None, prune_world_size=0.1, max_gaussians=0,
+        generator=torch.Generator().manual_seed(0))
+    visible = int((grads >= 1e-12).sum())
+    assert counts["cloned"] + counts["split"] == visible
+    # a clone adds one Gaussian; a split replaces its parent by two children
+    assert trainer.model.num_gaussians == n0 + counts["cloned"] + counts["split"] - counts["pruned"] + counts["split"]
+    assert counts["pruned"] == counts["split"]  # only the split parents go (no opacity pruning here)
+    # optimizer moments follow the new rows
+    for g in trainer.optimizer.param_groups:
+        p = g["params"][0]
+        assert p is trainer.model.params[g["name"]]
+        if p in trainer.optimizer.state:
+            assert trainer.optimizer.state[p]["exp_avg"].shape == p.shape
+
+
+def test_resume_equals_uninterrupted_run(tiny_scene, tmp_path):
+    cfg = small_config()
+    full = Trainer(tiny_scene, cfg, tmp_path / "full", progress=False, log=lambda *_: None).run()
+    Trainer(tiny_scene, cfg, tmp_path / "split", progress=False, log=lambda *_: None).run(stop_at=5)
+    resumed = Trainer(tiny_scene, cfg, tmp_path / "split", resume=True, progress=False, log=lambda *_: None)
+    assert resumed.start == 5
+    result = resumed.run()
+    assert result.model.num_gaussians == full.model.num_gaussians
+    for name, value in full.model.params.items():
+        assert torch.equal(value.detach(), result.model.params[name].detach()), name
+
+
+def test_final_model_file_round_trips(tiny_scene, tmp_path):
+    cfg = small_config(iterations=4)
+    result = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
+    model, meta = load_gaussians(result.model_path)
+    assert meta["iteration"] == 4 and meta["time_range"] == list(tiny_scene.time_range)
+    for name, value in result.model.params.items():
+        assert torch.equal(value.detach(), model.params[name])
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train_config"]["iterations"] == 4
