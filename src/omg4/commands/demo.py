@@ -1,0 +1,22 @@
+"""``omg4 demo [--out DIR]``: the whole pipeline on the built-in synthetic scene."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("omg4_demo"), help="output folder (default: ./omg4_demo)")
+    p.add_argument("--quick", action="store_true", help="a tiny run (seconds) to check the installation")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def run(args) -> int:
+    from dataclasses import replace
+
+    from omg4.demo import QUICK, DemoSettings, run_demo
+
+    settings = replace(QUICK if args.quick else DemoSettings(), seed=args.seed)
+    run_demo(args.out, settings)
+    return 0
