@@ -48,3 +48,21 @@ def dnerf_mutant() -> Path:
 @pytest.fixture
 def lpips_calibration() -> Path:
     return shared_scene("lpips_calibration")
+
+
+@pytest.fixture(scope="session")
+def tiny_scene_dir(tmp_path_factory):
+    """A tiny synthetic N3DV scene (5 cameras, 6 frames, 64×48) for training and compression tests."""
+    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+
+    out = tmp_path_factory.mktemp("tiny") / "scene"
+    write_synthetic_scene(out, SynthConfig(num_cameras=5, num_frames=6, width=64, height=48, num_points=600),
+                          progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tiny_scene_dir):
+    from omg4.data import load_scene
+
+    return load_scene(tiny_scene_dir, progress=False)

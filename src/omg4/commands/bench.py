@@ -1,0 +1,42 @@
+"""``omg4 bench DATA --model CKPT --out DIR``: the ablation rows and size presets on one scene."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from omg4.commands.common import add_scene_arguments, load_scene_from_args
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    add_scene_arguments(p)
+    p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
+    p.add_argument("--out", type=Path, default=Path("omg4_bench"), help="output folder")
+    p.add_argument("--schedule", default="cpu", choices=["official", "cpu", "tiny"], help="fine-tuning lengths")
+    p.add_argument("--batch-size", type=int, default=4)
+    p.add_argument("--baseline-iterations", type=int, default=30000)
+    p.add_argument("--rows", help="comma-separated subset of rows (default: all): " + ", ".join(_row_names()))
+    p.add_argument("--codec", default="ans", choices=["ans", "paper"])
+    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"])
+
+
+def _row_names() -> list[str]:
+    from omg4.bench import ROWS
+
+    return list(ROWS)
+
+
+def run(args) -> int:
+    from omg4.bench import ROWS, run_bench
+    from omg4.errors import OMG4Error
+    from omg4.gaussians.checkpoint import load_gaussians
+
+    rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
+    unknown = [r for r in rows or [] if r not in ROWS]
+    if unknown:
+        raise OMG4Error(f"unknown bench rows {unknown}; known: {', '.join(ROWS)}")
+    scene = load_scene_from_args(args)
+    baseline, _ = load_gaussians(args.model)
+    run_bench(scene, baseline, args.model, args.out, schedule=args.schedule, batch_size=args.batch_size,
+              baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend)
+    return 0

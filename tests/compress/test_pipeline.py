@@ -1,0 +1,147 @@
+"""The OMG4 pipeline end to end on a tiny scene: stages, the .omg4 file, the decoder."""
+
+import copy
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from omg4.codec.decoder import load_omg4
+from omg4.compress.api import compress_to_file
+from omg4.compress.pipeline import CompressConfig
+from omg4.compress.schedule import StageLengths
+from omg4.data.scene import Camera
+from omg4.gaussians.checkpoint import load_gaussians
+from omg4.render.view import render_view
+from omg4.train import Trainer, make_config
+
+LENGTHS = StageLengths(sample=3, prune=3, merge=3, appearance=6, svq3d=3, svq4d=3)
+
+
+@pytest.fixture(scope="module")
+def baseline(tiny_scene, tmp_path_factory):
+    cfg = make_config("cpu-small", iterations=30, batch_size=2, checkpoint_interval=0, densify_until=0,
+                      backend="cpu")
+    return Trainer(tiny_scene, cfg, tmp_path_factory.mktemp("run"), progress=False, log=lambda *_: None).run()
+
+
+@pytest.fixture(scope="module")
+def scores_file(baseline, tiny_scene, tmp_path_factory):
+    """SD scores of the baseline, computed once for the module's compression runs."""
+    from omg4.compress.score import compute_sd_scores
+
+    path = tmp_path_factory.mktemp("scores") / "scores.npz"
+    compute_sd_scores(baseline.model, tiny_scene.train_views, backend="cpu", progress=False).save(path)
+    return path
+
+
+def _config(**kw):
+    return CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu", **kw)
+
+
+def test_stop_after_prune_writes_checkpoint_with_expected_count(baseline, tiny_scene, tmp_path):
+    out = tmp_path / "pruned.safetensors"
+    report = compress_to_file(baseline.model, tiny_scene, _config(), out, stop_after="prune", progress=False,
+                              log=lambda *_: None)
+    n = baseline.model.num_gaussians
+    sampled = int(round(0.2 * n))
+    stages = {r["stage"]: r["num_gaussians"] for r in report["stages"]}
+    assert stages["sample"] == sampled
+    assert stages["prune"] < sampled
+    model, meta = load_gaussians(out)
+    assert model.num_gaussians == stages["prune"] and meta["stopped_after"] == "prune"
+    # the scores were saved beside the output and are reused by a later run
+    scores = tmp_path / "pruned.safetensors.scores.npz"
+    assert scores.exists()
+    again = compress_to_file(baseline.model, tiny_scene, _config(), tmp_path / "again.safetensors",
+                             stop_after="sample", scores_path=scores, progress=False, log=lambda *_: None)
+    assert again["stages"][0]["num_gaussians"] == sampled
+
+
+def _rounded_copy(model):
+    """The pipeline's model with every stored float rounded to fp16, as the file stores it."""
+    m = copy.deepcopy(model)
+    for k in ("xyz", "t"):
+        m.params[k] = m.params[k].detach().half().float()
+    with torch.no_grad():
+        for q in m.quantizers.values():
+            for cb in q.codebooks:
+                cb.copy_(cb.half().float())
+        for p in m.appearance.parameters():
+            p.copy_(p.half().float())
+    return m
+
+
+@pytest.mark.parametrize("codec", ["paper", "ans"])
+def test_decoded_file_renders_like_the_fp16_rounded_model(baseline, tiny_scene, tmp_path, codec, monkeypatch, scores_file):
+    from omg4.compress import pipeline as pl
+
+    kept = {}
+    original_run = pl.CompressionPipeline.run
+
+    def run_and_keep(self, stop_after=None):
+        kept["model"] = original_run(self, stop_after)
+        return kept["model"]
+
+    monkeypatch.setattr(pl.CompressionPipeline, "run", run_and_keep)
+    out = tmp_path / f"m_{codec}.omg4"
+    report = compress_to_file(baseline.model, tiny_scene, _config(), out, codec=codec, progress=False,
+                              log=lambda *_: None, scores_path=scores_file)
+    assert [r["stage"] for r in report["stages"]] == ["sample", "prune", "merge1", "merge2", "appearance", "svq3d",
+                                                       "svq4d"]
+    assert report["file_bytes"] == out.stat().st_size
+    decoded = load_omg4(out)
+    reference = _rounded_copy(kept["model"])
+    assert decoded.num_gaussians == reference.num_gaussians
+    for view in tiny_scene.test_views[::2]:
+        with torch.no_grad():
+            a, _ = render_view(decoded, view.camera, view.timestamp, backend="cpu")
+            b, _ = render_view(reference, view.camera, view.timestamp, backend="cpu")
+        assert torch.allclose(a.image, b.image, atol=1e-4, rtol=0), float((a.image - b.image).abs().max())
+
+
+def test_decoder_imports_no_training_or_compression_code():
+    code = ("import sys, omg4.codec.decoder, omg4.evaluate; "
+            "bad = [m for m in sys.modules if m.startswith(('omg4.train', 'omg4.compress'))]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_corrupt_file_gives_one_line_error(tmp_path, baseline, tiny_scene, scores_file):
+    from omg4.cli import main
+
+    out = tmp_path / "m.omg4"
+    compress_to_file(baseline.model, tiny_scene, _config(), out, progress=False, log=lambda *_: None,
+                     scores_path=scores_file)
+    data = out.read_bytes()
+    bad = tmp_path / "bad.omg4"
+    bad.write_bytes(data[: len(data) // 2])
+    cam = tmp_path / "cam.json"
+    cam.write_text(__import__("json").dumps(Camera.to_json(tiny_scene.test_views[0].camera)))
+    for argv in (["info", str(bad)], ["render", "--model", str(bad), "--camera", str(cam), "--out",
+                                      str(tmp_path / "x.png")]):
+        res = subprocess.run([sys.executable, "-m", "omg4.cli", *argv], capture_output=True, text=True)
+        assert res.returncode == 2
+        lines = [l for l in res.stderr.splitlines() if l.strip()]
+        assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    assert not (tmp_path / "x.png").exists()
+    flipped = bytearray(data)
+    flipped[len(data) // 3] ^= 0x10
+    bad.write_bytes(bytes(flipped))
+    assert main(["info", str(bad)]) == 2
+
+
+def test_info_breakdown_adds_up_to_file_size(tmp_path, baseline, tiny_scene, scores_file):
+    from omg4.commands.info import summarize
+
+    out = tmp_path / "m.omg4"
+    compress_to_file(baseline.model, tiny_scene, _config(), out, progress=False, log=lambda *_: None,
+                     scores_path=scores_file)
+    summary, text = summarize(out)
+    assert sum(summary["groups"].values()) == out.stat().st_size == summary["total_bytes"]
+    assert {"positions", "time centres", "MLPs", "header", "rotation indices", "rotation_r codebooks"} <= set(
+        summary["groups"])
+    assert summary["bits_per_gaussian"] == pytest.approx(8 * out.stat().st_size / summary["num_gaussians"])
