@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from omg4.atomic import write_text_atomic
+from omg4.compress.schedule import SCHEDULES, StageLengths
 
 TABLE_COLUMNS = (("PSNR", "psnr", "{:.2f}"), ("SSIM", "ssim", "{:.4f}"), ("LPIPS", "lpips_alex", "{:.4f}"),
                  ("FPS", "fps", "{:.1f}"), ("#Gaussians", "num_gaussians", "{:,}"), ("MB", "storage_mb", "{:.3f}"))
@@ -31,12 +32,15 @@ class DemoSettings:
     width: int = 256
     height: int = 192
     train_iterations: int = 1500
-    compress_schedule: str = "cpu"
+    max_gaussians: int = 20_000
+    compress_lengths: StageLengths = StageLengths(sample=100, prune=100, merge=100, appearance=600, svq3d=100,
+                                                  svq4d=100)
     batch_size: int = 2
     seed: int = 0
 
 
-QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=60, compress_schedule="tiny")
+QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=60,
+                     compress_lengths=SCHEDULES["tiny"])
 
 
 def format_table(rows: dict[str, dict]) -> str:
@@ -114,14 +118,14 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     t = time.perf_counter()
     log(f"[2/5] training the Real-Time4DGS baseline ({settings.train_iterations} iterations)")
     cfg = make_config("cpu-small", iterations=settings.train_iterations, batch_size=settings.batch_size,
-                      seed=settings.seed, checkpoint_interval=0)
+                      max_gaussians=settings.max_gaussians, seed=settings.seed, checkpoint_interval=0)
     baseline = Trainer(scene, cfg, out / "baseline").run()
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     log("[3/5] compressing with OMG4 (M preset)")
     omg4_path = out / "scene_M.omg4"
-    ccfg = CompressConfig(preset="M", schedule=settings.compress_schedule, batch_size=settings.batch_size,
+    ccfg = CompressConfig(preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
                           seed=settings.seed, baseline_iterations=settings.train_iterations)
     report = compress_to_file(baseline.model, scene, ccfg, omg4_path)
     timings["compress_s"] = time.perf_counter() - t

@@ -144,14 +144,17 @@ def visible_counts(points: np.ndarray, cameras: list[Camera], near: float, far: 
     return ((z >= near) & (z <= far) & inside).sum(0)
 
 
-def random_initial_points(scene: Scene, num_points: int, seed: int = 0, *, min_views: int = 2,
+def random_initial_points(scene: Scene, num_points: int, seed: int = 0, *, min_views: int | None = None,
                           near: float = 0.2, far: float = 50.0, batch: int = 32768) -> PointCloud:
     """Random points in the training cameras' common view volume, in the normalized world.
 
-    Candidates are drawn uniformly in the cube ``[−r, r]³`` with ``r`` = 1.5 × the largest
+    Candidates are drawn uniformly in the cube ``[−r, r]³`` with ``r`` = the largest
     training-camera distance from the origin (the normalized world centres the cameras' focus
     at the origin, mean camera distance 4); a candidate is kept when at least
-    ``min(min_views, #cameras)`` training cameras see it at a depth in ``[near, far]``
+    ``min(min_views, #cameras)`` training cameras see it at a depth in ``[near, far]``. By
+    default ``min_views`` is half the training cameras (at least 2): points seen by only a
+    couple of cameras of a dome are mostly empty space, and sparse far-off points become
+    huge initial Gaussians that make every tile slow
     (normalized units; 0.2 is the rasterizer's near plane, reference §4.3). Batches of
     ``batch`` candidates are drawn until ``num_points`` are kept. Colours are grey-ish:
     0.5 + U(−0.05, 0.05) per channel, as Real-Time4DGS's random D-NeRF init is ≈ 0.5 grey
@@ -166,7 +169,9 @@ def random_initial_points(scene: Scene, num_points: int, seed: int = 0, *, min_v
     if num_points <= 0:
         raise DataError(f"num_points must be positive, got {num_points}")
     rng = np.random.default_rng(seed)
-    radius = 1.5 * max(float(np.linalg.norm(c.center)) for c in cameras)
+    radius = max(float(np.linalg.norm(c.center)) for c in cameras)
+    if min_views is None:
+        min_views = max(2, (len(cameras) + 1) // 2)
     need = min(min_views, len(cameras))
     kept, total, rounds = [], 0, 0
     while total < num_points:
