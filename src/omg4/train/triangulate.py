@@ -151,7 +151,8 @@ def triangulate_views(views: list[View], options: TriangulationOptions = Triangu
     try:
         import pycolmap
     except ImportError:
-        raise OMG4Error("--init colmap needs pycolmap: pip install pycolmap (or the package's 'colmap' extra)") from None
+        raise OMG4Error("--init colmap needs pycolmap: pip install pycolmap "
+                        "(or the package's 'colmap' extra)") from None
     from tqdm import tqdm
 
     if len(views) < 2:
