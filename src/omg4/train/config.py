@@ -81,14 +81,26 @@ PRESETS: dict[str, dict] = {
 }
 
 
+SCHEDULE_FIELDS = ("densify_from", "densify_until", "densify_interval", "opacity_reset_interval",
+                   "sh_increase_interval", "position_lr_max_steps")
+
+
 def make_config(preset: str = "official", **overrides) -> TrainConfig:
-    """The preset's config with ``overrides`` (``None`` values ignored) applied."""
+    """The preset's config with ``overrides`` (``None`` values ignored) applied.
+
+    Overriding ``iterations`` scales the preset's schedule (densification window and
+    interval, opacity resets, SH degree steps, position decay) by the same factor, unless
+    those are overridden too, so a shorter run still ends with a settled model.
+    """
     if preset not in PRESETS:
         from omg4.errors import OMG4Error
 
         raise OMG4Error(f"unknown training preset '{preset}' (choose from {', '.join(PRESETS)})")
     cfg = replace(TrainConfig(), **PRESETS[preset])
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    if "iterations" in overrides and "position_lr_max_steps" not in overrides:
-        overrides["position_lr_max_steps"] = overrides["iterations"]
+    if "iterations" in overrides:
+        factor = overrides["iterations"] / cfg.iterations
+        for name in SCHEDULE_FIELDS:
+            if name not in overrides:
+                overrides[name] = max(1, int(round(getattr(cfg, name) * factor)))
     return replace(cfg, **overrides)
