@@ -33,8 +33,7 @@ class DemoSettings:
     height: int = 192
     train_iterations: int = 1500
     max_gaussians: int = 20_000
-    compress_lengths: StageLengths = StageLengths(sample=100, prune=100, merge=100, appearance=600, svq3d=100,
-                                                  svq4d=100)
+    compress_lengths: StageLengths = SCHEDULES["short"]
     batch_size: int = 2
     seed: int = 0
 

@@ -12,7 +12,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
     p.add_argument("--out", type=Path, default=Path("omg4_bench"), help="output folder")
-    p.add_argument("--schedule", default="cpu", choices=["official", "cpu", "tiny"], help="fine-tuning lengths")
+    p.add_argument("--schedule", default="cpu", choices=["official", "cpu", "short", "tiny"], help="fine-tuning lengths")
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--baseline-iterations", type=int, default=30000)
     p.add_argument("--rows", help="comma-separated subset of rows (default: all): " + ", ".join(_row_names()))

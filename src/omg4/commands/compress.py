@@ -15,8 +15,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path,
                    help="output .omg4 file (with --stop-after: a .safetensors checkpoint of the minimized model)")
     p.add_argument("--preset", default="M", choices=["L", "M", "S", "T"], help="size preset (paper appendix)")
-    p.add_argument("--schedule", default="official", choices=["official", "cpu", "tiny"],
-                   help="fine-tuning lengths: official (1000 per stage, 5000 MLP), cpu (a fifth), tiny (smoke test)")
+    p.add_argument("--schedule", default="official", choices=["official", "cpu", "short", "tiny"],
+                   help="fine-tuning lengths: official (1000 per stage, 5000 MLP), cpu (a fifth), short (a tenth, "
+                        "600 MLP), tiny (smoke test)")
     p.add_argument("--stages", default="sample,prune,merge,appearance,svq3d,svq4d",
                    help="comma-separated stages in order (ablations: e.g. sample,appearance,svq3d,svq4d or "
                         "sample+prune,merge,appearance,svq3d,svq4d)")

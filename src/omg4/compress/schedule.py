@@ -32,6 +32,8 @@ SCHEDULES: dict[str, StageLengths] = {
     "official": StageLengths(),
     # a 2-core laptop on a small scene: a fifth of every stage
     "cpu": StageLengths().scaled(0.2),
+    # the demo and quick benchmarks: a tenth of each stage, 600 MLP iterations
+    "short": StageLengths(sample=100, prune=100, merge=100, appearance=600, svq3d=100, svq4d=100),
     # smoke tests
     "tiny": StageLengths(sample=4, prune=4, merge=4, appearance=8, svq3d=4, svq4d=4),
 }

@@ -1,0 +1,213 @@
+"""The one rendering entry point, :func:`rasterize`, and its CPU backend.
+
+Issue 3 / DESIGN.md "render/": one differentiable call with two backends that follow
+gsplat 1.5.3's rules. The CPU backend runs the EWA projection
+(:mod:`omg4.render.projection`) and tile binning (:mod:`omg4.render.binning`) in torch and
+composites in numba (:mod:`omg4.render.cpu_kernels`) behind a custom autograd function
+whose backward gives ∂L/∂means2d (pixels) and ∂L/∂conic; autograd carries them on to the
+3D means and covariances. View depth is composited as one more feature channel
+(``depth = Σ z·α·T``, ``rt4dgs_reference.md`` §1.5), so its gradient reaches the means too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from typing import Iterator
+
+import numba
+import numpy as np
+import torch
+
+from omg4.errors import OMG4Error
+from omg4.render.binning import TileBins, bin_tiles, pixel_boxes, sigma_cutoff
+from omg4.render.cpu_kernels import composite_backward, composite_forward
+from omg4.render.projection import ALPHA_THRESHOLD, max_radius, project_gaussians
+
+BACKENDS = ("auto", "cpu", "gsplat")
+
+
+@dataclass
+class Rendered:
+    """One rendered view.
+
+    Attributes:
+        image: [H, W, C] composited colours over the background.
+        alpha: [H, W, 1] accumulated opacity ``1 − T_final``.
+        depth: [H, W, 1] alpha-weighted view depth ``Σ z·α·T`` (not normalized by alpha).
+        means2d: [N, 2] projected means in pixels; when it requires grad, its ``.grad`` after
+            ``backward()`` is ∂loss/∂means2d (the OMG4 SD score and densification read it).
+        radii: [N] int32 box radius in pixels, 0 = not rendered.
+    """
+
+    image: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    means2d: torch.Tensor
+    radii: torch.Tensor
+
+
+def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+              viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
+              background: torch.Tensor | None = None, near: float = 0.2, far: float = 1e10, eps2d: float = 0.3,
+              alpha_max: float = 0.999, tile_size: int = 16, backend: str = "auto") -> Rendered:
+    """Render 3D Gaussians through a pinhole camera; differentiable w.r.t. every tensor input.
+
+    Args:
+        means: [N, 3] world positions.
+        covars: [N, 3, 3] symmetric positive definite covariances.
+        colors: [N, C] colours or features, C ≥ 1.
+        opacities: [N] opacities in [0, 1].
+        viewmat: [4, 4] world-to-camera (OpenCV).
+        K: [3, 3] intrinsics in pixels.
+        width, height: image size in pixels.
+        background: [C] colour behind the Gaussians (default black).
+        near, far: view-depth range kept (``near ≤ z ≤ far``, near > 0).
+        eps2d: added to both diagonal entries of every 2D covariance.
+        alpha_max: per-Gaussian alpha cap (gsplat 0.999; the original 3DGS uses 0.99).
+        tile_size: tile side in pixels.
+        backend: "cpu", "gsplat" (CUDA, alpha_max 0.999 only) or "auto" (gsplat for CUDA
+            tensors when it imports, else cpu).
+
+    Raises:
+        OMG4Error: an input holds NaN or infinity.
+        ValueError: shapes or settings are inconsistent.
+    """
+    _check_inputs(means, covars, colors, opacities, viewmat, K, width, height, background, near, far,
+                  alpha_max, tile_size)
+    chosen = resolve_backend(backend, means.device)
+    if chosen == "gsplat":
+        from omg4.render.gsplat_backend import rasterize_gsplat
+
+        return rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height, background=background,
+                                near=near, far=far, eps2d=eps2d, alpha_max=alpha_max, tile_size=tile_size)
+    return rasterize_cpu(means, covars, colors, opacities, viewmat, K, width, height, background=background,
+                         near=near, far=far, eps2d=eps2d, alpha_max=alpha_max, tile_size=tile_size)
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """"cpu" or "gsplat" for ``backend`` on tensors living on ``device``."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown rasterizer backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if backend != "auto":
+        return backend
+    if device.type == "cuda":
+        try:
+            import gsplat  # noqa: F401  (importable: its CUDA kernels build on first use)
+        except ImportError:
+            return "cpu"
+        return "gsplat"
+    return "cpu"
+
+
+def _check_inputs(means, covars, colors, opacities, viewmat, K, width, height, background, near, far, alpha_max,
+                  tile_size) -> None:
+    n = means.shape[0] if means.dim() == 2 else -1
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must be [N, 3], got {list(means.shape)}")
+    if covars.shape != (n, 3, 3):
+        raise ValueError(f"covars must be [{n}, 3, 3], got {list(covars.shape)}")
+    if colors.dim() != 2 or colors.shape[0] != n or colors.shape[1] < 1:
+        raise ValueError(f"colors must be [{n}, C] with C >= 1, got {list(colors.shape)}")
+    if opacities.shape != (n,):
+        raise ValueError(f"opacities must be [{n}], got {list(opacities.shape)}")
+    if viewmat.shape != (4, 4) or K.shape != (3, 3):
+        raise ValueError(f"viewmat must be [4, 4] and K [3, 3], got {list(viewmat.shape)} and {list(K.shape)}")
+    if background is not None and background.shape != (colors.shape[1],):
+        raise ValueError(f"background must be [{colors.shape[1]}], got {list(background.shape)}")
+    if width < 1 or height < 1 or tile_size < 1:
+        raise ValueError(f"image size {width}x{height} and tile size {tile_size} must be positive")
+    if not 0 < near <= far:
+        raise ValueError(f"need 0 < near <= far, got near={near}, far={far}")
+    if not ALPHA_THRESHOLD < alpha_max < 1:
+        raise ValueError(f"alpha_max must lie in (1/255, 1), got {alpha_max}")
+    named = {"means": means, "covars": covars, "colors": colors, "opacities": opacities, "viewmat": viewmat, "K": K}
+    if background is not None:
+        named["background"] = background
+    for name, value in named.items():
+        if not bool(torch.isfinite(value).all()):
+            raise OMG4Error(f"rasterize: {name} contains NaN or infinite values")
+
+
+def rasterize_cpu(means, covars, colors, opacities, viewmat, K, width, height, *, background=None, near=0.2,
+                  far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
+    """CPU backend of :func:`rasterize` (same arguments).
+
+    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU.
+    """
+    if means.device.type != "cpu":
+        raise ValueError(f"the cpu rasterizer backend needs CPU tensors, got {means.device}")
+    dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
+    means = means.to(dtype)
+    colors = colors.to(dtype)
+    opacities = opacities.to(dtype)
+    proj = project_gaussians(means, covars.to(dtype), viewmat.to(dtype), K.to(dtype), width, height,
+                             opacities=opacities, near=near, far=far, eps2d=eps2d)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    bins = bin_tiles(means2d, proj.radii, proj.depths, width, height, tile_size)
+    cutoff = sigma_cutoff(opacities)
+    boxes = pixel_boxes(means2d, proj.cov2d_diag, cutoff, width, height)
+    n_colors = colors.shape[1]
+    feats = torch.cat([colors, proj.depths[:, None]], dim=1)
+    acc, trans = _Composite.apply(means2d, proj.conics, feats, opacities, cutoff.to(dtype), boxes, bins,
+                                  (width, height, alpha_max))
+    bg = torch.zeros(n_colors, dtype=dtype) if background is None else background.to(dtype)
+    image = acc[..., :n_colors] + trans * bg
+    return Rendered(image=image, alpha=1.0 - trans, depth=acc[..., n_colors:], means2d=means2d,
+                    radii=max_radius(proj.radii))
+
+
+def _as_numpy(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+@contextlib.contextmanager
+def _kernel_launch() -> Iterator[None]:
+    """Run a numba kernel with tiles handed out one at a time (their costs differ widely).
+
+    numba's OpenMP pool shares the OpenMP runtime with torch and resets its thread count on
+    first use; torch's intra-op thread setting is restored afterwards.
+    """
+    torch_threads = torch.get_num_threads()
+    with numba.parallel_chunksize(1):
+        yield
+    if torch.get_num_threads() != torch_threads:
+        torch.set_num_threads(torch_threads)
+
+
+class _Composite(torch.autograd.Function):
+    """(means2d [N,2], conics [N,3], feats [N,D], opacities [N]) → (Σ f·α·T [H,W,D], T_final [H,W,1])."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, feats, opacities, cutoff, boxes, bins: TileBins, settings):
+        width, height, alpha_max = settings
+        params = torch.cat([means2d, conics, opacities[:, None], cutoff[:, None]], dim=1)
+        gauss = (_as_numpy(params), _as_numpy(feats), _as_numpy(boxes), _as_numpy(bins.gaussian_ids))
+        np_dtype = gauss[0].dtype
+        grid = (_as_numpy(bins.tile_offsets), bins.tiles_x, bins.tile_size,
+                np.arange(width, dtype=np_dtype) + 0.5, np.arange(height, dtype=np_dtype) + 0.5,
+                np.array([0.5, alpha_max, ALPHA_THRESHOLD], dtype=np_dtype))
+        out_feat = np.empty((height, width, feats.shape[1]), dtype=np_dtype)
+        out_t = np.empty((height, width), dtype=np.float64)
+        out_last = np.empty((height, width), dtype=np.int32)
+        with _kernel_launch():
+            composite_forward(*gauss, *grid, out_feat, out_t, out_last)
+        ctx.gauss, ctx.grid, ctx.out_t, ctx.out_last = gauss, grid, out_t, out_last
+        ctx.ids = bins.gaussian_ids
+        return torch.from_numpy(out_feat), torch.from_numpy(out_t).to(feats.dtype)[..., None]
+
+    @staticmethod
+    def backward(ctx, grad_feat, grad_t):
+        params, feats = ctx.gauss[0], ctx.gauss[1]
+        n_isect = ctx.ids.shape[0]
+        g_params = np.zeros((n_isect, 6), dtype=params.dtype)
+        g_feats = np.zeros((n_isect, feats.shape[1]), dtype=feats.dtype)
+        with _kernel_launch():
+            composite_backward(*ctx.gauss, *ctx.grid, ctx.out_t, ctx.out_last, _as_numpy(grad_feat),
+                               _as_numpy(grad_t[..., 0]), g_params, g_feats)
+        n, dtype = params.shape[0], grad_feat.dtype
+        per_gauss = torch.zeros(n, 6, dtype=dtype).index_add_(0, ctx.ids, torch.from_numpy(g_params))
+        per_feat = torch.zeros(n, feats.shape[1], dtype=dtype).index_add_(0, ctx.ids, torch.from_numpy(g_feats))
+        return per_gauss[:, 0:2], per_gauss[:, 2:5], per_feat, per_gauss[:, 5], None, None, None, None

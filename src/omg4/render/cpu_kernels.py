@@ -1,0 +1,271 @@
+"""numba tile kernels: alpha compositing forward and its hand-written backward.
+
+Design from ``rasterizer_backends.md`` ("Recommendation"): one ``prange`` iteration per
+image tile; within a tile the Gaussians of the tile's depth-sorted list are visited front
+to back (backward: back to front), each only over the pixels of its box
+(:func:`omg4.render.binning.pixel_boxes`). The backward writes one gradient row per
+intersection (each intersection belongs to exactly one tile, so tiles never race);
+the caller sums them per Gaussian with ``index_add_``.
+
+Per-pixel rules are gsplat 1.5.3's (``RasterizeToPixels3DGSFwd.cu``/``Bwd.cu``):
+``d = mean2d − (pixel + 0.5)``, ``σ = ½(a·dx² + c·dy²) + b·dx·dy``; skip when ``σ < 0`` or
+``α = min(α_max, o·e^{−σ}) < 1/255``; stop, without the current Gaussian, once
+``T·(1 − α) ≤ 1e-4``; the backward passes no gradient to σ and o where the clamp is
+active (``o·e^{−σ} > α_max``). ``exp`` is skipped when ``σ`` exceeds the per-Gaussian
+:func:`omg4.render.binning.sigma_cutoff` (exact). σ and α are computed in the input
+precision (as gsplat); transmittance and sums are accumulated in float64, so the backward
+recovers ``T_i = T_{i+1} / (1 − α_i)`` by division without drift.
+
+Backward (per pixel, back to front, ``g = ∂L/∂out_feat``): with ``B`` the g-weighted
+features composited behind Gaussian ``i`` plus ``T_final·∂L/∂T_final``,
+``∂L/∂α_i = T_i·(f_i·g) − B/(1 − α_i)``; then ``∂L/∂σ = −o·e^{−σ}·∂L/∂α``,
+``∂L/∂o = e^{−σ}·∂L/∂α`` and ``∂L/∂f_i = α_i·T_i·g``.
+
+Arrays (``N`` Gaussians, ``I`` intersections sorted by tile then depth, ``D`` feature channels):
+    params: [N, 7] (mean x, mean y, conic a, b, c, opacity, σ cutoff) per Gaussian.
+    feats: [N, D] features (colours and view depth) per Gaussian.
+    boxes: [N, 4] int32 half-open pixel box (x0, x1, y0, y1) per Gaussian.
+    ids: [I] int64 Gaussian of each intersection.
+    tile_offsets: [T + 1] int64, tile ``t`` owns intersections ``[offsets[t], offsets[t+1])``.
+    pix_x: [W], pix_y: [H] pixel-centre coordinates (index + 0.5), input dtype.
+    consts: [3] (0.5, α_max, 1/255) in the input dtype.
+
+numba's on-disk cache goes to ``NUMBA_CACHE_DIR`` when set, else beside this file, or to
+``~/.cache/omg4/numba`` when the package directory is read-only; this is decided before
+the kernels below are defined (numba binds the cache location at decoration time).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+TRANSMITTANCE_MIN = 1e-4
+"""A pixel stops before the Gaussian that would bring its transmittance to ≤ this (gsplat)."""
+
+
+def resolve_cache_dir(environ: Mapping[str, str], package_dir: str | os.PathLike,
+                      writable: Callable[[str | os.PathLike], bool]) -> str | None:
+    """Folder to force as numba's cache, or None to keep numba's own choice.
+
+    ``NUMBA_CACHE_DIR`` in ``environ`` wins (numba reads it itself); a writable
+    ``package_dir`` keeps numba's default ``__pycache__``; otherwise ``~/.cache/omg4/numba``.
+    """
+    if environ.get("NUMBA_CACHE_DIR"):
+        return None
+    if writable(package_dir):
+        return None
+    return str(Path.home() / ".cache" / "omg4" / "numba")
+
+
+def _configure_cache() -> None:
+    folder = resolve_cache_dir(os.environ, Path(__file__).parent, lambda p: os.access(p, os.W_OK))
+    if folder is not None:
+        os.makedirs(folder, exist_ok=True)
+        os.environ["NUMBA_CACHE_DIR"] = folder  # survives numba's config reloads
+        numba.config.CACHE_DIR = folder
+
+
+_configure_cache()
+
+
+@njit(parallel=True, cache=True)
+def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
+                      out_feat, out_t, out_last):
+    """Front-to-back compositing of every tile.
+
+    Writes ``out_feat [H, W, D]`` (Σ f·α·T, no background), ``out_t [H, W]`` float64 final
+    transmittance and ``out_last [H, W]`` int32 (1 + index of the last intersection that
+    contributed to the pixel, 0 if none).
+    """
+    height, width, n_feat = out_feat.shape
+    half = consts[0]
+    alpha_max = consts[1]
+    alpha_min = consts[2]
+    n_tiles = tile_offsets.shape[0] - 1
+    for tile in prange(n_tiles):
+        ty = tile // tiles_x
+        x0 = (tile - ty * tiles_x) * tile_size
+        y0 = ty * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        tw = x1 - x0
+        n_pix = tw * (y1 - y0)
+        trans = np.ones(n_pix)
+        acc = np.zeros((n_pix, n_feat))
+        last = np.zeros(n_pix, np.int32)
+        done = np.zeros(n_pix, np.bool_)
+        row_left = np.full(y1 - y0, tw, np.int64)  # pixels of each tile row still compositing
+        n_done = 0
+        for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
+            if n_done == n_pix:
+                break
+            gi = ids[k]
+            bx0 = max(boxes[gi, 0], x0)
+            bx1 = min(boxes[gi, 1], x1)
+            by0 = max(boxes[gi, 2], y0)
+            by1 = min(boxes[gi, 3], y1)
+            if bx0 >= bx1 or by0 >= by1:
+                continue
+            mx = params[gi, 0]
+            my = params[gi, 1]
+            ca = params[gi, 2]
+            cb = params[gi, 3]
+            cc = params[gi, 4]
+            opac = params[gi, 5]
+            cut = params[gi, 6]
+            for py in range(by0, by1):
+                if row_left[py - y0] == 0:
+                    continue
+                dy = my - pix_y[py]
+                row = (py - y0) * tw - x0
+                for px in range(bx0, bx1):
+                    li = row + px
+                    if done[li]:
+                        continue
+                    dx = mx - pix_x[px]
+                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0 or sigma > cut:
+                        continue
+                    alpha = min(alpha_max, opac * math.exp(-sigma))
+                    if alpha < alpha_min:
+                        continue
+                    t = trans[li]
+                    t_next = t * (1.0 - alpha)
+                    if t_next <= TRANSMITTANCE_MIN:
+                        done[li] = True
+                        row_left[py - y0] -= 1
+                        n_done += 1
+                        continue
+                    w = alpha * t
+                    for d in range(n_feat):
+                        acc[li, d] += feats[gi, d] * w
+                    trans[li] = t_next
+                    last[li] = k + 1
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                li = (py - y0) * tw + px - x0
+                out_t[py, px] = trans[li]
+                out_last[py, px] = last[li]
+                for d in range(n_feat):
+                    out_feat[py, px, d] = acc[li, d]
+
+
+@njit(parallel=True, cache=True)
+def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
+                       t_final, last_ids, grad_feat, grad_t, out_grad_params, out_grad_feats):
+    """Back-to-front gradients per intersection.
+
+    Inputs ``t_final [H, W]`` float64 and ``last_ids [H, W]`` from :func:`composite_forward`,
+    ``grad_feat [H, W, D]`` = ∂L/∂out_feat and ``grad_t [H, W]`` = ∂L/∂T_final. Writes
+    ``out_grad_params [I, 6]`` (∂L/∂ mean x, mean y, conic a, b, c, opacity) and
+    ``out_grad_feats [I, D]``; rows of intersections that reached no pixel stay untouched.
+    """
+    height, width, n_feat = grad_feat.shape
+    half = consts[0]
+    alpha_max = consts[1]
+    alpha_min = consts[2]
+    n_tiles = tile_offsets.shape[0] - 1
+    for tile in prange(n_tiles):
+        ty = tile // tiles_x
+        x0 = (tile - ty * tiles_x) * tile_size
+        y0 = ty * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        tw = x1 - x0
+        n_pix = tw * (y1 - y0)
+        trans = np.empty(n_pix)
+        last = np.empty(n_pix, np.int32)
+        g = np.empty((n_pix, n_feat))
+        # behind[p] = Σ_d g_d·(features composited behind the current Gaussian)_d + T_final·∂L/∂T_final:
+        # ∂L/∂α_i = T_i·(f_i·g) − behind / (1 − α_i), so one scalar per pixel replaces a [D] buffer
+        behind = np.empty(n_pix)
+        row_end = np.zeros(y1 - y0, np.int64)  # 1 + last intersection reaching each tile row
+        v_feat = np.empty(n_feat)
+        start = tile_offsets[tile]
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                li = (py - y0) * tw + px - x0
+                trans[li] = t_final[py, px]
+                behind[li] = t_final[py, px] * grad_t[py, px]
+                last[li] = last_ids[py, px]
+                row_end[py - y0] = max(row_end[py - y0], last_ids[py, px])
+                for d in range(n_feat):
+                    g[li, d] = grad_feat[py, px, d]
+        k_end = max(start, row_end.max())
+        for k in range(k_end - 1, start - 1, -1):
+            gi = ids[k]
+            bx0 = max(boxes[gi, 0], x0)
+            bx1 = min(boxes[gi, 1], x1)
+            by0 = max(boxes[gi, 2], y0)
+            by1 = min(boxes[gi, 3], y1)
+            if bx0 >= bx1 or by0 >= by1:
+                continue
+            mx = params[gi, 0]
+            my = params[gi, 1]
+            ca = params[gi, 2]
+            cb = params[gi, 3]
+            cc = params[gi, 4]
+            opac = params[gi, 5]
+            cut = params[gi, 6]
+            v_mx = 0.0
+            v_my = 0.0
+            v_xx = 0.0
+            v_xy = 0.0
+            v_yy = 0.0
+            v_o = 0.0
+            for d in range(n_feat):
+                v_feat[d] = 0.0
+            for py in range(by0, by1):
+                if k >= row_end[py - y0]:
+                    continue
+                dy = my - pix_y[py]
+                row = (py - y0) * tw - x0
+                for px in range(bx0, bx1):
+                    li = row + px
+                    if k >= last[li]:
+                        continue
+                    dx = mx - pix_x[px]
+                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0 or sigma > cut:
+                        continue
+                    vis = math.exp(-sigma)
+                    alpha = min(alpha_max, opac * vis)
+                    if alpha < alpha_min:
+                        continue
+                    ra = 1.0 / (1.0 - alpha)
+                    t = trans[li] * ra
+                    trans[li] = t
+                    fac = alpha * t
+                    fg = 0.0
+                    for d in range(n_feat):
+                        gd = g[li, d]
+                        fg += feats[gi, d] * gd
+                        v_feat[d] += fac * gd
+                    v_alpha = t * fg - ra * behind[li]
+                    behind[li] += fac * fg
+                    if opac * vis <= alpha_max:  # else the alpha clamp is active: no gradient
+                        v_o += vis * v_alpha
+                        v_sigma = -opac * vis * v_alpha
+                        sx = v_sigma * dx
+                        sy = v_sigma * dy
+                        v_mx += sx  # moments of v_sigma; the conic is applied once below
+                        v_my += sy
+                        v_xx += sx * dx
+                        v_xy += sx * dy
+                        v_yy += sy * dy
+            # ∂σ/∂mean = conic·d, ∂σ/∂(a, b, c) = (dx²/2, dx·dy, dy²/2)
+            out_grad_params[k, 0] = ca * v_mx + cb * v_my
+            out_grad_params[k, 1] = cb * v_mx + cc * v_my
+            out_grad_params[k, 2] = 0.5 * v_xx
+            out_grad_params[k, 3] = v_xy
+            out_grad_params[k, 4] = 0.5 * v_yy
+            out_grad_params[k, 5] = v_o
+            for d in range(n_feat):
+                out_grad_feats[k, d] = v_feat[d]
