@@ -109,7 +109,10 @@ def test_cli_prints_one_line_and_exits_2(tmp_path, capsys):
     assert err.count("\n") == 0 and "is empty" in err
     (tmp_path / "model.omg4").write_bytes(b"x")
     assert main(["info", str(tmp_path / "model.omg4")]) == 2
-    assert "is not a dataset folder" in capsys.readouterr().err
+    assert "not an .omg4 file" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("x")
+    assert main(["info", str(tmp_path / "notes.txt")]) == 2
+    assert "is neither a dataset folder" in capsys.readouterr().err
 
 
 def test_cli_info_json(tmp_path, dnerf_mutant, capsys):

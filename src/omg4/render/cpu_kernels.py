@@ -75,6 +75,15 @@ def _configure_cache() -> None:
 _configure_cache()
 
 
+@njit(cache=True, inline="always")
+def _tile_bounds(tile, tiles_x, tile_size, width, height):
+    """Pixel box ``[x0, x1) × [y0, y1)`` of a tile (row-major tile ids), clipped to the image."""
+    ty = tile // tiles_x
+    x0 = (tile - ty * tiles_x) * tile_size
+    y0 = ty * tile_size
+    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
+
+
 @njit(parallel=True, cache=True)
 def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
                       out_feat, out_t, out_last):
@@ -90,11 +99,7 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_siz
     alpha_min = consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        ty = tile // tiles_x
-        x0 = (tile - ty * tiles_x) * tile_size
-        y0 = ty * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
+        x0, y0, x1, y1 = _tile_bounds(tile, tiles_x, tile_size, width, height)
         tw = x1 - x0
         n_pix = tw * (y1 - y0)
         trans = np.ones(n_pix)
@@ -173,11 +178,7 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_si
     alpha_min = consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        ty = tile // tiles_x
-        x0 = (tile - ty * tiles_x) * tile_size
-        y0 = ty * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
+        x0, y0, x1, y1 = _tile_bounds(tile, tiles_x, tile_size, width, height)
         tw = x1 - x0
         n_pix = tw * (y1 - y0)
         trans = np.empty(n_pix)
