@@ -56,7 +56,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log)
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
-        pipeline._ensure_scores().save(out.with_name(out.name + ".scores.npz"))
+        pipeline.ensure_scores().save(out.with_name(out.name + ".scores.npz"))
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": cfg.preset, "stages": list(cfg.stages), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}

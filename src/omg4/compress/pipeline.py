@@ -136,7 +136,8 @@ class CompressionPipeline:
         if self.scores is not None:
             self.scores = self.scores.select(keep)
 
-    def _ensure_scores(self) -> SDScores:
+    def ensure_scores(self) -> SDScores:
+        """The SD scores of the current Gaussians, computed on first use (paper §4.1)."""
         if self.scores is None:
             self.scores = compute_sd_scores(self.model, self.scene.train_views, background=self.background,
                                             backend=self.cfg.backend, official_quirk=self.cfg.official_score_quirk,
@@ -145,15 +146,15 @@ class CompressionPipeline:
 
     def stage_sample(self) -> None:
         """Gaussian Sampling (paper §4.1)."""
-        self._remove(sampling_mask(self._ensure_scores(), self.size.tau_gs))
+        self._remove(sampling_mask(self.ensure_scores(), self.size.tau_gs))
 
     def stage_prune(self) -> None:
         """Gaussian Pruning (paper §4.2) on the stored scores of the sampled set."""
-        self._remove(pruning_mask(self._ensure_scores(), self.size.prune_quantile))
+        self._remove(pruning_mask(self.ensure_scores(), self.size.prune_quantile))
 
     def stage_sample_prune(self) -> None:
         """Sampling and pruning applied at once (the paper's GS+GP ablation row)."""
-        scores = self._ensure_scores()
+        scores = self.ensure_scores()
         keep = sampling_mask(scores, self.size.tau_gs)
         keep[keep.clone()] = pruning_mask(scores.select(keep), self.size.prune_quantile)
         self._remove(keep)
@@ -190,13 +191,13 @@ class CompressionPipeline:
             self.model.params[name] = value.detach().clone().requires_grad_(True)
         torch.manual_seed(self.cfg.seed)
         self.model.appearance = AppearanceMLP()
-        lengths = self.cfg.stage_lengths()
-        remaining = self._remaining_after("appearance", lengths)
+        remaining = self._remaining_after("appearance")
         self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
             self.model.appearance, total_iterations=remaining)
         self._rebuild_main_optimizer()
 
-    def _remaining_after(self, name: str, lengths: StageLengths) -> int:
+    def _remaining_after(self, name: str) -> int:
+        """Fine-tuning iterations from the event ``name`` to the end of the pipeline."""
         start = next(e.iteration for e in self.events if e.name == name)
         return self.total_iterations - start
 
