@@ -21,7 +21,7 @@ from omg4.cli import main as omg4_main
 from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians
-from omg4.io.rt4dgs_import import import_rt4dgs, import_rt4dgs_file
+from omg4.io.rt4dgs_import import import_rt4dgs
 
 GROUPS = ("xyz", "f_dc", "f_rest", "opacity", "scaling", "rotation", "t", "scaling_t", "rotation_r")
 
