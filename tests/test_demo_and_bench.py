@@ -1,0 +1,47 @@
+"""The main job and the benchmark run end to end at tiny sizes and write what they promise."""
+
+import json
+
+import av
+import numpy as np
+from PIL import Image
+
+from omg4.bench import run_bench
+from omg4.demo import QUICK, run_demo
+from omg4.train import Trainer, make_config
+
+
+def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
+    out = tmp_path / "demo"
+    results = run_demo(out, QUICK, log=lambda *_: None)
+    saved = json.loads((out / "results.json").read_text())
+    methods = saved["methods"]
+    assert set(methods) == {"Real-Time4DGS (baseline)", "OMG4-M"}
+    for row in methods.values():
+        assert {"psnr", "ssim", "lpips_alex", "fps", "num_gaussians", "storage_mb"} <= set(row)
+        assert np.isfinite(row["psnr"]) and row["fps"] > 0
+    omg4_file = out / "scene_M.omg4"
+    assert methods["OMG4-M"]["storage_mb"] == omg4_file.stat().st_size / 2**20
+    assert methods["OMG4-M"]["num_gaussians"] < methods["Real-Time4DGS (baseline)"]["num_gaussians"]
+    assert Image.open(out / "rate_distortion.png").size[0] > 100
+    with av.open(str(out / "side_by_side.mp4")) as c:
+        frames = list(c.decode(video=0))
+    assert len(frames) == len(results["per_view"]["OMG4-M"])  # one frame per test view
+    assert frames[0].width == 3 * QUICK.width  # ground truth | baseline | OMG4
+    assert "| OMG4-M |" in saved["table"]
+
+
+def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
+    cfg = make_config("cpu-small", iterations=20, batch_size=1, checkpoint_interval=0, densify_until=0,
+                      backend="cpu")
+    base = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
+    results = run_bench(tiny_scene, base.model, base.model_path, tmp_path / "bench", schedule="tiny", batch_size=1,
+                        baseline_iterations=20, rows=["GS+AC", "(GS+GP)+GM+AC"], backend="cpu", log=lambda *_: None)
+    assert list(results) == ["Real-Time4DGS", "GS+AC", "(GS+GP)+GM+AC"]
+    n = base.model.num_gaussians
+    assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
+    assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
+    table = (tmp_path / "bench" / "bench.md").read_text()
+    assert "B/Gaussian" in table and "GS+AC" in table
+    saved = json.loads((tmp_path / "bench" / "bench.json").read_text())
+    assert saved["GS+AC"]["bytes_per_gaussian"] > 0 and (tmp_path / "bench" / "rate_distortion.png").exists()
