@@ -38,7 +38,8 @@ def load_model(path: str | os.PathLike):
     return load_gaussians(path)[0]
 
 
-def view_target(view: View) -> torch.Tensor:
+def view_image(view: View) -> torch.Tensor:
+    """The ground-truth image of ``view`` as float32 [H, W, 3]; NaN or Inf is a one-line error."""
     img = view.image()
     if not np.isfinite(img).all():
         raise OMG4Error(f"image of camera {view.camera.name} frame {view.frame_index} contains NaN or Inf")
@@ -62,7 +63,7 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
         raise OMG4Error("there are no test views to evaluate on")
     per_view = []
     for v in tqdm(views, desc="eval", disable=not progress, dynamic_ncols=True):
-        img, gt = render_image(model, v, background, backend), view_target(v)
+        img, gt = render_image(model, v, background, backend), view_image(v)
         row = {"camera": v.camera.name, "frame": v.frame_index, "time": v.timestamp, "psnr": psnr(img, gt),
                "ssim": float(ssim(img, gt))}
         for net in lpips_nets:

@@ -25,12 +25,13 @@ from omg4.compress.score import SDScores, compute_sd_scores
 from omg4.compress.svq import SubVectorQuantizer
 from omg4.data.scene import Scene
 from omg4.errors import OMG4Error
+from omg4.evaluate import view_image
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.render.view import render_view
 from omg4.train.loss import photometric_loss
 from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, replace_param
-from omg4.train.trainer import step_generator, view_image
+from omg4.train.trainer import step_generator
 
 FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
 

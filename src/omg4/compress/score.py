@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from omg4.data.scene import View
 from omg4.render.view import render_view
 from omg4.train.loss import photometric_loss
-from omg4.train.trainer import view_image
+from omg4.evaluate import view_image
 
 
 @dataclass

@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import PointCloud, Scene, View
 from omg4.errors import OMG4Error
+from omg4.evaluate import render_image, view_image
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.checkpoint import save_gaussians
 from omg4.metrics import psnr
@@ -57,14 +58,6 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
     return min(k, max_deg), min(max(k - max_deg, 0), max_deg_t)
 
 
-def view_image(view: View) -> torch.Tensor:
-    """The ground-truth image of ``view`` as float32 [H, W, 3]."""
-    img = view.image()
-    if not np.isfinite(img).all():
-        raise OMG4Error(f"image of camera {view.camera.name} frame {view.frame_index} contains NaN or Inf")
-    return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32))
-
-
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
     """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume."""
     if points is None:
@@ -87,11 +80,7 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
 
 def evaluate_psnr(model, views: list[View], background: torch.Tensor, backend: str) -> float:
     """Mean PSNR of ``model`` over ``views`` (renders clamped to [0, 1])."""
-    values = []
-    with torch.no_grad():
-        for v in views:
-            rendered, _ = render_view(model, v.camera, v.timestamp, background=background, backend=backend)
-            values.append(psnr(rendered.image.clamp(0, 1), view_image(v)))
+    values = [psnr(render_image(model, v, background, backend), view_image(v)) for v in views]
     return float(np.mean(values)) if values else float("nan")
 
 
