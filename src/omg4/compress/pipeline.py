@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -25,13 +24,10 @@ from omg4.compress.score import SDScores, compute_sd_scores
 from omg4.compress.svq import SubVectorQuantizer
 from omg4.data.scene import Scene
 from omg4.errors import OMG4Error
-from omg4.evaluate import view_image
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
-from omg4.render.view import render_view
-from omg4.train.loss import photometric_loss
 from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, replace_param
-from omg4.train.trainer import step_generator
+from omg4.train.trainer import backward_batch, step_generator
 
 FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
 
@@ -239,24 +235,16 @@ class CompressionPipeline:
         """One fine-tuning iteration (1-based ``step``); returns the mean batch loss."""
         self._set_position_lr(step)
         views = self.scene.train_views
-        order = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2))
-        losses = []
-        for i in order.tolist():
-            view = views[i]
-            rendered, _ = render_view(self.model, view.camera, view.timestamp, background=self.background,
-                                      backend=self.cfg.backend)
-            loss = photometric_loss(rendered.image, view_image(view)) / self.cfg.batch_size
-            if not torch.isfinite(loss):
-                raise OMG4Error(f"compression diverged at iteration {step}: the loss is {float(loss)}")
-            loss.backward()
-            losses.append(loss.item() * self.cfg.batch_size)
+        batch = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2))
+        loss = backward_batch(self.model, views, batch, background=self.background, backend=self.cfg.backend,
+                              lambda_dssim=0.2, what="compression", step=step)
         for opt in (self.optimizer, self.mlp_optimizer, self.codebook_optimizer):
             if opt is not None:
                 opt.step()
                 opt.zero_grad(set_to_none=True)
         if self.mlp_scheduler is not None:
             self.mlp_scheduler.step()
-        return float(np.mean(losses))
+        return loss
 
     def run(self, stop_after: str | None = None) -> CompressibleModel:
         """Run every event and the fine-tuning between them; stop after the stage ``stop_after`` if given."""

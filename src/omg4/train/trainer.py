@@ -58,6 +58,28 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
     return min(k, max_deg), min(max(k - max_deg, 0), max_deg_t)
 
 
+def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
+                   lambda_dssim: float, what: str, step: int, on_view=None) -> float:
+    """Render ``views[i]`` for each i in ``batch`` and back-propagate ``loss_v / B`` (rt4dgs §3.1).
+
+    ``on_view(view, rendered, time_slice, gt)`` runs after each backward (gradient statistics).
+    Returns the mean per-view loss; a non-finite loss is a one-line error naming ``what``.
+    """
+    losses = []
+    for i in batch.tolist():
+        view = views[i]
+        gt = view_image(view)
+        rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend)
+        loss = photometric_loss(rendered.image, gt, lambda_dssim) / len(batch)
+        if not torch.isfinite(loss):
+            raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {float(loss)}")
+        loss.backward()
+        losses.append(loss.item() * len(batch))
+        if on_view is not None:
+            on_view(view, rendered, sl, gt)
+    return float(np.mean(losses))
+
+
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
     """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume."""
     if points is None:
@@ -130,27 +152,22 @@ class Trainer:
         model.active_sh_degree, model.active_sh_degree_t = active_sh_degrees(
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
-        order = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step))
-        losses, psnrs = [], []
+        batch = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step))
+        psnrs = []
         densifying = step < cfg.densify_until
-        for i in order.tolist():
-            view = views[i]
-            gt = view_image(view)
-            rendered, sl = render_view(model, view.camera, view.timestamp, background=self.background,
-                                       backend=cfg.backend)
-            loss = photometric_loss(rendered.image, gt, cfg.lambda_dssim) / cfg.batch_size
-            loss.backward()
-            if not torch.isfinite(loss):
-                raise OMG4Error(f"training diverged at iteration {step}: the loss is {float(loss)}")
+
+        def on_view(view, rendered, sl, gt):
             if densifying and rendered.means2d.grad is not None:
                 self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, view.camera.width,
                                     view.camera.height, cfg.batch_size)
-            losses.append(loss.item() * cfg.batch_size)
             psnrs.append(psnr(rendered.image.detach().clamp(0, 1), gt))
+
+        loss = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
+                              lambda_dssim=cfg.lambda_dssim, what="training", step=step, on_view=on_view)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self._density_events(step)
-        return float(np.mean(losses)), float(np.mean(psnrs))
+        return loss, float(np.mean(psnrs))
 
     def _density_events(self, step: int) -> None:
         cfg = self.cfg
