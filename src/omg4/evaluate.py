@@ -19,17 +19,14 @@ from omg4.data.scene import View
 from omg4.errors import OMG4Error
 from omg4.render.view import render_view
 
-OMG4_MAGIC = b"\x89OMG4"
-
-
 def load_model(path: str | os.PathLike):
     """A renderable model from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file."""
     path = Path(path)
     if not path.is_file():
         raise OMG4Error(f"model file {path} does not exist")
-    with open(path, "rb") as f:
-        head = f.read(len(OMG4_MAGIC))
-    if head == OMG4_MAGIC:
+    from omg4.codec.container import has_magic
+
+    if has_magic(path):
         from omg4.codec.decoder import load_omg4
 
         return load_omg4(path)

@@ -8,7 +8,7 @@ import torch
 
 from omg4.codec.payload import CompressedPayload, decode_payload, encode_payload
 from omg4.compress.presets import size_preset
-from omg4.compress.svq import SVQ_PRESETS, SubVectorQuantizer, svq_config
+from omg4.compress.svq import SubVectorQuantizer
 
 
 def _values(n: int = 3000, d: int = 4, seed: int = 0) -> torch.Tensor:
@@ -98,8 +98,9 @@ PAPER_M = {"scale": (1, 2**9), "rotation": (2, 2**13), "app": (2, 2**10), "scale
     ("S", {**PAPER_M, "scale": (1, 2**8)}), ("T", {**PAPER_M, "scale": (1, 2**8)}),
 ])
 def test_preset_codebooks_follow_the_paper(preset, expected):
-    assert svq_config(preset) == expected == SVQ_PRESETS[preset]
-    assert svq_config(preset.lower()) == expected
+    for name in (preset, preset.lower()):
+        p = size_preset(name)
+        assert {a: p.codebook(a) for a in p.codebook_sizes} == expected
 
 
 @pytest.mark.parametrize("preset,tau,p", [("L", 0.4, 0.8), ("M", 0.2, 0.8), ("S", 0.3, 0.9)])

@@ -55,6 +55,12 @@ def _encode_json(header: dict, table: list[list]) -> bytes:
         raise OMG4Error(f"container header is not JSON-serializable: {exc}") from None
 
 
+def has_magic(path) -> bool:
+    """Whether the file at ``path`` starts with the ``.omg4`` container's magic bytes."""
+    with open(path, "rb") as f:
+        return f.read(len(MAGIC)) == MAGIC
+
+
 def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes]) -> int:
     """Write ``header`` (a JSON-able dict) and named binary ``sections`` to ``path`` atomically.
 

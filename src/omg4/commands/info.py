@@ -133,14 +133,13 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
 
 
 def _is_omg4(path: Path) -> bool:
-    from omg4.evaluate import OMG4_MAGIC
+    from omg4.codec.container import has_magic
 
     if not path.is_file():
         return False
     if path.suffix == ".omg4":  # named as one: a damaged file gets the container's own error
         return True
-    with open(path, "rb") as f:
-        return f.read(len(OMG4_MAGIC)) == OMG4_MAGIC
+    return has_magic(path)
 
 
 def _is_checkpoint(path: Path) -> bool:

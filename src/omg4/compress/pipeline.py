@@ -26,7 +26,7 @@ from omg4.data.scene import Scene
 from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
-from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, replace_param
+from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, make_adam, replace_param
 from omg4.train.trainer import backward_batch, step_generator
 
 FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
@@ -93,24 +93,20 @@ class CompressionPipeline:
         self.records: list[StageRecord] = []
         for p in self.model.params.values():
             p.requires_grad_(True)
-        self.optimizer = torch.optim.Adam(self._main_groups(), lr=0.0, eps=1e-15)
+        self.optimizer = make_adam(self.model.params, baseline_lrs_for(self.model.params, self.extent))
         self.mlp_optimizer = None
         self.mlp_scheduler = None
         self.codebook_optimizer = None
         self.events, self.total_iterations = build_events(cfg.stages, cfg.stage_lengths(), cfg.num_merge)
 
     # ----------------------------------------------------------------- optimizers
-    def _main_groups(self) -> list[dict]:
-        lrs = baseline_lrs_for(self.model.params, self.extent)
-        return [{"params": [self.model.params[k]], "lr": lrs[k], "name": k} for k in self.model.params]
-
     def _rebuild_main_optimizer(self) -> None:
         """New main Adam over the current params (+ merge logits), keeping moments of surviving tensors."""
         old = self.optimizer
-        groups = self._main_groups()
+        new = make_adam(self.model.params, baseline_lrs_for(self.model.params, self.extent))
         if self.model.merge is not None:
-            groups += self.model.merge.param_groups(self.cfg.merge.logit_lr)
-        new = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+            for group in self.model.merge.param_groups(self.cfg.merge.logit_lr):
+                new.add_param_group(group)
         for g in new.param_groups:
             p = g["params"][0]
             if p in old.state:

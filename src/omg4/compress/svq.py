@@ -8,8 +8,7 @@ differentiable with respect to the codebooks alone.
 
 Codebook sizes, sub-vector lengths, τ_GS and the pruning quantile p per size preset
 (L / M / S / T, paper appendix "Additional Implementation Details") live in one table,
-:data:`omg4.compress.presets.SIZE_PRESETS`; :func:`svq_config` / :data:`SVQ_PRESETS` give
-the SVQ part of it.
+:data:`omg4.compress.presets.SIZE_PRESETS` (``size_preset(name).codebook(attribute)``).
 What the paper states: M (the official N3DV config) has b_s = 2^9 (s = 1), b_r = 2^13
 (s = 2), b_f = 2^10 (s = 2), 2^9 for the time scale (s = 1) and 2^13 for the right
 quaternion (s = 2), with τ_GS = 0.2, p = 0.8; L has τ_GS = 0.4, p = 0.8 and no codebook
@@ -27,17 +26,8 @@ from torch import nn
 
 from omg4.codec.payload import QuantizedAttribute
 from omg4.compress.kmeans import kmeans
-from omg4.compress.presets import SIZE_PRESETS, size_preset
 
 
-def svq_config(preset: str) -> dict[str, tuple[int, int]]:
-    """SVQ settings of a size preset: attribute → (sub-vector length, codebook size)."""
-    p = size_preset(preset)
-    return {attr: p.codebook(attr) for attr in p.codebook_sizes}
-
-
-# preset name → attribute → (sub-vector length, codebook size); derived from SIZE_PRESETS
-SVQ_PRESETS: dict[str, dict[str, tuple[int, int]]] = {name: svq_config(name) for name in SIZE_PRESETS}
 
 
 class SubVectorQuantizer(nn.Module):

@@ -84,6 +84,12 @@ def _tile_bounds(tile, tiles_x, tile_size, width, height):
     return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
 
 
+@njit(cache=True, inline="always")
+def _clipped_box(boxes, gi, x0, y0, x1, y1):
+    """Gaussian ``gi``'s pixel box ``[bx0, bx1) × [by0, by1)`` clipped to the tile ``[x0, x1) × [y0, y1)``."""
+    return max(boxes[gi, 0], x0), min(boxes[gi, 1], x1), max(boxes[gi, 2], y0), min(boxes[gi, 3], y1)
+
+
 @njit(parallel=True, cache=True)
 def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
                       out_feat, out_t, out_last):
@@ -112,10 +118,7 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_siz
             if n_done == n_pix:
                 break
             gi = ids[k]
-            bx0 = max(boxes[gi, 0], x0)
-            bx1 = min(boxes[gi, 1], x1)
-            by0 = max(boxes[gi, 2], y0)
-            by1 = min(boxes[gi, 3], y1)
+            bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
             if bx0 >= bx1 or by0 >= by1:
                 continue
             mx = params[gi, 0]
@@ -202,10 +205,7 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_si
         k_end = max(start, row_end.max())
         for k in range(k_end - 1, start - 1, -1):
             gi = ids[k]
-            bx0 = max(boxes[gi, 0], x0)
-            bx1 = min(boxes[gi, 1], x1)
-            by0 = max(boxes[gi, 2], y0)
-            by1 = min(boxes[gi, 3], y1)
+            bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
             if bx0 >= bx1 or by0 >= by1:
                 continue
             mx = params[gi, 0]
