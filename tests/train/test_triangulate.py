@@ -1,8 +1,9 @@
 """Sparse first-frame triangulation with pycolmap (``omg4 train --init colmap``).
 
 References independent of the code under test: closed-form epipolar geometry, the synthetic
-scene's own ray caster (exact surface depth and colour along any ray), its ``points3d.ply``
-surface samples, and the held-out test camera of the real basketball scene.
+scene's own ray caster (exact surface depth and colour along any ray, ``surface_error`` in
+``conftest.py``), its ``points3d.ply`` surface samples, and the held-out test camera of the
+real basketball scene.
 """
 
 from __future__ import annotations
@@ -14,12 +15,11 @@ import pytest
 
 from omg4.data import load_scene, random_initial_points
 from omg4.data.scene import Camera, Scene
-from omg4.data.synthetic import SynthConfig, SyntheticScene, look_at_viewmat, write_synthetic_scene
+from omg4.data.synthetic import look_at_viewmat
 from omg4.errors import OMG4Error
 from omg4.train.triangulate import (TriangulationOptions, first_frame_views, fundamental_from_poses, sampson_errors,
                                     triangulate_first_frame, triangulate_views)
 
-SYNTH = SynthConfig(num_cameras=8, num_frames=3, width=192, height=144)
 
 
 def _camera(center, target, f=300.0, w=320, h=240, name=""):
@@ -68,43 +68,19 @@ def test_sampson_error_closed_form_for_rectified_pair():
 # -- synthetic scene: exact surfaces from the generator's ray caster -------------------------
 
 @pytest.fixture(scope="module")
-def synth_scene(tmp_path_factory):
-    pytest.importorskip("pycolmap")
-    folder = tmp_path_factory.mktemp("tri") / "synth"
-    write_synthetic_scene(folder, SYNTH, progress=False)
-    return load_scene(folder, progress=False)
-
-
-@pytest.fixture(scope="module")
 def synth_result(synth_scene):
+    pytest.importorskip("pycolmap")
     return triangulate_views(first_frame_views(synth_scene), progress=False)
 
 
-def _ray_check(scene: Scene, xyz: np.ndarray):
-    """Per point: smallest relative depth error |t_hit − ‖p − c‖| / ‖p − c‖ over the training cameras
-    (exact surface distance along the ray from camera c through p, from the generator's ray caster),
-    and the ray caster's colour at that camera."""
-    synth = SyntheticScene(SYNTH)
-    p = scene.normalization.invert_points(xyz)  # back to the generator's metres
-    best, colour = np.full(len(p), np.inf), np.zeros((len(p), 3))
-    for cam in synth.cameras[1:]:  # cam00 is the test camera
-        v = p - cam.center
-        dist = np.linalg.norm(v, axis=1)
-        hits = synth.cast(cam.center, v / dist[:, None], synth.phase(0))
-        rel = np.abs(hits.t - dist) / dist
-        better = rel < best
-        best[better], colour[better] = rel[better], hits.rgb[better]
-    return best, colour
-
-
-def test_first_frame_views_one_per_training_camera(synth_scene):
+def test_first_frame_views_one_per_training_camera(synth_scene, synth_config):
     views = first_frame_views(synth_scene)
-    assert len(synth_scene.train_views) == (SYNTH.num_cameras - 1) * SYNTH.num_frames
-    assert [v.frame_index for v in views] == [0] * (SYNTH.num_cameras - 1)
-    assert len({v.camera.name for v in views}) == SYNTH.num_cameras - 1
+    assert len(synth_scene.train_views) == (synth_config.num_cameras - 1) * synth_config.num_frames
+    assert [v.frame_index for v in views] == [0] * (synth_config.num_cameras - 1)
+    assert len({v.camera.name for v in views}) == synth_config.num_cameras - 1
 
 
-def test_synthetic_points_lie_on_the_true_surfaces(synth_scene, synth_result):
+def test_synthetic_points_lie_on_the_true_surfaces(synth_scene, synth_result, surface_error):
     from scipy.spatial import cKDTree
 
     xyz, rgb = synth_result.points.xyz, synth_result.points.rgb
@@ -115,7 +91,7 @@ def test_synthetic_points_lie_on_the_true_surfaces(synth_scene, synth_result):
     assert synth_result.errors.max() <= opts.max_reproj_error and synth_result.track_lengths.min() >= 2
 
     # exact depth along camera rays: the median point is within 1 % of its surface distance
-    rel, colour = _ray_check(synth_scene, xyz)
+    rel, colour = surface_error(synth_scene, xyz)
     assert np.median(rel) < 0.01 and np.mean(rel < 0.02) > 0.75
     # multi-view points (track ≥ 3) are nearly all on a surface
     assert np.mean(rel[synth_result.track_lengths >= 3] < 0.02) > 0.9
@@ -127,7 +103,7 @@ def test_synthetic_points_lie_on_the_true_surfaces(synth_scene, synth_result):
     near = np.median(tree.query(xyz)[0])
     control = np.median(tree.query(random_initial_points(synth_scene, 500, seed=3).xyz)[0])
     assert near < 0.04 * synth_scene.extent < control
-    rel_control, _ = _ray_check(synth_scene, random_initial_points(synth_scene, 200, seed=3).xyz)
+    rel_control, _ = surface_error(synth_scene, random_initial_points(synth_scene, 200, seed=3).xyz)
     assert np.median(rel_control) > 0.05
 
 
@@ -176,12 +152,14 @@ def test_basketball_points_are_consistent_with_the_held_out_camera(n3dv_basketba
 # -- bad input -------------------------------------------------------------------------------
 
 def test_missing_pycolmap_is_a_one_line_error(synth_scene, monkeypatch):
+    pytest.importorskip("pycolmap")
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # makes ``import pycolmap`` raise ImportError
     with pytest.raises(OMG4Error, match="pip install pycolmap"):
         triangulate_first_frame(synth_scene, progress=False)
 
 
 def test_too_few_views_or_points(synth_scene):
+    pytest.importorskip("pycolmap")
     with pytest.raises(OMG4Error, match="at least 2 training cameras"):
         triangulate_views(first_frame_views(synth_scene)[:1], progress=False)
     with pytest.raises(OMG4Error, match="kept only .* points"):

@@ -3,6 +3,7 @@
 ``auto`` uses the data's ``points3d.ply`` when present, else random points inside the
 cameras' common view volume (:func:`omg4.data.random_initial_points`); ``rays`` places
 coloured points along the first frame's training rays (:func:`ray_initial_points`);
+``mvs`` runs plane-sweep stereo on the first frame (:mod:`omg4.train.plane_sweep`);
 ``colmap`` triangulates the first frame with pycolmap.
 """
 
@@ -16,7 +17,7 @@ from omg4.train.config import TrainConfig
 
 
 def initial_points(scene: Scene, mode: str, cfg: TrainConfig) -> PointCloud:
-    """The initial points for ``mode`` in {auto, random, colmap}."""
+    """The initial points for ``mode`` in {auto, random, rays, mvs, colmap}."""
     from omg4.data import random_initial_points
 
     if mode == "auto":
@@ -27,6 +28,10 @@ def initial_points(scene: Scene, mode: str, cfg: TrainConfig) -> PointCloud:
         return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
     if mode == "rays":
         return ray_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
+    if mode == "mvs":
+        from omg4.train.plane_sweep import plane_sweep_points
+
+        return plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed)
     if mode == "colmap":
         from omg4.train.triangulate import triangulate_first_frame
 

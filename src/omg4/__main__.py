@@ -1,0 +1,7 @@
+"""``python -m omg4``: the same as the ``omg4`` command."""
+
+import sys
+
+from omg4.cli import main
+
+sys.exit(main())
