@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import torch
+
 from omg4.atomic import write_text_atomic
 from omg4.demo import format_table, rate_distortion_plot
 
@@ -41,8 +43,8 @@ def bench_table(rows: dict[str, dict]) -> str:
 
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
               baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "ans",
-              backend: str = "auto", log=print) -> dict:
-    """Compress ``baseline`` once per row and evaluate everything on the test views."""
+              backend: str = "auto", device: torch.device | str = "cpu", log=print) -> dict:
+    """Compress ``baseline`` once per row and evaluate everything on the test views, computing on ``device``."""
     from omg4.codec.decoder import load_omg4
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
@@ -50,21 +52,23 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.evaluate import evaluate
 
     out.mkdir(parents=True, exist_ok=True)
+    baseline = baseline.to(device)
     scores_path = out / "sd_scores.npz"
     if not scores_path.exists():
-        compute_sd_scores(baseline, scene.train_views, backend=backend).save(scores_path)
+        compute_sd_scores(baseline, scene.train_views, backend=backend, device=device).save(scores_path)
     results: dict[str, dict] = {}
     log("evaluating the baseline")
     results["Real-Time4DGS"] = evaluate(baseline, scene.test_views, storage_bytes=baseline_path.stat().st_size,
-                                        backend=backend)
+                                        backend=backend, device=device)
     for name in rows or list(ROWS):
         preset, stages = ROWS[name]
         log(f"row {name}: preset {preset}, stages {','.join(stages)}")
         path = out / (name.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-") + ".omg4")
         cfg = CompressConfig(preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
-                             baseline_iterations=baseline_iterations, backend=backend)
+                             baseline_iterations=baseline_iterations, backend=backend, device=str(device))
         report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path, log=log)
-        r = evaluate(load_omg4(path), scene.test_views, storage_bytes=path.stat().st_size, backend=backend)
+        r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size, backend=backend,
+                     device=device)
         r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=report["file_bytes"] / r["num_gaussians"],
                  stages=report["stages"], file=str(path))
         results[name] = r

@@ -77,21 +77,23 @@ def rate_distortion_plot(path: Path, points: dict[str, dict], title: str) -> Non
     plt.close(fig)
 
 
-def side_by_side_video(path: Path, views, models: list, labels: list[str], fps: float = 30.0) -> int:
-    """An MP4 of ground truth beside each model's render over ``views`` (one test camera)."""
+def side_by_side_video(path: Path, views, models: list, labels: list[str], fps: float = 30.0,
+                       device: torch.device | str = "cpu") -> int:
+    """An MP4 of ground truth beside each model's render (models on ``device``) over ``views`` (one test camera)."""
     from omg4.evaluate import render_image
     from omg4.io.video import side_by_side, write_video
 
     def frames():
         for v in views:
-            panels = [v.image()] + [render_image(m, v).numpy() for m in models]
+            panels = [v.image()] + [render_image(m, v, device=device).cpu().numpy() for m in models]
             yield side_by_side(*panels, labels=labels)
 
     return write_video(path, frames(), fps=fps)
 
 
-def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print) -> dict:
-    """Run the whole pipeline into ``out``; returns the results written to ``results.json``."""
+def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print,
+             device: torch.device | str = "cpu") -> dict:
+    """Run the whole pipeline into ``out`` computing on ``device``; returns the results written to ``results.json``."""
     from omg4.codec.decoder import load_omg4
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
@@ -117,7 +119,8 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     t = time.perf_counter()
     log(f"[2/5] training the Real-Time4DGS baseline ({settings.train_iterations} iterations)")
     cfg = make_config("cpu-small", iterations=settings.train_iterations, batch_size=settings.batch_size,
-                      max_gaussians=settings.max_gaussians, seed=settings.seed, checkpoint_interval=0)
+                      max_gaussians=settings.max_gaussians, seed=settings.seed, checkpoint_interval=0,
+                      device=str(device))
     baseline = Trainer(scene, cfg, out / "baseline").run()
     timings["train_s"] = time.perf_counter() - t
 
@@ -125,17 +128,18 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     log("[3/5] compressing with OMG4 (M preset)")
     omg4_path = out / "scene_M.omg4"
     ccfg = CompressConfig(preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
-                          seed=settings.seed, baseline_iterations=settings.train_iterations)
+                          seed=settings.seed, baseline_iterations=settings.train_iterations,
+                          device=str(device))
     report = compress_to_file(baseline.model, scene, ccfg, omg4_path)
     timings["compress_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     log("[4/5] decoding the file alone and evaluating both models on the test camera")
-    decoded = load_omg4(omg4_path)
+    decoded = load_omg4(omg4_path, device)
     rows = {
         "Real-Time4DGS (baseline)": evaluate(baseline.model, scene.test_views,
-                                             storage_bytes=baseline.model_path.stat().st_size),
-        "OMG4-M": evaluate(decoded, scene.test_views, storage_bytes=omg4_path.stat().st_size),
+                                             storage_bytes=baseline.model_path.stat().st_size, device=device),
+        "OMG4-M": evaluate(decoded, scene.test_views, storage_bytes=omg4_path.stat().st_size, device=device),
     }
     timings["eval_s"] = time.perf_counter() - t
 
@@ -144,7 +148,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     table = format_table(rows)
     rate_distortion_plot(out / "rate_distortion.png", rows, f"omg4 demo ({settings.width}×{settings.height})")
     side_by_side_video(out / "side_by_side.mp4", scene.test_views, [baseline.model, decoded],
-                       ["ground truth", "baseline", "OMG4-M"])
+                       ["ground truth", "baseline", "OMG4-M"], device=device)
     timings["outputs_s"] = time.perf_counter() - t
     results = {
         "scene": {"path": str(scene_dir), "cameras": settings.cameras, "frames": settings.frames,
@@ -152,6 +156,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
         "methods": {name: {k: v for k, v in r.items() if k != "per_view"} for name, r in rows.items()},
         "per_view": {name: r["per_view"] for name, r in rows.items()},
         "compression": report,
+        "device": str(device),
         "timings": timings,
         "table": table,
     }

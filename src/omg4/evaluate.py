@@ -19,8 +19,8 @@ from omg4.data.scene import View
 from omg4.errors import OMG4Error
 from omg4.render.view import render_view
 
-def load_model(path: str | os.PathLike):
-    """A renderable model from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file."""
+def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
+    """A renderable model on ``device`` from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file."""
     path = Path(path)
     if not path.is_file():
         raise OMG4Error(f"model file {path} does not exist")
@@ -29,38 +29,44 @@ def load_model(path: str | os.PathLike):
     if has_magic(path):
         from omg4.codec.decoder import load_omg4
 
-        return load_omg4(path)
+        return load_omg4(path, device)
     from omg4.gaussians.checkpoint import load_gaussians
 
-    return load_gaussians(path)[0]
+    return load_gaussians(path, device)[0]
 
 
-def view_image(view: View) -> torch.Tensor:
-    """The ground-truth image of ``view`` as float32 [H, W, 3]; NaN or Inf is a one-line error."""
+def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
+    """The ground-truth image of ``view`` as float32 [H, W, 3] on ``device``; NaN or Inf is a one-line error."""
     img = view.image()
     if not np.isfinite(img).all():
         raise OMG4Error(f"image of camera {view.camera.name} frame {view.frame_index} contains NaN or Inf")
-    return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32))
+    return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).to(device)
 
 
-def render_image(model, view: View, background: torch.Tensor | None = None, backend: str = "auto") -> torch.Tensor:
-    """[H, W, 3] render of ``model`` at ``view``, clamped to [0, 1], no gradients."""
+def render_image(model, view: View, background: torch.Tensor | None = None, backend: str = "auto",
+                 device: torch.device | str = "cpu") -> torch.Tensor:
+    """[H, W, 3] render of ``model`` (living on ``device``) at ``view``, clamped to [0, 1], no gradients."""
     with torch.no_grad():
-        rendered, _ = render_view(model, view.camera, view.timestamp, background=background, backend=backend)
+        rendered, _ = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
+                                  device=device)
     return rendered.image.clamp(0.0, 1.0)
 
 
 def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpips_nets: tuple[str, ...] = ("alex",),
              background: torch.Tensor | None = None, backend: str = "auto", fps_views: int = 30,
-             progress: bool = True) -> dict:
-    """Per-view and mean metrics of ``model`` on ``views``, plus FPS, Gaussian count and storage."""
+             progress: bool = True, device: torch.device | str = "cpu") -> dict:
+    """Per-view and mean metrics of ``model`` on ``views``, plus FPS, Gaussian count and storage.
+
+    ``model`` and ``background`` live on ``device``, where the renders, ground truths and
+    metrics are computed (FPS synchronizes CUDA around every timed frame).
+    """
     from omg4.metrics import lpips, measure_fps, psnr, ssim
 
     if not views:
         raise OMG4Error("there are no test views to evaluate on")
     per_view = []
     for v in tqdm(views, desc="eval", disable=not progress, dynamic_ncols=True):
-        img, gt = render_image(model, v, background, backend), view_image(v)
+        img, gt = render_image(model, v, background, backend, device), view_image(v, device)
         row = {"camera": v.camera.name, "frame": v.frame_index, "time": v.timestamp, "psnr": psnr(img, gt),
                "ssim": float(ssim(img, gt))}
         for net in lpips_nets:
@@ -70,8 +76,8 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     mean = {k: float(np.mean([r[k] for r in per_view])) for k in keys}
     step = max(1, len(views) // fps_views)
     timed = views[::step][:fps_views]
-    fps = measure_fps(lambda v: render_view(model, v.camera, v.timestamp, background=background, backend=backend),
-                      timed, warmup=min(3, len(timed)))
+    fps = measure_fps(lambda v: render_view(model, v.camera, v.timestamp, background=background, backend=backend,
+                                            device=device), timed, warmup=min(3, len(timed)), device=device)
     return {
         **mean,
         "fps": fps["fps"],

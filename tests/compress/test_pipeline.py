@@ -144,3 +144,75 @@ def test_info_breakdown_adds_up_to_file_size(tmp_path, baseline, tiny_scene, sco
     assert {"positions", "time centres", "MLPs", "header", "rotation indices", "rotation_r codebooks"} <= set(
         summary["groups"])
     assert summary["bits_per_gaussian"] == pytest.approx(8 * out.stat().st_size / summary["num_gaussians"])
+
+
+def test_explicit_cpu_under_a_meta_default_device_writes_the_same_file(baseline, tiny_scene, tmp_path):
+    """With torch's default device set to "meta", a tensor created without an explicit device cannot
+    take part in the computation: SD scores, every stage and the file must match the default run."""
+    from omg4.compress.merging import MergeConfig
+
+    merge = MergeConfig(grid_size=1.0, time_cell_fraction=1.0, tau_sim=-1.0)  # coarse cells: groups form
+    default = tmp_path / "default.omg4"
+    compress_to_file(baseline.model, tiny_scene, _config(merge=merge), default, progress=False, log=lambda *_: None)
+    explicit = tmp_path / "explicit.omg4"
+    with torch.device("meta"):
+        report = compress_to_file(baseline.model, tiny_scene, _config(merge=merge, device="cpu"), explicit,
+                                  progress=False, log=lambda *_: None)
+    counts = {r["stage"]: r["num_gaussians"] for r in report["stages"]}
+    assert counts["appearance"] < counts["merge1"] and report["config"]["device"] == "cpu"
+    assert explicit.read_bytes() == default.read_bytes()
+    scores = [tmp_path / f"{name}.omg4.scores.npz" for name in ("default", "explicit")]
+    assert scores[0].read_bytes() == scores[1].read_bytes()
+    assert all(v.device.type == "cpu" for v in baseline.model.params.values())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.gpu
+def test_cuda_compression_tracks_the_cpu_run(baseline, tiny_scene, tmp_path, scores_file):
+    """The same scores on both devices give the same sampled and pruned sets; the CUDA-written file
+    decodes on the CPU and on CUDA and renders close to the CPU-written one."""
+    from omg4.compress.score import SDScores, compute_sd_scores
+    from omg4.evaluate import evaluate, load_model
+
+    cpu_scores = SDScores.load(scores_file, baseline.model.num_gaussians)
+    gpu_scores = compute_sd_scores(baseline.model.to("cuda"), tiny_scene.train_views, device="cuda", progress=False)
+    assert gpu_scores.static.device.type == "cpu"
+    rel = (gpu_scores.static - cpu_scores.static).abs().sum() / cpu_scores.static.abs().sum()
+    assert float(rel) < 0.05
+    reports, results = {}, {}
+    for device, backend in (("cpu", "cpu"), ("cuda", "auto")):
+        out = tmp_path / f"{device}.omg4"
+        cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend=backend, device=device)
+        reports[device] = compress_to_file(baseline.model, tiny_scene, cfg, out, scores_path=scores_file,
+                                           progress=False, log=lambda *_: None)
+        results[device] = evaluate(load_model(out), tiny_scene.test_views, lpips_nets=(), progress=False)
+    counts = {d: {r["stage"]: r["num_gaussians"] for r in rep["stages"]} for d, rep in reports.items()}
+    assert counts["cuda"]["sample"] == counts["cpu"]["sample"] and counts["cuda"]["prune"] == counts["cpu"]["prune"]
+    assert results["cuda"]["psnr"] == pytest.approx(results["cpu"]["psnr"], abs=0.5)
+    on_gpu = evaluate(load_model(tmp_path / "cuda.omg4", "cuda"), tiny_scene.test_views, lpips_nets=(),
+                      backend="auto", progress=False, device="cuda")
+    assert on_gpu["psnr"] == pytest.approx(results["cuda"]["psnr"], abs=0.1)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.gpu
+def test_cli_render_and_eval_on_cuda_match_cpu(baseline, tiny_scene, tiny_scene_dir, tmp_path):
+    import json
+
+    import numpy as np
+
+    from omg4.cli import main
+
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps(Camera.to_json(tiny_scene.test_views[0].camera)))
+    images, metrics = {}, {}
+    for device in ("cpu", "cuda"):
+        out, js = tmp_path / f"{device}.npy", tmp_path / f"{device}.json"
+        assert main(["render", "--model", str(baseline.model_path), "--camera", str(cam), "--out", str(out),
+                     "--device", device]) == 0
+        assert main(["eval", str(tiny_scene_dir), "--model", str(baseline.model_path), "--lpips", "alex",
+                     "--json", str(js), "--device", device]) == 0
+        images[device], metrics[device] = np.load(out), json.loads(js.read_text())
+    assert np.abs(images["cuda"] - images["cpu"]).max() < 2e-3
+    assert metrics["cuda"]["psnr"] == pytest.approx(metrics["cpu"]["psnr"], abs=0.05)
+    assert metrics["cuda"]["fps"] > 0

@@ -29,3 +29,47 @@ def test_ray_points_are_deterministic(tiny_scene):
     b = ray_initial_points(tiny_scene, 100, seed=1)
     assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.rgb, b.rgb)
     assert not np.array_equal(a.xyz, ray_initial_points(tiny_scene, 100, seed=2).xyz)
+
+
+def _without_points(scene, views=None):
+    from dataclasses import replace
+
+    return replace(scene, initial_points=None, train_views=scene.train_views if views is None else views)
+
+
+def test_auto_prefers_ply_then_stereo_then_random(tiny_scene, monkeypatch):
+    import omg4.train.plane_sweep as plane_sweep
+    from omg4.data import random_initial_points
+    from omg4.data.scene import PointCloud
+    from omg4.errors import DataError
+    from omg4.train import make_config
+    from omg4.train.init import initial_points
+
+    cfg = make_config("cpu-small", num_random_points=50)
+    stereo = PointCloud(xyz=np.zeros((3, 3)), rgb=np.zeros((3, 3), np.float32))
+    calls = []
+
+    def fake_sweep(scene, num_points, seed=0):
+        calls.append(num_points)
+        return stereo
+
+    monkeypatch.setattr(plane_sweep, "plane_sweep_points", fake_sweep)
+    assert initial_points(tiny_scene, "auto", cfg, log=lambda m: None) is tiny_scene.initial_points
+    assert calls == []
+    assert initial_points(_without_points(tiny_scene), "auto", cfg, log=lambda m: None) is stereo
+    assert calls == [50]
+
+    # one camera (monocular, like D-NeRF): random points, the sweep is not tried
+    name = tiny_scene.train_views[0].camera.name
+    mono = _without_points(tiny_scene, [v for v in tiny_scene.train_views if v.camera.name == name])
+    got = initial_points(mono, "auto", cfg, log=lambda m: None)
+    assert calls == [50] and np.array_equal(got.xyz, random_initial_points(mono, 50, seed=cfg.seed).xyz)
+
+    # a sweep that finds nothing falls back to random points and says so
+    def failing_sweep(scene, num_points, seed=0):
+        raise DataError("plane-sweep initialization found no consistent point")
+
+    monkeypatch.setattr(plane_sweep, "plane_sweep_points", failing_sweep)
+    messages = []
+    got = initial_points(_without_points(tiny_scene), "auto", cfg, log=messages.append)
+    assert len(got.xyz) == 50 and "using random points" in messages[0]

@@ -30,9 +30,9 @@ QUANTIZED_PARAMS: dict[str, tuple[tuple[str, int], ...]] = {
 
 
 class CompactModel:
-    """A decoded OMG4 model: positions, time centres, codebook lookups and the appearance MLPs."""
+    """A decoded OMG4 model: positions, time centres, codebook lookups and the appearance MLPs, on ``device``."""
 
-    def __init__(self, payload: CompressedPayload):
+    def __init__(self, payload: CompressedPayload, device: torch.device | str = "cpu"):
         meta = payload.meta
         try:
             self.config = GaussianConfig.from_json(meta["gaussian_config"])
@@ -55,8 +55,8 @@ class CompactModel:
             for name, w in targets:
                 values[name] = recon[:, start:start + w]
                 start += w
-        self.values = values
-        self.appearance = AppearanceMLP.from_fp16_state(payload.mlp).eval()
+        self.values = {k: v.to(device) for k, v in values.items()}
+        self.appearance = AppearanceMLP.from_fp16_state(payload.mlp).eval().to(device)
         self.meta = meta
 
     @property
@@ -75,6 +75,7 @@ class CompactModel:
             return self.gaussians_at(timestamp).slice_at(timestamp, camera_center)
 
 
-def load_omg4(path: str | os.PathLike) -> CompactModel:
-    """Decode an ``.omg4`` file into a :class:`CompactModel` (one-line :class:`CorruptFileError` if damaged)."""
-    return CompactModel(decode_payload(path))
+def load_omg4(path: str | os.PathLike, device: torch.device | str = "cpu") -> CompactModel:
+    """Decode an ``.omg4`` file into a :class:`CompactModel` on ``device`` (one-line :class:`CorruptFileError`
+    if damaged)."""
+    return CompactModel(decode_payload(path), device)

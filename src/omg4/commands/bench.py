@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import add_scene_arguments, load_scene_from_args
+from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -17,7 +17,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baseline-iterations", type=int, default=30000)
     p.add_argument("--rows", help="comma-separated subset of rows (default: all): " + ", ".join(_row_names()))
     p.add_argument("--codec", default="ans", choices=["ans", "paper"])
-    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"])
+    add_device_arguments(p)
 
 
 def _row_names() -> list[str]:
@@ -35,8 +35,10 @@ def run(args) -> int:
     unknown = [r for r in rows or [] if r not in ROWS]
     if unknown:
         raise OMG4Error(f"unknown bench rows {unknown}; known: {', '.join(ROWS)}")
+    device = device_from_args(args)
     scene = load_scene_from_args(args)
     baseline, _ = load_gaussians(args.model)
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule, batch_size=args.batch_size,
-              baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend)
+              baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
+              device=device)
     return 0

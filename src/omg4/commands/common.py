@@ -16,6 +16,35 @@ def add_scene_arguments(p: argparse.ArgumentParser, positional: bool = True) -> 
     p.add_argument("--cameras", type=str, help="comma-separated camera names to use (default: all)")
 
 
+def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True) -> None:
+    """``--device`` (where models, images and optimizers live) and, with ``backend``, the rasterizer ``--backend``."""
+    from omg4.device import DEVICE_HELP
+
+    if backend:
+        p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"],
+                       help="rasterizer: auto (gsplat on cuda, the numba CPU rasterizer on cpu), cpu, or gsplat "
+                            "(cuda only)")
+    p.add_argument("--device", default="cpu", help=f"where to compute: {DEVICE_HELP}")
+
+
+def device_from_args(args):
+    """The torch device of ``--device``, checked against ``--backend`` when the command has one.
+
+    Raises a one-line :class:`OMG4Error` for an unusable device or a backend that cannot
+    render there (the cpu rasterizer on CUDA, gsplat off CUDA).
+    """
+    from omg4.device import resolve_device
+    from omg4.errors import OMG4Error
+    from omg4.render.api import resolve_backend
+
+    device = resolve_device(args.device)
+    backend = getattr(args, "backend", "auto")
+    if backend == "gsplat" and device.type != "cuda":
+        raise OMG4Error(f"--backend gsplat renders on CUDA, not on {device}: add --device cuda")
+    resolve_backend(backend, device)
+    return device
+
+
 def parse_frames(text: str | None) -> range | None:
     """``"a:b"`` → range(a, b); ``None`` → None."""
     if not text:

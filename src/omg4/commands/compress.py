@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_scene_arguments, load_scene_from_args
+from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -34,7 +34,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="accumulate the time gradient without zeroing, as the official release does")
     p.add_argument("--baseline-iterations", type=int, default=30000,
                    help="iterations the baseline was trained for (the position learning rate continues its decay)")
-    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"], help="rasterizer backend")
+    add_device_arguments(p)
     p.add_argument("--seed", type=int, default=6666)
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
 
@@ -45,12 +45,14 @@ def run(args) -> int:
     from omg4.compress.pipeline import CompressConfig
     from omg4.gaussians.checkpoint import load_gaussians
 
+    device = device_from_args(args)
     scene = load_scene_from_args(args)
-    baseline, _ = load_gaussians(args.model)
+    baseline, _ = load_gaussians(args.model, device)
     cfg = CompressConfig(preset=args.preset, stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()),
                          schedule=args.schedule, num_merge=args.num_merge, batch_size=args.batch_size,
                          seed=args.seed, official_score_quirk=args.official_score_quirk,
-                         baseline_iterations=args.baseline_iterations, backend=args.backend, tau_gs=args.tau_gs,
+                         baseline_iterations=args.baseline_iterations, backend=args.backend, device=str(device),
+                         tau_gs=args.tau_gs,
                          prune_quantile=args.prune_quantile)
     report = compress_to_file(baseline, scene, cfg, args.out, codec=args.codec, stop_after=args.stop_after,
                               scores_path=args.scores)

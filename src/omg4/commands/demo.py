@@ -5,11 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from omg4.commands.common import add_device_arguments, device_from_args
+
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("omg4_demo"), help="output folder (default: ./omg4_demo)")
     p.add_argument("--quick", action="store_true", help="a tiny run (seconds) to check the installation")
     p.add_argument("--seed", type=int, default=0)
+    add_device_arguments(p, backend=False)
 
 
 def run(args) -> int:
@@ -17,6 +20,7 @@ def run(args) -> int:
 
     from omg4.demo import QUICK, DemoSettings, run_demo
 
+    device = device_from_args(args)
     settings = replace(QUICK if args.quick else DemoSettings(), seed=args.seed)
-    run_demo(args.out, settings)
+    run_demo(args.out, settings, device=device)
     return 0

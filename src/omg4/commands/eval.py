@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_scene_arguments, load_scene_from_args
+from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -16,7 +16,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", choices=["test", "train"], help="views to evaluate")
     p.add_argument("--max-views", type=int, help="evaluate at most this many views (evenly spaced)")
     p.add_argument("--white-background", action="store_true")
-    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"])
+    add_device_arguments(p)
     p.add_argument("--json", type=Path, help="write per-view and mean metrics as JSON")
 
 
@@ -26,15 +26,16 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.evaluate import evaluate, load_model
 
-    model = load_model(args.model)
+    device = device_from_args(args)
+    model = load_model(args.model, device)
     scene = load_scene_from_args(args)
     views = scene.test_views if args.split == "test" else scene.train_views
     if args.max_views and len(views) > args.max_views:
         views = views[:: -(-len(views) // args.max_views)]
-    bg = torch.ones(3) if args.white_background else torch.zeros(3)
+    bg = torch.full((3,), 1.0 if args.white_background else 0.0, device=device)
     nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
     result = evaluate(model, views, storage_bytes=args.model.stat().st_size, lpips_nets=nets, background=bg,
-                      backend=args.backend)
+                      backend=args.backend, device=device)
     cols = ["psnr", "ssim", *[f"lpips_{n}" for n in nets], "fps", "num_gaussians", "storage_mb"]
     print(" | ".join(f"{c}" for c in cols))
     print(" | ".join(f"{result[c]:.4g}" if isinstance(result[c], float) else str(result[c]) for c in cols))

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_scene_arguments
+from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -22,7 +22,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num-frames", type=int, help="frames of an .mp4 (default: the dataset's frame count, or 60)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of an .mp4")
     p.add_argument("--white-background", action="store_true")
-    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"])
+    add_device_arguments(p)
 
 
 def _camera(args):
@@ -59,14 +59,15 @@ def run(args) -> int:
     suffix = args.out.suffix.lower()
     if suffix not in (".png", ".npy", ".mp4"):
         raise OMG4Error(f"--out must end in .png, .npy or .mp4, got '{args.out.name}'")
-    model = load_model(args.model)
+    device = device_from_args(args)
+    model = load_model(args.model, device)
     camera, scene = _camera(args)
-    bg = torch.ones(3) if args.white_background else torch.zeros(3)
+    bg = torch.full((3,), 1.0 if args.white_background else 0.0, device=device)
     t0, t1 = model.config.time_range
 
     def frame(t: float) -> np.ndarray:
         with torch.no_grad():
-            rendered, _ = render_view(model, camera, t, background=bg, backend=args.backend)
+            rendered, _ = render_view(model, camera, t, background=bg, backend=args.backend, device=device)
         return rendered.image.clamp(0, 1).cpu().numpy()
 
     if suffix == ".mp4":

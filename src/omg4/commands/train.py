@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_scene_arguments, load_scene_from_args
+from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -22,12 +22,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint-interval", type=int, help="write a resumable checkpoint every N iterations")
     p.add_argument("--num-random-points", type=int, help="initial points (random, rays, mvs) when the data has no points3d.ply")
     p.add_argument("--init", choices=["auto", "random", "rays", "mvs", "colmap"], default="auto",
-                   help="initial points: auto (points3d.ply if present, else random), random, rays (coloured "
+                   help="initial points: auto (points3d.ply if present, else mvs for multi-view video, else random), "
+                        "random, rays (coloured "
                         "points along the first frame's pixel rays), mvs (plane-sweep stereo of the first "
                         "frame) or colmap (pycolmap triangulation of the first frame)")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--white-background", action="store_true", help="train on a white background")
-    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"], help="rasterizer backend")
+    add_device_arguments(p)
     p.add_argument("--resume", action="store_true", help="continue from the run folder's last checkpoint")
     p.add_argument("--json", type=Path, help="write a summary (iterations, wall time, test PSNR) as JSON")
 
@@ -38,16 +39,17 @@ def run(args) -> int:
     from omg4.train.init import initial_points
     from omg4.train.trainer import Trainer, evaluate_psnr
 
+    device = device_from_args(args)
     scene = load_scene_from_args(args)
     cfg = make_config(
         args.preset, iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
         densify_until=args.densify_until, densify_interval=args.densify_interval, test_interval=args.test_interval,
         checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
-        backend=args.backend, background=(1.0, 1.0, 1.0) if args.white_background else None)
+        backend=args.backend, device=str(device), background=(1.0, 1.0, 1.0) if args.white_background else None)
     points = initial_points(scene, args.init, cfg)
     trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume)
     result = trainer.run()
-    test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend)
+    test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend, device)
     summary = {"iterations": result.iterations, "wall_time_s": result.wall_time_s,
                "num_gaussians": result.model.num_gaussians, "test_psnr": test_psnr,
                "model": str(result.model_path), "history": result.history}

@@ -23,7 +23,7 @@ from omg4.gaussians.checkpoint import save_gaussians
 
 
 def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
-    """The file contents of a fully compressed model (every SVQ attribute and the MLPs present)."""
+    """The file contents of a fully compressed model (every SVQ attribute and the MLPs present), as CPU arrays."""
     missing = [a for a in ("scale", "rotation", "app", "scale_t", "rotation_r") if a not in model.quantizers]
     if model.appearance is None or missing:
         raise OMG4Error(f"the model is not fully compressed (missing: {', '.join(missing) or 'appearance MLPs'}); "
@@ -35,8 +35,8 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
         "active_sh_degree_t": model.active_sh_degree_t,
     }
     return CompressedPayload(
-        xyz=model.params["xyz"].detach().numpy().astype(np.float32),
-        t=model.params["t"].detach().numpy().reshape(-1).astype(np.float32),
+        xyz=model.params["xyz"].detach().cpu().numpy().astype(np.float32),
+        t=model.params["t"].detach().cpu().numpy().reshape(-1).astype(np.float32),
         attributes={a: q.to_quantized() for a, q in model.quantizers.items()},
         mlp=model.appearance.to_fp16_state(),
         meta=payload_meta,
@@ -74,5 +74,6 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "wall_time_s": time.perf_counter() - t0,
         "stages": [asdict(r) for r in pipeline.records],
         "config": {"preset": cfg.preset, "stages": list(cfg.stages), "schedule": cfg.schedule, "codec": codec,
-                   "tau_gs": pipeline.size.tau_gs, "prune_quantile": pipeline.size.prune_quantile},
+                   "tau_gs": pipeline.size.tau_gs, "prune_quantile": pipeline.size.prune_quantile,
+                   "device": str(pipeline.device)},
     }

@@ -403,7 +403,8 @@ def build_merge_groups(xyz: torch.Tensor, t: torch.Tensor, dc: torch.Tensor, tim
     xyz: [N, 3], t: [N] or [N, 1], dc: [N, 3] or [N, 1, 3]; see :func:`build_star_clusters` and
     :func:`make_disjoint`. Returned tensors are on ``xyz``'s device.
     """
-    groups = make_disjoint(build_star_clusters(xyz, t, dc, time_range, grid_size, cfg), xyz.shape[0])
+    with torch.device("cpu"):  # the clustering runs on the CPU whatever the default device
+        groups = make_disjoint(build_star_clusters(xyz, t, dc, time_range, grid_size, cfg), xyz.shape[0])
     dev = xyz.device
     return MergeGroups(groups.members.to(dev), groups.group_of.to(dev), groups.representative.to(dev))
 

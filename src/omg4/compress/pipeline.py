@@ -3,7 +3,9 @@
 Runs the events of :mod:`omg4.compress.schedule` and fine-tunes in between with the
 baseline loss (paper §5.1): each iteration renders ``batch_size`` random training views,
 back-propagates ``loss_v / B`` and steps every optimizer (main Adam over per-Gaussian
-tensors and merge logits; MLP Adam with its schedule; codebook Adam).
+tensors and merge logits; MLP Adam with its schedule; codebook Adam). The model, its MLPs,
+codebooks and optimizer states live on ``CompressConfig.device``; random draws come from CPU
+generators, and merge clustering and k-means run on the CPU and hand their results back.
 """
 
 from __future__ import annotations
@@ -23,9 +25,11 @@ from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
 from omg4.compress.score import SDScores, compute_sd_scores
 from omg4.compress.svq import SubVectorQuantizer
 from omg4.data.scene import Scene
+from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
+from omg4.render.api import resolve_backend
 from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, make_adam, replace_param
 from omg4.train.trainer import backward_batch, step_generator
 
@@ -50,6 +54,7 @@ class CompressConfig:
     position_lr_final: float = 1.6e-6
     codebook_lr: float = 1e-4
     backend: str = "auto"
+    device: str = "cpu"  # where tensors live (omg4.device.resolve_device)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     tau_gs: float | None = None  # overrides of the preset
     prune_quantile: float | None = None
@@ -78,7 +83,11 @@ class StageRecord:
 
 
 class CompressionPipeline:
-    """Runs OMG4 on ``baseline`` for ``scene``; see :func:`compress`."""
+    """Runs OMG4 on ``baseline`` for ``scene``; see :func:`omg4.compress.api.compress_to_file`.
+
+    The pipeline works on a copy of ``baseline`` on ``cfg.device`` (``baseline`` is left alone);
+    an unusable device, or one that does not suit ``cfg.backend``, is an :class:`OMG4Error` here.
+    """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
                  progress: bool = True, log=print):
@@ -86,8 +95,10 @@ class CompressionPipeline:
             raise OMG4Error("the scene has no training views")
         self.scene, self.cfg, self.progress, self.log = scene, cfg, progress, log
         self.size = cfg.size()
-        self.model = CompressibleModel.from_gaussians(baseline)
-        self.background = torch.tensor(cfg.background, dtype=torch.float32)
+        self.device = resolve_device(cfg.device)
+        resolve_backend(cfg.backend, self.device)
+        self.model = CompressibleModel.from_gaussians(baseline.to(self.device))
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.extent = scene.extent
         self.scores = scores
         self.records: list[StageRecord] = []
@@ -123,18 +134,19 @@ class CompressionPipeline:
 
     # ---------------------------------------------------------------------- stages
     def _remove(self, keep: torch.Tensor) -> None:
-        keep_rows(self.model.params, self.optimizer, keep)
+        """Keep the Gaussians ``keep`` (bool [N], any device) in the params, quantizers and scores."""
+        keep_rows(self.model.params, self.optimizer, keep.to(self.device))
         for q in self.model.quantizers.values():
             q.select(keep)
         if self.scores is not None:
-            self.scores = self.scores.select(keep)
+            self.scores = self.scores.select(keep.cpu())
 
     def ensure_scores(self) -> SDScores:
         """The SD scores of the current Gaussians, computed on first use (paper §4.1)."""
         if self.scores is None:
             self.scores = compute_sd_scores(self.model, self.scene.train_views, background=self.background,
                                             backend=self.cfg.backend, official_quirk=self.cfg.official_score_quirk,
-                                            progress=self.progress)
+                                            progress=self.progress, device=self.device)
         return self.scores
 
     def stage_sample(self) -> None:
@@ -183,7 +195,8 @@ class CompressionPipeline:
         for name, value in features.items():
             self.model.params[name] = value.detach().clone().requires_grad_(True)
         torch.manual_seed(self.cfg.seed)
-        self.model.appearance = AppearanceMLP()
+        with torch.device("cpu"):  # initialized by the seeded CPU generator whatever the device
+            self.model.appearance = AppearanceMLP().to(self.device)
         remaining = self._remaining_after("appearance")
         self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
             self.model.appearance, total_iterations=remaining)
@@ -231,9 +244,10 @@ class CompressionPipeline:
         """One fine-tuning iteration (1-based ``step``); returns the mean batch loss."""
         self._set_position_lr(step)
         views = self.scene.train_views
-        batch = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2))
+        batch = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2),
+                              device="cpu")
         loss = backward_batch(self.model, views, batch, background=self.background, backend=self.cfg.backend,
-                              lambda_dssim=0.2, what="compression", step=step)
+                              lambda_dssim=0.2, what="compression", step=step, device=self.device)
         for opt in (self.optimizer, self.mlp_optimizer, self.codebook_optimizer):
             if opt is not None:
                 opt.step()

@@ -14,7 +14,7 @@ from omg4.compress.score import SDScores
 
 def quantile(x: torch.Tensor, q: float) -> float:
     """The q-quantile of ``x`` (linear interpolation; any size, unlike ``torch.quantile``)."""
-    return float(np.quantile(x.double().numpy(), q))
+    return float(np.quantile(x.double().cpu().numpy(), q))
 
 
 def pruning_mask(scores: SDScores, p: float) -> torch.Tensor:
@@ -24,5 +24,5 @@ def pruning_mask(scores: SDScores, p: float) -> torch.Tensor:
 
         raise OMG4Error(f"pruning quantile p must be in [0, 1], got {p}")
     if scores.static.numel() == 0:
-        return torch.zeros(0, dtype=torch.bool)
+        return torch.zeros(0, dtype=torch.bool, device=scores.static.device)
     return (scores.static >= quantile(scores.static, p)) | (scores.dynamic >= quantile(scores.dynamic, p))

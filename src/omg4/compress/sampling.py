@@ -32,6 +32,6 @@ def sampling_mask(scores: SDScores, ratio: float) -> torch.Tensor:
     k = max(1, int(round(ratio * n))) if n else 0
     # stable descending order: ties keep the lower index first
     order = torch.sort(-sd, stable=True).indices[:k]
-    keep = torch.zeros(n, dtype=torch.bool)
+    keep = torch.zeros(n, dtype=torch.bool, device=sd.device)
     keep[order] = True
     return keep

@@ -28,7 +28,7 @@ from omg4.evaluate import view_image
 
 @dataclass
 class SDScores:
-    """Raw (unnormalized) per-Gaussian scores: ``static`` [N] ≥ 0 and signed ``dynamic`` [N]."""
+    """Raw (unnormalized) per-Gaussian scores: ``static`` [N] ≥ 0 and signed ``dynamic`` [N], float64 on the CPU."""
 
     static: torch.Tensor
     dynamic: torch.Tensor
@@ -43,7 +43,7 @@ class SDScores:
 
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, static=self.static.double().numpy(), dynamic=self.dynamic.double().numpy())
+                np.savez(f, static=self.static.double().cpu().numpy(), dynamic=self.dynamic.double().cpu().numpy())
 
     @staticmethod
     def load(path: str | Path, num_gaussians: int) -> "SDScores":
@@ -61,30 +61,33 @@ class SDScores:
 
 
 def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | None = None, backend: str = "auto",
-                      lambda_dssim: float = 0.2, official_quirk: bool = False, progress: bool = True) -> SDScores:
+                      lambda_dssim: float = 0.2, official_quirk: bool = False, progress: bool = True,
+                      device: torch.device | str = "cpu") -> SDScores:
     """One pass over ``views`` (in order) accumulating S and T for every Gaussian of ``model``.
 
-    ``model`` exposes ``params`` (with a ``"t"`` tensor [N, 1]) and ``slice_at``.
+    ``model`` exposes ``params`` (with a ``"t"`` tensor [N, 1]) and ``slice_at``; it and
+    ``background`` live on ``device``, where the scores are accumulated before moving to the CPU.
     """
     n = model.params["t"].shape[0]
-    static = torch.zeros(n, dtype=torch.float64)
-    dynamic = torch.zeros(n, dtype=torch.float64)
+    static = torch.zeros(n, dtype=torch.float64, device=device)
+    dynamic = torch.zeros(n, dtype=torch.float64, device=device)
     saved_flags = {k: p.requires_grad for k, p in model.params.items()}
     t_param = model.params["t"]
     for p in model.params.values():
         p.requires_grad_(False)
         p.grad = None
     t_param.requires_grad_(True)
-    t_grad_running = torch.zeros(n, dtype=torch.float64)
+    t_grad_running = torch.zeros(n, dtype=torch.float64, device=device)
     try:
         for view in tqdm(views, desc="SD score", disable=not progress, dynamic_ncols=True):
-            rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend)
-            loss = photometric_loss(rendered.image, view_image(view), lambda_dssim)
+            rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
+                                       device=device)
+            loss = photometric_loss(rendered.image, view_image(view, device), lambda_dssim)
             loss.backward()
             if rendered.means2d.grad is not None:
                 g2d = rendered.means2d.grad.double().norm(dim=-1)
                 static.index_add_(0, sl.index, g2d)
-            g_t = t_param.grad.double().squeeze(1) if t_param.grad is not None else torch.zeros(n, dtype=torch.float64)
+            g_t = t_param.grad.double().squeeze(1) if t_param.grad is not None else torch.zeros_like(dynamic)
             if official_quirk:  # the release never zeroes _t.grad: each view adds the running sum
                 t_grad_running += g_t
                 dynamic += t_grad_running
@@ -94,4 +97,4 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
     finally:
         for k, p in model.params.items():
             p.requires_grad_(saved_flags[k])
-    return SDScores(static, dynamic)
+    return SDScores(static.cpu(), dynamic.cpu())

@@ -45,17 +45,17 @@ class SubVectorQuantizer(nn.Module):
             iters: int = 100) -> "SubVectorQuantizer":
         """k-means codebooks for ``values: [N, D]`` split into ``D / sub_len`` slots (reference omg4 §7).
 
-        A slot's codebook has ``min(codebook_size, #distinct sub-vectors)`` rows.
+        A slot's codebook has ``min(codebook_size, #distinct sub-vectors)`` rows. k-means runs on
+        the CPU; the quantizer is returned on ``values``' device.
         """
         if values.ndim != 2 or values.shape[1] % sub_len:
             raise ValueError(f"values [N, D] with D divisible by sub_len={sub_len}, got {tuple(values.shape)}")
         x = values.detach().float().cpu()
-        codebooks, labels = [], []
-        for j in range(x.shape[1] // sub_len):
-            cb, lab = kmeans(x[:, j * sub_len:(j + 1) * sub_len], codebook_size, iters=iters, seed=seed + j)
-            codebooks.append(cb)
-            labels.append(lab)
-        return cls(codebooks, torch.stack(labels, dim=1))
+        with torch.device("cpu"):  # k-means runs on the CPU whatever the default device
+            fits = [kmeans(x[:, j * sub_len:(j + 1) * sub_len], codebook_size, iters=iters, seed=seed + j)
+                    for j in range(x.shape[1] // sub_len)]
+        codebooks, labels = zip(*fits)
+        return cls(list(codebooks), torch.stack(labels, dim=1)).to(values.device)
 
     @property
     def num_gaussians(self) -> int:

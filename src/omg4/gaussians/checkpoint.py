@@ -1,6 +1,7 @@
 """Safe checkpoints of :class:`Gaussians4D` models (safetensors, no pickle).
 
-A checkpoint is a safetensors file holding the nine raw parameters as float32 and one
+A checkpoint is a safetensors file holding the nine raw parameters as float32 (written
+from CPU copies whatever the model's device; read onto the caller's device) and one
 metadata entry ``"omg4"``: a JSON object with ``format`` (``"omg4-rt4dgs"``), ``version``,
 ``config`` (:class:`GaussianConfig`), the active SH degrees, the Gaussian count and the
 caller's ``metadata`` (scene normalization, time range, iteration, ...). Files are written
@@ -74,12 +75,12 @@ def _config_of(path: Path, header: dict) -> GaussianConfig:
         raise CorruptFileError(f"{path}: invalid model config in checkpoint ({e})") from None
 
 
-def load_gaussians(path: str | os.PathLike) -> tuple[Gaussians4D, dict]:
+def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") -> tuple[Gaussians4D, dict]:
     """Read a checkpoint written by :func:`save_gaussians`.
 
     Returns:
-        (model, metadata): parameters as float32 CPU tensors without gradients, and the
-        caller's metadata dict given at save time.
+        (model, metadata): parameters as float32 tensors on ``device`` without gradients,
+        and the caller's metadata dict given at save time.
     Raises:
         CorruptFileError: missing, truncated, damaged or wrong-kind file, or non-finite values.
     """
@@ -107,7 +108,7 @@ def load_gaussians(path: str | os.PathLike) -> tuple[Gaussians4D, dict]:
         model = Gaussians4D(params, config, header["active_sh_degree"], header["active_sh_degree_t"])
     except (KeyError, TypeError, ValueError) as e:
         raise CorruptFileError(f"{path}: inconsistent checkpoint ({e})") from None
-    return model, dict(header.get("metadata") or {})
+    return model.to(device), dict(header.get("metadata") or {})
 
 
 def describe_checkpoint(path: str | os.PathLike) -> dict:

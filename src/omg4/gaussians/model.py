@@ -145,12 +145,14 @@ class Gaussians4D:
         t ~ U(t0 − 0.1 D, t1 + 0.1 D); isotropic log-scale log √max(d², 1e-7) with d² the mean
         squared distance to the 3 nearest neighbours; log time scale log √(D/5); identity
         quaternions (a static Gaussian); opacity logit(0.1); DC = RGB2SH(rgb), other SH 0.
+        The model is built on the CPU (``generator`` is a CPU one); move it with :meth:`to`.
 
         Args:
             xyz: [M, 3] positions; rgb: [M, 3] colours in [0, 1].
         """
-        xyz = torch.as_tensor(xyz, dtype=torch.float32)
-        rgb = torch.as_tensor(rgb, dtype=torch.float32)
+        cpu = torch.device("cpu")
+        xyz = torch.as_tensor(xyz, dtype=torch.float32, device=cpu)
+        rgb = torch.as_tensor(rgb, dtype=torch.float32, device=cpu)
         m = xyz.shape[0]
         if m == 0:
             raise DataError("cannot initialize Gaussians from an empty point cloud")
@@ -162,17 +164,17 @@ class Gaussians4D:
         d = config.period
         dist2 = torch.from_numpy(mean_neighbour_sq_distance(xyz.double().numpy())).float()
         log_s = 0.5 * torch.log(dist2.clamp_min(1e-7))
-        identity = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(m, 1)
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=cpu).repeat(m, 1)
         params = {
             "xyz": xyz.clone(),
-            "t": (torch.rand(m, 1, generator=generator) * 1.2 - 0.1) * d + t0,
+            "t": (torch.rand(m, 1, generator=generator, device=cpu) * 1.2 - 0.1) * d + t0,
             "scaling": log_s.unsqueeze(1).repeat(1, 3),
-            "scaling_t": torch.full((m, 1), 0.5 * float(np.log(d / 5.0))),
+            "scaling_t": torch.full((m, 1), 0.5 * float(np.log(d / 5.0)), device=cpu),
             "rotation": identity.clone(),
             "rotation_r": identity.clone(),
-            "opacity": torch.full((m, 1), float(np.log(0.1 / 0.9))),
+            "opacity": torch.full((m, 1), float(np.log(0.1 / 0.9)), device=cpu),
             "features_dc": rgb_to_sh(rgb).unsqueeze(1),
-            "features_rest": torch.zeros(m, config.num_coeffs - 1, 3),
+            "features_rest": torch.zeros(m, config.num_coeffs - 1, 3, device=cpu),
         }
         return cls(params, config, active_sh_degree=0, active_sh_degree_t=0)
 
@@ -208,12 +210,17 @@ class Gaussians4D:
         idx = geom.index
         opacities = torch.sigmoid(p["opacity"][idx, 0]) * geom.marginal
         origin = geom.means if cfg.sh_direction == "conditioned" else p["xyz"][idx]
-        dirs = view_directions(origin, torch.as_tensor(camera_center))
+        dirs = view_directions(origin, torch.as_tensor(camera_center, device=origin.device))
         coeffs = torch.cat([p["features_dc"][idx], p["features_rest"][idx]], dim=1)
         colors = colors_from_sh(coeffs, dirs, geom.dt, cfg.period, self.active_sh_degree,
                                 self.active_sh_degree_t, band_size=cfg.band_size)
         return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=opacities, index=idx,
                          num_total=self.num_gaussians)
+
+    def to(self, device: torch.device | str) -> "Gaussians4D":
+        """This model with its parameters on ``device`` (tensors already there are shared, not copied)."""
+        params = {k: v.to(device) for k, v in self.params.items()}
+        return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
 
     def detach_copy(self) -> "Gaussians4D":
         """An independent copy with detached, cloned parameters."""

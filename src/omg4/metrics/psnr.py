@@ -21,7 +21,7 @@ ImageLike = torch.Tensor | np.ndarray
 
 def _pair(img: ImageLike, gt: ImageLike) -> tuple[torch.Tensor, torch.Tensor]:
     """Both images as detached float64 tensors on ``img``'s device, the render clamped to [0, 1]."""
-    x = torch.as_tensor(img).detach()
+    x = (img if isinstance(img, torch.Tensor) else torch.from_numpy(np.asarray(img))).detach()
     y = torch.as_tensor(gt, device=x.device).detach()
     if x.shape != y.shape:
         raise OMG4Error(f"image shapes differ: rendered {tuple(x.shape)} vs ground truth {tuple(y.shape)}")

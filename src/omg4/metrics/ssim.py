@@ -44,7 +44,7 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, *, dtype: torch.dtype = 
                     device: torch.device | str = "cpu") -> torch.Tensor:
     """Normalized 2-D Gaussian window ``[size, size]``: the outer product of the 1-D
     Gaussian ``exp(-(i - size//2)² / 2σ²) / Σ`` with itself (3DGS ``create_window``)."""
-    coords = torch.arange(size, dtype=torch.float64) - size // 2
+    coords = torch.arange(size, dtype=torch.float64, device="cpu") - size // 2
     g = torch.exp(-(coords**2) / (2.0 * sigma**2))
     g = g / g.sum()
     return torch.outer(g, g).to(dtype=dtype, device=device)
@@ -56,7 +56,7 @@ def image_pair_bchw(img: ImageLike, gt: ImageLike) -> tuple[torch.Tensor, torch.
     Accepts the layouts of the module doc (``[H, W]``, ``[H, W, C]``, ``[B, C, H, W]``);
     raises :class:`OMG4Error` on other ranks or when the shapes differ.
     """
-    x = torch.as_tensor(img)
+    x = img if isinstance(img, torch.Tensor) else torch.from_numpy(np.asarray(img))
     y = torch.as_tensor(gt, device=x.device)
     if x.shape != y.shape:
         raise OMG4Error(f"image shapes differ: rendered {tuple(x.shape)} vs ground truth {tuple(y.shape)}")

@@ -86,16 +86,26 @@ def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, o
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """"cpu" or "gsplat" for ``backend`` on tensors living on ``device``."""
+    """"cpu" or "gsplat" for ``backend`` on tensors living on ``device``.
+
+    Raises:
+        ValueError: an unknown backend name.
+        OMG4Error: the cpu backend asked to render CUDA tensors, or CUDA tensors with
+            backend "auto" when gsplat does not import (one-line messages).
+    """
     if backend not in BACKENDS:
         raise ValueError(f"unknown rasterizer backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if backend == "cpu" and device.type == "cuda":
+        raise OMG4Error(f"the cpu rasterizer backend cannot render tensors on {device}; "
+                        "use backend 'auto' or 'gsplat' there, or device 'cpu'")
     if backend != "auto":
         return backend
     if device.type == "cuda":
         try:
             import gsplat  # noqa: F401  (importable: its CUDA kernels build on first use)
         except ImportError:
-            return "cpu"
+            raise OMG4Error(f"rendering on {device} needs gsplat, which does not import here "
+                            "(pip install gsplat), or use device 'cpu'") from None
         return "gsplat"
     return "cpu"
 
@@ -153,7 +163,7 @@ def rasterize_cpu(means, covars, colors, opacities, viewmat, K, width, height, *
     feats = torch.cat([colors, proj.depths[:, None]], dim=1)
     acc, trans = _Composite.apply(means2d, proj.conics, feats, opacities, cutoff.to(dtype), boxes, bins,
                                   (width, height, alpha_max))
-    bg = torch.zeros(n_colors, dtype=dtype) if background is None else background.to(dtype)
+    bg = torch.zeros(n_colors, dtype=dtype, device=means.device) if background is None else background.to(dtype)
     image = acc[..., :n_colors] + trans * bg
     return Rendered(image=image, alpha=1.0 - trans, depth=acc[..., n_colors:], means2d=means2d,
                     radii=max_radius(proj.radii))

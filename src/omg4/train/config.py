@@ -50,6 +50,7 @@ class TrainConfig:
     checkpoint_interval: int = 1000
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     backend: str = "auto"
+    device: str = "cpu"  # where tensors live (omg4.device.resolve_device); configs written before it load as "cpu"
 
     def to_dict(self) -> dict:
         return asdict(self)

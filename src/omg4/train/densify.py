@@ -18,22 +18,23 @@ from omg4.train.optim import append_rows, keep_rows, replace_param
 
 
 class DensifyStats:
-    """Running gradient statistics for densification (rt4dgs §3.4, batch-aware form)."""
+    """Running gradient statistics for densification (rt4dgs §3.4, batch-aware form), [N] each on ``device``."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, device: torch.device | str = "cpu"):
+        self.device = torch.device(device)
         self.reset(n)
 
     def reset(self, n: int) -> None:
-        self.grad_sum = torch.zeros(n)
-        self.visible_views = torch.zeros(n)
-        self.max_radii = torch.zeros(n)
+        self.grad_sum = torch.zeros(n, device=self.device)
+        self.visible_views = torch.zeros(n, device=self.device)
+        self.max_radii = torch.zeros(n, device=self.device)
 
     def add_view(self, index: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
                  height: int, batch_size: int) -> None:
         """Accumulate one view: ``means2d_grad`` [M, 2] is ∂(L_v / B)/∂means2d in pixels for Gaussians ``index``."""
         visible = radii > 0
         idx = index[visible]
-        g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0]) * batch_size
+        g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0], device=self.device) * batch_size
         self.grad_sum.index_add_(0, idx, g.norm(dim=-1))
         self.visible_views.index_add_(0, idx, torch.ones_like(idx, dtype=torch.float32))
         self.max_radii[idx] = torch.maximum(self.max_radii[idx], radii[visible].float())
@@ -73,13 +74,14 @@ def densify_and_prune(model, optimizer, stats: DensifyStats, *, grad_threshold: 
         children = _split_children(params, split_idx, model.config.rotation_convention, generator)
         append_rows(params, optimizer, children)
     n_after = params["xyz"].shape[0]
-    prune = torch.zeros(n_after, dtype=torch.bool)
+    device = params["xyz"].device
+    prune = torch.zeros(n_after, dtype=torch.bool, device=device)
     prune[split_idx] = True  # parents are replaced by their children
 
     opacity = torch.sigmoid(params["opacity"].detach()).squeeze(1)
     prune |= opacity < prune_opacity
     if max_screen_size:
-        radii = torch.cat([stats.max_radii, torch.zeros(n_after - n0)])
+        radii = torch.cat([stats.max_radii, torch.zeros(n_after - n0, device=device)])
         big_world = params["scaling"].detach().exp().max(dim=1).values > prune_world_size * extent
         prune |= (radii > max_screen_size) | big_world
     if bool(prune.all()):  # never prune a scene down to nothing
@@ -107,7 +109,8 @@ def _split_children(params, idx, convention: str, generator: torch.Generator, n_
     scales = torch.cat([p["scaling"], p["scaling_t"]], 1).exp()  # [K, 4]
     R4 = build_rotation_4d(p["rotation"], p["rotation_r"], convention=convention)  # [K, 4, 4]
     out = {k: v.repeat(n_children, *([1] * (v.dim() - 1))) for k, v in p.items()}
-    eps = torch.randn(out["xyz"].shape[0], 4, generator=generator) * scales.repeat(n_children, 1)
+    eps = torch.randn(out["xyz"].shape[0], 4, generator=generator, device=generator.device)  # CPU draw: reproducible
+    eps = eps.to(scales.device) * scales.repeat(n_children, 1)
     offset = torch.einsum("kij,kj->ki", R4.repeat(n_children, 1, 1), eps)
     out["xyz"] = out["xyz"] + offset[:, :3]
     out["t"] = out["t"] + offset[:, 3:]

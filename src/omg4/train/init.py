@@ -1,7 +1,8 @@
 """Initial point clouds for baseline training (reference rt4dgs §3.5).
 
-``auto`` uses the data's ``points3d.ply`` when present, else random points inside the
-cameras' common view volume (:func:`omg4.data.random_initial_points`); ``rays`` places
+``auto`` uses the data's ``points3d.ply`` when present, else plane-sweep stereo for
+multi-view video, else random points inside the cameras' common view volume
+(:func:`omg4.data.random_initial_points`); ``rays`` places
 coloured points along the first frame's training rays (:func:`ray_initial_points`);
 ``mvs`` runs plane-sweep stereo on the first frame (:mod:`omg4.train.plane_sweep`);
 ``colmap`` triangulates the first frame with pycolmap.
@@ -9,20 +10,37 @@ coloured points along the first frame's training rays (:func:`ray_initial_points
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from omg4.data.scene import PointCloud, Scene
-from omg4.errors import OMG4Error
+from omg4.errors import DataError, OMG4Error
 from omg4.train.config import TrainConfig
 
 
-def initial_points(scene: Scene, mode: str, cfg: TrainConfig) -> PointCloud:
-    """The initial points for ``mode`` in {auto, random, rays, mvs, colmap}."""
+def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str], None] = print) -> PointCloud:
+    """The initial points for ``mode`` in {auto, random, rays, mvs, colmap}.
+
+    ``auto``: the data's ``points3d.ply``; else plane-sweep stereo when the first frame has at
+    least three training cameras (multi-view video); else — a monocular scene such as D-NeRF,
+    or a sweep that finds nothing — random points, as the official code does for D-NeRF.
+    """
     from omg4.data import random_initial_points
 
     if mode == "auto":
         if scene.initial_points is not None:
             return scene.initial_points
+        first = min((v.frame_index for v in scene.train_views), default=None)
+        if sum(v.frame_index == first for v in scene.train_views) >= 3:
+            from omg4.train.plane_sweep import plane_sweep_points
+
+            try:
+                points = plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed)
+                log(f"initialization: {len(points.xyz)} plane-sweep stereo points of the first frame")
+                return points
+            except DataError as err:
+                log(f"initialization: {err}; using random points")
         return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
     if mode == "random":
         return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)

@@ -4,7 +4,8 @@ A run folder holds ``config.json``, ``checkpoints/model_XXXXXXX.safetensors`` (t
 the safe format of :mod:`omg4.gaussians.checkpoint`) and ``checkpoints/state_XXXXXXX.pt``
 (optimizer moments and densification statistics: tensors and plain numbers only, read back
 with ``torch.load(weights_only=True)``). The state file is written after the model file, so
-a state file's presence marks a complete checkpoint.
+a state file's presence marks a complete checkpoint. Both hold CPU tensors whatever the
+training device; :func:`load_run_checkpoint` puts them on the device asked for.
 """
 
 from __future__ import annotations
@@ -31,17 +32,28 @@ def save_run_checkpoint(run_dir: Path, iteration: int, model, optimizer, stats, 
     """Write the checkpoint of ``iteration`` and remove older ones beyond ``keep_last``."""
     model_path, state_path = checkpoint_paths(run_dir, iteration)
     save_gaussians(model_path, model, {**metadata, "iteration": iteration})
-    state = {
+    state = _to_cpu({
         "iteration": iteration,
         "optimizer": optimizer.state_dict(),
         "stats": {"grad_sum": stats.grad_sum, "visible_views": stats.visible_views, "max_radii": stats.max_radii},
-    }
+    })
     with atomic_path(state_path) as tmp:
         torch.save(state, tmp)
     for old in sorted(_complete_iterations(run_dir))[:-keep_last]:
         for p in checkpoint_paths(run_dir, old):
             p.unlink(missing_ok=True)
     return model_path
+
+
+def _to_cpu(obj):
+    """``obj`` (nested dicts, lists and tuples) with every tensor moved to the CPU."""
+    if isinstance(obj, torch.Tensor):
+        return obj.cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to_cpu(v) for v in obj)
+    return obj
 
 
 def _complete_iterations(run_dir: Path) -> list[int]:
@@ -58,12 +70,15 @@ def latest_iteration(run_dir: Path) -> int | None:
     return max(its) if its else None
 
 
-def load_run_checkpoint(run_dir: Path, iteration: int):
-    """(model, metadata, state dict) of a saved iteration."""
+def load_run_checkpoint(run_dir: Path, iteration: int, device: torch.device | str = "cpu"):
+    """(model, metadata, state dict) of a saved iteration: the model and the densification
+    statistics on ``device``; the optimizer state stays on the CPU (``Optimizer.load_state_dict``
+    moves it to its parameters' device)."""
     model_path, state_path = checkpoint_paths(run_dir, iteration)
-    model, metadata = load_gaussians(model_path)
+    model, metadata = load_gaussians(model_path, device)
     try:
         state = torch.load(state_path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many kinds on damaged files
         raise CorruptFileError(f"{state_path}: cannot read training state ({type(e).__name__})") from None
+    state["stats"] = {k: v.to(device) for k, v in state["stats"].items()}
     return model, metadata, state

@@ -4,7 +4,8 @@ Each iteration renders a batch of random (camera, frame) views, back-propagates
 ``loss_v / B`` per view, and takes one Adam step; densification, opacity resets and the SH
 degree schedule happen at fixed iterations. Everything random is drawn from generators
 seeded by ``(seed, iteration)``, so a run resumed from a checkpoint continues exactly as
-an uninterrupted run of the same seed.
+an uninterrupted run of the same seed. The model, optimizer state, statistics and images live
+on ``TrainConfig.device``; the generators are CPU ones whose draws are moved there.
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ from tqdm.auto import tqdm
 
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import PointCloud, Scene, View
+from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.evaluate import render_image, view_image
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.checkpoint import save_gaussians
 from omg4.metrics import psnr
+from omg4.render.api import resolve_backend
 from omg4.render.view import render_view
 from omg4.train import densify
 from omg4.train.config import TrainConfig
@@ -46,7 +49,7 @@ class TrainResult:
 
 
 def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
-    """A generator determined by (seed, step, stream) alone (resume-safe randomness)."""
+    """A CPU generator determined by (seed, step, stream) alone (resume-safe, device-independent randomness)."""
     g = torch.Generator()
     g.manual_seed((seed * 1_000_003 + step * 7919 + stream) % (2**63 - 1))
     return g
@@ -59,8 +62,11 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
 
 
 def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
-                   lambda_dssim: float, what: str, step: int, on_view=None) -> float:
+                   lambda_dssim: float, what: str, step: int, device: torch.device | str = "cpu",
+                   on_view=None) -> float:
     """Render ``views[i]`` for each i in ``batch`` and back-propagate ``loss_v / B`` (rt4dgs §3.1).
+
+    ``model`` and ``background`` live on ``device``; the ground truths are moved there.
 
     ``on_view(view, rendered, time_slice, gt)`` runs after each backward (gradient statistics).
     Returns the mean per-view loss; a non-finite loss is a one-line error naming ``what``.
@@ -68,8 +74,9 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
     losses = []
     for i in batch.tolist():
         view = views[i]
-        gt = view_image(view)
-        rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend)
+        gt = view_image(view, device)
+        rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
+                                   device=device)
         loss = photometric_loss(rendered.image, gt, lambda_dssim) / len(batch)
         if not torch.isfinite(loss):
             raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {float(loss)}")
@@ -81,7 +88,10 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
 
 
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
-    """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume."""
+    """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume.
+
+    Built on the CPU (so the random draws do not depend on the device); the caller moves it.
+    """
     if points is None:
         points = scene.initial_points
     if points is None:
@@ -92,22 +102,26 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
         raise OMG4Error("the initial point cloud is empty")
     config = GaussianConfig(time_range=tuple(scene.time_range))
     gen = torch.Generator().manual_seed(cfg.seed)
-    xyz = torch.as_tensor(points.xyz, dtype=torch.float32)
-    rgb = torch.as_tensor(points.rgb, dtype=torch.float32)
+    xyz = torch.as_tensor(points.xyz, dtype=torch.float32, device="cpu")
+    rgb = torch.as_tensor(points.rgb, dtype=torch.float32, device="cpu")
     if cfg.max_gaussians and len(xyz) > cfg.max_gaussians:
-        keep = torch.randperm(len(xyz), generator=gen)[: cfg.max_gaussians]
+        keep = torch.randperm(len(xyz), generator=gen, device="cpu")[: cfg.max_gaussians]
         xyz, rgb = xyz[keep], rgb[keep]
     return Gaussians4D.from_points(xyz, rgb, config, generator=gen)
 
 
-def evaluate_psnr(model, views: list[View], background: torch.Tensor, backend: str) -> float:
-    """Mean PSNR of ``model`` over ``views`` (renders clamped to [0, 1])."""
-    values = [psnr(render_image(model, v, background, backend), view_image(v)) for v in views]
+def evaluate_psnr(model, views: list[View], background: torch.Tensor, backend: str,
+                  device: torch.device | str = "cpu") -> float:
+    """Mean PSNR of ``model`` (living on ``device``) over ``views`` (renders clamped to [0, 1])."""
+    values = [psnr(render_image(model, v, background, backend, device), view_image(v, device)) for v in views]
     return float(np.mean(values)) if values else float("nan")
 
 
 class Trainer:
-    """Trains a :class:`Gaussians4D` on a :class:`Scene` and writes checkpoints into ``run_dir``."""
+    """Trains a :class:`Gaussians4D` on a :class:`Scene` and writes checkpoints into ``run_dir``.
+
+    Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
+    """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, run_dir: str | Path, *, points: PointCloud | None = None,
                  resume: bool = False, log: Callable[[str], None] = print, progress: bool = True):
@@ -116,7 +130,9 @@ class Trainer:
         self.scene, self.cfg, self.run_dir = scene, cfg, Path(run_dir)
         self.log, self.progress = log, progress
         self.extent = scene.extent
-        self.background = torch.tensor(cfg.background, dtype=torch.float32)
+        self.device = resolve_device(cfg.device)
+        resolve_backend(cfg.backend, self.device)
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.metadata = {
             "scene": scene.name,
             "time_range": list(scene.time_range),
@@ -126,18 +142,18 @@ class Trainer:
         self.start = 0
         start_it = latest_iteration(self.run_dir) if resume else None
         if start_it is not None:
-            self.model, _, state = load_run_checkpoint(self.run_dir, start_it)
+            self.model, _, state = load_run_checkpoint(self.run_dir, start_it, self.device)
             self.optimizer = self._make_optimizer()
             self.optimizer.load_state_dict(state["optimizer"])
-            self.stats = densify.DensifyStats(self.model.num_gaussians)
+            self.stats = densify.DensifyStats(self.model.num_gaussians, self.device)
             for k, v in state["stats"].items():
                 setattr(self.stats, k, v)
             self.start = int(state["iteration"])
             log(f"resuming from iteration {self.start} ({self.model.num_gaussians} Gaussians)")
         else:
-            self.model = initial_model(scene, cfg, points)
+            self.model = initial_model(scene, cfg, points).to(self.device)
             self.optimizer = self._make_optimizer()
-            self.stats = densify.DensifyStats(self.model.num_gaussians)
+            self.stats = densify.DensifyStats(self.model.num_gaussians, self.device)
         self.history: list[dict] = []
 
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -152,7 +168,7 @@ class Trainer:
         model.active_sh_degree, model.active_sh_degree_t = active_sh_degrees(
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
-        batch = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step))
+        batch = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step), device="cpu")
         psnrs = []
         densifying = step < cfg.densify_until
 
@@ -163,7 +179,8 @@ class Trainer:
             psnrs.append(psnr(rendered.image.detach().clamp(0, 1), gt))
 
         loss = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
-                              lambda_dssim=cfg.lambda_dssim, what="training", step=step, on_view=on_view)
+                              lambda_dssim=cfg.lambda_dssim, what="training", step=step, device=self.device,
+                              on_view=on_view)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self._density_events(step)
@@ -202,7 +219,8 @@ class Trainer:
             if step % 10 == 0 or step == end:
                 bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", N=self.model.num_gaussians)
             if cfg.test_interval and step % cfg.test_interval == 0 and self.scene.test_views:
-                test_psnr = evaluate_psnr(self.model, self.scene.test_views, self.background, cfg.backend)
+                test_psnr = evaluate_psnr(self.model, self.scene.test_views, self.background, cfg.backend,
+                                          self.device)
                 self.history.append({"iteration": step, "test_psnr": test_psnr, "num_gaussians":
                                      self.model.num_gaussians})
                 bar.write(f"[{step}] test PSNR {test_psnr:.2f} dB, {self.model.num_gaussians} Gaussians")
