@@ -77,3 +77,26 @@ def test_final_model_file_round_trips(tiny_scene, tmp_path):
     for name, value in result.model.params.items():
         assert torch.equal(value.detach(), model.params[name])
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train_config"]["iterations"] == 4
+
+
+def test_cli_train_writes_a_model_and_resumes_without_reinitializing(tiny_scene_dir, tmp_path, monkeypatch, capsys):
+    import json
+
+    import omg4.train.init as init
+    from omg4.cli import main
+    from omg4.gaussians.checkpoint import load_gaussians
+
+    run = tmp_path / "run"
+    common = [str(tiny_scene_dir), "--out", str(run), "--preset", "cpu-small", "--batch-size", "1",
+              "--checkpoint-interval", "2", "--test-interval", "0", "--backend", "cpu"]
+    assert main(["train", *common, "--iterations", "4"]) == 0
+    model, _ = load_gaussians(run / "model.safetensors")
+    assert model.num_gaussians > 0
+
+    def no_init(*args, **kwargs):
+        raise AssertionError("a resumed run must not compute initial points")
+
+    monkeypatch.setattr(init, "initial_points", no_init)
+    assert main(["train", *common, "--iterations", "6", "--resume", "--json", str(tmp_path / "s.json")]) == 0
+    assert json.loads((tmp_path / "s.json").read_text())["iterations"] == 6
+    assert "resuming from iteration 4" in capsys.readouterr().out

@@ -37,6 +37,7 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.train import make_config
     from omg4.train.init import initial_points
+    from omg4.train.run_state import latest_iteration
     from omg4.train.trainer import Trainer, evaluate_psnr
 
     device = device_from_args(args)
@@ -46,7 +47,8 @@ def run(args) -> int:
         densify_until=args.densify_until, densify_interval=args.densify_interval, test_interval=args.test_interval,
         checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
         backend=args.backend, device=str(device), background=(1.0, 1.0, 1.0) if args.white_background else None)
-    points = initial_points(scene, args.init, cfg)
+    resuming = args.resume and latest_iteration(args.out) is not None
+    points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
     trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume)
     result = trainer.run()
     test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend, device)
