@@ -17,7 +17,7 @@ from omg4.data import load_scene, random_initial_points
 from omg4.data.scene import Camera, Scene
 from omg4.data.synthetic import look_at_viewmat
 from omg4.errors import OMG4Error
-from omg4.train.triangulate import (TriangulationOptions, first_frame_views, fundamental_from_poses, sampson_errors,
+from omg4.train.triangulate import (TriangulationOptions, fundamental_from_poses, sampson_errors,
                                     triangulate_first_frame, triangulate_views)
 
 
@@ -70,11 +70,11 @@ def test_sampson_error_closed_form_for_rectified_pair():
 @pytest.fixture(scope="module")
 def synth_result(synth_scene):
     pytest.importorskip("pycolmap")
-    return triangulate_views(first_frame_views(synth_scene), progress=False)
+    return triangulate_views(synth_scene.first_frame_views(), progress=False)
 
 
 def test_first_frame_views_one_per_training_camera(synth_scene, synth_config):
-    views = first_frame_views(synth_scene)
+    views = synth_scene.first_frame_views()
     assert len(synth_scene.train_views) == (synth_config.num_cameras - 1) * synth_config.num_frames
     assert [v.frame_index for v in views] == [0] * (synth_config.num_cameras - 1)
     assert len({v.camera.name for v in views}) == synth_config.num_cameras - 1
@@ -119,7 +119,7 @@ def test_triangulation_is_repeatable(synth_scene, synth_result):
 def test_basketball_points_are_consistent_with_the_held_out_camera(n3dv_basketball):
     pytest.importorskip("pycolmap")
     scene = load_scene(n3dv_basketball, downscale=2, frames=range(0, 1), progress=False)
-    result = triangulate_views(first_frame_views(scene), progress=False)
+    result = triangulate_views(scene.first_frame_views(), progress=False)
     xyz, rgb = result.points.xyz, result.points.rgb
     assert len(xyz) >= 500 and result.upsample == 2
     assert np.median(result.errors) < 0.5
@@ -161,9 +161,9 @@ def test_missing_pycolmap_is_a_one_line_error(synth_scene, monkeypatch):
 def test_too_few_views_or_points(synth_scene):
     pytest.importorskip("pycolmap")
     with pytest.raises(OMG4Error, match="at least 2 training cameras"):
-        triangulate_views(first_frame_views(synth_scene)[:1], progress=False)
+        triangulate_views(synth_scene.first_frame_views()[:1], progress=False)
     with pytest.raises(OMG4Error, match="kept only .* points"):
-        triangulate_views(first_frame_views(synth_scene)[:2], TriangulationOptions(min_points=10**6),
+        triangulate_views(synth_scene.first_frame_views()[:2], TriangulationOptions(min_points=10**6),
                           progress=False)
     empty = Scene(train_views=[], test_views=synth_scene.test_views, time_range=synth_scene.time_range,
                   normalization=synth_scene.normalization, format="n3dv")

@@ -20,12 +20,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--densify-interval", type=int, help="iterations between densification events")
     p.add_argument("--test-interval", type=int, help="evaluate test PSNR every N iterations (0 = only at the end)")
     p.add_argument("--checkpoint-interval", type=int, help="write a resumable checkpoint every N iterations")
-    p.add_argument("--num-random-points", type=int, help="initial points (random, rays, mvs) when the data has no points3d.ply")
+    p.add_argument("--num-random-points", type=int,
+                   help="initial points (random, rays, mvs) when the data has no points3d.ply")
     p.add_argument("--init", choices=["auto", "random", "rays", "mvs", "colmap"], default="auto",
-                   help="initial points: auto (points3d.ply if present, else mvs for multi-view video, else random), "
-                        "random, rays (coloured "
-                        "points along the first frame's pixel rays), mvs (plane-sweep stereo of the first "
-                        "frame) or colmap (pycolmap triangulation of the first frame)")
+                   help="initial points: auto (points3d.ply if present, else mvs for multi-view video, else "
+                        "random), random, rays (coloured points along the first frame's pixel rays), mvs "
+                        "(plane-sweep stereo of the first frame) or colmap (pycolmap triangulation of the "
+                        "first frame)")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--white-background", action="store_true", help="train on a white background")
     add_device_arguments(p)

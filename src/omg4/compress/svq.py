@@ -28,8 +28,6 @@ from omg4.codec.payload import QuantizedAttribute
 from omg4.compress.kmeans import kmeans
 
 
-
-
 class SubVectorQuantizer(nn.Module):
     """Fixed indices ``[N, slots]`` into one learnable codebook ``[K_j, s]`` per sub-vector slot."""
 

@@ -13,6 +13,8 @@ from typing import Callable
 
 import numpy as np
 
+from omg4.errors import DataError
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -179,6 +181,18 @@ class Scene:
     def test_cameras(self) -> list[Camera]:
         """The distinct test cameras, in first-seen order."""
         return _distinct_cameras(self.test_views)
+
+    def first_frame_views(self) -> list[View]:
+        """The training views of the first frame, one per camera (the first seen kept); the
+        frame the official initialization reconstructs (reference rt4dgs §3.5)."""
+        if not self.train_views:
+            raise DataError("the scene has no training views")
+        first = min(v.frame_index for v in self.train_views)
+        views: dict[str, View] = {}
+        for v in self.train_views:
+            if v.frame_index == first:
+                views.setdefault(v.camera.name or str(id(v.camera)), v)
+        return list(views.values())
 
     @property
     def extent(self) -> float:

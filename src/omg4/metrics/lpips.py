@@ -32,7 +32,8 @@ import torch.nn.functional as F
 
 from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError, OMG4Error
-from omg4.metrics.ssim import ImageLike, image_pair_bchw
+from omg4.metrics.psnr import ImageLike
+from omg4.metrics.ssim import image_pair_bchw
 
 try:  # numpy >= 2 moved the reconstructor the pickles reference as numpy.core.multiarray._reconstruct
     from numpy._core.multiarray import _reconstruct

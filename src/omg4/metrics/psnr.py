@@ -19,12 +19,19 @@ from omg4.errors import OMG4Error
 ImageLike = torch.Tensor | np.ndarray
 
 
-def _pair(img: ImageLike, gt: ImageLike) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both images as detached float64 tensors on ``img``'s device, the render clamped to [0, 1]."""
-    x = (img if isinstance(img, torch.Tensor) else torch.from_numpy(np.asarray(img))).detach()
-    y = torch.as_tensor(gt, device=x.device).detach()
+def tensor_pair(img: ImageLike, gt: ImageLike) -> tuple[torch.Tensor, torch.Tensor]:
+    """``img`` as a tensor where it lives (numpy on the CPU, never torch's default device) and ``gt``
+    on the same device; images of different shapes are a one-line :class:`OMG4Error`."""
+    x = img if isinstance(img, torch.Tensor) else torch.from_numpy(np.asarray(img))
+    y = torch.as_tensor(gt, device=x.device)
     if x.shape != y.shape:
         raise OMG4Error(f"image shapes differ: rendered {tuple(x.shape)} vs ground truth {tuple(y.shape)}")
+    return x, y
+
+
+def _pair(img: ImageLike, gt: ImageLike) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both images as detached float64 tensors on ``img``'s device, the render clamped to [0, 1]."""
+    x, y = (v.detach() for v in tensor_pair(img, gt))
     if x.numel() == 0:
         raise OMG4Error("cannot compute PSNR of an empty image")
     return x.to(torch.float64).clamp(0.0, 1.0), y.to(torch.float64)

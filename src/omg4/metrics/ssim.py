@@ -27,17 +27,15 @@ does, so that negative correlations cannot produce NaN.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from omg4.errors import OMG4Error
+from omg4.metrics.psnr import ImageLike, tensor_pair
 
 C1 = 0.01**2
 C2 = 0.03**2
 MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
-
-ImageLike = torch.Tensor | np.ndarray
 
 
 def gaussian_window(size: int = 11, sigma: float = 1.5, *, dtype: torch.dtype = torch.float32,
@@ -56,10 +54,7 @@ def image_pair_bchw(img: ImageLike, gt: ImageLike) -> tuple[torch.Tensor, torch.
     Accepts the layouts of the module doc (``[H, W]``, ``[H, W, C]``, ``[B, C, H, W]``);
     raises :class:`OMG4Error` on other ranks or when the shapes differ.
     """
-    x = img if isinstance(img, torch.Tensor) else torch.from_numpy(np.asarray(img))
-    y = torch.as_tensor(gt, device=x.device)
-    if x.shape != y.shape:
-        raise OMG4Error(f"image shapes differ: rendered {tuple(x.shape)} vs ground truth {tuple(y.shape)}")
+    x, y = tensor_pair(img, gt)
     dtype = torch.promote_types(torch.promote_types(x.dtype, y.dtype), torch.float32)
     x, y = x.to(dtype), y.to(dtype)
     if x.ndim == 2:

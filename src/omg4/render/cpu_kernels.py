@@ -90,6 +90,12 @@ def _clipped_box(boxes, gi, x0, y0, x1, y1):
     return max(boxes[gi, 0], x0), min(boxes[gi, 1], x1), max(boxes[gi, 2], y0), min(boxes[gi, 3], y1)
 
 
+@njit(cache=True, inline="always")
+def _gaussian(params, gi):
+    """Gaussian ``gi``'s (mean x, mean y, conic a, b, c, opacity, σ cutoff) from ``params``."""
+    return params[gi, 0], params[gi, 1], params[gi, 2], params[gi, 3], params[gi, 4], params[gi, 5], params[gi, 6]
+
+
 @njit(parallel=True, cache=True)
 def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
                       out_feat, out_t, out_last):
@@ -121,13 +127,7 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_siz
             bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
             if bx0 >= bx1 or by0 >= by1:
                 continue
-            mx = params[gi, 0]
-            my = params[gi, 1]
-            ca = params[gi, 2]
-            cb = params[gi, 3]
-            cc = params[gi, 4]
-            opac = params[gi, 5]
-            cut = params[gi, 6]
+            mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
             for py in range(by0, by1):
                 if row_left[py - y0] == 0:
                     continue
@@ -208,13 +208,7 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_si
             bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
             if bx0 >= bx1 or by0 >= by1:
                 continue
-            mx = params[gi, 0]
-            my = params[gi, 1]
-            ca = params[gi, 2]
-            cb = params[gi, 3]
-            cc = params[gi, 4]
-            opac = params[gi, 5]
-            cut = params[gi, 6]
+            mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
             v_mx = 0.0
             v_my = 0.0
             v_xx = 0.0

@@ -32,6 +32,7 @@ def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height
     import gsplat
 
     from omg4.render.api import Rendered
+    from omg4.render.projection import max_radius
 
     like = dict(dtype=torch.float32, device=means.device)
     n_colors = colors.shape[1]
@@ -41,12 +42,11 @@ def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height
         K.to(**like)[None], width, height, near_plane=near, far_plane=far, eps2d=eps2d, backgrounds=backgrounds,
         packed=False, tile_size=tile_size, render_mode="RGB+D", covars=covars.to(**like), rasterize_mode="classic")
     radii = info["radii"][0]  # [N, 2] in gsplat 1.5.3
-    radius = radii.max(dim=-1).values.to(torch.int32)
     visible = (radii > 0).all(dim=-1)
     means2d = torch.where(visible[:, None], info["means2d"][0].detach(), 0.0)
     _forward_grad(info["means2d"], means2d)
     return Rendered(image=render[0, ..., :n_colors], alpha=alphas[0], depth=render[0, ..., n_colors:],
-                    means2d=means2d, radii=radius)
+                    means2d=means2d, radii=max_radius(radii))
 
 
 def _forward_grad(source: torch.Tensor, target: torch.Tensor) -> None:

@@ -31,8 +31,7 @@ def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str
     if mode == "auto":
         if scene.initial_points is not None:
             return scene.initial_points
-        first = min((v.frame_index for v in scene.train_views), default=None)
-        if sum(v.frame_index == first for v in scene.train_views) >= 3:
+        if len(scene.first_frame_views()) >= 3:
             from omg4.train.plane_sweep import plane_sweep_points
 
             try:
@@ -66,8 +65,7 @@ def ray_initial_points(scene: Scene, num_points: int, seed: int = 0, near: float
     surfaces seen by some cameras only — the walls of a capture dome — get points too; its
     colour is that pixel's colour. Training carves away the points off the surfaces.
     """
-    first = min(v.frame_index for v in scene.train_views)
-    views = [v for v in scene.train_views if v.frame_index == first]
+    views = scene.first_frame_views()
     rng = np.random.default_rng(seed)
     far = far_factor * max(float(np.linalg.norm(v.camera.center)) for v in views)
     which = rng.integers(len(views), size=num_points)

@@ -47,11 +47,10 @@ class SweepConfig:
 
 @dataclass
 class DepthMap:
-    """One reference camera's sweep result: depth [H, W] (0 where rejected) and score."""
+    """One reference camera's sweep result: depth [H, W], 0 where rejected."""
 
     camera: Camera
     depth: torch.Tensor
-    score: torch.Tensor
 
 
 def _grey(img: np.ndarray) -> torch.Tensor:
@@ -97,11 +96,10 @@ def _window_stats(x: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Ten
 def choose_neighbours(cameras: list[Camera], index: int, count: int, max_angle_deg: float) -> list[int]:
     """The ``count`` cameras nearest to camera ``index`` whose optical axes are within the angle."""
     axis = cameras[index].viewmat[2, :3]
-    centre = cameras[index].center
     cos_min = np.cos(np.radians(max_angle_deg))
-    candidates = [(float(np.linalg.norm(c.center - centre)), j) for j, c in enumerate(cameras)
-                  if j != index and float(c.viewmat[2, :3] @ axis) >= cos_min
-                  and np.linalg.norm(c.center - centre) > 1e-9]
+    distance = [float(np.linalg.norm(c.center - cameras[index].center)) for c in cameras]
+    candidates = [(distance[j], j) for j, c in enumerate(cameras)
+                  if distance[j] > 1e-9 and float(c.viewmat[2, :3] @ axis) >= cos_min]
     return [j for _, j in sorted(candidates)[:count]]
 
 
@@ -113,12 +111,12 @@ def sweep_depth(ref: Camera, ref_grey: torch.Tensor, others: list[tuple[Camera, 
     r = ref_grey.view(1, 1, H, W)
     r_mean, r_var = _window_stats(r, cfg.window)
     keep = max(1, (len(others) + 1) // 2)
+    projections = [_relative_projection(ref, cam, rays) for cam, _ in others]
     scores = torch.empty(len(depths), H, W)
     for start in range(0, len(depths), cfg.depth_chunk):
         d = depths[start:start + cfg.depth_chunk].double()
         per_neighbour = []
-        for cam, grey in others:
-            a, b = _relative_projection(ref, cam, rays)
+        for (cam, grey), (a, b) in zip(others, projections):
             p = d.view(-1, 1, 1) * a.unsqueeze(0) + b.view(1, 3, 1)  # [D, 3, P]
             z = p[:, 2]
             pix = (p[:, :2] / z.clamp_min(1e-9).unsqueeze(1)).transpose(1, 2).reshape(-1, H, W, 2)
@@ -131,7 +129,7 @@ def sweep_depth(ref: Camera, ref_grey: torch.Tensor, others: list[tuple[Camera, 
         stacked = torch.stack(per_neighbour, 0)  # [N, D, H, W]
         scores[start:start + len(d)] = stacked.topk(keep, dim=0).values.mean(0)
     best_score, best = scores.max(0)
-    depth = depths[best].clone()
+    depth = depths[best]
     # sub-plane refinement: vertex of the parabola through the best score and its neighbours
     inner = (best > 0) & (best < len(depths) - 1)
     lo = scores.gather(0, (best - 1).clamp_min(0).unsqueeze(0))[0]
@@ -142,8 +140,7 @@ def sweep_depth(ref: Camera, ref_grey: torch.Tensor, others: list[tuple[Camera, 
     depth = depth + offset.clamp(-0.5, 0.5) * step
     texture = r_var[0, 0].sqrt() >= cfg.min_texture
     depth = torch.where((best_score >= cfg.min_score) & texture, depth, torch.zeros_like(depth))
-    return DepthMap(camera=ref, depth=depth, score=best_score)
-
+    return DepthMap(camera=ref, depth=depth)
 
 
 def _unproject(dm: DepthMap) -> tuple[torch.Tensor, torch.Tensor]:
@@ -179,10 +176,7 @@ def plane_sweep_points(scene: Scene, num_points: int, *, seed: int = 0, cfg: Swe
     """
     from tqdm.auto import tqdm
 
-    if not scene.train_views:
-        raise DataError("plane-sweep initialization: the scene has no training views")
-    first = min(v.frame_index for v in scene.train_views)
-    views = [v for v in scene.train_views if v.frame_index == first]
+    views = scene.first_frame_views()
     cameras = [v.camera for v in views]
     images = [v.image() for v in views]
     greys = [_grey(img) for img in images]

@@ -79,18 +79,6 @@ class Triangulation:
     upsample: int
 
 
-def first_frame_views(scene: Scene) -> list[View]:
-    """The training views of the scene's first frame, one per camera (first seen kept)."""
-    if not scene.train_views:
-        raise OMG4Error("the scene has no training views to triangulate")
-    first = min(v.frame_index for v in scene.train_views)
-    views: dict[str, View] = {}
-    for v in scene.train_views:
-        if v.frame_index == first:
-            views.setdefault(v.camera.name or str(id(v.camera)), v)
-    return list(views.values())
-
-
 def relative_pose(cam1: Camera, cam2: Camera) -> tuple[np.ndarray, np.ndarray]:
     """cam2_from_cam1 as (R [3, 3], t [3]) = (R2 R1ᵀ, t2 − R t1) from the world-to-camera matrices."""
     R = cam2.viewmat[:3, :3] @ cam1.viewmat[:3, :3].T
@@ -138,7 +126,7 @@ def triangulate_first_frame(scene: Scene, options: TriangulationOptions = Triang
     Returns:
         PointCloud with xyz [M, 3] float64 and rgb [M, 3] float32 in [0, 1].
     """
-    return triangulate_views(first_frame_views(scene), options, progress).points
+    return triangulate_views(scene.first_frame_views(), options, progress).points
 
 
 def triangulate_views(views: list[View], options: TriangulationOptions = TriangulationOptions(),
