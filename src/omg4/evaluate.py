@@ -1,5 +1,8 @@
 """Evaluation as the paper's tables report it: PSNR, SSIM, LPIPS, FPS, #Gaussians, storage.
 
+Beside them, ``visible_fraction``: the mean share of the model's Gaussians that pass the
+temporal cull and reach the rasterizer in a frame (what a frame's cost scales with).
+
 PSNR is the standard one over all pixels and channels; SSIM is the 3DGS 11×11 Gaussian-
 window SSIM; LPIPS is v0.1 with the named backbone on [−1, 1] inputs; FPS is render-only
 (warm-up, synchronized, median); storage is the model file's bytes / 2^20 (MB as the
@@ -20,7 +23,10 @@ from omg4.errors import OMG4Error
 from omg4.render.view import render_view
 
 def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
-    """A renderable model on ``device`` from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file."""
+    """A render-only model on ``device`` from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file.
+
+    Both come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`).
+    """
     path = Path(path)
     if not path.is_file():
         raise OMG4Error(f"model file {path} does not exist")
@@ -31,8 +37,10 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
 
         return load_omg4(path, device)
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.gaussians.visibility import WindowedModel
 
-    return load_gaussians(path, device)[0]
+    model = load_gaussians(path, device)[0]
+    return WindowedModel(model.params, model.config, model.active_sh_degree, model.active_sh_degree_t)
 
 
 def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -66,9 +74,12 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
         raise OMG4Error("there are no test views to evaluate on")
     per_view = []
     for v in tqdm(views, desc="eval", disable=not progress, dynamic_ncols=True):
-        img, gt = render_image(model, v, background, backend, device), view_image(v, device)
+        with torch.no_grad():
+            rendered, sl = render_view(model, v.camera, v.timestamp, background=background, backend=backend,
+                                       device=device)
+        img, gt = rendered.image.clamp(0.0, 1.0), view_image(v, device)
         row = {"camera": v.camera.name, "frame": v.frame_index, "time": v.timestamp, "psnr": psnr(img, gt),
-               "ssim": float(ssim(img, gt))}
+               "ssim": float(ssim(img, gt)), "visible_fraction": sl.index.numel() / max(model.num_gaussians, 1)}
         for net in lpips_nets:
             row[f"lpips_{net}"] = lpips(img, gt, net)
         per_view.append(row)

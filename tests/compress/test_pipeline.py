@@ -12,6 +12,7 @@ from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import StageLengths
 from omg4.data.scene import Camera
+from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians
 from omg4.render.view import render_view
 from omg4.train import Trainer, make_config
@@ -73,8 +74,8 @@ def _rounded_copy(model):
     return m
 
 
-@pytest.mark.parametrize("codec", ["paper", "ans"])
-def test_decoded_file_renders_like_the_fp16_rounded_model(baseline, tiny_scene, tmp_path, codec, monkeypatch, scores_file):
+def keep_pipeline_model(monkeypatch) -> dict:
+    """Make every pipeline run leave its final in-memory model in the returned dict (key "model")."""
     from omg4.compress import pipeline as pl
 
     kept = {}
@@ -85,6 +86,12 @@ def test_decoded_file_renders_like_the_fp16_rounded_model(baseline, tiny_scene, 
         return kept["model"]
 
     monkeypatch.setattr(pl.CompressionPipeline, "run", run_and_keep)
+    return kept
+
+
+@pytest.mark.parametrize("codec", ["paper", "ans"])
+def test_decoded_file_renders_like_the_fp16_rounded_model(baseline, tiny_scene, tmp_path, codec, monkeypatch, scores_file):
+    kept = keep_pipeline_model(monkeypatch)
     out = tmp_path / f"m_{codec}.omg4"
     report = compress_to_file(baseline.model, tiny_scene, _config(), out, codec=codec, progress=False,
                               log=lambda *_: None, scores_path=scores_file)
@@ -99,6 +106,39 @@ def test_decoded_file_renders_like_the_fp16_rounded_model(baseline, tiny_scene, 
             a, _ = render_view(decoded, view.camera, view.timestamp, backend="cpu")
             b, _ = render_view(reference, view.camera, view.timestamp, backend="cpu")
         assert torch.allclose(a.image, b.image, atol=1e-4, rtol=0), float((a.image - b.image).abs().max())
+
+
+def _mlp_on_every_gaussian(values, mlp, config, degrees, tau):
+    """The order before issue 11: the appearance MLPs on all N Gaussians, then the baseline's slice."""
+    t0, t1 = config.time_range
+    with torch.no_grad():
+        dc, rest, logit = mlp.predict(values["xyz"], (tau - t0) / (t1 - t0), values["f_static"], values["f_view"])
+    params = {k: values[k].detach() for k in ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r")}
+    params.update(opacity=logit[:, None], features_dc=dc, features_rest=rest)
+    return Gaussians4D(params, config, *degrees)
+
+
+def test_culling_before_the_mlp_renders_the_same_frame(baseline, tiny_scene, tmp_path, monkeypatch, scores_file):
+    """Mid-pipeline and decoded models: cull (and visibility windows) first, MLP after = MLP on all, cull after."""
+    kept = keep_pipeline_model(monkeypatch)
+    out = tmp_path / "m.omg4"
+    compress_to_file(baseline.model, tiny_scene, _config(), out, progress=False, log=lambda *_: None,
+                     scores_path=scores_file)
+    mid, decoded = kept["model"], load_omg4(out)
+    views = tiny_scene.test_views
+    checked = 0
+    for model, values in ((mid, mid.merged_values()[0]), (decoded, decoded.values)):
+        degrees = (model.active_sh_degree, model.active_sh_degree_t)
+        for view in views:
+            with torch.no_grad():
+                culled, sl = render_view(model, view.camera, view.timestamp, backend="cpu")
+                reference = _mlp_on_every_gaussian(values, model.appearance, model.config, degrees, view.timestamp)
+                full, ref_sl = render_view(reference, view.camera, view.timestamp, backend="cpu")
+            assert sl.index.tolist() == ref_sl.index.tolist()
+            assert float(full.image.max()) > 0.05
+            torch.testing.assert_close(culled.image, full.image, rtol=1e-5, atol=1e-5)
+            checked += 1
+    assert checked == 2 * len(views)
 
 
 def test_decoder_imports_no_training_or_compression_code():
@@ -216,3 +256,19 @@ def test_cli_render_and_eval_on_cuda_match_cpu(baseline, tiny_scene, tiny_scene_
     assert np.abs(images["cuda"] - images["cpu"]).max() < 2e-3
     assert metrics["cuda"]["psnr"] == pytest.approx(metrics["cpu"]["psnr"], abs=0.05)
     assert metrics["cuda"]["fps"] > 0
+
+
+def test_eval_reports_the_mean_visible_fraction(baseline, tiny_scene):
+    from omg4.evaluate import evaluate
+    from omg4.render.view import camera_tensors
+
+    model = baseline.model
+    result = evaluate(model, tiny_scene.test_views, lpips_nets=(), backend="cpu", fps_views=2, progress=False)
+    expected = []
+    for v in tiny_scene.test_views:
+        with torch.no_grad():
+            culled = model.slice_at(v.timestamp, camera_tensors(v.camera)[2]).index.numel()
+        expected.append(culled / model.num_gaussians)
+    assert result["visible_fraction"] == pytest.approx(sum(expected) / len(expected), rel=1e-12)
+    assert [r["visible_fraction"] for r in result["per_view"]] == pytest.approx(expected, rel=1e-12)
+    assert 0 < result["visible_fraction"] <= 1

@@ -189,3 +189,16 @@ def test_constructor_validates_shapes_and_degrees():
         Gaussians4D(random_params(3), cfg, 4, 0)
     with pytest.raises(ValueError, match="time_range"):
         GaussianConfig(time_range=(1.0, 1.0))
+
+
+def test_moving_a_model_keeps_leaf_parameters():
+    """A model moved to another device (here "meta") holds leaves whose flags can still be changed
+    (the SD score toggles requires_grad; a plain .to() of a grad-requiring leaf is a non-leaf)."""
+    model = Gaussians4D({k: v.requires_grad_(True) for k, v in random_params(5, dtype=torch.float32).items()},
+                        GaussianConfig(time_range=(0.0, 10.0)))
+    moved = model.to("meta")
+    for name, p in moved.params.items():
+        assert p.device.type == "meta" and p.is_leaf and p.requires_grad, name
+        p.requires_grad_(False)
+    same = model.to("cpu")
+    assert all(same.params[k] is model.params[k] for k in model.params)

@@ -21,24 +21,26 @@ def rel_err(a, b):
     return float((a.detach().double().cpu() - b).abs().max()) / scale
 
 
+def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, calls=None, **kw):
+    """A CPU stand-in for ``gsplat.rasterization``: our projection and a differentiable toy render."""
+    if calls is not None:
+        calls.update(kw, quats=quats, scales=scales, viewmats=viewmats.shape, Ks=Ks.shape)
+    p = project_gaussians(means, kw["covars"], viewmats[0], Ks[0], width, height, opacities=opacities)
+    means2d = p.means2d[None]  # [1, N, 2] non-leaf, as gsplat's info["means2d"]
+    radii = p.radii[None]
+    feats = torch.cat([colors, p.depths[:, None]], -1)  # [N, C+1]
+    w = torch.exp(-((means2d[0] - 3.0) ** 2).sum(-1))  # any differentiable function of means2d
+    render = (w[:, None] * feats).sum(0).expand(1, height, width, feats.shape[1])
+    if kw["backgrounds"] is not None:
+        render = render + torch.cat([kw["backgrounds"], torch.zeros(1, 1)], -1)[:, None, None]
+    alphas = w.sum().clamp(max=1).expand(1, height, width, 1)
+    return render, alphas, {"means2d": means2d, "radii": radii}
+
+
 def test_adapter_maps_gsplat_outputs(monkeypatch):
     """Checks the plumbing: arguments passed, channel split, radii reduction, means2d gradient hook."""
     calls = {}
-
-    def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw):
-        calls.update(kw, quats=quats, scales=scales, viewmats=viewmats.shape, Ks=Ks.shape)
-        p = project_gaussians(means, kw["covars"], viewmats[0], Ks[0], width, height, opacities=opacities)
-        means2d = p.means2d[None]  # [1, N, 2] non-leaf, as gsplat's info["means2d"]
-        radii = p.radii[None]
-        feats = torch.cat([colors, p.depths[:, None]], -1)  # [N, C+1]
-        w = torch.exp(-((means2d[0] - 3.0) ** 2).sum(-1))  # any differentiable function of means2d
-        render = (w[:, None] * feats).sum(0).expand(1, height, width, feats.shape[1])
-        if kw["backgrounds"] is not None:
-            render = render + torch.cat([kw["backgrounds"], torch.zeros(1, 1)], -1)[:, None, None]
-        alphas = w.sum().clamp(max=1).expand(1, height, width, 1)
-        return render, alphas, {"means2d": means2d, "radii": radii}
-
-    monkeypatch.setattr(gsplat, "rasterization", fake_rasterization)
+    monkeypatch.setattr(gsplat, "rasterization", lambda *a, **kw: fake_rasterization(*a, calls=calls, **kw))
     sc = random_scene(0, 12, 10, 8, scale=0.2)
     t = sc.tensors(torch.float32)
     r = rasterize(**t, backend="gsplat")
@@ -58,6 +60,40 @@ def test_adapter_maps_gsplat_outputs(monkeypatch):
     assert vis.sum() > 3
     torch.testing.assert_close(r.means2d.grad[vis], m.grad[vis])
     assert t["means"].grad.abs().sum() > 0 and t["background"].grad is not None
+
+
+def test_batched_adapter_renders_each_view_and_routes_gradients(monkeypatch):
+    """rasterize_views on gsplat: one call per view with that view's rows (given interleaved), images
+    stacked, projected means, radii and ∂L/∂means2d back at the right rows."""
+    from omg4.render.api import rasterize_views
+
+    monkeypatch.setattr(gsplat, "rasterization", fake_rasterization)
+    scenes = [random_scene(seed, n, 10, 8, scale=0.2) for seed, n in ((0, 12), (1, 9), (2, 15))]
+    tensors = [sc.tensors(torch.float32) for sc in scenes]
+    singles = []
+    for t in tensors:
+        r = rasterize(**t, backend="gsplat")
+        (r.image.sum() + r.depth.sum()).backward()
+        singles.append(r)
+    views = torch.tensor([v for v, t in enumerate(tensors) for _ in range(t["means"].shape[0])])
+    perm = torch.randperm(len(views), generator=torch.Generator().manual_seed(0))  # rows interleaved
+    cat = {k: torch.cat([t[k].detach() for t in tensors])[perm].requires_grad_()
+           for k in ("means", "covars", "colors", "opacities")}
+    out = rasterize_views(cat["means"], cat["covars"], cat["colors"], cat["opacities"], views[perm],
+                          torch.stack([t["viewmat"] for t in tensors]), torch.stack([t["K"] for t in tensors]), 10, 8,
+                          backend="gsplat")
+    (out.image.sum() + out.depth.sum()).backward()
+    assert out.image.shape == (3, 8, 10, 3)
+    inverse = torch.argsort(perm)
+    start = 0
+    for v, (t, r) in enumerate(zip(tensors, singles)):
+        rows = inverse[start:start + t["means"].shape[0]]
+        start += t["means"].shape[0]
+        background = t["background"].detach()
+        torch.testing.assert_close(out.image[v], r.image.detach() - background)  # no background given here
+        torch.testing.assert_close(out.means2d[rows], r.means2d.detach())
+        assert torch.equal(out.radii[rows], r.radii)
+        torch.testing.assert_close(out.means2d.grad[rows], r.means2d.grad)
 
 
 @needs_cuda

@@ -1,6 +1,7 @@
 """Initial point clouds: coloured points along the first frame's pixel rays."""
 
 import numpy as np
+import torch
 
 from omg4.train.init import ray_initial_points
 
@@ -47,17 +48,18 @@ def test_auto_prefers_ply_then_stereo_then_random(tiny_scene, monkeypatch):
 
     cfg = make_config("cpu-small", num_random_points=50)
     stereo = PointCloud(xyz=np.zeros((3, 3)), rgb=np.zeros((3, 3), np.float32))
-    calls = []
+    calls, devices = [], []
 
-    def fake_sweep(scene, num_points, seed=0):
+    def fake_sweep(scene, num_points, seed=0, device="cpu"):
         calls.append(num_points)
+        devices.append(device)
         return stereo
 
     monkeypatch.setattr(plane_sweep, "plane_sweep_points", fake_sweep)
     assert initial_points(tiny_scene, "auto", cfg, log=lambda m: None) is tiny_scene.initial_points
     assert calls == []
     assert initial_points(_without_points(tiny_scene), "auto", cfg, log=lambda m: None) is stereo
-    assert calls == [50]
+    assert calls == [50] and devices == [torch.device("cpu")]  # the sweep runs on the training device
 
     # one camera (monocular, like D-NeRF): random points, the sweep is not tried
     name = tiny_scene.train_views[0].camera.name
@@ -66,7 +68,7 @@ def test_auto_prefers_ply_then_stereo_then_random(tiny_scene, monkeypatch):
     assert calls == [50] and np.array_equal(got.xyz, random_initial_points(mono, 50, seed=cfg.seed).xyz)
 
     # a sweep that finds nothing falls back to random points and says so
-    def failing_sweep(scene, num_points, seed=0):
+    def failing_sweep(scene, num_points, seed=0, device="cpu"):
         raise DataError("plane-sweep initialization found no consistent point")
 
     monkeypatch.setattr(plane_sweep, "plane_sweep_points", failing_sweep)

@@ -103,3 +103,25 @@ def test_no_usable_camera_pair_is_a_one_line_error(synth_scene):
                   normalization=synth_scene.normalization, format="n3dv")
     with pytest.raises(OMG4Error, match="no training views"):
         plane_sweep_points(empty, 100, progress=False)
+
+
+def test_sweep_on_an_explicit_device_under_a_meta_default_matches(synth_scene):
+    """Every tensor of the sweep is created on the requested device (a stray default-device
+    tensor would land on "meta" and fail): explicit CPU reproduces the default run exactly."""
+    cfg = SweepConfig(num_depths=48)
+    reference = plane_sweep_points(synth_scene, 800, seed=2, progress=False, cfg=cfg)
+    with torch.device("meta"):
+        explicit = plane_sweep_points(synth_scene, 800, seed=2, progress=False, cfg=cfg, device="cpu")
+    np.testing.assert_array_equal(explicit.xyz, reference.xyz)
+    np.testing.assert_array_equal(explicit.rgb, reference.rgb)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.gpu
+def test_sweep_on_cuda_finds_the_cpu_points(synth_scene, surface_error):
+    cfg = SweepConfig(num_depths=96)
+    cpu = plane_sweep_points(synth_scene, 3000, seed=1, progress=False, cfg=cfg)
+    gpu = plane_sweep_points(synth_scene, 3000, seed=1, progress=False, cfg=cfg, device="cuda")
+    assert abs(len(gpu.xyz) - len(cpu.xyz)) <= 0.01 * len(cpu.xyz)
+    rel, _ = surface_error(synth_scene, gpu.xyz)
+    assert np.median(rel) < 0.01

@@ -2,6 +2,7 @@
 
 import json
 
+import pytest
 import torch
 
 from omg4.gaussians.checkpoint import load_gaussians
@@ -98,5 +99,9 @@ def test_cli_train_writes_a_model_and_resumes_without_reinitializing(tiny_scene_
 
     monkeypatch.setattr(init, "initial_points", no_init)
     assert main(["train", *common, "--iterations", "6", "--resume", "--json", str(tmp_path / "s.json")]) == 0
-    assert json.loads((tmp_path / "s.json").read_text())["iterations"] == 6
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["iterations"] == 6
+    w, h = summary["image_size"]
+    assert summary["gaussians_per_pixel"] == pytest.approx(summary["num_gaussians"] / (w * h))
+    assert summary["gaussians_per_pixel"] > 0
     assert "resuming from iteration 4" in capsys.readouterr().out

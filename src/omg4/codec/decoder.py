@@ -2,8 +2,9 @@
 
 Imports the container, the Real-Time4DGS math and the appearance MLP definition only — no
 training or compression code (DESIGN.md: a compressed file must be decodable by code that
-does not import them). Sub-vector-quantized attributes are looked up once at load; the
-MLPs run per frame, as in the paper's FPS measurements.
+does not import them). Sub-vector-quantized attributes are looked up and a per-time-window
+visibility index is built once at load; the MLPs run per frame, as in the paper's FPS
+measurements, but only on the Gaussians that pass the temporal cull.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ import torch
 
 from omg4.codec.payload import CompressedPayload, decode_payload
 from omg4.errors import CorruptFileError
-from omg4.gaussians.appearance import AppearanceMLP, realtime4dgs_values
-from omg4.gaussians.model import GaussianConfig, Gaussians4D
-from omg4.render.view import TimeSlice
+from omg4.gaussians.appearance import AppearanceMLP
+from omg4.gaussians.model import GaussianConfig
+from omg4.gaussians.visibility import WindowedModel
 
 #: SVQ attribute → the parameters its reconstruction fills, with their widths
 QUANTIZED_PARAMS: dict[str, tuple[tuple[str, int], ...]] = {
@@ -29,15 +30,15 @@ QUANTIZED_PARAMS: dict[str, tuple[tuple[str, int], ...]] = {
 }
 
 
-class CompactModel:
+class CompactModel(WindowedModel):
     """A decoded OMG4 model: positions, time centres, codebook lookups and the appearance MLPs, on ``device``."""
 
     def __init__(self, payload: CompressedPayload, device: torch.device | str = "cpu"):
         meta = payload.meta
         try:
-            self.config = GaussianConfig.from_json(meta["gaussian_config"])
-            self.active_sh_degree = int(meta["active_sh_degree"])
-            self.active_sh_degree_t = int(meta["active_sh_degree_t"])
+            config = GaussianConfig.from_json(meta["gaussian_config"])
+            active_sh_degree = int(meta["active_sh_degree"])
+            active_sh_degree_t = int(meta["active_sh_degree_t"])
         except (KeyError, TypeError, ValueError) as e:
             raise CorruptFileError(f"compressed model metadata is incomplete ({e})") from None
         n = payload.num_gaussians
@@ -55,24 +56,10 @@ class CompactModel:
             for name, w in targets:
                 values[name] = recon[:, start:start + w]
                 start += w
-        self.values = {k: v.to(device) for k, v in values.items()}
-        self.appearance = AppearanceMLP.from_fp16_state(payload.mlp).eval().to(device)
+        appearance = AppearanceMLP.from_fp16_state(payload.mlp).eval().to(device)
+        super().__init__({k: v.to(device) for k, v in values.items()}, config, active_sh_degree, active_sh_degree_t,
+                         appearance)
         self.meta = meta
-
-    @property
-    def num_gaussians(self) -> int:
-        return int(self.values["xyz"].shape[0])
-
-    def gaussians_at(self, timestamp: float) -> Gaussians4D:
-        """The Real-Time4DGS parameters at ``timestamp`` (MLP appearance evaluated)."""
-        t0, t1 = self.config.time_range
-        with torch.no_grad():
-            base = realtime4dgs_values(self.values, self.appearance, (timestamp - t0) / (t1 - t0))
-        return Gaussians4D(base, self.config, self.active_sh_degree, self.active_sh_degree_t)
-
-    def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
-        with torch.no_grad():
-            return self.gaussians_at(timestamp).slice_at(timestamp, camera_center)
 
 
 def load_omg4(path: str | os.PathLike, device: torch.device | str = "cpu") -> CompactModel:

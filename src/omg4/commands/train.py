@@ -53,11 +53,15 @@ def run(args) -> int:
     trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume)
     result = trainer.run()
     test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend, device)
+    camera = scene.train_views[0].camera
+    per_pixel = result.model.num_gaussians / (camera.width * camera.height)
     summary = {"iterations": result.iterations, "wall_time_s": result.wall_time_s,
-               "num_gaussians": result.model.num_gaussians, "test_psnr": test_psnr,
+               "num_gaussians": result.model.num_gaussians, "gaussians_per_pixel": per_pixel,
+               "image_size": [camera.width, camera.height], "test_psnr": test_psnr,
                "model": str(result.model_path), "history": result.history}
     print(f"trained {result.iterations} iterations in {result.wall_time_s:.0f} s: {result.model.num_gaussians} "
-          f"Gaussians, test PSNR {test_psnr:.2f} dB -> {result.model_path}")
+          f"Gaussians ({per_pixel:.2f} per pixel at {camera.width}x{camera.height}), test PSNR {test_psnr:.2f} dB "
+          f"-> {result.model_path}")
     if args.json:
         write_text_atomic(args.json, json.dumps(summary, indent=2))
     return 0

@@ -60,7 +60,7 @@ def make_mlp_optimizer(mlp: torch.nn.Module, lr: float = MLP_LR, total_iteration
     iteration after ``optimizer.step()``.
     """
     warmup, milestones = mlp_lr_schedule(total_iterations)
-    optimizer = torch.optim.Adam(mlp.parameters(), lr=lr, eps=1e-15)
+    optimizer = torch.optim.Adam(mlp.parameters(), lr=lr, eps=1e-15, fused=True)
     scheduler = torch.optim.lr_scheduler.ChainedScheduler([
         torch.optim.lr_scheduler.LinearLR(optimizer, start_factor=0.01, total_iters=warmup),
         torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=milestones, gamma=DECAY),

@@ -10,11 +10,10 @@ measured with the same renderer.
 
 from __future__ import annotations
 
-
 import torch
 
 from omg4.gaussians import GaussianConfig, Gaussians4D
-from omg4.gaussians.appearance import realtime4dgs_values
+from omg4.gaussians.model import slice_values
 
 # SVQ attribute → the parameter(s) it replaces (reference omg4 §7)
 SVQ_ATTRIBUTES: dict[str, tuple[str, ...]] = {
@@ -50,10 +49,6 @@ class CompressibleModel:
     def num_gaussians(self) -> int:
         return int(self.params["xyz"].shape[0])
 
-    def time_norm(self, timestamp: float) -> float:
-        t0, t1 = self.config.time_range
-        return (timestamp - t0) / (t1 - t0)
-
     def explicit_values(self) -> dict[str, torch.Tensor]:
         """Per-Gaussian values with quantized attributes replaced by their codebook reconstructions."""
         values = dict(self.params)
@@ -66,34 +61,37 @@ class CompressibleModel:
                 values[names[0]], values[names[1]] = recon[:, :3], recon[:, 3:6]
         return values
 
-    def effective_gaussians(self, timestamp: float) -> tuple[Gaussians4D, torch.Tensor | None]:
-        """The Real-Time4DGS parameters shown at ``timestamp`` and the row index they came from (None = all)."""
+    def merged_values(self) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+        """The per-Gaussian values after the merge proxy, and the rows they came from (None = all)."""
         values = self.explicit_values()
-        keep = None
-        if self.merge is not None:
-            values, keep = self.merge.apply(values)
-        if keep is not None:
-            values = {k: v[keep] for k, v in values.items()}
-        base = realtime4dgs_values(values, self.appearance, self.time_norm(timestamp))
-        return Gaussians4D(base, self.config, self.active_sh_degree, self.active_sh_degree_t), keep
+        if self.merge is None:
+            return values, None
+        values, keep = self.merge.apply(values)
+        return {k: v[keep] for k, v in values.items()}, keep
 
-    def slice_at(self, timestamp: float, camera_center: torch.Tensor):
-        """The :class:`omg4.render.view.TimeSlice` at ``timestamp`` (indices refer to this model's rows)."""
-        g, keep = self.effective_gaussians(timestamp)
-        sl = g.slice_at(timestamp, camera_center)
+    def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor):
+        """The :class:`omg4.render.view.TimeSlice` of ``V`` views (indices refer to this model's rows).
+
+        The Real-Time4DGS conditioning and 4D SH of the baseline, with the appearance MLPs
+        (when present) evaluated only on the rows that pass the temporal cull.
+        """
+        values, keep = self.merged_values()
+        sl = slice_values(values, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
+                          camera_centers, appearance=self.appearance)
         if keep is not None:
             sl.index = keep[sl.index]
-            sl.num_total = self.num_gaussians
+        sl.num_total = self.num_gaussians
         return sl
+
+    def slice_at(self, timestamp: float, camera_center: torch.Tensor):
+        """The time slice of one view at ``timestamp``."""
+        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
 
     def to_gaussians(self) -> Gaussians4D:
         """A plain Real-Time4DGS model (only before attribute compression: appearance must be explicit)."""
         if self.appearance is not None:
             raise ValueError("a model with MLP appearance cannot be written as a Real-Time4DGS checkpoint")
-        values = self.explicit_values()
-        if self.merge is not None:
-            values, keep = self.merge.apply(values)
-            values = {k: v[keep] for k, v in values.items()}
+        values, _ = self.merged_values()
         params = {k: v.detach().clone() for k, v in values.items()}
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
 

@@ -30,7 +30,7 @@ from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.render.api import resolve_backend
-from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, make_adam, replace_param
+from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, make_adam, replace_param, step_optimizers
 from omg4.train.trainer import backward_batch, step_generator
 
 FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
@@ -220,7 +220,7 @@ class CompressionPipeline:
                 self.model.params.pop(n)
         self._rebuild_main_optimizer()
         codebooks = [cb for q in self.model.quantizers.values() for cb in q.parameters()]
-        self.codebook_optimizer = torch.optim.Adam(codebooks, lr=self.cfg.codebook_lr, eps=1e-8)
+        self.codebook_optimizer = torch.optim.Adam(codebooks, lr=self.cfg.codebook_lr, eps=1e-8, fused=True)
 
     def stage_svq3d(self) -> None:
         """SVQ of scale, rotation and appearance features (paper §4.4, stage 3D)."""
@@ -246,12 +246,9 @@ class CompressionPipeline:
         views = self.scene.train_views
         batch = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2),
                               device="cpu")
-        loss = backward_batch(self.model, views, batch, background=self.background, backend=self.cfg.backend,
-                              lambda_dssim=0.2, what="compression", step=step, device=self.device)
-        for opt in (self.optimizer, self.mlp_optimizer, self.codebook_optimizer):
-            if opt is not None:
-                opt.step()
-                opt.zero_grad(set_to_none=True)
+        loss, _ = backward_batch(self.model, views, batch, background=self.background, backend=self.cfg.backend,
+                                 lambda_dssim=0.2, what="compression", step=step, device=self.device)
+        step_optimizers((self.optimizer, self.mlp_optimizer, self.codebook_optimizer), self.device)
         if self.mlp_scheduler is not None:
             self.mlp_scheduler.step()
         return loss

@@ -102,17 +102,21 @@ class AppearanceMLP(nn.Module):
         self.opacity = _two_layer(head_in, hidden, 1, nn.LeakyReLU(0.01))
         self.rest = _two_layer(head_in, hidden, 3 * num_rest, nn.LeakyReLU(0.01))
 
-    def predict(self, xyz_canonical: Tensor, t_norm: float, f_static: Tensor, f_view: Tensor
+    def predict(self, xyz_canonical: Tensor, t_norm: float | Tensor, f_static: Tensor, f_view: Tensor
                 ) -> tuple[Tensor, Tensor, Tensor]:
         """Appearance at normalized camera time ``t_norm`` with the opacity as a logit.
 
         xyz_canonical: [N, 3] canonical means (normalized world; detached here);
-        t_norm: camera time mapped to [0, 1] by the time range; f_static, f_view: [N, 3].
+        t_norm: camera time mapped to [0, 1] by the time range, one for all rows or [N] (rows
+        of several views); f_static, f_view: [N, 3].
         Returns ``features_dc [N, 1, 3]``, ``features_rest [N, num_rest, 3]`` and the opacity
         logit ``[N]`` (the opacity is its sigmoid).
         """
         xyz = contract_to_unisphere(xyz_canonical.detach())
-        t = torch.full_like(xyz[:, :1], float(t_norm))
+        if torch.is_tensor(t_norm):
+            t = t_norm.reshape(-1, 1).to(xyz).expand(xyz.shape[0], 1)
+        else:
+            t = torch.full_like(xyz[:, :1], float(t_norm))
         shared = self.shared(frequency_encoding(torch.cat((xyz, t), dim=1), self.num_freqs))  # [N, 13]
         static_in = torch.cat((shared, f_static), dim=1)
         dc = self.dc(static_in).unsqueeze(1)  # [N, 1, 3]
@@ -164,20 +168,3 @@ class AppearanceMLP(nn.Module):
 
 __all__ = ["AppearanceMLP", "contract_to_unisphere", "frequency_encoding"]
 
-
-BASE_PARAMS = ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r", "opacity", "features_dc",
-               "features_rest")
-
-
-def realtime4dgs_values(values: dict[str, Tensor], mlp: "AppearanceMLP | None", t_norm: float) -> dict[str, Tensor]:
-    """The Real-Time4DGS parameter dict of a model whose appearance may come from the MLPs.
-
-    ``values`` holds per-Gaussian tensors: the geometry (``xyz, t, scaling, scaling_t,
-    rotation, rotation_r``) and either explicit appearance (``opacity, features_dc,
-    features_rest``) or, with ``mlp``, the features ``f_static, f_view`` (paper §4.4).
-    Shared by the compression pipeline's model and the render-only decoder.
-    """
-    if mlp is not None:
-        dc, rest, logit = mlp.predict(values["xyz"], t_norm, values["f_static"], values["f_view"])
-        values = {**values, "features_dc": dc, "features_rest": rest, "opacity": logit.unsqueeze(-1)}
-    return {k: values[k] for k in BASE_PARAMS}

@@ -20,6 +20,7 @@ The trainer replaces entries of ``params`` (densification) and owns ``requires_g
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -29,6 +30,9 @@ from omg4.gaussians.covariance import covariance_4d, slice_geometry
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
 from omg4.gaussians.sh import colors_from_sh, num_sh_coeffs, rgb_to_sh, view_directions
 from omg4.render.view import TimeSlice
+
+if TYPE_CHECKING:
+    from omg4.gaussians.appearance import AppearanceMLP
 
 PARAM_NAMES = ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r", "opacity", "features_dc", "features_rest")
 SH_DIRECTIONS = ("conditioned", "canonical")
@@ -198,28 +202,21 @@ class Gaussians4D:
 
     # rendering -------------------------------------------------------------------------
     def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
-        """The 3D Gaussians shown at ``timestamp`` to a viewer at ``camera_center`` [3].
+        """The 3D Gaussians shown at ``timestamp`` to a viewer at ``camera_center`` [3] (see :func:`slice_values`)."""
+        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
 
-        rt4dgs §1.4 + §2: conditional mean and covariance, opacity · p_t, cull p_t ≤
-        ``time_cull``; colours max(SH4D + 0.5, 0) with the active degrees only and Δt = μ_t − τ.
-        Differentiable w.r.t. every parameter.
-        """
-        p, cfg = self.params, self.config
-        geom = slice_geometry(p["xyz"], p["t"], self.scales(), p["rotation"], p["rotation_r"], float(timestamp),
-                              convention=cfg.rotation_convention, time_cull=cfg.time_cull)
-        idx = geom.index
-        opacities = torch.sigmoid(p["opacity"][idx, 0]) * geom.marginal
-        origin = geom.means if cfg.sh_direction == "conditioned" else p["xyz"][idx]
-        dirs = view_directions(origin, torch.as_tensor(camera_center, device=origin.device))
-        coeffs = torch.cat([p["features_dc"][idx], p["features_rest"][idx]], dim=1)
-        colors = colors_from_sh(coeffs, dirs, geom.dt, cfg.period, self.active_sh_degree,
-                                self.active_sh_degree_t, band_size=cfg.band_size)
-        return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=opacities, index=idx,
-                         num_total=self.num_gaussians)
+    def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor) -> TimeSlice:
+        """The 3D Gaussians of ``V`` views at once: ``timestamps`` [V], ``camera_centers`` [V, 3]."""
+        return slice_values(self.params, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
+                            camera_centers)
 
     def to(self, device: torch.device | str) -> "Gaussians4D":
-        """This model with its parameters on ``device`` (tensors already there are shared, not copied)."""
-        params = {k: v.to(device) for k, v in self.params.items()}
+        """This model with its parameters on ``device`` (tensors already there are shared, not copied).
+
+        Moved tensors are new leaves with the same ``requires_grad`` (a plain ``.to`` of a
+        leaf that requires grad would be a non-leaf, whose flags cannot be changed later).
+        """
+        params = {k: _moved_leaf(v, device) for k, v in self.params.items()}
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
 
     def detach_copy(self) -> "Gaussians4D":
@@ -228,5 +225,55 @@ class Gaussians4D:
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
 
 
-__all__ = ["PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
+def _moved_leaf(value: torch.Tensor, device: torch.device | str) -> torch.Tensor:
+    moved = value.to(device)
+    return moved if moved is value else moved.detach().requires_grad_(value.requires_grad)
+
+
+def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_degree: int, sh_degree_t: int,
+                 timestamps: torch.Tensor, camera_centers: torch.Tensor, *,
+                 appearance: "AppearanceMLP | None" = None) -> TimeSlice:
+    """The 3D Gaussians that raw per-Gaussian ``values`` show to ``V`` views (rt4dgs §1.4 + §2).
+
+    Conditional means and covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for
+    all views in one pass (:func:`omg4.gaussians.covariance.slice_geometry`); colours
+    max(SH4D + 0.5, 0) with the active degrees only and Δt = μ_t − τ. The appearance
+    (opacity, SH) is either explicit in ``values`` or, with ``appearance`` (paper §4.4),
+    predicted by the MLPs from ``f_static``/``f_view`` — only for the rows that passed
+    the cull, in one pass for every view. Differentiable w.r.t. every value.
+
+    Args:
+        values: ``xyz, t, scaling, scaling_t, rotation, rotation_r`` and either
+            ``opacity, features_dc, features_rest`` or ``f_static, f_view``.
+        timestamps: [V] view times; camera_centers: [V, 3] viewer positions.
+    """
+    xyz = values["xyz"]
+    times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
+    times = times64.to(xyz.dtype)
+    centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
+    scales = torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
+    geom = slice_geometry(xyz, values["t"], scales, values["rotation"], values["rotation_r"], times,
+                          convention=config.rotation_convention, time_cull=config.time_cull)
+    idx = geom.index
+
+    def rows(name: str) -> torch.Tensor:
+        return values[name].index_select(0, idx)
+
+    if appearance is not None:
+        t0, t1 = config.time_range
+        t_norm = ((times64 - t0) / (t1 - t0)).to(xyz.dtype)  # normalized in float64, as training did
+        dc, rest, logit = appearance.predict(rows("xyz"), t_norm.index_select(0, geom.views), rows("f_static"),
+                                             rows("f_view"))
+        coeffs = torch.cat([dc, rest], dim=1)
+    else:
+        coeffs = torch.cat([rows("features_dc"), rows("features_rest")], dim=1)
+        logit = rows("opacity")[:, 0]
+    origin = geom.means if config.sh_direction == "conditioned" else rows("xyz")
+    dirs = view_directions(origin, centers.index_select(0, geom.views))
+    colors = colors_from_sh(coeffs, dirs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size)
+    return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=torch.sigmoid(logit) * geom.marginal,
+                     index=idx, num_total=int(xyz.shape[0]), views=geom.views)
+
+
+__all__ = ["slice_values", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
            "mean_neighbour_sq_distance"]

@@ -15,6 +15,7 @@ temporal degree rises only after the spatial degree reached 3).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -42,8 +43,46 @@ def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
     return sh * C0 + 0.5
 
 
+# Y_k as polynomials in (x, y, z): {monomial: coefficient}; "" is the constant, "xxy" is x²y
+_BASIS_POLYNOMIALS: tuple[dict[str, float], ...] = (
+    {"": C0},
+    {"y": -C1}, {"z": C1}, {"x": -C1},
+    {"xy": C2[0]}, {"yz": C2[1]}, {"zz": 2 * C2[2], "xx": -C2[2], "yy": -C2[2]}, {"xz": C2[3]},
+    {"xx": C2[4], "yy": -C2[4]},
+    {"xxy": 3 * C3[0], "yyy": -C3[0]}, {"xyz": C3[1]}, {"yzz": 4 * C3[2], "xxy": -C3[2], "yyy": -C3[2]},
+    {"zzz": 2 * C3[3], "xxz": -3 * C3[3], "yyz": -3 * C3[3]}, {"xzz": 4 * C3[4], "xxx": -C3[4], "xyy": -C3[4]},
+    {"xxz": C3[5], "yyz": -C3[5]}, {"xxx": C3[6], "xyy": -3 * C3[6]},
+)
+
+
+@functools.lru_cache(maxsize=None)
+def _basis_table(degree: int, dtype: torch.dtype, device: str) -> torch.Tensor:
+    """[64, 16] constant B with ``Y(d) = m(d) @ B``, ``m`` the 64 products p_i p_j p_k of p = (1, x, y, z).
+
+    Columns of basis functions above ``degree`` are zero.
+    """
+    table = torch.zeros(64, 16, dtype=torch.float64, device="cpu")
+    for k, poly in enumerate(_BASIS_POLYNOMIALS[: num_sh_coeffs(degree)]):
+        for mono, coef in poly.items():
+            i, j, l = (" xyz".index(c) for c in mono.rjust(3, " "))
+            table[16 * i + 4 * j + l, k] = coef
+    return table.to(dtype=dtype, device=device)
+
+
+def _basis_16(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """[N, 16] Y_k(d) for k < (degree+1)², zeros after: the cubic monomials of ``d`` times a constant table."""
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
+    p = torch.cat([torch.ones_like(dirs[:, :1]), dirs], dim=1)  # [N, 4]
+    monomials = (p[:, :, None, None] * p[:, None, :, None] * p[:, None, None, :]).reshape(-1, 64)
+    return monomials @ _basis_table(degree, dirs.dtype, str(dirs.device))
+
+
 def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """The 3DGS real SH basis Y_k(d), k < (degree+1)² (3DGS ``eval_sh`` ordering and signs).
+
+    Computed as one product of the cubic monomials of ``d`` with a constant table (no
+    operation per basis function).
 
     Args:
         dirs: [N, 3] unit directions.
@@ -51,20 +90,7 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     Returns:
         [N, (degree+1)²] basis values.
     """
-    if not 0 <= degree <= MAX_SH_DEGREE:
-        raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, C0)]
-    if degree >= 1:
-        out += [-C1 * y, C1 * z, -C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z, C2[4] * (xx - yy)]
-    if degree >= 3:
-        out += [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
-                C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy), C3[5] * z * (xx - yy),
-                C3[6] * x * (xx - 3 * yy)]
-    return torch.stack(out, dim=-1)
+    return _basis_16(dirs, degree)[:, : num_sh_coeffs(degree)]
 
 
 def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
@@ -87,13 +113,10 @@ def time_weights(dt: torch.Tensor, period: float, degree_t: int) -> torch.Tensor
     return torch.cos((2 * math.pi / period) * dt.unsqueeze(-1) * n)
 
 
-def _bands(coeffs: torch.Tensor, degree: int, degree_t: int, band_size: int) -> torch.Tensor:
-    """The active coefficients as [N, degree_t + 1, (degree+1)², C] (validates the layout)."""
-    nb, bands = num_sh_coeffs(degree), degree_t + 1
-    if nb > band_size or coeffs.shape[1] < band_size * bands:
+def _check_layout(coeffs: torch.Tensor, degree: int, degree_t: int, band_size: int) -> None:
+    if num_sh_coeffs(degree) > band_size or coeffs.shape[1] < band_size * (degree_t + 1):
         raise ValueError(f"SH coefficients [{coeffs.shape[1]}] do not hold degree {degree} × temporal degree "
                          f"{degree_t} in bands of {band_size}")
-    return coeffs[:, : band_size * bands].reshape(coeffs.shape[0], bands, band_size, coeffs.shape[2])[:, :, :nb]
 
 
 def fold_time_sh(coeffs: torch.Tensor, dt: torch.Tensor, period: float, degree: int, degree_t: int, *,
@@ -109,13 +132,18 @@ def fold_time_sh(coeffs: torch.Tensor, dt: torch.Tensor, period: float, degree: 
     Returns:
         [N, (degree+1)², C] 3D SH coefficients.
     """
-    c = _bands(coeffs, degree, degree_t, band_size)
-    return (time_weights(dt, period, degree_t)[:, :, None, None] * c).sum(1)
+    _check_layout(coeffs, degree, degree_t, band_size)
+    bands = degree_t + 1
+    c = coeffs[:, : band_size * bands].reshape(coeffs.shape[0], bands, band_size, coeffs.shape[2])
+    return (time_weights(dt, period, degree_t)[:, :, None, None] * c).sum(1)[:, : num_sh_coeffs(degree)]
 
 
 def eval_sh_4d(coeffs: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
                degree_t: int, *, band_size: int = 16) -> torch.Tensor:
     """4D spherindrical harmonics (rt4dgs §2), without the +0.5 offset.
+
+    The weight of coefficient ``band_size·n + k`` is ``cos(2π n Δt / T)·Y_k(d)`` (zero for
+    inactive degrees), so the whole sum is one weighted reduction over the active bands.
 
     Args:
         coeffs: [N, K, C] coefficient-major, K ≥ band_size · (degree_t + 1).
@@ -126,9 +154,11 @@ def eval_sh_4d(coeffs: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, perio
     Returns:
         [N, C].
     """
-    c = _bands(coeffs, degree, degree_t, band_size)  # [N, bands, nb, C]
-    weights = time_weights(dt, period, degree_t).unsqueeze(-1) * sh_basis(dirs, degree).unsqueeze(1)  # [N, bands, nb]
-    return (weights.unsqueeze(-1) * c).sum((1, 2))
+    _check_layout(coeffs, degree, degree_t, band_size)
+    bands = degree_t + 1
+    basis = _basis_16(dirs, degree)[:, :band_size]  # zero beyond the active degree
+    weights = (time_weights(dt, period, degree_t).unsqueeze(-1) * basis.unsqueeze(1)).reshape(-1, bands * band_size)
+    return (weights.unsqueeze(-1) * coeffs[:, : bands * band_size]).sum(1)
 
 
 def colors_from_sh(coeffs: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
@@ -138,7 +168,7 @@ def colors_from_sh(coeffs: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, p
 
 
 def view_directions(points: torch.Tensor, camera_center: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Unit directions from the camera centre to ``points``. points: [N, 3], camera_center: [3] → [N, 3]."""
+    """Unit directions from the camera centre to ``points``. points: [N, 3], camera_center: [3] or [N, 3] → [N, 3]."""
     d = points - camera_center.to(points)
     return d / d.norm(dim=-1, keepdim=True).clamp_min(eps)
 

@@ -1,4 +1,4 @@
-"""The one rendering entry point, :func:`rasterize`, and its CPU backend.
+"""The rendering entry points, :func:`rasterize` (one view) and :func:`rasterize_views` (a batch), and the CPU backend.
 
 Issue 3 / DESIGN.md "render/": one differentiable call with two backends that follow
 gsplat 1.5.3's rules. The CPU backend runs the EWA projection
@@ -29,14 +29,14 @@ BACKENDS = ("auto", "cpu", "gsplat")
 
 @dataclass
 class Rendered:
-    """One rendered view.
+    """One rendered view, or several (leading ``V`` axis on the images) from :func:`rasterize_views`.
 
     Attributes:
-        image: [H, W, C] composited colours over the background.
-        alpha: [H, W, 1] accumulated opacity ``1 − T_final``.
-        depth: [H, W, 1] alpha-weighted view depth ``Σ z·α·T`` (not normalized by alpha).
-        means2d: [N, 2] projected means in pixels; when it requires grad, its ``.grad`` after
-            ``backward()`` is ∂loss/∂means2d (the OMG4 SD score and densification read it).
+        image: [H, W, C] (or [V, H, W, C]) composited colours over the background.
+        alpha: [H, W, 1] (or [V, H, W, 1]) accumulated opacity ``1 − T_final``.
+        depth: [H, W, 1] (or [V, H, W, 1]) alpha-weighted view depth ``Σ z·α·T`` (not normalized by alpha).
+        means2d: [N, 2] projected means in pixels (of each row's view); after ``backward()`` its
+            ``.grad`` is ∂loss/∂means2d (the OMG4 SD score and densification read it).
         radii: [N] int32 box radius in pixels, 0 = not rendered.
     """
 
@@ -73,16 +73,40 @@ def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, o
         OMG4Error: an input holds NaN or infinity.
         ValueError: shapes or settings are inconsistent.
     """
-    _check_inputs(means, covars, colors, opacities, viewmat, K, width, height, background, near, far,
+    if viewmat.shape != (4, 4) or K.shape != (3, 3):
+        raise ValueError(f"viewmat must be [4, 4] and K [3, 3], got {list(viewmat.shape)} and {list(K.shape)}")
+    out = rasterize_views(means, covars, colors, opacities, None, viewmat[None], K[None], width, height,
+                          background=background, near=near, far=far, eps2d=eps2d, alpha_max=alpha_max,
+                          tile_size=tile_size, backend=backend)
+    return Rendered(image=out.image[0], alpha=out.alpha[0], depth=out.depth[0], means2d=out.means2d, radii=out.radii)
+
+
+def rasterize_views(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+                    views: torch.Tensor | None, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
+                    background: torch.Tensor | None = None, near: float = 0.2, far: float = 1e10, eps2d: float = 0.3,
+                    alpha_max: float = 0.999, tile_size: int = 16, backend: str = "auto") -> Rendered:
+    """Render ``V`` views of the same size at once; each Gaussian row belongs to one view.
+
+    The CPU backend projects, bins and composites every view's Gaussians in one pass (one
+    kernel launch forward, one backward); gsplat renders view by view. Arguments as
+    :func:`rasterize`, plus:
+
+    Args:
+        views: [N] int64 view of each row (None: every row belongs to view 0 of one view).
+        viewmats: [V, 4, 4] world-to-camera matrices; Ks: [V, 3, 3] intrinsics.
+    Returns:
+        :class:`Rendered` with ``image [V, H, W, C]``, ``alpha``/``depth [V, H, W, 1]``,
+        ``means2d [N, 2]`` and ``radii [N]``.
+    """
+    _check_inputs(means, covars, colors, opacities, views, viewmats, Ks, width, height, background, near, far,
                   alpha_max, tile_size)
     chosen = resolve_backend(backend, means.device)
+    kwargs = dict(background=background, near=near, far=far, eps2d=eps2d, alpha_max=alpha_max, tile_size=tile_size)
     if chosen == "gsplat":
-        from omg4.render.gsplat_backend import rasterize_gsplat
+        from omg4.render.gsplat_backend import rasterize_gsplat_views
 
-        return rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height, background=background,
-                                near=near, far=far, eps2d=eps2d, alpha_max=alpha_max, tile_size=tile_size)
-    return rasterize_cpu(means, covars, colors, opacities, viewmat, K, width, height, background=background,
-                         near=near, far=far, eps2d=eps2d, alpha_max=alpha_max, tile_size=tile_size)
+        return rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks, width, height, **kwargs)
+    return rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, height, **kwargs)
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
@@ -110,8 +134,8 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return "cpu"
 
 
-def _check_inputs(means, covars, colors, opacities, viewmat, K, width, height, background, near, far, alpha_max,
-                  tile_size) -> None:
+def _check_inputs(means, covars, colors, opacities, views, viewmats, Ks, width, height, background, near, far,
+                  alpha_max, tile_size) -> None:
     n = means.shape[0] if means.dim() == 2 else -1
     if means.dim() != 2 or means.shape[1] != 3:
         raise ValueError(f"means must be [N, 3], got {list(means.shape)}")
@@ -121,8 +145,14 @@ def _check_inputs(means, covars, colors, opacities, viewmat, K, width, height, b
         raise ValueError(f"colors must be [{n}, C] with C >= 1, got {list(colors.shape)}")
     if opacities.shape != (n,):
         raise ValueError(f"opacities must be [{n}], got {list(opacities.shape)}")
-    if viewmat.shape != (4, 4) or K.shape != (3, 3):
-        raise ValueError(f"viewmat must be [4, 4] and K [3, 3], got {list(viewmat.shape)} and {list(K.shape)}")
+    v = viewmats.shape[0] if viewmats.dim() == 3 else -1
+    if viewmats.shape != (v, 4, 4) or Ks.shape != (v, 3, 3) or v < 1:
+        raise ValueError(f"viewmats must be [V, 4, 4] and Ks [V, 3, 3], got {list(viewmats.shape)} and "
+                         f"{list(Ks.shape)}")
+    if views is None and v != 1:
+        raise ValueError(f"{v} views need the view of each Gaussian row")
+    if views is not None and (views.shape != (n,) or views.dtype != torch.int64):
+        raise ValueError(f"views must be int64 [{n}], got {views.dtype} {list(views.shape)}")
     if background is not None and background.shape != (colors.shape[1],):
         raise ValueError(f"background must be [{colors.shape[1]}], got {list(background.shape)}")
     if width < 1 or height < 1 or tile_size < 1:
@@ -131,17 +161,20 @@ def _check_inputs(means, covars, colors, opacities, viewmat, K, width, height, b
         raise ValueError(f"need 0 < near <= far, got near={near}, far={far}")
     if not ALPHA_THRESHOLD < alpha_max < 1:
         raise ValueError(f"alpha_max must lie in (1/255, 1), got {alpha_max}")
-    named = {"means": means, "covars": covars, "colors": colors, "opacities": opacities, "viewmat": viewmat, "K": K}
+    named = {"means": means, "covars": covars, "colors": colors, "opacities": opacities, "viewmat": viewmats, "K": Ks}
     if background is not None:
         named["background"] = background
-    for name, value in named.items():
-        if not bool(torch.isfinite(value).all()):
-            raise OMG4Error(f"rasterize: {name} contains NaN or infinite values")
+    finite = torch.stack([torch.isfinite(value).all() for value in named.values()])
+    if not bool(finite.all()):  # one host synchronization for all inputs
+        bad = next(name for name, ok in zip(named, finite.tolist()) if not ok)
+        raise OMG4Error(f"rasterize: {bad} contains NaN or infinite values")
+    if views is not None and n > 0 and not 0 <= int(views.min()) <= int(views.max()) < v:
+        raise ValueError(f"views must lie in [0, {v})")
 
 
-def rasterize_cpu(means, covars, colors, opacities, viewmat, K, width, height, *, background=None, near=0.2,
+def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, height, *, background=None, near=0.2,
                   far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
-    """CPU backend of :func:`rasterize` (same arguments).
+    """CPU backend of :func:`rasterize_views` (same arguments).
 
     Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU.
     """
@@ -151,18 +184,23 @@ def rasterize_cpu(means, covars, colors, opacities, viewmat, K, width, height, *
     means = means.to(dtype)
     colors = colors.to(dtype)
     opacities = opacities.to(dtype)
+    num_views = viewmats.shape[0]
+    viewmat, K = (viewmats[0], Ks[0]) if num_views == 1 else (viewmats[views], Ks[views])
     proj = project_gaussians(means, covars.to(dtype), viewmat.to(dtype), K.to(dtype), width, height,
                              opacities=opacities, near=near, far=far, eps2d=eps2d)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    bins = bin_tiles(means2d, proj.radii, proj.depths, width, height, tile_size)
+    bins = bin_tiles(means2d, proj.radii, proj.depths, width, height, tile_size,
+                     views=views if num_views > 1 else None, num_views=num_views)
     cutoff = sigma_cutoff(opacities)
     boxes = pixel_boxes(means2d, proj.cov2d_diag, cutoff, width, height)
     n_colors = colors.shape[1]
     feats = torch.cat([colors, proj.depths[:, None]], dim=1)
     acc, trans = _Composite.apply(means2d, proj.conics, feats, opacities, cutoff.to(dtype), boxes, bins,
-                                  (width, height, alpha_max))
+                                  (width, height, alpha_max, num_views))
+    acc = acc.reshape(num_views, height, width, -1)
+    trans = trans.reshape(num_views, height, width, 1)
     bg = torch.zeros(n_colors, dtype=dtype, device=means.device) if background is None else background.to(dtype)
     image = acc[..., :n_colors] + trans * bg
     return Rendered(image=image, alpha=1.0 - trans, depth=acc[..., n_colors:], means2d=means2d,
@@ -188,20 +226,21 @@ def _kernel_launch() -> Iterator[None]:
 
 
 class _Composite(torch.autograd.Function):
-    """(means2d [N,2], conics [N,3], feats [N,D], opacities [N]) → (Σ f·α·T [H,W,D], T_final [H,W,1])."""
+    """(means2d [N,2], conics [N,3], feats [N,D], opacities [N]) → (Σ f·α·T [V·H,W,D], T_final [V·H,W,1])."""
 
     @staticmethod
     def forward(ctx, means2d, conics, feats, opacities, cutoff, boxes, bins: TileBins, settings):
-        width, height, alpha_max = settings
+        width, height, alpha_max, num_views = settings
         params = torch.cat([means2d, conics, opacities[:, None], cutoff[:, None]], dim=1)
         gauss = (_as_numpy(params), _as_numpy(feats), _as_numpy(boxes), _as_numpy(bins.gaussian_ids))
         np_dtype = gauss[0].dtype
-        grid = (_as_numpy(bins.tile_offsets), bins.tiles_x, bins.tile_size,
+        grid = (_as_numpy(bins.tile_offsets), bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size,
                 np.arange(width, dtype=np_dtype) + 0.5, np.arange(height, dtype=np_dtype) + 0.5,
                 np.array([0.5, alpha_max, ALPHA_THRESHOLD], dtype=np_dtype))
-        out_feat = np.empty((height, width, feats.shape[1]), dtype=np_dtype)
-        out_t = np.empty((height, width), dtype=np.float64)
-        out_last = np.empty((height, width), dtype=np.int32)
+        rows = num_views * height
+        out_feat = np.empty((rows, width, feats.shape[1]), dtype=np_dtype)
+        out_t = np.empty((rows, width), dtype=np.float64)
+        out_last = np.empty((rows, width), dtype=np.int32)
         with _kernel_launch():
             composite_forward(*gauss, *grid, out_feat, out_t, out_last)
         ctx.gauss, ctx.grid, ctx.out_t, ctx.out_last = gauss, grid, out_t, out_last

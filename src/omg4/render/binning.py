@@ -29,8 +29,8 @@ class TileBins:
 
     Attributes:
         gaussian_ids: [I] int64 Gaussian index of each intersection.
-        tile_offsets: [T + 1] int64; tile ``t`` owns intersections ``tile_offsets[t]:tile_offsets[t + 1]``
-            (tiles numbered row-major, ``T = tiles_x · tiles_y``).
+        tile_offsets: [V·T + 1] int64; tile ``t`` owns intersections ``tile_offsets[t]:tile_offsets[t + 1]``
+            (tiles numbered row-major, view after view, ``T = tiles_x · tiles_y`` per view).
         tiles_x: tiles per image row.
         tiles_y: tiles per image column.
         tile_size: tile side in pixels.
@@ -68,8 +68,11 @@ def tile_ranges(means2d: torch.Tensor, radii: torch.Tensor, tile_size: int, tile
 
 
 def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int,
-              tile_size: int = 16) -> TileBins:
+              tile_size: int = 16, *, views: torch.Tensor | None = None, num_views: int = 1) -> TileBins:
     """Intersect Gaussians with the tile grid and sort each tile's list front to back.
+
+    With ``views [N]`` (the view of each row) the rows of ``num_views`` views are binned at once:
+    view ``v``'s tiles are numbered after those of views ``0 … v − 1``.
 
     Args:
         means2d: [N, 2] pixel coordinates.
@@ -94,11 +97,14 @@ def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, 
     local = (torch.arange(slot.shape[0], device=device) - first.index_select(0, slot)).int()
     row = local // w
     tile_id = ((ty0 + row) * tiles_x + tx0 + (local - row * w)).long()
+    if views is not None:
+        tile_id = tile_id + views[hit].index_select(0, slot) * (tiles_x * tiles_y)
     bits = depths.detach().float()[hit].view(torch.int32).long() & 0xFFFFFFFF
     gid = hit.index_select(0, slot)
     keys, perm = torch.sort((tile_id << 32) | bits.index_select(0, slot), stable=True)
-    tile_counts = torch.bincount(keys >> 32, minlength=tiles_x * tiles_y)
-    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int64, device=device)
+    num_tiles = tiles_x * tiles_y * num_views
+    tile_counts = torch.bincount(keys >> 32, minlength=num_tiles)
+    offsets = torch.zeros(num_tiles + 1, dtype=torch.int64, device=device)
     torch.cumsum(tile_counts, 0, out=offsets[1:])
     return TileBins(gaussian_ids=gid.index_select(0, perm), tile_offsets=offsets, tiles_x=tiles_x, tiles_y=tiles_y,
                     tile_size=tile_size)

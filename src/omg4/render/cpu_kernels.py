@@ -21,12 +21,17 @@ features composited behind Gaussian ``i`` plus ``T_final·∂L/∂T_final``,
 ``∂L/∂α_i = T_i·(f_i·g) − B/(1 − α_i)``; then ``∂L/∂σ = −o·e^{−σ}·∂L/∂α``,
 ``∂L/∂o = e^{−σ}·∂L/∂α`` and ``∂L/∂f_i = α_i·T_i·g``.
 
+Several views render in one launch: their tiles are numbered view after view and their images
+are stacked along the first output axis; a Gaussian row belongs to one view (the caller
+concatenates the views' Gaussians), so its pixel box and mean are in that view's pixels.
+
 Arrays (``N`` Gaussians, ``I`` intersections sorted by tile then depth, ``D`` feature channels):
     params: [N, 7] (mean x, mean y, conic a, b, c, opacity, σ cutoff) per Gaussian.
     feats: [N, D] features (colours and view depth) per Gaussian.
     boxes: [N, 4] int32 half-open pixel box (x0, x1, y0, y1) per Gaussian.
     ids: [I] int64 Gaussian of each intersection.
-    tile_offsets: [T + 1] int64, tile ``t`` owns intersections ``[offsets[t], offsets[t+1])``.
+    tile_offsets: [V·T + 1] int64, tile ``t`` owns intersections ``[offsets[t], offsets[t+1])``
+        (``T = tiles_per_view`` tiles per view, ``tiles_x`` per row).
     pix_x: [W], pix_y: [H] pixel-centre coordinates (index + 0.5), input dtype.
     consts: [3] (0.5, α_max, 1/255) in the input dtype.
 
@@ -45,6 +50,11 @@ from typing import Callable, Mapping
 import numba
 import numpy as np
 from numba import njit, prange
+
+FAST_MATH = {"contract", "afn", "arcp", "reassoc", "nsz"}
+"""LLVM fast-math flags of the compositing kernels: fused multiply-adds, fast ``exp``, reassociated
+sums (about 15 % faster here, within the dense-reference tolerances); NaN and infinity keep their
+IEEE semantics (no ``nnan``/``ninf``)."""
 
 TRANSMITTANCE_MIN = 1e-4
 """A pixel stops before the Gaussian that would bring its transmittance to ≤ this (gsplat)."""
@@ -76,12 +86,19 @@ _configure_cache()
 
 
 @njit(cache=True, inline="always")
-def _tile_bounds(tile, tiles_x, tile_size, width, height):
-    """Pixel box ``[x0, x1) × [y0, y1)`` of a tile (row-major tile ids), clipped to the image."""
-    ty = tile // tiles_x
-    x0 = (tile - ty * tiles_x) * tile_size
+def _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height):
+    """Pixel box ``[x0, x1) × [y0, y1)`` of a tile in its view's image, clipped to it, and the view's first
+    output row.
+
+    Tiles are numbered view by view, row-major within a view; view ``v``'s image occupies output
+    rows ``[v·height, (v + 1)·height)``.
+    """
+    view = tile // tiles_per_view
+    local = tile - view * tiles_per_view
+    ty = local // tiles_x
+    x0 = (local - ty * tiles_x) * tile_size
     y0 = ty * tile_size
-    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
+    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height), view * height
 
 
 @njit(cache=True, inline="always")
@@ -96,22 +113,23 @@ def _gaussian(params, gi):
     return params[gi, 0], params[gi, 1], params[gi, 2], params[gi, 3], params[gi, 4], params[gi, 5], params[gi, 6]
 
 
-@njit(parallel=True, cache=True)
-def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
-                      out_feat, out_t, out_last):
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_per_view, tile_size, pix_x, pix_y,
+                      consts, out_feat, out_t, out_last):
     """Front-to-back compositing of every tile.
 
-    Writes ``out_feat [H, W, D]`` (Σ f·α·T, no background), ``out_t [H, W]`` float64 final
-    transmittance and ``out_last [H, W]`` int32 (1 + index of the last intersection that
-    contributed to the pixel, 0 if none).
+    Writes, for ``V`` views of ``H`` rows stacked along the first axis, ``out_feat [V·H, W, D]``
+    (Σ f·α·T, no background), ``out_t [V·H, W]`` float64 final transmittance and ``out_last [V·H, W]``
+    int32 (1 + index of the last intersection that contributed to the pixel, 0 if none).
     """
-    height, width, n_feat = out_feat.shape
+    _, width, n_feat = out_feat.shape
+    height = pix_y.shape[0]
     half = consts[0]
     alpha_max = consts[1]
     alpha_min = consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        x0, y0, x1, y1 = _tile_bounds(tile, tiles_x, tile_size, width, height)
+        x0, y0, x1, y1, oy = _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height)
         tw = x1 - x0
         n_pix = tw * (y1 - y0)
         trans = np.ones(n_pix)
@@ -159,29 +177,30 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_siz
         for py in range(y0, y1):
             for px in range(x0, x1):
                 li = (py - y0) * tw + px - x0
-                out_t[py, px] = trans[li]
-                out_last[py, px] = last[li]
+                out_t[oy + py, px] = trans[li]
+                out_last[oy + py, px] = last[li]
                 for d in range(n_feat):
-                    out_feat[py, px, d] = acc[li, d]
+                    out_feat[oy + py, px, d] = acc[li, d]
 
 
-@njit(parallel=True, cache=True)
-def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_size, pix_x, pix_y, consts,
-                       t_final, last_ids, grad_feat, grad_t, out_grad_params, out_grad_feats):
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_per_view, tile_size, pix_x, pix_y,
+                       consts, t_final, last_ids, grad_feat, grad_t, out_grad_params, out_grad_feats):
     """Back-to-front gradients per intersection.
 
-    Inputs ``t_final [H, W]`` float64 and ``last_ids [H, W]`` from :func:`composite_forward`,
-    ``grad_feat [H, W, D]`` = ∂L/∂out_feat and ``grad_t [H, W]`` = ∂L/∂T_final. Writes
+    Inputs ``t_final [V·H, W]`` float64 and ``last_ids [V·H, W]`` from :func:`composite_forward`,
+    ``grad_feat [V·H, W, D]`` = ∂L/∂out_feat and ``grad_t [V·H, W]`` = ∂L/∂T_final. Writes
     ``out_grad_params [I, 6]`` (∂L/∂ mean x, mean y, conic a, b, c, opacity) and
     ``out_grad_feats [I, D]``; rows of intersections that reached no pixel stay untouched.
     """
-    height, width, n_feat = grad_feat.shape
+    _, width, n_feat = grad_feat.shape
+    height = pix_y.shape[0]
     half = consts[0]
     alpha_max = consts[1]
     alpha_min = consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        x0, y0, x1, y1 = _tile_bounds(tile, tiles_x, tile_size, width, height)
+        x0, y0, x1, y1, oy = _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height)
         tw = x1 - x0
         n_pix = tw * (y1 - y0)
         trans = np.empty(n_pix)
@@ -196,12 +215,12 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tile_si
         for py in range(y0, y1):
             for px in range(x0, x1):
                 li = (py - y0) * tw + px - x0
-                trans[li] = t_final[py, px]
-                behind[li] = t_final[py, px] * grad_t[py, px]
-                last[li] = last_ids[py, px]
-                row_end[py - y0] = max(row_end[py - y0], last_ids[py, px])
+                trans[li] = t_final[oy + py, px]
+                behind[li] = t_final[oy + py, px] * grad_t[oy + py, px]
+                last[li] = last_ids[oy + py, px]
+                row_end[py - y0] = max(row_end[py - y0], last_ids[oy + py, px])
                 for d in range(n_feat):
-                    g[li, d] = grad_feat[py, px, d]
+                    g[li, d] = grad_feat[oy + py, px, d]
         k_end = max(start, row_end.max())
         for k in range(k_end - 1, start - 1, -1):
             gi = ids[k]

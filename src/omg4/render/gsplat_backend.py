@@ -16,12 +16,13 @@ GSPLAT_ALPHA_MAX = 0.999
 
 
 def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height, *, background=None, near=0.2,
-                     far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16):
-    """gsplat backend of :func:`omg4.render.rasterize` (same arguments; computes in float32).
+                     far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16, grad_into=None):
+    """gsplat backend of :func:`omg4.render.rasterize` for one view (same arguments; computes in float32).
 
     Returns an :class:`omg4.render.Rendered` whose ``means2d [N, 2]`` receives gsplat's
-    ``info["means2d"]`` gradient (pixels) through a hook, and whose ``radii [N]`` is the
-    larger of gsplat's two box half-widths.
+    ``info["means2d"]`` gradient (pixels) through a hook — or, with ``grad_into=(target,
+    rows)``, rows ``rows`` of ``target.grad`` do — and whose ``radii [N]`` is the larger of
+    gsplat's two box half-widths.
 
     Raises:
         ValueError: ``alpha_max`` is not 0.999.
@@ -44,18 +45,46 @@ def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height
     radii = info["radii"][0]  # [N, 2] in gsplat 1.5.3
     visible = (radii > 0).all(dim=-1)
     means2d = torch.where(visible[:, None], info["means2d"][0].detach(), 0.0)
-    _forward_grad(info["means2d"], means2d)
+    _forward_grad(info["means2d"], *(grad_into or (means2d,)))
     return Rendered(image=render[0, ..., :n_colors], alpha=alphas[0], depth=render[0, ..., n_colors:],
                     means2d=means2d, radii=max_radius(radii))
 
 
-def _forward_grad(source: torch.Tensor, target: torch.Tensor) -> None:
-    """Accumulate ``source [1, N, 2]``'s gradient into ``target.grad [N, 2]`` (like ``retain_grad``)."""
+def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks, width, height, **kwargs):
+    """gsplat backend of :func:`omg4.render.api.rasterize_views`: one ``gsplat.rasterization`` call per view.
+
+    The views' Gaussian sets differ (each is its own time slice), so they cannot share gsplat's
+    leading camera axis; ``means2d [N, 2]`` gathers every view's rows and their gradients.
+    """
+    from omg4.render.api import Rendered
+
+    num_views = viewmats.shape[0]
+    if num_views == 1:
+        rows = [torch.arange(means.shape[0], device=means.device)]
+    else:  # one host synchronization for the views' row counts
+        order = torch.argsort(views, stable=True)
+        rows = list(order.split(torch.bincount(views, minlength=num_views).tolist()))
+    means2d = torch.zeros(means.shape[0], 2, dtype=torch.float32, device=means.device)
+    parts = [rasterize_gsplat(means[r], covars[r], colors[r], opacities[r], viewmats[v], Ks[v], width, height,
+                              grad_into=(means2d, r), **kwargs) for v, r in enumerate(rows)]
+    radii = torch.zeros(means.shape[0], dtype=torch.int32, device=means.device)
+    for r, part in zip(rows, parts):
+        means2d[r] = part.means2d.detach()
+        radii[r] = part.radii
+    return Rendered(image=torch.stack([p.image for p in parts]), alpha=torch.stack([p.alpha for p in parts]),
+                    depth=torch.stack([p.depth for p in parts]), means2d=means2d, radii=radii)
+
+
+def _forward_grad(source: torch.Tensor, target: torch.Tensor, rows: torch.Tensor | None = None) -> None:
+    """Accumulate ``source [1, M, 2]``'s gradient into ``target.grad`` (like ``retain_grad``), at ``rows`` of it
+    when given."""
     if not source.requires_grad:
         return
 
     def hook(grad: torch.Tensor) -> None:
         g = grad[0].detach()
+        if rows is not None:
+            g = torch.zeros_like(target).index_add_(0, rows, g)
         target.grad = g.clone() if target.grad is None else target.grad + g
 
     source.register_hook(hook)

@@ -56,7 +56,7 @@ def fov_clamp_limits(K: torch.Tensor, width: int, height: int) -> tuple[torch.Te
 
     gsplat ``persp_proj``: ``lim_x_pos = (W − cx)/fx + 0.3·tan_fovx`` with ``tan_fovx = W/(2 fx)``.
     """
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
     tan_fovx = 0.5 * width / fx
     tan_fovy = 0.5 * height / fy
     return (cx / fx + 0.3 * tan_fovx, (width - cx) / fx + 0.3 * tan_fovx,
@@ -68,41 +68,37 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
                       far: float = 1e10, eps2d: float = 0.3) -> Projected:
     """Project ``means [N, 3]`` and ``covars [N, 3, 3]`` through ``viewmat [4, 4]`` and ``K [3, 3]``.
 
+    ``viewmat [N, 4, 4]`` and ``K [N, 3, 3]`` give each row its own camera (the rows of several
+    views projected in one pass; all views share ``width × height``).
+
     ``opacities [N]`` (optional) shrinks the boxes as in gsplat's CUDA projection and culls
     Gaussians below 1/255; without it the boxes use 3.33σ as in gsplat's pure-torch
     ``_fully_fused_projection``. Gradients flow to ``means`` and ``covars`` through
     ``means2d``, ``conics`` and ``depths``; culled Gaussians get exactly zero gradient.
     """
-    R = viewmat[:3, :3]
-    t = viewmat[:3, 3]
-    means_c = means @ R.T + t  # [N, 3]
+    R = viewmat[..., :3, :3]
+    t = viewmat[..., :3, 3]
+    means_c = means @ R.T + t if viewmat.dim() == 2 else (R * means[:, None, :]).sum(-1) + t  # [N, 3]
     x, y, z = means_c.unbind(-1)
     in_range = (z >= near) & (z <= far)
     z = torch.where(in_range, z, torch.ones_like(z))  # safe denominator for culled rows
 
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
     lim_xn, lim_xp, lim_yn, lim_yp = fov_clamp_limits(K, width, height)
     rz = 1.0 / z
     tx = z * torch.clamp(x * rz, min=-lim_xn, max=lim_xp)
     ty = z * torch.clamp(y * rz, min=-lim_yn, max=lim_yp)
     # J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]]; cov2d = (J R) S (J R)ᵀ with S the symmetric
-    # part of Σ, written out on [N] vectors (batched 3×3 matmuls and their backward are slow on CPU)
-    a, b = fx * rz, -fx * tx * rz * rz
-    c, d = fy * rz, -fy * ty * rz * rz
-    u = [a * R[0, k] + b * R[2, k] for k in range(3)]  # first row of J R
-    v = [c * R[1, k] + d * R[2, k] for k in range(3)]  # second row of J R
-    cov = covars.reshape(-1, 9).T  # [9, N]: rows are the entries Σ_kl
-    sym = [[cov[3 * k + l] if k == l else 0.5 * (cov[3 * k + l] + cov[3 * l + k]) for l in range(3)] for k in range(3)]
-
-    def quadratic(p: list[torch.Tensor], q: list[torch.Tensor]) -> torch.Tensor:
-        """pᵀ S q for vectors given as three [N] components."""
-        out = p[0] * q[0] * sym[0][0] + p[1] * q[1] * sym[1][1] + p[2] * q[2] * sym[2][2]
-        out = out + (p[0] * q[1] + p[1] * q[0]) * sym[0][1] + (p[0] * q[2] + p[2] * q[0]) * sym[0][2]
-        return out + (p[1] * q[2] + p[2] * q[1]) * sym[1][2]
-
-    c00 = quadratic(u, u) + eps2d
-    c11 = quadratic(v, v) + eps2d
-    c01 = quadratic(u, v)
+    # part of Σ, as a few broadcast products over the small axes (no batched 3×3 matrix products)
+    zero = torch.zeros_like(z)
+    J = torch.stack([fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(-1, 2, 3)
+    JR = (J.unsqueeze(-1) * R.unsqueeze(-3)).sum(-2)  # [N, 2, 3]
+    S = 0.5 * (covars + covars.transpose(-1, -2))
+    JRS = (JR.unsqueeze(-1) * S.unsqueeze(-3)).sum(-2)  # [N, 2, 3]
+    cov2d = (JRS.unsqueeze(-2) * JR.unsqueeze(-3)).sum(-1)  # [N, 2, 2]
+    c00 = cov2d[:, 0, 0] + eps2d
+    c11 = cov2d[:, 1, 1] + eps2d
+    c01 = cov2d[:, 0, 1]
     det = c00 * c11 - c01 * c01
     visible = in_range & (det > 0) & (c00 > 0) & (c11 > 0)
     det = torch.where(visible, det, torch.ones_like(det))

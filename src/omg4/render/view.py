@@ -1,7 +1,8 @@
 """Rendering a model at one camera and time.
 
 Every model kind (the Real-Time4DGS baseline, the models of the OMG4 stages, the decoded
-compact model) exposes ``slice_at(timestamp, camera_center) -> TimeSlice``: the 3D
+compact model) exposes ``slice_at(timestamp, camera_center) -> TimeSlice`` (and
+``slice_views`` for several views in one pass, :func:`render_views`): the 3D
 Gaussians it shows at that time (reference rt4dgs §1.4: conditional mean and covariance,
 opacity × temporal marginal, culled where the marginal ≤ 0.05) with view-dependent colours.
 :func:`render_view` rasterizes such a slice through :func:`omg4.render.rasterize`.
@@ -31,6 +32,8 @@ class TimeSlice:
             Gaussians that survived the temporal cull), so per-Gaussian statistics such
             as the SD score can be scattered back.
         num_total: N, the model's Gaussian count.
+        views: [M] int64 view of each row when the slice serves several views at once
+            (rows grouped by view, in order); None for a single view.
     """
 
     means: torch.Tensor
@@ -39,12 +42,19 @@ class TimeSlice:
     opacities: torch.Tensor
     index: torch.Tensor
     num_total: int
+    views: torch.Tensor | None = None
 
 
 class SlicedModel(Protocol):
     """Anything that can show its 3D Gaussians at a time for a viewer at ``camera_center``."""
 
     def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice: ...
+
+
+class BatchSlicedModel(SlicedModel, Protocol):
+    """A model that also slices several views in one pass (``timestamps [V]``, ``camera_centers [V, 3]``)."""
+
+    def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor) -> TimeSlice: ...
 
 
 def camera_tensors(camera: Camera, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -68,4 +78,32 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
     sl = model.slice_at(timestamp, center)
     rendered = rasterize(sl.means, sl.covars, sl.colors, sl.opacities, viewmat, K, camera.width, camera.height,
                          background=background, backend=backend, **raster_kwargs)
+    return rendered, sl
+
+
+def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: list[float], *,
+                 background: torch.Tensor | None = None, backend: str = "auto", device: torch.device | str = "cpu",
+                 **raster_kwargs):
+    """Render ``model`` at several (camera, time) views of one image size in one pass.
+
+    One time slice serves every view (:meth:`slice_views`) and one rasterizer call renders
+    them (:func:`omg4.render.api.rasterize_views`). Returns ``(rendered, time_slice)`` with
+    ``rendered.image [V, H, W, C]`` and the slice's ``views`` mapping rows to views.
+
+    Raises:
+        ValueError: the cameras differ in image size.
+    """
+    from omg4.render.api import rasterize_views
+
+    sizes = {(c.width, c.height) for c in cameras}
+    if len(sizes) != 1:
+        raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
+    tensors = [camera_tensors(c, device) for c in cameras]
+    viewmats, Ks, centers = (torch.stack(parts) for parts in zip(*tensors))
+    times = torch.tensor(timestamps, dtype=torch.float64, device=device)
+    sl = model.slice_views(times, centers)
+    width, height = sizes.pop()
+    views = sl.views if len(cameras) > 1 else None
+    rendered = rasterize_views(sl.means, sl.covars, sl.colors, sl.opacities, views, viewmats, Ks, width, height,
+                               background=background, backend=backend, **raster_kwargs)
     return rendered, sl

@@ -82,6 +82,9 @@ PRESETS: dict[str, dict] = {
 }
 
 
+MIN_DENSIFY_INTERVAL = TrainConfig().densify_interval
+"""Scaling a schedule never densifies more often than the official every 100 iterations (rt4dgs §3.4)."""
+
 SCHEDULE_FIELDS = ("densify_from", "densify_until", "densify_interval", "opacity_reset_interval",
                    "sh_increase_interval", "position_lr_max_steps")
 
@@ -89,9 +92,11 @@ SCHEDULE_FIELDS = ("densify_from", "densify_until", "densify_interval", "opacity
 def make_config(preset: str = "official", **overrides) -> TrainConfig:
     """The preset's config with ``overrides`` (``None`` values ignored) applied.
 
-    Overriding ``iterations`` scales the preset's schedule (densification window and
-    interval, opacity resets, SH degree steps, position decay) by the same factor, unless
-    those are overridden too, so a shorter run still ends with a settled model.
+    Overriding ``iterations`` scales the preset's schedule (densification window,
+    opacity resets, SH degree steps, position decay) by the same factor, unless those are
+    overridden too, so a shorter run still ends with a settled model. The densification
+    interval scales too but never below :data:`MIN_DENSIFY_INTERVAL`: densifying more often
+    multiplies the Gaussian count (an explicit ``densify_interval`` is taken as given).
     """
     if preset not in PRESETS:
         from omg4.errors import OMG4Error
@@ -103,5 +108,6 @@ def make_config(preset: str = "official", **overrides) -> TrainConfig:
         factor = overrides["iterations"] / cfg.iterations
         for name in SCHEDULE_FIELDS:
             if name not in overrides:
-                overrides[name] = max(1, int(round(getattr(cfg, name) * factor)))
+                floor = MIN_DENSIFY_INTERVAL if name == "densify_interval" else 1
+                overrides[name] = max(floor, int(round(getattr(cfg, name) * factor)))
     return replace(cfg, **overrides)

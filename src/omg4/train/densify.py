@@ -31,13 +31,16 @@ class DensifyStats:
 
     def add_view(self, index: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
                  height: int, batch_size: int) -> None:
-        """Accumulate one view: ``means2d_grad`` [M, 2] is ∂(L_v / B)/∂means2d in pixels for Gaussians ``index``."""
+        """Accumulate views: ``means2d_grad`` [M, 2] is ∂(L_v / B)/∂means2d in pixels for Gaussians ``index``.
+
+        The rows may come from several views of a batch (a Gaussian then appears once per view).
+        """
         visible = radii > 0
         idx = index[visible]
         g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0], device=self.device) * batch_size
         self.grad_sum.index_add_(0, idx, g.norm(dim=-1))
         self.visible_views.index_add_(0, idx, torch.ones_like(idx, dtype=torch.float32))
-        self.max_radii[idx] = torch.maximum(self.max_radii[idx], radii[visible].float())
+        self.max_radii.scatter_reduce_(0, idx, radii[visible].float(), reduce="amax")
 
     def mean_grad(self) -> torch.Tensor:
         """[N] mean over visible views of the per-view NDC gradient norm (0 where never visible)."""

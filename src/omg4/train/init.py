@@ -22,11 +22,12 @@ from omg4.train.config import TrainConfig
 def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str], None] = print) -> PointCloud:
     """The initial points for ``mode`` in {auto, random, rays, mvs, colmap}.
 
-    ``auto``: the data's ``points3d.ply``; else plane-sweep stereo when the first frame has at
+    ``auto``: the data's ``points3d.ply``; else plane-sweep stereo (on ``cfg.device``) when the first frame has at
     least three training cameras (multi-view video); else — a monocular scene such as D-NeRF,
     or a sweep that finds nothing — random points, as the official code does for D-NeRF.
     """
     from omg4.data import random_initial_points
+    from omg4.device import resolve_device
 
     if mode == "auto":
         if scene.initial_points is not None:
@@ -35,7 +36,7 @@ def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str
             from omg4.train.plane_sweep import plane_sweep_points
 
             try:
-                points = plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed)
+                points = plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed, device=resolve_device(cfg.device))
                 log(f"initialization: {len(points.xyz)} plane-sweep stereo points of the first frame")
                 return points
             except DataError as err:
@@ -48,7 +49,7 @@ def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str
     if mode == "mvs":
         from omg4.train.plane_sweep import plane_sweep_points
 
-        return plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed)
+        return plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed, device=resolve_device(cfg.device))
     if mode == "colmap":
         from omg4.train.triangulate import triangulate_first_frame
 

@@ -40,9 +40,27 @@ def baseline_lrs(cfg: TrainConfig, extent: float) -> dict[str, float]:
 
 
 def make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
-    """One Adam group per named tensor; each group remembers its name."""
+    """One Adam group per named tensor; each group remembers its name.
+
+    The fused implementation (one kernel per group on CPU and CUDA) replaces a dozen
+    element-wise operations per tensor and step.
+    """
     groups = [{"params": [params[name]], "lr": lr, "name": name} for name, lr in lrs.items() if name in params]
-    return torch.optim.Adam(groups, lr=0.0, eps=eps)
+    return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=True)
+
+
+def step_optimizers(optimizers, device: torch.device | str) -> None:
+    """Step every optimizer (None entries skipped) and clear its gradients.
+
+    Runs with ``device`` as torch's default device, so state that an optimizer creates
+    lazily (Adam's step counters) lands beside the parameters whatever the caller's default
+    device is.
+    """
+    with torch.device(device):
+        for opt in optimizers:
+            if opt is not None:
+                opt.step()
+                opt.zero_grad(set_to_none=True)
 
 
 def set_position_lr(optimizer: torch.optim.Optimizer, cfg: TrainConfig, extent: float, step: int) -> float:

@@ -53,25 +53,30 @@ class DepthMap:
     depth: torch.Tensor
 
 
-def _grey(img: np.ndarray) -> torch.Tensor:
-    """[H, W] float32 luma of an [H, W, 3] image in [0, 1]."""
-    rgb = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32))
-    return rgb @ torch.tensor([0.299, 0.587, 0.114])
+def _grey(img: np.ndarray, device: torch.device) -> torch.Tensor:
+    """[H, W] float32 luma of an [H, W, 3] image in [0, 1], on ``device``."""
+    rgb = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).to(device)
+    return rgb @ torch.tensor([0.299, 0.587, 0.114], device=device)
 
 
-def _pixel_rays(cam: Camera) -> torch.Tensor:
-    """[3, H·W] camera-frame rays with z = 1 through the pixel centres (row-major)."""
-    v, u = torch.meshgrid(torch.arange(cam.height, dtype=torch.float64) + 0.5,
-                          torch.arange(cam.width, dtype=torch.float64) + 0.5, indexing="ij")
-    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(u.numel(), dtype=torch.float64)])
-    return torch.linalg.solve(torch.from_numpy(cam.K), pix)
+def _f64(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(array, dtype=np.float64), device=device)
+
+
+def _pixel_rays(cam: Camera, device: torch.device) -> torch.Tensor:
+    """[3, H·W] camera-frame rays with z = 1 through the pixel centres (row-major), on ``device``."""
+    v, u = torch.meshgrid(torch.arange(cam.height, dtype=torch.float64, device=device) + 0.5,
+                          torch.arange(cam.width, dtype=torch.float64, device=device) + 0.5, indexing="ij")
+    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(u.numel(), dtype=torch.float64, device=device)])
+    return torch.linalg.solve(_f64(cam.K, device), pix)
 
 
 def _relative_projection(ref: Camera, other: Camera, rays: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(a [3, P], b [3]) with ``K_o (R_o X + t_o) = depth · a + b`` for X at ``depth`` on a ref ray."""
-    R_r, t_r = torch.from_numpy(ref.viewmat[:3, :3]), torch.from_numpy(ref.viewmat[:3, 3])
-    R_o, t_o = torch.from_numpy(other.viewmat[:3, :3]), torch.from_numpy(other.viewmat[:3, 3])
-    K_o = torch.from_numpy(other.K)
+    device = rays.device
+    R_r, t_r = _f64(ref.viewmat[:3, :3], device), _f64(ref.viewmat[:3, 3], device)
+    R_o, t_o = _f64(other.viewmat[:3, :3], device), _f64(other.viewmat[:3, 3], device)
+    K_o = _f64(other.K, device)
     A = R_o @ R_r.T
     return K_o @ A @ rays, K_o @ (t_o - A @ t_r)
 
@@ -107,12 +112,13 @@ def sweep_depth(ref: Camera, ref_grey: torch.Tensor, others: list[tuple[Camera, 
                 depths: torch.Tensor, cfg: SweepConfig) -> DepthMap:
     """Best-ZNCC depth per reference pixel over the planes ``depths`` (step 1 above)."""
     H, W = ref.height, ref.width
-    rays = _pixel_rays(ref)
+    device = ref_grey.device
+    rays = _pixel_rays(ref, device)
     r = ref_grey.view(1, 1, H, W)
     r_mean, r_var = _window_stats(r, cfg.window)
     keep = max(1, (len(others) + 1) // 2)
     projections = [_relative_projection(ref, cam, rays) for cam, _ in others]
-    scores = torch.empty(len(depths), H, W)
+    scores = torch.empty(len(depths), H, W, device=device)
     for start in range(0, len(depths), cfg.depth_chunk):
         d = depths[start:start + cfg.depth_chunk].double()
         per_neighbour = []
@@ -146,20 +152,22 @@ def sweep_depth(ref: Camera, ref_grey: torch.Tensor, others: list[tuple[Camera, 
 def _unproject(dm: DepthMap) -> tuple[torch.Tensor, torch.Tensor]:
     """World points [P, 3] (float64) of a depth map's kept pixels and their flat pixel indices."""
     flat = dm.depth.reshape(-1).double()
+    device = flat.device
     idx = torch.nonzero(flat > 0)[:, 0]
-    rays = _pixel_rays(dm.camera)[:, idx]
-    R, t = torch.from_numpy(dm.camera.viewmat[:3, :3]), torch.from_numpy(dm.camera.viewmat[:3, 3])
+    rays = _pixel_rays(dm.camera, device)[:, idx]
+    R, t = _f64(dm.camera.viewmat[:3, :3], device), _f64(dm.camera.viewmat[:3, 3], device)
     return ((rays * flat[idx]).T - t) @ R, idx
 
 
 def consistent_mask(dm: DepthMap, points: torch.Tensor, neighbours: list[DepthMap], tolerance: float) -> torch.Tensor:
     """[P] bool: the point's depth in at least one neighbour agrees with that neighbour's map (step 2)."""
-    ok = torch.zeros(points.shape[0], dtype=torch.bool)
+    device = points.device
+    ok = torch.zeros(points.shape[0], dtype=torch.bool, device=device)
     for other in neighbours:
         cam = other.camera
-        x = points @ torch.from_numpy(cam.viewmat[:3, :3]).T + torch.from_numpy(cam.viewmat[:3, 3])
+        x = points @ _f64(cam.viewmat[:3, :3], device).T + _f64(cam.viewmat[:3, 3], device)
         z = x[:, 2]
-        uv = (x @ torch.from_numpy(cam.K).T)[:, :2] / z.clamp_min(1e-9).unsqueeze(1)
+        uv = (x @ _f64(cam.K, device).T)[:, :2] / z.clamp_min(1e-9).unsqueeze(1)
         col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         inside = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
         seen = other.depth[row.clamp(0, cam.height - 1), col.clamp(0, cam.width - 1)].double()
@@ -168,8 +176,11 @@ def consistent_mask(dm: DepthMap, points: torch.Tensor, neighbours: list[DepthMa
 
 
 def plane_sweep_points(scene: Scene, num_points: int, *, seed: int = 0, cfg: SweepConfig = SweepConfig(),
-                       progress: bool = True) -> PointCloud:
+                       progress: bool = True, device: torch.device | str = "cpu") -> PointCloud:
     """Coloured first-frame points from plane-sweep stereo over the training cameras (steps 1–3).
+
+    The sweep runs on ``device`` (a GPU computes every camera's depth map in a fraction of
+    the CPU's time); the points come back as CPU arrays.
 
     Raises:
         DataError: when no camera has a usable neighbour or no pixel passes the checks.
@@ -179,9 +190,10 @@ def plane_sweep_points(scene: Scene, num_points: int, *, seed: int = 0, cfg: Swe
     views = scene.first_frame_views()
     cameras = [v.camera for v in views]
     images = [v.image() for v in views]
-    greys = [_grey(img) for img in images]
+    device = torch.device(device)
+    greys = [_grey(img, device) for img in images]
     far = cfg.far_factor * max(float(np.linalg.norm(c.center)) for c in cameras)
-    depths = torch.linspace(cfg.near, far, cfg.num_depths)
+    depths = torch.linspace(cfg.near, far, cfg.num_depths, device=device)
     neighbours = [choose_neighbours(cameras, i, cfg.neighbours, cfg.max_axis_angle_deg) for i in range(len(cameras))]
     maps: dict[int, DepthMap] = {}
     for i in tqdm(range(len(cameras)), desc="plane sweep", disable=not progress):
@@ -193,8 +205,8 @@ def plane_sweep_points(scene: Scene, num_points: int, *, seed: int = 0, cfg: Swe
     for i, dm in maps.items():
         points, idx = _unproject(dm)
         ok = consistent_mask(dm, points, [maps[j] for j in neighbours[i] if j in maps], cfg.consistency)
-        xyz.append(points[ok].numpy())
-        rgb.append(images[i].reshape(-1, 3)[idx[ok].numpy()])
+        xyz.append(points[ok].cpu().numpy())
+        rgb.append(images[i].reshape(-1, 3)[idx[ok].cpu().numpy()])
     xyz_all, rgb_all = np.concatenate(xyz), np.concatenate(rgb).astype(np.float32)
     if len(xyz_all) == 0:
         raise DataError("plane-sweep initialization found no consistent point; use --init rays or random")

@@ -29,11 +29,11 @@ from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.checkpoint import save_gaussians
 from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
-from omg4.render.view import render_view
+from omg4.render.view import render_views
 from omg4.train import densify
 from omg4.train.config import TrainConfig
-from omg4.train.loss import photometric_loss
-from omg4.train.optim import baseline_lrs, make_adam, set_position_lr
+from omg4.train.loss import photometric_losses
+from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_optimizers
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 
 
@@ -63,28 +63,39 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
 
 def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
                    lambda_dssim: float, what: str, step: int, device: torch.device | str = "cpu",
-                   on_view=None) -> float:
-    """Render ``views[i]`` for each i in ``batch`` and back-propagate ``loss_v / B`` (rt4dgs §3.1).
+                   on_views=None) -> tuple[float, float]:
+    """Render the views ``views[i]``, i in ``batch``, and back-propagate Σ_v loss_v / B once (rt4dgs §3.1).
 
-    ``model`` and ``background`` live on ``device``; the ground truths are moved there.
+    Views of one image size are sliced and rasterized together (:func:`omg4.render.view.render_views`);
+    the loss is computed on the whole batch; the step synchronizes with the device once, to
+    read the loss. ``model`` and ``background`` live on ``device``; the ground truths are moved there.
 
-    ``on_view(view, rendered, time_slice, gt)`` runs after each backward (gradient statistics).
-    Returns the mean per-view loss; a non-finite loss is a one-line error naming ``what``.
+    ``on_views(rendered, time_slice)`` runs after the backward for each group of views
+    (gradient statistics: ``rendered.means2d.grad`` rows follow ``time_slice.index``).
+    Returns the batch's mean per-view loss and mean PSNR (renders clamped); a non-finite
+    loss is a one-line error naming ``what``.
     """
-    losses = []
-    for i in batch.tolist():
-        view = views[i]
-        gt = view_image(view, device)
-        rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
-                                   device=device)
-        loss = photometric_loss(rendered.image, gt, lambda_dssim) / len(batch)
-        if not torch.isfinite(loss):
-            raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {float(loss)}")
-        loss.backward()
-        losses.append(loss.item() * len(batch))
-        if on_view is not None:
-            on_view(view, rendered, sl, gt)
-    return float(np.mean(losses))
+    chosen = [views[i] for i in batch.tolist()]
+    groups: dict[tuple[int, int], list[View]] = {}
+    for v in chosen:
+        groups.setdefault((v.camera.width, v.camera.height), []).append(v)
+    total, psnr_sum, rendered_groups = 0.0, 0.0, []
+    for members in groups.values():
+        rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
+                                    background=background, backend=backend, device=device)
+        gts = torch.stack([view_image(v, device) for v in members])
+        total = total + photometric_losses(rendered.image, gts, lambda_dssim).sum() / len(chosen)
+        mse = (rendered.image.detach().clamp(0, 1) - gts).square().mean((1, 2, 3))
+        psnr_sum = psnr_sum + (-10.0 * torch.log10(mse)).sum()
+        rendered_groups.append((rendered, sl))
+    loss, psnr_total = torch.stack([total.detach(), psnr_sum]).tolist()  # the step's one synchronization
+    if not np.isfinite(loss):
+        raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {loss}")
+    total.backward()
+    if on_views is not None:
+        for rendered, sl in rendered_groups:
+            on_views(rendered, sl)
+    return loss, psnr_total / len(chosen)
 
 
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
@@ -169,22 +180,19 @@ class Trainer:
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
         batch = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step), device="cpu")
-        psnrs = []
         densifying = step < cfg.densify_until
 
-        def on_view(view, rendered, sl, gt):
+        def on_views(rendered, sl):
             if densifying and rendered.means2d.grad is not None:
-                self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, view.camera.width,
-                                    view.camera.height, cfg.batch_size)
-            psnrs.append(psnr(rendered.image.detach().clamp(0, 1), gt))
+                height, width = rendered.image.shape[1:3]
+                self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, width, height, cfg.batch_size)
 
-        loss = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
-                              lambda_dssim=cfg.lambda_dssim, what="training", step=step, device=self.device,
-                              on_view=on_view)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+        loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
+                                          lambda_dssim=cfg.lambda_dssim, what="training", step=step,
+                                          device=self.device, on_views=on_views)
+        step_optimizers([self.optimizer], self.device)
         self._density_events(step)
-        return loss, float(np.mean(psnrs))
+        return loss, batch_psnr
 
     def _density_events(self, step: int) -> None:
         cfg = self.cfg

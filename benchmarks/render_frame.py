@@ -1,0 +1,102 @@
+"""Benchmark: one rendered frame of a baseline and of its compressed model (issue 11, "a lean frame").
+
+For each model file (a ``.safetensors`` checkpoint or an ``.omg4`` file) on the test views of
+a dataset: median render time per frame (render only, as ``omg4 eval`` measures FPS), the
+aten operations one frame dispatches (the CPU proxy for GPU kernel launches), and the mean
+fraction of the model's Gaussians that reach the rasterizer (those passing the temporal
+cull). The paper reports OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
+
+    python benchmarks/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
+                                      [--device cpu|cuda] [--frames 30] [--label after] [--name demo]
+
+Results are merged into ``benchmarks/results/render_frame.json`` under ``--label`` / ``--name``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from train_step import OpCounter, sync  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results" / "render_frame.json"
+
+
+def measure_model(path: Path, views, device: str, frames: int) -> dict:
+    from omg4.evaluate import load_model
+    from omg4.render.view import render_view
+
+    model = load_model(path, device)
+    step = max(1, len(views) // frames)
+    timed = views[::step][:frames]
+    fractions = []
+
+    def frame(v):
+        with torch.no_grad():
+            _, sl = render_view(model, v.camera, v.timestamp, device=device)
+        return sl
+
+    for v in timed[:3]:
+        frame(v)
+    times = []
+    for v in timed:
+        sync(device)
+        t0 = time.perf_counter()
+        sl = frame(v)
+        sync(device)
+        times.append(time.perf_counter() - t0)
+        fractions.append(sl.index.numel() / model.num_gaussians)
+    counter = OpCounter()
+    with counter:
+        frame(timed[len(timed) // 2])
+    ms = 1000 * statistics.median(times)
+    return {"model": str(path), "num_gaussians": int(model.num_gaussians), "ms_per_frame": ms, "fps": 1000 / ms,
+            "aten_ops_per_frame": sum(counter.ops.values()), "visible_fraction": statistics.mean(fractions),
+            "frames": len(timed)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from omg4.data import load_scene
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data", type=Path)
+    ap.add_argument("--models", type=Path, nargs="+", required=True, help="baseline first, then compressed models")
+    ap.add_argument("--downscale", type=float, default=1.0)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--label", default="after")
+    ap.add_argument("--name", default=None, help="row name (default: the dataset folder's name)")
+    ap.add_argument("--json", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    scene = load_scene(args.data, downscale=args.downscale, progress=False)
+    rows = [measure_model(p, scene.test_views, args.device, args.frames) for p in args.models]
+    base = rows[0]["ms_per_frame"]
+    for r in rows:
+        r["speedup_vs_first"] = base / r["ms_per_frame"]
+    print("| model | #Gaussians | ms/frame | FPS | speed-up | aten ops/frame | visible fraction |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {Path(r['model']).name} | {r['num_gaussians']:,} | {r['ms_per_frame']:.2f} | {r['fps']:.1f} | "
+              f"{r['speedup_vs_first']:.2f}x | {r['aten_ops_per_frame']:,} | {r['visible_fraction']:.3f} |")
+    data = json.loads(args.json.read_text()) if args.json.exists() else {}
+    entry = data.setdefault(args.label, {})
+    entry[args.name or args.data.name] = {
+        "device": args.device, "downscale": args.downscale, "rows": rows,
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                    "torch_threads": torch.get_num_threads()}}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(data, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

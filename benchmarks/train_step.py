@@ -1,0 +1,189 @@
+"""Benchmark: one training step and one compression step — wall time and aten operations (issue 11).
+
+On a GPU a step is bound by kernel launches and Python, not by the rasterizer; the number
+of aten operations a step dispatches (forward, backward and optimizer together) is the
+CPU-measurable proxy for that, and the wall time per step is what a CPU user waits.
+
+Workloads (fixed seeds, densification off, every SH degree active so the step is the
+steady-state one):
+
+* ``demo``: the demo's synthetic scene (16 cameras × 60 frames, 256×192), 19,000 Gaussians
+  from random points in the common view volume, the demo's batch of 2 (with ``--model``: the
+  trained checkpoint given instead, e.g. the demo's baseline ``omg4_demo/baseline/model.safetensors``);
+* ``basketball``: ``../shared/data/n3dv_basketball`` at 320×180 (``--downscale 2``),
+  60,000 Gaussians, batch 4;
+* with ``--device cuda``: basketball at 200k and 1M Gaussians, batch 4.
+
+"train" is :meth:`omg4.train.Trainer.train_step`; "compress" is
+:meth:`omg4.compress.pipeline.CompressionPipeline.finetune_step` after the appearance,
+3D-SVQ and 4D-SVQ stages (the MLP/SVQ fine-tuning that most of OMG4's iterations are).
+Times are the median of ``--steps`` steps after ``--warmup``; the aten count is one step
+under a ``TorchDispatchMode`` that counts every dispatched operator.
+
+    python benchmarks/train_step.py [--workloads demo basketball] [--device cpu|cuda]
+                                    [--steps 10] [--label after] [--json PATH]
+
+Results are merged into the JSON under ``--label`` (e.g. ``before`` and ``after``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+RESULTS = Path(__file__).resolve().parent / "results" / "train_step.json"
+SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts every aten operator dispatched while active."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops: Counter = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops[str(func.overloadpacket)] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def demo_scene(tmp: Path):
+    from omg4.data import load_scene
+    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+
+    write_synthetic_scene(tmp / "demo", SynthConfig(seed=0, num_cameras=16, num_frames=60, width=256, height=192),
+                          force=True)
+    return load_scene(tmp / "demo", progress=False)
+
+
+def basketball_scene():
+    from omg4.data import load_scene
+
+    path = SHARED / "n3dv_basketball"
+    if not path.is_dir():
+        raise SystemExit(f"basketball needs {path} (set OMG4_SHARED_DATA)")
+    return load_scene(path, downscale=2, progress=False)
+
+
+WORKLOADS = {  # name → (scene factory, Gaussians, batch, devices)
+    "demo": (demo_scene, 19_000, 2, ("cpu", "cuda")),
+    "basketball": (lambda tmp: basketball_scene(), 60_000, 4, ("cpu", "cuda")),
+    "basketball-200k": (lambda tmp: basketball_scene(), 200_000, 4, ("cuda",)),
+    "basketball-1m": (lambda tmp: basketball_scene(), 1_000_000, 4, ("cuda",)),
+}
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def measure(step_fn, device: str, warmup: int, steps: int) -> dict:
+    """Median wall time of ``step_fn(i)`` and the aten operators of one step."""
+    i = 0
+    for _ in range(warmup):
+        i += 1
+        step_fn(i)
+    times = []
+    for _ in range(steps):
+        i += 1
+        sync(device)
+        t0 = time.perf_counter()
+        step_fn(i)
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    counter = OpCounter()
+    with counter:
+        step_fn(i + 1)
+    top = counter.ops.most_common(8)
+    return {"ms_per_step": 1000 * statistics.median(times), "ms_min": 1000 * min(times),
+            "aten_ops_per_step": sum(counter.ops.values()), "top_ops": dict(top)}
+
+
+def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, model_path: Path | None = None) -> dict:
+    from omg4.compress.pipeline import CompressConfig, CompressionPipeline
+    from omg4.data import random_initial_points
+    from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.train import Trainer, make_config
+
+    factory, n, batch, _ = WORKLOADS[name]
+    scene = factory(tmp)
+    points = random_initial_points(scene, n, seed=0)
+    cfg = make_config("official", iterations=100_000, batch_size=batch, densify_until=0, opacity_reset_interval=10**9,
+                      sh_increase_interval=1, checkpoint_interval=0, device=device, max_gaussians=n)
+    trainer = Trainer(scene, cfg, tmp / f"run_{name}", points=points, progress=False, log=lambda s: None)
+    if model_path is not None:  # a trained model instead of the random initialization
+        trainer.model = load_gaussians(model_path)[0].to(device)
+        trainer.optimizer = trainer._make_optimizer()
+    num = trainer.model.num_gaussians
+    base = 10  # SH degrees all active from step 5 on
+    train = measure(lambda i: trainer.train_step(base + i), device, warmup, steps)
+
+    ccfg = CompressConfig(preset="M", stages=("appearance", "svq3d", "svq4d"), schedule="short", batch_size=batch,
+                          device=device)
+    pipe = CompressionPipeline(trainer.model.detach_copy(), scene, ccfg, progress=False, log=lambda s: None)
+    for e in pipe.events:
+        pipe.apply_event(e.name, e.round, e.iteration)
+    compress = measure(lambda i: pipe.finetune_step(i), device, warmup, steps)
+    view = scene.train_views[0].camera
+    return {"workload": name, "device": device, "gaussians": num, "batch": batch,
+            "model": str(model_path) if model_path else "random initialization",
+            "resolution": f"{view.width}x{view.height}", "train": train, "compress": compress}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workloads", nargs="+", default=None, choices=sorted(WORKLOADS))
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--label", default="after", help="key under which the rows are stored (e.g. before, after)")
+    ap.add_argument("--model", type=Path, default=None, help="a trained checkpoint for the demo workload")
+    ap.add_argument("--json", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    names = args.workloads or [k for k, w in WORKLOADS.items() if kind in w[3]]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in names:
+            row = run_workload(name, args.device, args.warmup, args.steps, Path(tmp),
+                               args.model if name == "demo" else None)
+            rows.append(row)
+            print(f"{name:16s} {row['device']:6s} N={row['gaussians']:>9,} B={row['batch']} "
+                  f"train {row['train']['ms_per_step']:8.1f} ms {row['train']['aten_ops_per_step']:6d} ops | "
+                  f"compress {row['compress']['ms_per_step']:8.1f} ms {row['compress']['aten_ops_per_step']:6d} ops",
+                  flush=True)
+    data = json.loads(args.json.read_text()) if args.json.exists() else {}
+    entry = data.setdefault(args.label, {})
+    entry["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                        "torch_threads": torch.get_num_threads(), "python": sys.version.split()[0]}
+    if kind == "cuda":
+        entry["machine"]["gpu"] = torch.cuda.get_device_name()
+    entry.setdefault("rows", {})
+    for row in rows:
+        suffix = "/trained" if row["model"] != "random initialization" else ""
+        entry["rows"][f"{row['workload']}/{row['device']}{suffix}"] = row
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(data, indent=2))
+    print("| workload | device | N | batch | train ms/step | train aten ops | compress ms/step | compress aten ops |")
+    print("|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        print(f"| {row['workload']} | {row['device']} | {row['gaussians']:,} | {row['batch']} | "
+              f"{row['train']['ms_per_step']:.1f} | {row['train']['aten_ops_per_step']:,} | "
+              f"{row['compress']['ms_per_step']:.1f} | {row['compress']['aten_ops_per_step']:,} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,115 @@
+"""Per-time-window visibility index: which Gaussians can pass the temporal cull inside a window.
+
+A 4D Gaussian is shown at time τ only when its temporal marginal
+p_t(τ) = exp(−½ (τ − μ_t)² / Σtt) exceeds the cull threshold (rt4dgs §1.4). Over a window
+[a, b] the marginal peaks at τ* = clamp(μ_t, a, b), so a Gaussian whose peak there does not
+pass can be skipped for every frame in the window (the idea of 4DGS-1K's temporal filter).
+Built once when a model is loaded; a frame then touches only its window's rows before the
+appearance MLP and the 4D→3D conditioning run. The test is made against half the cull
+threshold, so float rounding can never drop a Gaussian the exact cull would keep.
+
+This module is part of the render-only decoder: it imports no training or compression code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from omg4.gaussians.model import GaussianConfig, slice_values
+from omg4.gaussians.rotation import build_rotation_4d
+from omg4.render.view import TimeSlice
+
+DEFAULT_WINDOWS = 32
+"""Windows over the model's time range (each a candidate list of Gaussian rows)."""
+
+
+def temporal_variance(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor, convention: str) -> torch.Tensor:
+    """Σtt of every Gaussian (rt4dgs §1.3): the squared norm of the time row of ``L = R4 diag(s)``. → [N]"""
+    return (build_rotation_4d(q_l, q_r, convention)[:, 3, :] * scales).square().sum(-1)
+
+
+@dataclass
+class VisibilityIndex:
+    """Candidate rows per time window.
+
+    Attributes:
+        edges: [K + 1] window boundaries over the time range (float64, CPU).
+        rows: K int64 tensors, the rows that may pass the cull somewhere in each window.
+    """
+
+    edges: torch.Tensor
+    rows: list[torch.Tensor]
+
+    @staticmethod
+    def build(t: torch.Tensor, var_t: torch.Tensor, time_range: tuple[float, float], time_cull: float,
+              windows: int = DEFAULT_WINDOWS) -> "VisibilityIndex":
+        """The index of Gaussians with time centres ``t`` [N] and temporal variances ``var_t`` [N]."""
+        edges = torch.linspace(time_range[0], time_range[1], windows + 1, dtype=torch.float64, device="cpu")
+        mu = t.detach().double().reshape(-1)
+        var = var_t.detach().double().reshape(-1)
+        rows = []
+        for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
+            gap = mu - mu.clamp(a, b)
+            peak = torch.exp(-0.5 * gap * gap / var)
+            rows.append((peak > 0.5 * time_cull).nonzero().squeeze(1).to(t.device))
+        return VisibilityIndex(edges, rows)
+
+    def rows_at(self, timestamps: torch.Tensor) -> torch.Tensor | None:
+        """The candidate rows for all of ``timestamps`` (sorted, unique); None when a time lies outside the range."""
+        times = timestamps.detach().double().cpu().reshape(-1)
+        lo, hi = float(self.edges[0]), float(self.edges[-1])
+        if not bool(((times >= lo) & (times <= hi)).all()):
+            return None
+        k = (torch.searchsorted(self.edges, times, right=True) - 1).clamp(0, len(self.rows) - 1).unique().tolist()
+        if len(k) == 1:
+            return self.rows[k[0]]
+        return torch.cat([self.rows[i] for i in k]).unique()
+
+
+class WindowedModel:
+    """A render-only 4D model whose frames touch only their time window's Gaussians.
+
+    Holds raw per-Gaussian ``values`` (the Real-Time4DGS parameters, or geometry plus
+    ``f_static``/``f_view`` for a model whose appearance comes from ``appearance`` MLPs,
+    paper §4.4), no gradients, and the :class:`VisibilityIndex` built from them at load.
+    A frame gathers its window's candidate rows, then conditions, culls and evaluates the
+    appearance for those only (:func:`omg4.gaussians.model.slice_values`).
+    """
+
+    def __init__(self, values: dict[str, torch.Tensor], config: GaussianConfig, active_sh_degree: int,
+                 active_sh_degree_t: int, appearance=None, windows: int = DEFAULT_WINDOWS):
+        self.values = {k: v.detach() for k, v in values.items()}
+        self.config = config
+        self.active_sh_degree = active_sh_degree
+        self.active_sh_degree_t = active_sh_degree_t
+        self.appearance = appearance
+        v = self.values
+        var_t = temporal_variance(torch.cat([v["scaling"], v["scaling_t"]], dim=1).exp(), v["rotation"],
+                                  v["rotation_r"], config.rotation_convention)
+        self.visibility = VisibilityIndex.build(v["t"], var_t, config.time_range, config.time_cull, windows)
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.values["xyz"].shape[0])
+
+    def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor) -> TimeSlice:
+        """The Gaussians shown to ``V`` views (``timestamps [V]``, ``camera_centers [V, 3]``); indices are rows
+        of the whole model."""
+        rows = self.visibility.rows_at(timestamps)
+        values = self.values if rows is None else {k: v.index_select(0, rows) for k, v in self.values.items()}
+        with torch.no_grad():
+            sl = slice_values(values, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
+                              camera_centers, appearance=self.appearance)
+        if rows is not None:
+            sl.index = rows.index_select(0, sl.index)
+        sl.num_total = self.num_gaussians
+        return sl
+
+    def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
+        """The time slice of one view."""
+        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
+
+
+__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "WindowedModel", "temporal_variance"]

@@ -1,0 +1,71 @@
+"""The per-time-window visibility index never drops a Gaussian that passes the temporal cull (issue 11)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from omg4.gaussians.covariance import slice_geometry
+from omg4.gaussians.visibility import VisibilityIndex, temporal_variance
+
+
+def _gaussians(seed, n=3000, t_range=(0.0, 10.0)):
+    g = torch.Generator().manual_seed(seed)
+    t0, t1 = t_range
+    return {
+        "xyz": torch.randn(n, 3, generator=g),
+        "t": (t0 - 2 + (t1 - t0 + 4) * torch.rand(n, 1, generator=g)),
+        # time scales from a twentieth of a frame-ish to the whole clip
+        "scales": torch.exp(torch.randn(n, 4, generator=g) * torch.tensor([0.5, 0.5, 0.5, 1.5]) - 1.0),
+        "q_l": torch.randn(n, 4, generator=g),
+        "q_r": torch.randn(n, 4, generator=g),
+    }
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_index_keeps_every_gaussian_that_passes_the_cull(seed):
+    p = _gaussians(seed)
+    var_t = temporal_variance(p["scales"], p["q_l"], p["q_r"], "flip")
+    index = VisibilityIndex.build(p["t"][:, 0], var_t, (0.0, 10.0), time_cull=0.05, windows=16)
+    times = torch.cat([torch.rand(200, generator=torch.Generator().manual_seed(seed)) * 10.0,
+                       index.edges])  # random times and every window edge
+    sizes = []
+    for tau in times.tolist():
+        rows = index.rows_at(torch.tensor([tau], dtype=torch.float64))
+        geom = slice_geometry(p["xyz"], p["t"], p["scales"], p["q_l"], p["q_r"], tau, time_cull=0.05)
+        missing = set(geom.index.tolist()) - set(rows.tolist())
+        assert not missing, f"time {tau}: {len(missing)} Gaussians passing the cull are not in the window"
+        sizes.append(rows.numel())
+    assert max(sizes) < 0.8 * p["t"].shape[0]  # the index does prune: it is not every Gaussian
+
+
+def test_several_times_get_the_union_and_times_outside_get_none():
+    p = _gaussians(3, n=500)
+    var_t = temporal_variance(p["scales"], p["q_l"], p["q_r"], "flip")
+    index = VisibilityIndex.build(p["t"][:, 0], var_t, (0.0, 10.0), time_cull=0.05, windows=8)
+    a, b = (index.rows_at(torch.tensor([x], dtype=torch.float64)) for x in (0.5, 9.5))
+    both = index.rows_at(torch.tensor([0.5, 9.5], dtype=torch.float64))
+    assert both.tolist() == sorted(set(a.tolist()) | set(b.tolist()))
+    assert index.rows_at(torch.tensor([10.5], dtype=torch.float64)) is None
+    assert index.rows_at(torch.tensor([-0.1], dtype=torch.float64)) is None
+
+
+def test_windowed_baseline_renders_the_frames_of_the_plain_model():
+    """A checkpoint loaded for rendering (window rows gathered first) shows exactly the plain model's slices."""
+    from omg4.gaussians import GaussianConfig, Gaussians4D
+    from omg4.gaussians.visibility import WindowedModel
+
+    p = _gaussians(4, n=800)
+    g = torch.Generator().manual_seed(4)
+    cfg = GaussianConfig(time_range=(0.0, 10.0))
+    params = {"xyz": p["xyz"], "t": p["t"], "scaling": p["scales"][:, :3].log(), "scaling_t": p["scales"][:, 3:].log(),
+              "rotation": p["q_l"], "rotation_r": p["q_r"], "opacity": torch.randn(800, 1, generator=g),
+              "features_dc": torch.randn(800, 1, 3, generator=g), "features_rest": torch.randn(800, 47, 3, generator=g)}
+    plain = Gaussians4D(params, cfg, 3, 2)
+    windowed = WindowedModel(plain.params, cfg, 3, 2, windows=16)
+    center = torch.tensor([0.5, -0.2, -4.0])
+    for tau in (0.0, 0.31, 3.7, 6.25, 9.99, 10.0, 12.0):
+        a, b = plain.slice_at(tau, center), windowed.slice_at(tau, center)
+        assert a.index.tolist() == b.index.tolist()
+        for name in ("means", "covars", "colors", "opacities"):
+            torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-6, atol=1e-6)
