@@ -18,10 +18,19 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
     methods = saved["methods"]
     assert set(methods) == {"Real-Time4DGS (baseline)", "OMG4-M"}
     for row in methods.values():
-        assert {"psnr", "ssim", "lpips_alex", "fps", "num_gaussians", "storage_mb"} <= set(row)
-        assert np.isfinite(row["psnr"]) and row["fps"] > 0
+        assert {"psnr", "ssim", "lpips_alex", "psnr_dynamic", "ssim_dynamic", "fps", "num_gaussians",
+                "storage_mb"} <= set(row)
+        assert np.isfinite(row["psnr"]) and np.isfinite(row["psnr_dynamic"]) and row["fps"] > 0
+        assert 0 < row["dynamic_fraction"] < 1
     omg4_file = out / "scene_M.omg4"
     assert methods["OMG4-M"]["storage_mb"] == omg4_file.stat().st_size / 2**20
+    paper_file = out / "scene_M_paper_codec.omg4"
+    assert saved["paper_codec_mb"] == paper_file.stat().st_size / 2**20
+    from omg4.codec.decoder import load_omg4
+
+    a, b = load_omg4(omg4_file), load_omg4(paper_file)  # one model, two coders
+    assert a.num_gaussians == b.num_gaussians and sorted(a.values["xyz"].tolist()) == sorted(b.values["xyz"].tolist())
+    assert "PSNR dyn" in saved["table"]
     assert methods["OMG4-M"]["num_gaussians"] < methods["Real-Time4DGS (baseline)"]["num_gaussians"]
     assert Image.open(out / "rate_distortion.png").size[0] > 100
     with av.open(str(out / "side_by_side.mp4")) as c:

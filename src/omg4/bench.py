@@ -2,8 +2,9 @@
 
 Rows (paper Tab. 4 and Tab. 1): GS+AC; GS+GP+AC; GS+GP+GM+AC (= OMG4-M); GS and GP
 applied at once, then GM+AC; and the L / M / S / T presets. Every row reports PSNR, SSIM,
-LPIPS-alex, FPS, #Gaussians, MB, bytes per Gaussian and the compression wall time. The SD
-scores of the baseline are computed once and shared by every row.
+LPIPS-alex, PSNR and SSIM over the moving pixels, FPS, #Gaussians, MB, bytes per Gaussian
+and the compression wall time. The SD scores of the baseline and the dynamic-region masks
+are computed once and shared by every row.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 import torch
 
 from omg4.atomic import write_text_atomic
-from omg4.demo import format_table, rate_distortion_plot
+from omg4.report import format_table, rate_distortion_plot
 
 AC = ("appearance", "svq3d", "svq4d")
 ROWS: dict[str, tuple[str, tuple[str, ...]]] = {
@@ -49,7 +50,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.compress.score import compute_sd_scores
-    from omg4.evaluate import evaluate
+    from omg4.evaluate import dynamic_masks, evaluate
 
     out.mkdir(parents=True, exist_ok=True)
     baseline = baseline.to(device)
@@ -57,9 +58,10 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     if not scores_path.exists():
         compute_sd_scores(baseline, scene.train_views, backend=backend, device=device).save(scores_path)
     results: dict[str, dict] = {}
+    masks = dynamic_masks(scene.test_views)  # one dynamic region for every row
     log("evaluating the baseline")
     results["Real-Time4DGS"] = evaluate(baseline, scene.test_views, storage_bytes=baseline_path.stat().st_size,
-                                        backend=backend, device=device)
+                                        backend=backend, device=device, masks=masks)
     for name in rows or list(ROWS):
         preset, stages = ROWS[name]
         log(f"row {name}: preset {preset}, stages {','.join(stages)}")
@@ -68,7 +70,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
                              baseline_iterations=baseline_iterations, backend=backend, device=str(device))
         report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path, log=log)
         r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size, backend=backend,
-                     device=device)
+                     device=device, masks=masks)
         r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=report["file_bytes"] / r["num_gaussians"],
                  stages=report["stages"], file=str(path))
         results[name] = r

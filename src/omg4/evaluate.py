@@ -1,6 +1,7 @@
 """Evaluation as the paper's tables report it: PSNR, SSIM, LPIPS, FPS, #Gaussians, storage.
 
-Beside them, ``visible_fraction``: the mean share of the model's Gaussians that pass the
+Beside them (beyond the paper): PSNR and SSIM over the pixels that move
+(:mod:`omg4.metrics.dynamic`), and ``visible_fraction``: the mean share of the model's Gaussians that pass the
 temporal cull and reach the rasterizer in a frame (what a frame's cost scales with).
 
 PSNR is the standard one over all pixels and channels; SSIM is the 3DGS 11×11 Gaussian-
@@ -60,18 +61,49 @@ def render_image(model, view: View, background: torch.Tensor | None = None, back
     return rendered.image.clamp(0.0, 1.0)
 
 
+class _ClipImages:
+    """The ground-truth images of ``views`` as a lazy sequence (read one at a time)."""
+
+    def __init__(self, views: list[View]):
+        self.views = views
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return self.views[i].image()
+
+
+def dynamic_masks(views: list[View]) -> dict[str, np.ndarray]:
+    """The dynamic-region mask of each camera with at least two views in ``views``
+    (:func:`omg4.metrics.dynamic.dynamic_mask`), keyed by camera name."""
+    from omg4.metrics.dynamic import dynamic_mask
+
+    by_camera: dict[str, list[View]] = {}
+    for v in views:
+        by_camera.setdefault(v.camera.name, []).append(v)
+    return {name: dynamic_mask(_ClipImages(clip)) for name, clip in by_camera.items() if len(clip) >= 2}
+
+
 def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpips_nets: tuple[str, ...] = ("alex",),
              background: torch.Tensor | None = None, backend: str = "auto", fps_views: int = 30,
-             progress: bool = True, device: torch.device | str = "cpu") -> dict:
+             progress: bool = True, device: torch.device | str = "cpu",
+             masks: dict[str, np.ndarray] | None = None) -> dict:
     """Per-view and mean metrics of ``model`` on ``views``, plus FPS, Gaussian count and storage.
 
     ``model`` and ``background`` live on ``device``, where the renders, ground truths and
-    metrics are computed (FPS synchronizes CUDA around every timed frame).
+    metrics are computed (FPS synchronizes CUDA around every timed frame). ``psnr_dynamic``
+    and ``ssim_dynamic`` are PSNR and SSIM over each test camera's dynamic region
+    (``masks``, by default :func:`dynamic_masks` of ``views``; pass them in to evaluate
+    several models on one scene without recomputing), ``dynamic_fraction`` its share of
+    the pixels; the means skip views whose camera has no moving pixel.
     """
     from omg4.metrics import lpips, measure_fps, psnr, ssim
+    from omg4.metrics.dynamic import masked_psnr, masked_ssim
 
     if not views:
         raise OMG4Error("there are no test views to evaluate on")
+    masks = dynamic_masks(views) if masks is None else masks
     per_view = []
     for v in tqdm(views, desc="eval", disable=not progress, dynamic_ncols=True):
         with torch.no_grad():
@@ -80,11 +112,17 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
         img, gt = rendered.image.clamp(0.0, 1.0), view_image(v, device)
         row = {"camera": v.camera.name, "frame": v.frame_index, "time": v.timestamp, "psnr": psnr(img, gt),
                "ssim": float(ssim(img, gt)), "visible_fraction": sl.index.numel() / max(model.num_gaussians, 1)}
+        mask = masks.get(v.camera.name)
+        if mask is not None and mask.any():
+            row.update(psnr_dynamic=masked_psnr(img, gt, mask), ssim_dynamic=masked_ssim(img, gt, mask),
+                       dynamic_fraction=float(mask.mean()))
         for net in lpips_nets:
             row[f"lpips_{net}"] = lpips(img, gt, net)
         per_view.append(row)
-    keys = [k for k in per_view[0] if k not in ("camera", "frame", "time")]
-    mean = {k: float(np.mean([r[k] for r in per_view])) for k in keys}
+    keys = list(dict.fromkeys(k for r in per_view for k in r if k not in ("camera", "frame", "time")))
+    mean = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
+    for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction"):
+        mean.setdefault(k, None)
     step = max(1, len(views) // fps_views)
     timed = views[::step][:fps_views]
     fps = measure_fps(lambda v: render_view(model, v.camera, v.timestamp, background=background, backend=backend,

@@ -66,7 +66,7 @@ def test_quirk_differs_from_clean_dynamic_score(small_model, tiny_scene):
     views = tiny_scene.train_views[:6]
     clean = compute_sd_scores(small_model, views, backend="cpu", progress=False)
     quirk = compute_sd_scores(small_model, views, backend="cpu", official_quirk=True, progress=False)
-    assert torch.equal(clean.static, quirk.static)
+    assert torch.allclose(clean.static, quirk.static, rtol=1e-5, atol=0)  # the quirk only reweights views
     assert not torch.allclose(clean.dynamic, quirk.dynamic)
 
 

@@ -36,7 +36,8 @@ def run(args) -> int:
     nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
     result = evaluate(model, views, storage_bytes=args.model.stat().st_size, lpips_nets=nets, background=bg,
                       backend=args.backend, device=device)
-    cols = ["psnr", "ssim", *[f"lpips_{n}" for n in nets], "fps", "num_gaussians", "visible_fraction", "storage_mb"]
+    cols = ["psnr", "ssim", *[f"lpips_{n}" for n in nets], "psnr_dynamic", "ssim_dynamic", "fps", "num_gaussians",
+            "visible_fraction", "storage_mb"]
     print(" | ".join(f"{c}" for c in cols))
     print(" | ".join(f"{result[c]:.4g}" if isinstance(result[c], float) else str(result[c]) for c in cols))
     if args.json:

@@ -21,9 +21,9 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4.data.scene import View
-from omg4.render.view import render_view
-from omg4.train.loss import photometric_loss
 from omg4.evaluate import view_image
+from omg4.render.view import render_views, views_by_size
+from omg4.train.loss import photometric_losses
 
 
 @dataclass
@@ -62,11 +62,17 @@ class SDScores:
 
 def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | None = None, backend: str = "auto",
                       lambda_dssim: float = 0.2, official_quirk: bool = False, progress: bool = True,
-                      device: torch.device | str = "cpu") -> SDScores:
+                      device: torch.device | str = "cpu", batch_size: int = 4) -> SDScores:
     """One pass over ``views`` (in order) accumulating S and T for every Gaussian of ``model``.
 
-    ``model`` exposes ``params`` (with a ``"t"`` tensor [N, 1]) and ``slice_at``; it and
+    ``model`` exposes ``params`` (with a ``"t"`` tensor [N, 1]) and ``slice_views``; it and
     ``background`` live on ``device``, where the scores are accumulated before moving to the CPU.
+
+    ``batch_size`` views are rendered and back-propagated together: every row of a batched
+    slice belongs to one view, so its 2D-mean gradient is that view's ∂L_j/∂u_ij, and the
+    time gradient of Σ_j w_j L_j is Σ_j w_j ∂L_j/∂t. With w_j = 1 that is T; the release's
+    running sum (``official_quirk``) equals Σ_j (n − j) ∂L_j/∂t over the n views in order,
+    so the quirk weights view j by n − j and divides its rows' 2D gradients by the same.
     """
     n = model.params["t"].shape[0]
     static = torch.zeros(n, dtype=torch.float64, device=device)
@@ -77,23 +83,27 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
         p.requires_grad_(False)
         p.grad = None
     t_param.requires_grad_(True)
-    t_grad_running = torch.zeros(n, dtype=torch.float64, device=device)
     try:
-        for view in tqdm(views, desc="SD score", disable=not progress, dynamic_ncols=True):
-            rendered, sl = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
-                                       device=device)
-            loss = photometric_loss(rendered.image, view_image(view, device), lambda_dssim)
-            loss.backward()
-            if rendered.means2d.grad is not None:
-                g2d = rendered.means2d.grad.double().norm(dim=-1)
-                static.index_add_(0, sl.index, g2d)
-            g_t = t_param.grad.double().squeeze(1) if t_param.grad is not None else torch.zeros_like(dynamic)
-            if official_quirk:  # the release never zeroes _t.grad: each view adds the running sum
-                t_grad_running += g_t
-                dynamic += t_grad_running
-            else:
-                dynamic += g_t
-            t_param.grad = None
+        bar = tqdm(total=len(views), desc="SD score", disable=not progress, dynamic_ncols=True)
+        for start in range(0, len(views), max(1, batch_size)):
+            chunk = views[start:start + max(1, batch_size)]
+            for group in views_by_size([v.camera for v in chunk]):
+                members = [chunk[i] for i in group]
+                weights = torch.tensor([float(len(views) - start - i) if official_quirk else 1.0 for i in group],
+                                       dtype=torch.float64, device=device)
+                rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
+                                            background=background, backend=backend, device=device)
+                gts = torch.stack([view_image(v, device) for v in members])
+                losses = photometric_losses(rendered.image, gts, lambda_dssim)
+                (losses * weights.to(losses.dtype)).sum().backward()
+                if rendered.means2d.grad is not None:
+                    g2d = rendered.means2d.grad.double().norm(dim=-1) / weights.index_select(0, sl.views)
+                    static.index_add_(0, sl.index, g2d)
+                if t_param.grad is not None:
+                    dynamic += t_param.grad.double().squeeze(1)
+                t_param.grad = None
+            bar.update(len(chunk))
+        bar.close()
     finally:
         for k, p in model.params.items():
             p.requires_grad_(saved_flags[k])

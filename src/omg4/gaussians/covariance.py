@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from omg4.gaussians.rotation import build_rotation_4d
+from omg4.render.small_matmul import small_matmul
 
 
 def covariance_4d(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor,
@@ -36,8 +37,8 @@ def covariance_4d(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor,
 
 
 def _outer_rows(L: torch.Tensor) -> torch.Tensor:
-    """L Lᵀ for [N, 4, 4] ``L`` as one broadcast product and sum (no batched 4×4 matrix products)."""
-    return (L.unsqueeze(-2) * L.unsqueeze(-3)).sum(-1)
+    """L Lᵀ for [N, 4, 4] ``L`` (:func:`omg4.render.small_matmul.small_matmul`: the device's fastest form)."""
+    return small_matmul(L, L.transpose(-1, -2))
 
 
 def temporal_marginal(dt: torch.Tensor, var_t: torch.Tensor) -> torch.Tensor:

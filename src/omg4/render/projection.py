@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import torch
 
+from omg4.render.small_matmul import small_matmul
+
 ALPHA_THRESHOLD = 1.0 / 255.0
 """Smallest alpha a Gaussian may add to a pixel (gsplat's ``ALPHA_THRESHOLD``)."""
 
@@ -89,13 +91,12 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
     tx = z * torch.clamp(x * rz, min=-lim_xn, max=lim_xp)
     ty = z * torch.clamp(y * rz, min=-lim_yn, max=lim_yp)
     # J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]]; cov2d = (J R) S (J R)ᵀ with S the symmetric
-    # part of Σ, as a few broadcast products over the small axes (no batched 3×3 matrix products)
+    # part of Σ, as three products of tiny per-Gaussian matrices (:mod:`omg4.render.small_matmul`)
     zero = torch.zeros_like(z)
     J = torch.stack([fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(-1, 2, 3)
-    JR = (J.unsqueeze(-1) * R.unsqueeze(-3)).sum(-2)  # [N, 2, 3]
+    JR = small_matmul(J, R)  # [N, 2, 3]
     S = 0.5 * (covars + covars.transpose(-1, -2))
-    JRS = (JR.unsqueeze(-1) * S.unsqueeze(-3)).sum(-2)  # [N, 2, 3]
-    cov2d = (JRS.unsqueeze(-2) * JR.unsqueeze(-3)).sum(-1)  # [N, 2, 2]
+    cov2d = small_matmul(small_matmul(JR, S), JR.transpose(-1, -2))  # [N, 2, 2]
     c00 = cov2d[:, 0, 0] + eps2d
     c11 = cov2d[:, 1, 1] + eps2d
     c01 = cov2d[:, 0, 1]

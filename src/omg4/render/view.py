@@ -107,3 +107,11 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     rendered = rasterize_views(sl.means, sl.covars, sl.colors, sl.opacities, views, viewmats, Ks, width, height,
                                background=background, backend=backend, **raster_kwargs)
     return rendered, sl
+
+
+def views_by_size(cameras: list[Camera]) -> list[list[int]]:
+    """Positions of ``cameras`` grouped by image size (first-seen order), for :func:`render_views`."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, c in enumerate(cameras):
+        groups.setdefault((c.width, c.height), []).append(i)
+    return list(groups.values())

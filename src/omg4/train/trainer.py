@@ -29,7 +29,7 @@ from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.checkpoint import save_gaussians
 from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
-from omg4.render.view import render_views
+from omg4.render.view import render_views, views_by_size
 from omg4.train import densify
 from omg4.train.config import TrainConfig
 from omg4.train.loss import photometric_losses
@@ -76,11 +76,9 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
     loss is a one-line error naming ``what``.
     """
     chosen = [views[i] for i in batch.tolist()]
-    groups: dict[tuple[int, int], list[View]] = {}
-    for v in chosen:
-        groups.setdefault((v.camera.width, v.camera.height), []).append(v)
     total, psnr_sum, rendered_groups = 0.0, 0.0, []
-    for members in groups.values():
+    for group in views_by_size([v.camera for v in chosen]):
+        members = [chosen[i] for i in group]
         rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
                                     background=background, backend=backend, device=device)
         gts = torch.stack([view_image(v, device) for v in members])
