@@ -77,6 +77,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default=None, help="row name (default: the dataset folder's name)")
     ap.add_argument("--json", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
+    if args.label != "before":  # the allocator setting is part of the change being measured
+        from omg4.allocator import keep_freed_memory
+
+        keep_freed_memory()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
     rows = [measure_model(p, scene.test_views, args.device, args.frames) for p in args.models]
     base = rows[0]["ms_per_frame"]

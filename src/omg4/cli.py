@@ -71,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    from omg4.allocator import keep_freed_memory
+
+    keep_freed_memory()
     try:
         return int(modules[args.command].run(args) or 0)
     except OMG4Error as e:
