@@ -7,8 +7,7 @@ baseline | OMG4) and the ``.omg4`` file (plus the same model with the paper's co
 
 The sizes are chosen so that OMG4-M means what the paper's M means within ten minutes on
 two CPU cores: OMG4 prunes a *dense* baseline (the paper's N3DV models hold 2.5 Gaussians
-per pixel; M keeps about 5 % of them), so the demo renders 40 frames at 160×120 (the SD score
-visits every training view once) and lets the baseline grow
+per pixel; M keeps about 5 % of them), so the demo renders 160×120 and lets the baseline grow
 to 80k Gaussians (4.2 per pixel) in 1500 iterations, then fine-tunes the compression for
 4,700 iterations (the paper's 11,000 scaled to the run, with more weight on the recovery
 after pruning and on the MLPs). The M preset's ratios (τ_GS 0.2, p 0.8) are untouched.
@@ -33,10 +32,10 @@ DEMO_LENGTHS = StageLengths(sample=300, prune=600, merge=300, appearance=2400, s
 
 @dataclass(frozen=True)
 class DemoSettings:
-    """Sizes of the demo run (defaults: 16 cameras × 40 frames at 160×120, an 80k-Gaussian baseline)."""
+    """Sizes of the demo run (defaults: 16 cameras × 60 frames at 160×120, an 80k-Gaussian baseline)."""
 
     cameras: int = 16
-    frames: int = 40
+    frames: int = 60
     width: int = 160
     height: int = 120
     train_iterations: int = 1500
