@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from omg4.gaussians.covariance import slice_geometry
-from omg4.gaussians.visibility import VisibilityIndex, temporal_variance
+from omg4.gaussians.covariance import scaled_rotation_4d, slice_geometry, temporal_variance
+from omg4.gaussians.visibility import VisibilityIndex
 
 
 def _gaussians(seed, n=3000, t_range=(0.0, 10.0)):
@@ -25,7 +25,7 @@ def _gaussians(seed, n=3000, t_range=(0.0, 10.0)):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_index_keeps_every_gaussian_that_passes_the_cull(seed):
     p = _gaussians(seed)
-    var_t = temporal_variance(p["scales"], p["q_l"], p["q_r"], "flip")
+    var_t = temporal_variance(scaled_rotation_4d(p["scales"], p["q_l"], p["q_r"], "flip"))
     index = VisibilityIndex.build(p["t"][:, 0], var_t, (0.0, 10.0), time_cull=0.05, windows=16)
     times = torch.cat([torch.rand(200, generator=torch.Generator().manual_seed(seed)) * 10.0,
                        index.edges])  # random times and every window edge
@@ -41,7 +41,7 @@ def test_index_keeps_every_gaussian_that_passes_the_cull(seed):
 
 def test_several_times_get_the_union_and_times_outside_get_none():
     p = _gaussians(3, n=500)
-    var_t = temporal_variance(p["scales"], p["q_l"], p["q_r"], "flip")
+    var_t = temporal_variance(scaled_rotation_4d(p["scales"], p["q_l"], p["q_r"], "flip"))
     index = VisibilityIndex.build(p["t"][:, 0], var_t, (0.0, 10.0), time_cull=0.05, windows=8)
     a, b = (index.rows_at(torch.tensor([x], dtype=torch.float64)) for x in (0.5, 9.5))
     both = index.rows_at(torch.tensor([0.5, 9.5], dtype=torch.float64))

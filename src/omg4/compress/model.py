@@ -14,6 +14,7 @@ import torch
 
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.model import slice_values
+from omg4.render.view import ViewSlicer
 
 # SVQ attribute → the parameter(s) it replaces (reference omg4 §7)
 SVQ_ATTRIBUTES: dict[str, tuple[str, ...]] = {
@@ -27,7 +28,7 @@ SVQ_STAGE_3D = ("scale", "rotation", "app")
 SVQ_STAGE_4D = ("scale_t", "rotation_r")
 
 
-class CompressibleModel:
+class CompressibleModel(ViewSlicer):
     """Per-Gaussian ``params`` (in the main Adam) plus optional merge proxy, appearance MLP and quantizers."""
 
     def __init__(self, params: dict[str, torch.Tensor], config: GaussianConfig, active_sh_degree: int,
@@ -82,10 +83,6 @@ class CompressibleModel:
             sl.index = keep[sl.index]
         sl.num_total = self.num_gaussians
         return sl
-
-    def slice_at(self, timestamp: float, camera_center: torch.Tensor):
-        """The time slice of one view at ``timestamp``."""
-        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
 
     def to_gaussians(self) -> Gaussians4D:
         """A plain Real-Time4DGS model (only before attribute compression: appearance must be explicit)."""

@@ -21,9 +21,7 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4.data.scene import View
-from omg4.evaluate import view_image
-from omg4.render.view import render_views, views_by_size
-from omg4.train.loss import photometric_losses
+from omg4.train.trainer import view_losses
 
 
 @dataclass
@@ -87,14 +85,10 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
         bar = tqdm(total=len(views), desc="SD score", disable=not progress, dynamic_ncols=True)
         for start in range(0, len(views), max(1, batch_size)):
             chunk = views[start:start + max(1, batch_size)]
-            for group in views_by_size([v.camera for v in chunk]):
-                members = [chunk[i] for i in group]
+            for group, rendered, sl, _, losses in view_losses(model, chunk, background=background, backend=backend,
+                                                              lambda_dssim=lambda_dssim, device=device):
                 weights = torch.tensor([float(len(views) - start - i) if official_quirk else 1.0 for i in group],
                                        dtype=torch.float64, device=device)
-                rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
-                                            background=background, backend=backend, device=device)
-                gts = torch.stack([view_image(v, device) for v in members])
-                losses = photometric_losses(rendered.image, gts, lambda_dssim)
                 (losses * weights.to(losses.dtype)).sum().backward()
                 if rendered.means2d.grad is not None:
                     g2d = rendered.means2d.grad.double().norm(dim=-1) / weights.index_select(0, sl.views)

@@ -22,6 +22,17 @@ from omg4.gaussians.rotation import build_rotation_4d
 from omg4.render.small_matmul import small_matmul
 
 
+def scaled_rotation_4d(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor,
+                       convention: str = "flip") -> torch.Tensor:
+    """L = R4 diag(s), [N, 4, 4] (rt4dgs §1.3): Σ4 = L Lᵀ. Arguments as :func:`covariance_4d`."""
+    return build_rotation_4d(q_l, q_r, convention) * scales.unsqueeze(-2)
+
+
+def temporal_variance(L: torch.Tensor) -> torch.Tensor:
+    """Σtt = ‖time row of L‖² of every Gaussian, from :func:`scaled_rotation_4d`'s [N, 4, 4] → [N]."""
+    return L[:, 3, :].square().sum(-1)
+
+
 def covariance_4d(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor,
                   convention: str = "flip") -> torch.Tensor:
     """Σ4 = L Lᵀ with L = R4 diag(s) (rt4dgs §1.3).
@@ -33,7 +44,7 @@ def covariance_4d(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor,
     Returns:
         [N, 4, 4] symmetric covariance matrices.
     """
-    return _outer_rows(build_rotation_4d(q_l, q_r, convention) * scales.unsqueeze(-2))
+    return _outer_rows(scaled_rotation_4d(scales, q_l, q_r, convention))
 
 
 def _outer_rows(L: torch.Tensor) -> torch.Tensor:
@@ -99,16 +110,16 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
 
     One pass serves every query time: the 4D rotation and scale (``L = R4 diag(s)``) are built
     once, the marginals of all (time, Gaussian) pairs are computed together, and the 4D
-    covariance and its Schur complement only for the surviving pairs, as closed-form
-    element-wise expressions. Differentiable w.r.t. all inputs.
+    covariance and its Schur complement only for the surviving pairs. Differentiable w.r.t.
+    all inputs.
 
     Args:
         xyz: [N, 3], t: [N, 1] means; scales: [N, 4] activated scales (x, y, z, t);
         q_l, q_r: [N, 4] quaternions; timestamps: one query time or [V] of them.
     """
     times = torch.as_tensor(timestamps, dtype=xyz.dtype, device=xyz.device).reshape(-1)
-    L = build_rotation_4d(q_l, q_r, convention) * scales.unsqueeze(-2)  # [N, 4, 4]
-    var_t = L[:, 3, :].square().sum(-1)
+    L = scaled_rotation_4d(scales, q_l, q_r, convention)  # [N, 4, 4]
+    var_t = temporal_variance(L)
     p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
     views, index = (p_t > time_cull).nonzero(as_tuple=True)
     # gathers by index_select: its backward is an index_add, far cheaper on the CPU than indexing's
@@ -121,4 +132,4 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
     return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=-dt, views=views)
 
 
-__all__ = ["covariance_4d", "temporal_marginal", "condition_on_time", "SliceGeometry", "slice_geometry"]
+__all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "temporal_marginal", "condition_on_time", "SliceGeometry", "slice_geometry"]

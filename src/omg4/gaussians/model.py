@@ -29,7 +29,7 @@ from omg4.errors import DataError
 from omg4.gaussians.covariance import covariance_4d, slice_geometry
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
 from omg4.gaussians.sh import colors_from_sh, num_sh_coeffs, rgb_to_sh, view_directions
-from omg4.render.view import TimeSlice
+from omg4.render.view import TimeSlice, ViewSlicer
 
 if TYPE_CHECKING:
     from omg4.gaussians.appearance import AppearanceMLP
@@ -116,7 +116,7 @@ def mean_neighbour_sq_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
     return (dist[:, 1:] ** 2).mean(axis=1)
 
 
-class Gaussians4D:
+class Gaussians4D(ViewSlicer):
     """A Real-Time4DGS model: raw parameters, fixed config and active SH degrees."""
 
     def __init__(self, params: dict[str, torch.Tensor], config: GaussianConfig,
@@ -189,7 +189,7 @@ class Gaussians4D:
 
     def scales(self) -> torch.Tensor:
         """[N, 4] exp of the log scales, (x, y, z, t)."""
-        return torch.cat([self.params["scaling"], self.params["scaling_t"]], dim=1).exp()
+        return activated_scales(self.params)
 
     def features(self) -> torch.Tensor:
         """[N, K, 3] all SH coefficients (DC first)."""
@@ -201,10 +201,6 @@ class Gaussians4D:
         return covariance_4d(self.scales(), p["rotation"], p["rotation_r"], self.config.rotation_convention)
 
     # rendering -------------------------------------------------------------------------
-    def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
-        """The 3D Gaussians shown at ``timestamp`` to a viewer at ``camera_center`` [3] (see :func:`slice_values`)."""
-        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
-
     def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor) -> TimeSlice:
         """The 3D Gaussians of ``V`` views at once: ``timestamps`` [V], ``camera_centers`` [V, 3]."""
         return slice_values(self.params, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
@@ -223,6 +219,11 @@ class Gaussians4D:
         """An independent copy with detached, cloned parameters."""
         params = {k: v.detach().clone() for k, v in self.params.items()}
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
+
+
+def activated_scales(values: dict[str, torch.Tensor]) -> torch.Tensor:
+    """[N, 4] exp of the raw ``scaling`` and ``scaling_t`` values, (x, y, z, t)."""
+    return torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
 
 
 def _moved_leaf(value: torch.Tensor, device: torch.device | str) -> torch.Tensor:
@@ -251,8 +252,7 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
     times = times64.to(xyz.dtype)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
-    scales = torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
-    geom = slice_geometry(xyz, values["t"], scales, values["rotation"], values["rotation_r"], times,
+    geom = slice_geometry(xyz, values["t"], activated_scales(values), values["rotation"], values["rotation_r"], times,
                           convention=config.rotation_convention, time_cull=config.time_cull)
     idx = geom.index
 
@@ -275,5 +275,5 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
                      index=idx, num_total=int(xyz.shape[0]), views=geom.views)
 
 
-__all__ = ["slice_values", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
+__all__ = ["slice_values", "activated_scales", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
            "mean_neighbour_sq_distance"]

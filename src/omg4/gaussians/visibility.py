@@ -17,17 +17,12 @@ from dataclasses import dataclass
 
 import torch
 
-from omg4.gaussians.model import GaussianConfig, slice_values
-from omg4.gaussians.rotation import build_rotation_4d
-from omg4.render.view import TimeSlice
+from omg4.gaussians.covariance import scaled_rotation_4d, temporal_variance
+from omg4.gaussians.model import GaussianConfig, activated_scales, slice_values
+from omg4.render.view import TimeSlice, ViewSlicer
 
 DEFAULT_WINDOWS = 32
 """Windows over the model's time range (each a candidate list of Gaussian rows)."""
-
-
-def temporal_variance(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor, convention: str) -> torch.Tensor:
-    """Σtt of every Gaussian (rt4dgs §1.3): the squared norm of the time row of ``L = R4 diag(s)``. → [N]"""
-    return (build_rotation_4d(q_l, q_r, convention)[:, 3, :] * scales).square().sum(-1)
 
 
 @dataclass
@@ -68,7 +63,7 @@ class VisibilityIndex:
         return torch.cat([self.rows[i] for i in k]).unique()
 
 
-class WindowedModel:
+class WindowedModel(ViewSlicer):
     """A render-only 4D model whose frames touch only their time window's Gaussians.
 
     Holds raw per-Gaussian ``values`` (the Real-Time4DGS parameters, or geometry plus
@@ -86,9 +81,9 @@ class WindowedModel:
         self.active_sh_degree_t = active_sh_degree_t
         self.appearance = appearance
         v = self.values
-        var_t = temporal_variance(torch.cat([v["scaling"], v["scaling_t"]], dim=1).exp(), v["rotation"],
-                                  v["rotation_r"], config.rotation_convention)
-        self.visibility = VisibilityIndex.build(v["t"], var_t, config.time_range, config.time_cull, windows)
+        L = scaled_rotation_4d(activated_scales(v), v["rotation"], v["rotation_r"], config.rotation_convention)
+        self.visibility = VisibilityIndex.build(v["t"], temporal_variance(L), config.time_range, config.time_cull,
+                                                windows)
 
     @property
     def num_gaussians(self) -> int:
@@ -107,9 +102,5 @@ class WindowedModel:
         sl.num_total = self.num_gaussians
         return sl
 
-    def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
-        """The time slice of one view."""
-        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
 
-
-__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "WindowedModel", "temporal_variance"]
+__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "WindowedModel"]

@@ -164,11 +164,14 @@ def _check_inputs(means, covars, colors, opacities, views, viewmats, Ks, width, 
     named = {"means": means, "covars": covars, "colors": colors, "opacities": opacities, "viewmat": viewmats, "K": Ks}
     if background is not None:
         named["background"] = background
-    finite = torch.stack([torch.isfinite(value).all() for value in named.values()])
-    if not bool(finite.all()):  # one host synchronization for all inputs
-        bad = next(name for name, ok in zip(named, finite.tolist()) if not ok)
+    checks = [torch.isfinite(value).all() for value in named.values()]
+    if views is not None:
+        checks.append(((views >= 0) & (views < v)).all())
+    passed = torch.stack(checks).tolist()  # one host synchronization for every check
+    bad = next((name for name, ok in zip(named, passed) if not ok), None)
+    if bad is not None:
         raise OMG4Error(f"rasterize: {bad} contains NaN or infinite values")
-    if views is not None and n > 0 and not 0 <= int(views.min()) <= int(views.max()) < v:
+    if not passed[-1]:
         raise ValueError(f"views must lie in [0, {v})")
 
 

@@ -80,7 +80,7 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
     """
     R = viewmat[..., :3, :3]
     t = viewmat[..., :3, 3]
-    means_c = means @ R.T + t if viewmat.dim() == 2 else (R * means[:, None, :]).sum(-1) + t  # [N, 3]
+    means_c = means @ R.T + t if viewmat.dim() == 2 else small_matmul(R, means[:, :, None])[..., 0] + t  # [N, 3]
     x, y, z = means_c.unbind(-1)
     in_range = (z >= near) & (z <= far)
     z = torch.where(in_range, z, torch.ones_like(z))  # safe denominator for culled rows

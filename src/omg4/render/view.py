@@ -51,6 +51,17 @@ class SlicedModel(Protocol):
     def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice: ...
 
 
+class ViewSlicer:
+    """Base of the models that slice several views in one pass: ``slice_at`` is one view of ``slice_views``."""
+
+    def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor) -> TimeSlice:
+        raise NotImplementedError
+
+    def slice_at(self, timestamp: float, camera_center: torch.Tensor) -> TimeSlice:
+        """The 3D Gaussians shown at ``timestamp`` to a viewer at ``camera_center`` [3]."""
+        return self.slice_views(torch.tensor([float(timestamp)], dtype=torch.float64, device="cpu"), camera_center)
+
+
 class BatchSlicedModel(SlicedModel, Protocol):
     """A model that also slices several views in one pass (``timestamps [V]``, ``camera_centers [V, 3]``)."""
 

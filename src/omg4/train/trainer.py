@@ -61,6 +61,19 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
     return min(k, max_deg), min(max(k - max_deg, 0), max_deg_t)
 
 
+def view_losses(model, views: list[View], *, background: torch.Tensor | None, backend: str, lambda_dssim: float,
+                device: torch.device | str = "cpu"):
+    """Render ``views`` in one pass per image size and yield, group by group,
+    ``(positions in views, rendered, time slice, ground truths [V, H, W, 3], per-view losses [V])``
+    (rt4dgs §3.2 loss; :func:`omg4.render.view.render_views`)."""
+    for group in views_by_size([v.camera for v in views]):
+        members = [views[i] for i in group]
+        rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
+                                    background=background, backend=backend, device=device)
+        gts = torch.stack([view_image(v, device) for v in members])
+        yield group, rendered, sl, gts, photometric_losses(rendered.image, gts, lambda_dssim)
+
+
 def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
                    lambda_dssim: float, what: str, step: int, device: torch.device | str = "cpu",
                    on_views=None) -> tuple[float, float]:
@@ -77,12 +90,9 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
     """
     chosen = [views[i] for i in batch.tolist()]
     total, psnr_sum, rendered_groups = 0.0, 0.0, []
-    for group in views_by_size([v.camera for v in chosen]):
-        members = [chosen[i] for i in group]
-        rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
-                                    background=background, backend=backend, device=device)
-        gts = torch.stack([view_image(v, device) for v in members])
-        total = total + photometric_losses(rendered.image, gts, lambda_dssim).sum() / len(chosen)
+    for _, rendered, sl, gts, losses in view_losses(model, chosen, background=background, backend=backend,
+                                                    lambda_dssim=lambda_dssim, device=device):
+        total = total + losses.sum() / len(chosen)
         mse = (rendered.image.detach().clamp(0, 1) - gts).square().mean((1, 2, 3))
         psnr_sum = psnr_sum + (-10.0 * torch.log10(mse)).sum()
         rendered_groups.append((rendered, sl))
@@ -246,4 +256,5 @@ def train(scene: Scene, cfg: TrainConfig, run_dir: str | Path, **kwargs) -> Trai
     return Trainer(scene, cfg, run_dir, **kwargs).run()
 
 
-__all__ = ["TrainResult", "Trainer", "train", "initial_model", "evaluate_psnr", "active_sh_degrees"]
+__all__ = ["TrainResult", "Trainer", "train", "initial_model", "evaluate_psnr", "active_sh_degrees", "view_losses",
+           "backward_batch"]
