@@ -1,16 +1,21 @@
 """Atomic file writes: write to a temporary file beside the target, then rename.
 
-An interrupted run never leaves a truncated output that looks valid (DESIGN.md, fixed
-conventions).
+An interrupted run never leaves a truncated output that looks valid. Temporaries are named
+``.<stem>.<pid>-<random>.tmp<suffix>``; the next write of the same target deletes those
+whose writing process has ended (a run killed with SIGKILL cannot clean up after itself).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+from omg4.errors import OMG4Error
 
 
 @contextlib.contextmanager
@@ -19,20 +24,64 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
     The temporary file keeps the target's suffix so that writers choosing a format by
     extension (PNG, MP4, ...) behave as for the final name. On any exception the
-    temporary file is removed and the target is left untouched.
+    temporary file is removed and the target is left untouched; an operating-system error
+    (permissions, a full disk, a read-only mount) becomes a one-line :class:`OMG4Error`.
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent)
+    prefix, suffix = f".{target.stem}.", f".tmp{target.suffix}"
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(target.parent, prefix, suffix)
+        fd, tmp_name = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}-", suffix=suffix, dir=target.parent)
+    except OSError as exc:
+        raise OMG4Error(f"cannot write {target}: {exc.strerror or exc}") from None
     os.close(fd)
     tmp = Path(tmp_name)
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; outputs get the usual permissions
     try:
         yield tmp
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise OMG4Error(f"cannot write {target}: {exc.strerror or exc}") from None
         raise
+
+
+# what mkstemp/mkdtemp and uuid put between prefix and suffix, after an optional "<pid>-"
+_TEMP_MIDDLE = re.compile(r"(?:(\d+)-)?[a-z0-9_]{8,12}")
+
+
+def remove_stale_temporaries(folder: Path, prefix: str, suffix: str = "") -> None:
+    """Delete the files or folders ``prefix<pid>-<random>suffix`` in ``folder`` whose process ``pid`` has ended
+    (and those of the older ``prefix<random>suffix`` form): what interrupted writes left behind."""
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        name = entry.name
+        if not (name.startswith(prefix) and name.endswith(suffix) and len(name) > len(prefix) + len(suffix)):
+            continue
+        match = _TEMP_MIDDLE.fullmatch(name[len(prefix):len(name) - len(suffix)])
+        if match is None or (match.group(1) and _process_alive(int(match.group(1)))):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 def _umask() -> int:

@@ -31,8 +31,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``omg4 train: error: argument --iterations: ... (see omg4 train --help)``."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def _build_parser(command: str | None) -> tuple[argparse.ArgumentParser, dict]:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="omg4",
         description="OMG4: train, compress, decode, render and evaluate 4D Gaussian Splatting models.",
     )
@@ -60,11 +67,12 @@ def main(argv: list[str] | None = None) -> int:
     command = next((a for a in argv if not a.startswith("-")), None)
     if command not in COMMANDS:
         command = None
+    from omg4.commands.common import printable
     from omg4.errors import OMG4Error
 
     try:
         parser, modules = _build_parser(command)
-    except ModuleNotFoundError as e:  # a command not built yet
+    except ModuleNotFoundError as e:  # an optional dependency of the command is not installed
         print(f"omg4: error: command '{command}' is not available ({e})", file=sys.stderr)
         return 2
     args = parser.parse_args(argv)
@@ -77,7 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(modules[args.command].run(args) or 0)
     except OMG4Error as e:
-        print(f"omg4 {args.command}: error: {e}", file=sys.stderr)
+        print(f"omg4 {args.command}: error: {printable(e)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"omg4 {args.command}: error: out of memory (a smaller scene, model or image size may fit)",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"omg4 {args.command}: interrupted", file=sys.stderr)

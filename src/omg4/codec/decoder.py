@@ -35,31 +35,44 @@ class CompactModel(WindowedModel):
 
     def __init__(self, payload: CompressedPayload, device: torch.device | str = "cpu"):
         meta = payload.meta
-        try:
-            config = GaussianConfig.from_json(meta["gaussian_config"])
-            active_sh_degree = int(meta["active_sh_degree"])
-            active_sh_degree_t = int(meta["active_sh_degree_t"])
-        except (KeyError, TypeError, ValueError) as e:
-            raise CorruptFileError(f"compressed model metadata is incomplete ({e})") from None
+        config, active_sh_degree, active_sh_degree_t = model_settings(meta)
         n = payload.num_gaussians
         values = {"xyz": torch.from_numpy(np.asarray(payload.xyz, np.float32).reshape(n, 3)),
                   "t": torch.from_numpy(np.asarray(payload.t, np.float32).reshape(n, 1))}
         for attr, targets in QUANTIZED_PARAMS.items():
             if attr not in payload.attributes:
                 raise CorruptFileError(f"compressed model lacks the quantized attribute '{attr}'")
-            recon = torch.from_numpy(payload.attributes[attr].reconstruct())
-            width = sum(w for _, w in targets)
-            if recon.shape != (n, width):
-                raise CorruptFileError(f"quantized attribute '{attr}' has shape {tuple(recon.shape)}, "
-                                       f"expected ({n}, {width})")
+            quantized = payload.attributes[attr]
+            width, stored = sum(w for _, w in targets), sum(cb.shape[1] for cb in quantized.codebooks)
+            if stored != width:
+                raise CorruptFileError(f"quantized attribute '{attr}' has width {stored}, expected {width}")
+            recon = torch.from_numpy(quantized.reconstruct())
             start = 0
             for name, w in targets:
                 values[name] = recon[:, start:start + w]
                 start += w
         appearance = AppearanceMLP.from_fp16_state(payload.mlp).eval().to(device)
+        if appearance.num_rest < config.num_coeffs - 1:
+            raise CorruptFileError(f"appearance MLP predicts {appearance.num_rest} SH coefficients, the model "
+                                   f"config needs {config.num_coeffs - 1}")
         super().__init__({k: v.to(device) for k, v in values.items()}, config, active_sh_degree, active_sh_degree_t,
                          appearance)
         self.meta = meta
+
+
+def model_settings(meta: dict) -> tuple[GaussianConfig, int, int]:
+    """The model config and active SH degrees a payload's ``meta`` declares, validated (types, ranges,
+    finiteness); anything else raises a one-line :class:`CorruptFileError`."""
+    try:
+        config = GaussianConfig.from_json(meta["gaussian_config"])
+        degrees = meta["active_sh_degree"], meta["active_sh_degree_t"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise CorruptFileError(f"compressed model metadata is incomplete or invalid ({e})") from None
+    limits = (config.sh_degree, config.sh_degree_t)
+    if not all(type(d) is int and 0 <= d <= hi for d, hi in zip(degrees, limits)):
+        raise CorruptFileError(f"compressed model metadata: active SH degrees {degrees!r} must be integers "
+                               f"within the maximum {limits}")
+    return config, degrees[0], degrees[1]
 
 
 def load_omg4(path: str | os.PathLike, device: torch.device | str = "cpu") -> CompactModel:

@@ -6,7 +6,7 @@ Two interchangeable methods behind :func:`encode_indices` / :func:`decode_indice
   stream's symbol counts, its bitstream and code description then compressed by LZMA
   (stdlib, preset 6 as ``lzma.open``'s default). OMG4 pickles dahuffman's code table; here
   the symbol counts are stored instead (varints) and the identical code is rebuilt with
-  ``HuffmanCodec.from_frequencies`` — no pickle.
+  ``HuffmanCodec.from_frequencies`` — no pickle — and walked by a numba kernel.
 * ``"ans"`` (default) — asymmetric numeral systems from ``constriction`` with one
   categorical model per stream. The model is the stream's histogram quantized on a log
   scale (``q = 1 + round(a·log2 count)``, ``a`` steps per octave, chosen per stream from
@@ -29,6 +29,7 @@ import zlib
 
 import constriction
 import dahuffman
+import numba
 import numpy as np
 
 from omg4.errors import CorruptFileError
@@ -208,10 +209,66 @@ def _decode_paper(data: bytes, num_symbols: int, count: int) -> np.ndarray:
     symbols, counts = np.cumsum(gaps).astype(np.int64), counts.astype(np.int64)
     if count == 0:
         return np.zeros(0, np.int64)
-    out = np.asarray(_huffman_codec(symbols, counts).decode(plain[used + used2:]), dtype=np.int64)
-    if out.size != count:
+    return symbols[_huffman_decode(_huffman_codec(symbols, counts), counts, plain[used + used2:], count)]
+
+
+def _huffman_decode(codec: dahuffman.HuffmanCodec, counts: np.ndarray, bits: bytes, count: int) -> np.ndarray:
+    """Positions (into the ascending symbol list) of the ``count`` symbols in dahuffman's bitstream ``bits``.
+
+    The stream's length is checked against the code first (Σ count·length bits, the last byte
+    completed by the end-of-stream code), so the walk is bounded by the counts table; the walk
+    itself runs in a numba kernel (dahuffman's decoder tests one bit at a time in Python).
+    """
+    table = codec.get_code_table()
+    eof = table.pop(dahuffman.huffmancodec._EOF)
+    lengths = np.array([table[s][0] for s in sorted(table)] + [eof[0]], np.int64)
+    values = np.array([table[s][1] for s in sorted(table)] + [eof[1]], np.uint64)
+    if lengths.max() > 63:
+        raise CorruptFileError("damaged Huffman+LZMA stream (code longer than 63 bits)")
+    if len(bits) != (int((counts * lengths[:-1]).sum()) + 7) // 8:
+        raise CorruptFileError("damaged Huffman+LZMA stream (bitstream length does not match the counts)")
+    out = np.empty(count, np.int64)
+    if _walk_prefix_code(lengths, values, np.frombuffer(bits, np.uint8), out) != count:
         raise CorruptFileError("damaged Huffman+LZMA stream (decodes to the wrong count)")
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk_prefix_code(lengths, values, data, out):  # pragma: no cover - compiled
+    """Decode the prefix code (symbol s: ``lengths[s]`` bits of ``values[s]``, MSB first; the last symbol
+    ends the stream) from the bytes ``data`` into ``out``; returns the number of symbols decoded, or −1
+    for a bit sequence that is no code word or more symbols than ``out`` holds."""
+    m = lengths.size
+    child = np.full((2 * m, 2), -1, np.int64)
+    leaf = np.full(2 * m, -1, np.int64)
+    nodes = 1
+    for s in range(m):
+        node = 0
+        for i in range(lengths[s] - 1, -1, -1):
+            bit = (values[s] >> np.uint64(i)) & np.uint64(1)
+            if child[node, bit] < 0:
+                if nodes == 2 * m:
+                    return -1
+                child[node, bit] = nodes
+                nodes += 1
+            node = child[node, bit]
+        leaf[node] = s
+    k, node = 0, 0
+    for byte in data:
+        for j in range(7, -1, -1):
+            node = child[node, (byte >> j) & 1]
+            if node < 0:
+                return -1
+            s = leaf[node]
+            if s >= 0:
+                if s == m - 1:
+                    return k
+                if k == out.size:
+                    return -1
+                out[k] = s
+                k += 1
+                node = 0
+    return k
 
 
 # ----------------------------------------------------------------------- public API

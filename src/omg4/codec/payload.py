@@ -24,6 +24,7 @@ floats) and raises :class:`~omg4.errors.CorruptFileError` with one line otherwis
 from __future__ import annotations
 
 import lzma
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -39,6 +40,20 @@ KIND = "omg4-compressed-model"
 MAX_GAUSSIANS = 1 << 27
 MAX_SUB_LEN = 64
 MAX_MLP_ELEMENTS = 1 << 24
+MAX_MLP_DIMS = 4
+MAX_MLP_WEIGHTS = 64
+MAX_ATTRIBUTES = 32
+MAX_SLOTS = 64  # sub-vectors (codebooks) per attribute
+#: A header may not declare more Gaussians than the file's section bytes / this, beyond the first
+#: GAUSSIANS_ALWAYS_ALLOWED (real files spend 10-25 bytes per Gaussian: positions alone take about
+#: 3; a forged one declaring millions in a few kilobytes is refused before anything is decoded).
+MIN_BYTES_PER_GAUSSIAN = 4
+GAUSSIANS_ALWAYS_ALLOWED = 4096
+#: Decoded values (floats, indices, reconstructed attributes) per section byte a header may declare,
+#: plus a fixed allowance for tiny files with large, highly compressible codebooks; real files
+#: declare about 1 per byte.
+MAX_VALUES_PER_BYTE = 64
+VALUES_SLACK = 1 << 20
 _NAME = re.compile(r"^[A-Za-z0-9_]{1,64}$")  # SVQ attribute names
 _MLP_NAME = re.compile(r"^[A-Za-z0-9_.]{1,128}$")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
@@ -283,6 +298,10 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = "
         "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
         "encodings": encodings,
     }
+    try:  # the decoder's limits hold for every file written, so no written file is refused on reading
+        check_sections(header, {name: len(data) for name, data in sections.items()})
+    except CorruptFileError as exc:
+        raise OMG4Error(f"this model cannot be stored: {exc}") from None
     total = write_container(path, header, sections)
     sizes = {name: len(data) for name, data in sections.items()}
     sizes["header"] = total - sum(sizes.values())
@@ -295,25 +314,56 @@ def _is_int(v: object, lo: int, hi: int) -> bool:
 
 
 def _check_header(h: dict, section_bytes: int) -> None:
-    """Structural validation of a payload header; raises CorruptFileError."""
+    """Structural validation of a payload header against hard limits and the file's own size.
+
+    Every count and shape is an exact Python integer; the Gaussian count may not exceed the
+    section bytes / :data:`MIN_BYTES_PER_GAUSSIAN`, and the values the sections decode to
+    (floats, indices, reconstructed attributes) may not exceed :data:`MAX_VALUES_PER_BYTE` per
+    section byte plus :data:`VALUES_SLACK`, so a forged header cannot make the decoder
+    allocate or inflate more than a bounded multiple of the file. Raises CorruptFileError.
+    """
     n = h.get("num_gaussians")
     ok = (h.get("kind") == KIND and h.get("codec") in METHODS and isinstance(h.get("meta"), dict)
           and isinstance(h.get("attributes"), dict) and isinstance(h.get("mlp"), dict)
           and isinstance(h.get("encodings"), dict) and _is_int(n, 1, MAX_GAUSSIANS))
     if not ok:
         raise CorruptFileError("not an OMG4 compressed model (header fields missing or invalid)")
-    if n > 64 * section_bytes:
+    if n > GAUSSIANS_ALWAYS_ALLOWED and n * MIN_BYTES_PER_GAUSSIAN > section_bytes:
         raise CorruptFileError(f"header claims {n} Gaussians, more than the file's {section_bytes} data bytes can hold")
+    if len(h["attributes"]) > MAX_ATTRIBUTES or len(h["mlp"]) > MAX_MLP_WEIGHTS:
+        raise CorruptFileError(f"header lists {len(h['attributes'])} attributes and {len(h['mlp'])} MLP weights "
+                               f"(limits {MAX_ATTRIBUTES} and {MAX_MLP_WEIGHTS})")
+    values = 4 * n  # xyz and t
     for attr, shapes in h["attributes"].items():
-        if not (_NAME.match(attr) and isinstance(shapes, list) and shapes and all(
+        if not (_NAME.match(attr) and isinstance(shapes, list) and 1 <= len(shapes) <= MAX_SLOTS and all(
                 isinstance(s, list) and len(s) == 2 and _is_int(s[0], 1, MAX_SYMBOLS) and _is_int(s[1], 1, MAX_SUB_LEN)
                 for s in shapes)):
             raise CorruptFileError(f"invalid codebook shapes for attribute {attr!r}")
+        # codebooks, one index per Gaussian and slot, and the reconstructed [N, D] attribute
+        values += sum(k * d for k, d in shapes) + n * len(shapes) + n * sum(d for _, d in shapes)
     for name, shape in h["mlp"].items():
-        ok = (_MLP_NAME.match(name) and isinstance(shape, list) and all(_is_int(s, 0, MAX_MLP_ELEMENTS) for s in shape)
-              and int(np.prod(shape, dtype=np.int64)) <= MAX_MLP_ELEMENTS)
+        ok = (_MLP_NAME.match(name) and isinstance(shape, list) and len(shape) <= MAX_MLP_DIMS
+              and all(_is_int(s, 0, MAX_MLP_ELEMENTS) for s in shape) and math.prod(shape) <= MAX_MLP_ELEMENTS)
         if not ok:
             raise CorruptFileError(f"invalid shape for MLP weight {name!r}")
+        values += math.prod(shape)
+    if values > MAX_VALUES_PER_BYTE * section_bytes + VALUES_SLACK:
+        raise CorruptFileError(f"header declares {values} values, more than {section_bytes} data bytes can encode")
+
+
+def check_sections(header: dict, section_sizes: dict[str, int]) -> None:
+    """Validate a payload header (:func:`_check_header`) and that the sections present (name → byte size) are
+    exactly those it names; raises :class:`CorruptFileError`. Used by the decoder and by ``omg4 info``."""
+    sections = section_sizes
+    _check_header(header, sum(sections.values()))
+    expected = ["xyz", "t"]
+    expected += [f"svq.{a}.{kind}{j}" for a, shapes in header["attributes"].items()
+                 for kind in ("codebook", "index") for j in range(len(shapes))]
+    expected += [f"mlp.{name}" for name in header["mlp"]]
+    encodings = header["encodings"]
+    if (sorted(expected) != sorted(sections) or sorted(expected) != sorted(encodings)
+            or not all(isinstance(e, str) for e in encodings.values())):
+        raise CorruptFileError("section list does not match the header")
 
 
 def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
@@ -330,14 +380,8 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
 
 
 def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayload:
-    _check_header(header, sum(len(s) for s in sections.values()))
+    check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
-    expected = ["xyz", "t"]
-    expected += [f"svq.{a}.{kind}{j}" for a, shapes in header["attributes"].items()
-                 for kind in ("codebook", "index") for j in range(len(shapes))]
-    expected += [f"mlp.{name}" for name in header["mlp"]]
-    if sorted(expected) != sorted(sections) or sorted(expected) != sorted(enc):
-        raise CorruptFileError("section list does not match the header")
 
     def decode(name: str, count: int, num_symbols: int = 0) -> np.ndarray:
         try:
@@ -358,6 +402,6 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
         codebooks = [decode(f"svq.{attr}.codebook{j}", k * s).reshape(k, s) for j, (k, s) in enumerate(shapes)]
         indices = [decode(f"svq.{attr}.index{j}", n, k) for j, (k, _) in enumerate(shapes)]
         attributes[attr] = QuantizedAttribute(codebooks, indices)
-    mlp = {name: decode(f"mlp.{name}", int(np.prod(shape, dtype=np.int64))).reshape(shape)
+    mlp = {name: decode(f"mlp.{name}", math.prod(shape)).reshape(shape)
            for name, shape in header["mlp"].items()}
     return CompressedPayload(xyz, t, attributes, mlp, header["meta"])

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
+from omg4.commands.common import (add_device_arguments, add_scene_arguments, device_from_args, int_at_least,
+                                  load_scene_from_args)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -13,8 +14,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
     p.add_argument("--out", type=Path, default=Path("omg4_bench"), help="output folder")
     p.add_argument("--schedule", default="cpu", choices=["official", "cpu", "short", "tiny"], help="fine-tuning lengths")
-    p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--baseline-iterations", type=int, default=30000)
+    p.add_argument("--batch-size", type=int_at_least(1), default=4)
+    p.add_argument("--baseline-iterations", type=int_at_least(1), default=30000)
     p.add_argument("--rows", help="comma-separated subset of rows (default: all): " + ", ".join(_row_names()))
     p.add_argument("--codec", default="ans", choices=["ans", "paper"])
     add_device_arguments(p)
@@ -35,6 +36,9 @@ def run(args) -> int:
     unknown = [r for r in rows or [] if r not in ROWS]
     if unknown:
         raise OMG4Error(f"unknown bench rows {unknown}; known: {', '.join(ROWS)}")
+    from omg4.outputs import check_outputs
+
+    check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     device = device_from_args(args)
     scene = load_scene_from_args(args)
     baseline, _ = load_gaussians(args.model)

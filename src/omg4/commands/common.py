@@ -3,7 +3,53 @@
 from __future__ import annotations
 
 import argparse
+import math
+import unicodedata
 from pathlib import Path
+
+
+def int_at_least(low: int):
+    """An argparse type: an integer ≥ ``low``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got '{text}'") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        return value
+    return parse
+
+
+def finite_float(text: str) -> float:
+    """An argparse type: a finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
+def float_in(low: float, high: float, *, low_open: bool = True, high_open: bool = False):
+    """An argparse type: a finite number in the interval from ``low`` to ``high`` (open or closed ends)."""
+    def parse(text: str) -> float:
+        value = finite_float(text)
+        if (value <= low if low_open else value < low) or (value >= high if high_open else value > high):
+            interval = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+            raise argparse.ArgumentTypeError(f"must lie in {interval}, got {text}")
+        return value
+    return parse
+
+
+positive_float = float_in(0.0, math.inf, high_open=True)
+
+
+def add_force_argument(p: argparse.ArgumentParser) -> None:
+    """``--force``: let outputs replace existing files inside a dataset folder (see :mod:`omg4.outputs`)."""
+    p.add_argument("--force", action="store_true",
+                   help="allow outputs to replace existing files inside a dataset folder (never the inputs)")
 
 
 def add_scene_arguments(p: argparse.ArgumentParser, positional: bool = True) -> None:
@@ -11,7 +57,7 @@ def add_scene_arguments(p: argparse.ArgumentParser, positional: bool = True) -> 
     if positional:
         p.add_argument("data", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic layout)")
     p.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
-    p.add_argument("--downscale", type=float, default=1.0, help="divide the image resolution by this factor")
+    p.add_argument("--downscale", type=positive_float, default=1.0, help="divide the image resolution by this factor")
     p.add_argument("--frames", type=str, help="frame range START:END (end exclusive), e.g. 0:60")
     p.add_argument("--cameras", type=str, help="comma-separated camera names to use (default: all)")
 
@@ -65,3 +111,10 @@ def load_scene_from_args(args, background=(0.0, 0.0, 0.0)):
     cameras = [c.strip() for c in args.cameras.split(",")] if getattr(args, "cameras", None) else None
     return load_scene(args.data, format=args.format, downscale=args.downscale, frames=parse_frames(args.frames),
                       cameras=cameras, background=background)
+
+
+def printable(value: object) -> str:
+    """``str(value)`` with control and other non-printing characters escaped (``\\x1b``, ``\\n``, ...), so names
+    and messages that come from files cannot move the cursor, recolour the terminal or break a line."""
+    text = str(value)
+    return "".join(c if unicodedata.category(c)[0] != "C" else repr(c)[1:-1] for c in text)

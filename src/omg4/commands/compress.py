@@ -6,7 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
+from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
+                                  float_in, int_at_least, load_scene_from_args)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -23,20 +24,22 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "sample+prune,merge,appearance,svq3d,svq4d)")
     p.add_argument("--stop-after", choices=["sample", "prune", "sample+prune", "merge"],
                    help="stop after this stage and write a checkpoint of the minimized model")
-    p.add_argument("--num-merge", type=int, default=2, help="merge rounds M")
-    p.add_argument("--batch-size", type=int, default=4, help="views per fine-tuning step")
-    p.add_argument("--tau-gs", type=float, help="override the preset's sampling ratio")
-    p.add_argument("--prune-quantile", type=float, help="override the preset's pruning quantile p")
+    p.add_argument("--num-merge", type=int_at_least(1), default=2, help="merge rounds M")
+    p.add_argument("--batch-size", type=int_at_least(1), default=4, help="views per fine-tuning step")
+    p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help="override the preset's sampling ratio, in (0, 1]")
+    p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
+                   help="override the preset's pruning quantile p, in [0, 1)")
     p.add_argument("--codec", default="ans", choices=["ans", "paper"],
                    help="index coding: ans (default, smaller) or paper (Huffman + LZMA as OMG4)")
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
                    help="accumulate the time gradient without zeroing, as the official release does")
-    p.add_argument("--baseline-iterations", type=int, default=30000,
+    p.add_argument("--baseline-iterations", type=int_at_least(1), default=30000,
                    help="iterations the baseline was trained for (the position learning rate continues its decay)")
     add_device_arguments(p)
     p.add_argument("--seed", type=int, default=6666)
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
+    add_force_argument(p)
 
 
 def run(args) -> int:
@@ -45,6 +48,11 @@ def run(args) -> int:
     from omg4.compress.pipeline import CompressConfig
     from omg4.gaussians.checkpoint import load_gaussians
 
+    from omg4.outputs import check_outputs
+
+    scores_out = None if args.scores else args.out.with_name(args.out.name + ".scores.npz")
+    check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out},
+                  inputs=[args.data, args.model, args.scores], datasets=[args.data], force=args.force)
     device = device_from_args(args)
     scene = load_scene_from_args(args)
     baseline, _ = load_gaussians(args.model, device)

@@ -20,6 +20,9 @@ def run(args) -> int:
 
     from omg4.demo import QUICK, DemoSettings, run_demo
 
+    from omg4.outputs import check_outputs
+
+    check_outputs({"--out": args.out}, folders=["--out"])
     device = device_from_args(args)
     settings = replace(QUICK if args.quick else DemoSettings(), seed=args.seed)
     run_demo(args.out, settings, device=device)

@@ -6,7 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
+from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
+                                  int_at_least, load_scene_from_args)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -14,10 +15,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
     p.add_argument("--lpips", default="alex", help="LPIPS backbones, comma-separated: alex, vgg (vgg is slow on CPU)")
     p.add_argument("--split", default="test", choices=["test", "train"], help="views to evaluate")
-    p.add_argument("--max-views", type=int, help="evaluate at most this many views (evenly spaced)")
+    p.add_argument("--max-views", type=int_at_least(1), help="evaluate at most this many views (evenly spaced)")
     p.add_argument("--white-background", action="store_true")
     add_device_arguments(p)
     p.add_argument("--json", type=Path, help="write per-view and mean metrics as JSON")
+    add_force_argument(p)
 
 
 def run(args) -> int:
@@ -26,6 +28,9 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.evaluate import evaluate, load_model
 
+    from omg4.outputs import check_outputs
+
+    check_outputs({"--json": args.json}, inputs=[args.data, args.model], datasets=[args.data], force=args.force)
     device = device_from_args(args)
     model = load_model(args.model, device)
     scene = load_scene_from_args(args)

@@ -10,11 +10,13 @@ import json
 import sys
 from pathlib import Path
 
+from omg4.commands.common import finite_float
+
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("checkpoint", type=Path, help="official Real-Time4DGS checkpoint (chkpnt*.pth)")
     parser.add_argument("--out", type=Path, required=True, help="output omg4 checkpoint (.safetensors)")
-    parser.add_argument("--time-range", type=float, nargs=2, required=True, metavar=("T0", "T1"),
+    parser.add_argument("--time-range", type=finite_float, nargs=2, required=True, metavar=("T0", "T1"),
                         help="time_duration the model was trained with (N3V: 0 10, D-NeRF: 0 1)")
     parser.add_argument("--legacy-rotation", action="store_true",
                         help="unflipped 4D rotation of official code before commit 900c592 (September 2024)")
@@ -26,7 +28,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
+    from omg4.errors import OMG4Error
     from omg4.io.rt4dgs_import import import_rt4dgs_file
+    from omg4.outputs import check_outputs
+
+    if not args.time_range[1] > args.time_range[0]:
+        raise OMG4Error(f"--time-range needs T0 < T1, got {args.time_range[0]:g} {args.time_range[1]:g}")
+    check_outputs({"--out": args.out, "--json": args.json}, inputs=[args.checkpoint])
 
     result = import_rt4dgs_file(args.checkpoint, args.out, tuple(args.time_range),
                                 legacy_rotation=args.legacy_rotation, sh_direction=args.sh_direction)

@@ -1,4 +1,4 @@
-"""``omg4 info PATH [--json FILE]``: summary of a dataset folder (checkpoints and ``.omg4`` later).
+"""``omg4 info PATH [--json FILE]``: summary of a dataset folder, a checkpoint or an ``.omg4`` file.
 
 The path's kind picks a summarizer (:data:`SUMMARIZERS`); each returns a JSON-ready dict and
 a human-readable text. Dataset summaries come from the readers with ``decode=False``: video
@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Callable
 
 from omg4.atomic import write_text_atomic
+from omg4.commands.common import printable
 from omg4.errors import OMG4Error
 
 
@@ -20,15 +21,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic), checkpoint (.safetensors) or .omg4 file")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
     parser.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
+    parser.add_argument("--force", action="store_true",
+                        help="allow --json to replace an existing file inside a dataset folder (never PATH itself)")
 
 
 def run(args) -> int:
+    from omg4.outputs import check_outputs
+
+    check_outputs({"--json": args.json}, inputs=[args.path], datasets=[_dataset_of(args.path)], force=args.force)
     summary, text = summarize(args.path, format=args.format)
     print(text)
     if args.json:
         write_text_atomic(args.json, json.dumps(summary, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0
+
+
+def _dataset_of(path: Path) -> Path:
+    """The dataset folder ``path`` is (a folder) or lies in (a file's folder: a model beside its data is
+    treated alike, so ``--json`` never replaces a file next to the input without ``--force``)."""
+    return path if path.is_dir() else path.parent
 
 
 def summarize(path: Path, **options) -> tuple[dict, str]:
@@ -77,7 +89,7 @@ def _dataset_text(s: dict) -> str:
     n_test = len(s["cameras"]) - n_train
     norm = s["normalization"]
     lines = [
-        f"dataset      {s['path']} ({s['format']})",
+        f"dataset      {printable(s['path'])} ({s['format']})",
         f"frames       {s['num_frames']}, time range [{s['time_range'][0]:g}, {s['time_range'][1]:g}]",
         f"views        {s['num_train_views']} train, {s['num_test_views']} test",
         f"cameras      {n_train} train, {n_test} test; "
@@ -95,7 +107,7 @@ def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
     from omg4.gaussians.checkpoint import describe_checkpoint
 
     d = {"kind": "checkpoint", "path": str(path), **describe_checkpoint(path)}
-    text = "\n".join(f"{k:<20} {v}" for k, v in d.items() if not isinstance(v, (dict, list)))
+    text = "\n".join(f"{k:<20} {printable(v)}" for k, v in d.items() if not isinstance(v, (dict, list)))
     return d, text
 
 
@@ -106,10 +118,16 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
     MLP weights, and the container header; the groups add up to the file size.
     """
     from omg4.codec.container import describe_container
+    from omg4.codec.payload import check_sections
+    from omg4.errors import CorruptFileError
 
     d = describe_container(path)
     header = d.pop("header")
-    n = int(header.get("num_gaussians", 0))
+    try:
+        check_sections(header, d["sections"])
+    except CorruptFileError as exc:
+        raise CorruptFileError(f"{path}: {exc}") from None
+    n = header["num_gaussians"]
     groups: dict[str, int] = {}
     for name, size in d["sections"].items():
         parts = name.split(".")
@@ -124,7 +142,7 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
                "total_bytes": total, "storage_mb": total / 2**20,
                "bits_per_gaussian": 8 * total / n if n else None, "groups": groups, "sections": d["sections"],
                "meta": header.get("meta", {})}
-    lines = [f"{path}: OMG4 file, codec {summary['codec']}, {n} Gaussians, {total} bytes "
+    lines = [f"{printable(path)}: OMG4 file, codec {summary['codec']}, {n} Gaussians, {total} bytes "
              f"({summary['storage_mb']:.4f} MB), {summary['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
     for key, size in groups.items():
         lines.append(f"  {key:<22} {size:>10} B  {100 * size / total:5.1f}%  "

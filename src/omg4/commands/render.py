@@ -6,7 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args
+from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
+                                  finite_float, float_in, int_at_least)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -16,13 +17,16 @@ def configure(p: argparse.ArgumentParser) -> None:
     src.add_argument("--camera", type=Path, help='CAM.json: {"K": 3x3, "viewmat": 4x4, "width": W, "height": H}')
     add_scene_arguments(p, positional=False)
     p.add_argument("--camera-name", help="with --data: which camera (default: the first test camera)")
-    p.add_argument("--time", type=float, help="timestamp for an image (default: start of the time range)")
+    p.add_argument("--time", type=finite_float,
+                   help="timestamp for an image, inside the model's time range (default: its start)")
     p.add_argument("--out", required=True, type=Path, help=".png or .npy (float32 [H,W,3]) image, or .mp4 video "
                                                            "over the whole time range")
-    p.add_argument("--num-frames", type=int, help="frames of an .mp4 (default: the dataset's frame count, or 60)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate of an .mp4")
+    p.add_argument("--num-frames", type=int_at_least(1),
+                   help="frames of an .mp4 (default: the dataset's frame count, or 60)")
+    p.add_argument("--fps", type=float_in(0.0, 1000.0), default=30.0, help="frame rate of an .mp4, in (0, 1000]")
     p.add_argument("--white-background", action="store_true")
     add_device_arguments(p)
+    add_force_argument(p)
 
 
 def _camera(args):
@@ -54,16 +58,21 @@ def run(args) -> int:
     from omg4.evaluate import load_model
     from omg4.io.images import save_npy, save_png
     from omg4.io.video import write_video
+    from omg4.outputs import check_outputs
     from omg4.render.view import render_view
 
     suffix = args.out.suffix.lower()
     if suffix not in (".png", ".npy", ".mp4"):
         raise OMG4Error(f"--out must end in .png, .npy or .mp4, got '{args.out.name}'")
+    check_outputs({"--out": args.out}, inputs=[args.model, args.data, args.camera], datasets=[args.data],
+                  force=args.force)
     device = device_from_args(args)
     model = load_model(args.model, device)
+    t0, t1 = model.config.time_range
+    if args.time is not None and not t0 <= args.time <= t1:
+        raise OMG4Error(f"--time {args.time:g} lies outside the model's time range [{t0:g}, {t1:g}]")
     camera, scene = _camera(args)
     bg = torch.full((3,), 1.0 if args.white_background else 0.0, device=device)
-    t0, t1 = model.config.time_range
 
     def frame(t: float) -> np.ndarray:
         with torch.no_grad():

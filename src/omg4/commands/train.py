@@ -6,21 +6,24 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, add_scene_arguments, device_from_args, load_scene_from_args
+from omg4.commands.common import (add_device_arguments, add_scene_arguments, device_from_args, int_at_least,
+                                  load_scene_from_args)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", required=True, type=Path, help="run folder (checkpoints, config, final model.safetensors)")
     p.add_argument("--preset", default="official", help="training schedule: official (30k iterations) or cpu-small")
-    p.add_argument("--iterations", type=int, help="optimizer steps (overrides the preset)")
-    p.add_argument("--batch-size", type=int, help="views per step")
-    p.add_argument("--max-gaussians", type=int, help="cap on the Gaussian count (0 = none)")
-    p.add_argument("--densify-until", type=int, help="last densification iteration")
-    p.add_argument("--densify-interval", type=int, help="iterations between densification events")
-    p.add_argument("--test-interval", type=int, help="evaluate test PSNR every N iterations (0 = only at the end)")
-    p.add_argument("--checkpoint-interval", type=int, help="write a resumable checkpoint every N iterations")
-    p.add_argument("--num-random-points", type=int,
+    p.add_argument("--iterations", type=int_at_least(1), help="optimizer steps (overrides the preset)")
+    p.add_argument("--batch-size", type=int_at_least(1), help="views per step")
+    p.add_argument("--max-gaussians", type=int_at_least(0), help="cap on the Gaussian count (0 = none)")
+    p.add_argument("--densify-until", type=int_at_least(0), help="last densification iteration")
+    p.add_argument("--densify-interval", type=int_at_least(1), help="iterations between densification events")
+    p.add_argument("--test-interval", type=int_at_least(0),
+                   help="evaluate test PSNR every N iterations (0 = only at the end)")
+    p.add_argument("--checkpoint-interval", type=int_at_least(0),
+                   help="write a resumable checkpoint every N iterations (0 = only at the end)")
+    p.add_argument("--num-random-points", type=int_at_least(1),
                    help="initial points (random, rays, mvs) when the data has no points3d.ply")
     p.add_argument("--init", choices=["auto", "random", "rays", "mvs", "colmap"], default="auto",
                    help="initial points: auto (points3d.ply if present, else mvs for multi-view video, else "
@@ -30,17 +33,27 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--white-background", action="store_true", help="train on a white background")
     add_device_arguments(p)
-    p.add_argument("--resume", action="store_true", help="continue from the run folder's last checkpoint")
+    run = p.add_mutually_exclusive_group()
+    run.add_argument("--resume", action="store_true", help="continue from the run folder's last checkpoint")
+    run.add_argument("--force", action="store_true",
+                     help="start afresh in an existing run folder: its checkpoints and model are deleted")
     p.add_argument("--json", type=Path, help="write a summary (iterations, wall time, test PSNR) as JSON")
 
 
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
+    from omg4.errors import OMG4Error
+    from omg4.outputs import check_outputs
     from omg4.train import make_config
     from omg4.train.init import initial_points
-    from omg4.train.run_state import latest_iteration
+    from omg4.train.run_state import clear_run, is_run_in_progress, latest_iteration
     from omg4.train.trainer import Trainer, evaluate_psnr
 
+    check_outputs({"--out": args.out, "--json": args.json}, inputs=[args.data], datasets=[args.data],
+                  folders=["--out"])
+    if is_run_in_progress(args.out) and not (args.resume or args.force):
+        raise OMG4Error(f"{args.out} already holds a training run: add --resume to continue it or --force to "
+                        "start afresh (its checkpoints and model are deleted)")
     device = device_from_args(args)
     scene = load_scene_from_args(args)
     cfg = make_config(
@@ -49,6 +62,8 @@ def run(args) -> int:
         checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
         backend=args.backend, device=str(device), background=(1.0, 1.0, 1.0) if args.white_background else None)
     resuming = args.resume and latest_iteration(args.out) is not None
+    if args.force:
+        clear_run(args.out)
     points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
     trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume)
     result = trainer.run()

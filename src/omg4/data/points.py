@@ -13,6 +13,7 @@ restrict the cube to the training cameras' common view volume (documented below)
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,12 @@ def read_ply(path: str | Path) -> PointCloud:
             if names[0] != "vertex":
                 raise DataError(f"{path}: the vertex element must come first in the PLY file")
             _, count, props = elements[0]
+            remaining = os.fstat(f.fileno()).st_size - f.tell()
+            # bytes each vertex needs at least: its binary record, or one digit and a separator per ASCII value
+            least = 2 * len(props) if fmt == "ascii" else np.dtype([(n, "<" + t) for n, t in props]).itemsize
+            if count < 0 or count * max(least, 1) > remaining:
+                raise DataError(f"{path}: PLY file is truncated or damaged: its header declares {count} vertices, "
+                                f"more than its {remaining} bytes of data can hold")
             if fmt == "ascii":
                 data = np.loadtxt(f, dtype=np.float64, max_rows=count, ndmin=2) if count else np.zeros((0, len(props)))
                 if data.shape != (count, len(props)):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fnmatch
 import os
 from pathlib import Path
 from typing import Iterable
@@ -14,6 +15,15 @@ from omg4.data.scene import Scene
 from omg4.errors import DataError
 
 READERS = {"n3dv": read_n3dv, "blender": read_blender, "panoptic": read_panoptic}
+#: Name patterns of the files the readers take from a dataset folder (any depth): never an output.
+DATASET_FILES = ("poses_bounds.npy", "points3d.ply", "*.mp4", "transforms_*.json", "*_meta.json", "synth.json",
+                 "*.png", "*.jpg", "*.jpeg", "*.npz")
+
+
+def is_dataset_file(path: str | os.PathLike) -> bool:
+    """Whether a file of this name is one a reader may take from a dataset folder (:data:`DATASET_FILES`)."""
+    name = Path(path).name.lower()
+    return any(fnmatch.fnmatch(name, pattern) for pattern in DATASET_FILES)
 
 
 def detect_format(path: str | os.PathLike) -> str:

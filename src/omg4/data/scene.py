@@ -16,6 +16,10 @@ import numpy as np
 from omg4.errors import DataError
 
 
+MAX_IMAGE_SIDE = 16384
+MAX_PIXELS = 1 << 26  # 8192 x 8192: what one rendered image may hold
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera in the normalized world.
@@ -32,6 +36,17 @@ class Camera:
     width: int
     height: int
     name: str = ""
+
+    def __post_init__(self):
+        label = f"camera {self.name!r}" if self.name else "camera"
+        size_ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE
+                      for v in (self.width, self.height))
+        if not size_ok or self.width * self.height > MAX_PIXELS:
+            raise DataError(f"{label}: image size {self.width}x{self.height} is not a positive size within "
+                            f"{MAX_IMAGE_SIDE} pixels a side and {MAX_PIXELS} pixels")
+        K, viewmat = np.asarray(self.K), np.asarray(self.viewmat)
+        if K.shape != (3, 3) or viewmat.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(viewmat).all()):
+            raise DataError(f"{label}: K must be a finite 3x3 and viewmat a finite 4x4 matrix")
 
     @property
     def center(self) -> np.ndarray:
@@ -68,7 +83,10 @@ class Camera:
         """Inverse of :meth:`to_json`; ``name`` is optional."""
         K = np.asarray(d["K"], dtype=np.float64).reshape(3, 3)
         viewmat = np.asarray(d["viewmat"], dtype=np.float64).reshape(4, 4)
-        return Camera(K=K, viewmat=viewmat, width=int(d["width"]), height=int(d["height"]), name=str(d.get("name", "")))
+        width, height = d["width"], d["height"]
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (width, height)):
+            raise DataError(f"camera width and height must be whole numbers, got {width!r} x {height!r}")
+        return Camera(K=K, viewmat=viewmat, width=int(width), height=int(height), name=str(d.get("name", "")))
 
 
 @dataclass

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omg4.atomic import remove_stale_temporaries
 from omg4.data.scene import Camera
 from omg4.errors import OMG4Error
 
@@ -704,7 +705,7 @@ def _replace_dir(tmp: Path, out_dir: Path) -> None:
     and deleted only after the rename, so an interruption never leaves a half-written scene."""
     old = None
     if out_dir.exists() or out_dir.is_symlink():
-        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=out_dir.parent))
+        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.{os.getpid()}-", dir=out_dir.parent))
         os.replace(out_dir, old / "x")
     os.replace(tmp, out_dir)
     if old is not None:
@@ -731,7 +732,9 @@ def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = Synt
     per_cam = -(-config.num_points // n_train)
     near, far = np.zeros(len(cams)), np.zeros(len(cams))
     xyz, rgb = [], []
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:12]}"
+    remove_stale_temporaries(out_dir.parent, f".{out_dir.name}.tmp-")
+    remove_stale_temporaries(out_dir.parent, f".{out_dir.name}.old.")
+    tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:12]}"
     tmp.mkdir()
     try:
         with tqdm(total=len(cams) * config.num_frames, desc="omg4 synth", unit="frame", disable=not progress) as bar:

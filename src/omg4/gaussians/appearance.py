@@ -31,6 +31,8 @@ from torch import Tensor, nn
 from omg4.errors import CorruptFileError
 
 _TCNN_ALIGN = 16  # tiny-cuda-nn pads MLP widths to multiples of 16
+MAX_FREQS = 24  # frequency bands a decoded network may declare (2^24·π keeps float32 phases meaningful)
+MAX_WIDTH = 4096  # hidden and shared widths a decoded network may declare
 
 
 def contract_to_unisphere(x: Tensor) -> Tensor:
@@ -60,7 +62,7 @@ def frequency_encoding(x: Tensor, num_freqs: int = 16) -> Tensor:
     scales = math.pi * torch.exp2(torch.arange(num_freqs, dtype=x.dtype, device=x.device))  # [F]
     phase = x.unsqueeze(-1) * scales  # [N, D, F]
     enc = torch.stack((torch.sin(phase), torch.cos(phase)), dim=-1)  # [N, D, F, 2]
-    return enc.reshape(x.shape[0], -1)
+    return enc.reshape(x.shape[0], x.shape[1] * 2 * num_freqs)
 
 
 def _tcnn_padded(n: int) -> int:
@@ -155,13 +157,19 @@ class AppearanceMLP(nn.Module):
         hidden, enc_dim = arrays["shared.0.weight"].shape
         shared_dim = arrays["shared.2.weight"].shape[0]
         rest_out = arrays["rest.2.weight"].shape[0]
-        if enc_dim % 8 or rest_out % 3:
-            raise CorruptFileError(f"appearance MLP: inconsistent sizes (encoding {enc_dim}, rest {rest_out})")
+        if (enc_dim % 8 or not 1 <= enc_dim // 8 <= MAX_FREQS or rest_out % 3 or not 1 <= hidden <= MAX_WIDTH
+                or not 1 <= shared_dim <= MAX_WIDTH):
+            raise CorruptFileError(f"appearance MLP: invalid sizes (encoding {enc_dim}, hidden {hidden}, "
+                                   f"shared {shared_dim}, rest {rest_out})")
+        head_in = shared_dim + 3
+        expected_shapes = {"shared.0.weight": (hidden, enc_dim), "shared.2.weight": (shared_dim, hidden),
+                           "dc.0.weight": (hidden, head_in), "dc.2.weight": (3, hidden),
+                           "opacity.0.weight": (hidden, head_in), "opacity.2.weight": (1, hidden),
+                           "rest.0.weight": (hidden, head_in), "rest.2.weight": (rest_out, hidden)}
+        for k, a in arrays.items():  # checked before any network is built: sizes come from the file
+            if tuple(a.shape) != expected_shapes[k]:
+                raise CorruptFileError(f"appearance MLP weight {k}: shape {a.shape}, expected {expected_shapes[k]}")
         mlp = cls(num_rest=rest_out // 3, hidden=hidden, num_freqs=enc_dim // 8, shared_dim=shared_dim)
-        own = mlp.state_dict()
-        for k, a in arrays.items():
-            if tuple(a.shape) != tuple(own[k].shape):
-                raise CorruptFileError(f"appearance MLP weight {k}: shape {a.shape}, expected {tuple(own[k].shape)}")
         mlp.load_state_dict({k: torch.from_numpy(a.astype(np.float32)) for k, a in arrays.items()})
         return mlp
 

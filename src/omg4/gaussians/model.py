@@ -19,7 +19,7 @@ The trainer replaces entries of ``params`` (densification) and owns ``requires_g
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -59,13 +59,18 @@ class GaussianConfig:
     sh_direction: str = "conditioned"
 
     def __post_init__(self):
-        self.time_range = (float(self.time_range[0]), float(self.time_range[1]))
-        if not self.time_range[1] > self.time_range[0]:
+        t0, t1 = _finite_pair(self.time_range, "time_range")
+        self.time_range = (t0, t1)
+        if not t1 > t0:
             raise ValueError(f"time_range must be increasing, got {self.time_range}")
-        if not 0 <= self.sh_degree <= 3 or not 0 <= self.sh_degree_t <= 2:
-            raise ValueError(f"SH degrees must be in 0..3 × 0..2, got {self.sh_degree} × {self.sh_degree_t}")
+        if not (_is_int(self.sh_degree, 0, 3) and _is_int(self.sh_degree_t, 0, 2)):
+            raise ValueError(f"SH degrees must be integers in 0..3 × 0..2, got {self.sh_degree!r} × "
+                             f"{self.sh_degree_t!r}")
         if self.rotation_convention not in ROTATION_CONVENTIONS:
             raise ValueError(f"rotation_convention must be one of {ROTATION_CONVENTIONS}")
+        if not (_is_real(self.time_cull) and 0.0 <= self.time_cull < 1.0):
+            raise ValueError(f"time_cull must be a number in [0, 1), got {self.time_cull!r}")
+        self.time_cull = float(self.time_cull)
         if self.sh_direction not in SH_DIRECTIONS:
             raise ValueError(f"sh_direction must be one of {SH_DIRECTIONS}")
 
@@ -91,7 +96,30 @@ class GaussianConfig:
 
     @staticmethod
     def from_json(d: dict) -> "GaussianConfig":
-        return GaussianConfig(**{**d, "time_range": tuple(d["time_range"])})
+        """Inverse of :meth:`to_json`; anything but a dict of known, valid fields raises ``ValueError``."""
+        if not isinstance(d, dict):
+            raise ValueError(f"a model config must be a JSON object, got {type(d).__name__}")
+        unknown = sorted(set(d) - {f.name for f in fields(GaussianConfig)})
+        if unknown or "time_range" not in d:
+            raise ValueError(f"model config has unknown fields {unknown} or no time_range")
+        return GaussianConfig(**d)
+
+
+def _is_int(v: object, lo: int, hi: int) -> bool:
+    """``v`` is an integer (not a bool) in ``[lo, hi]``."""
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool) and lo <= v <= hi
+
+
+def _is_real(v: object) -> bool:
+    """``v`` is a finite real number (not a bool)."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _finite_pair(v: object, what: str) -> tuple[float, float]:
+    """Two finite numbers ``(a, b)`` from a 2-sequence, else ``ValueError``."""
+    if not (isinstance(v, (list, tuple)) and len(v) == 2 and all(_is_real(x) for x in v)):
+        raise ValueError(f"{what} must be two finite numbers, got {v!r}")
+    return float(v[0]), float(v[1])
 
 
 def param_shapes(n: int, config: GaussianConfig) -> dict[str, tuple[int, ...]]:

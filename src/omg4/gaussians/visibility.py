@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
+from omg4.errors import CorruptFileError
 from omg4.gaussians.covariance import scaled_rotation_4d, temporal_variance
 from omg4.gaussians.model import GaussianConfig, activated_scales, slice_values
 from omg4.render.view import TimeSlice, ViewSlicer
@@ -81,9 +82,13 @@ class WindowedModel(ViewSlicer):
         self.active_sh_degree_t = active_sh_degree_t
         self.appearance = appearance
         v = self.values
-        L = scaled_rotation_4d(activated_scales(v), v["rotation"], v["rotation_r"], config.rotation_convention)
-        self.visibility = VisibilityIndex.build(v["t"], temporal_variance(L), config.time_range, config.time_cull,
-                                                windows)
+        scales = activated_scales(v)
+        L = scaled_rotation_4d(scales, v["rotation"], v["rotation_r"], config.rotation_convention)
+        var_t = temporal_variance(L)
+        if not bool(torch.isfinite(scales).all() & torch.isfinite(var_t).all() & (var_t > 0).all()):
+            raise CorruptFileError("the model's scales overflow or its temporal variances are not positive "
+                                   "(damaged or diverged values)")
+        self.visibility = VisibilityIndex.build(v["t"], var_t, config.time_range, config.time_cull, windows)
 
     @property
     def num_gaussians(self) -> int:

@@ -82,3 +82,22 @@ def load_run_checkpoint(run_dir: Path, iteration: int, device: torch.device | st
         raise CorruptFileError(f"{state_path}: cannot read training state ({type(e).__name__})") from None
     state["stats"] = {k: v.to(device) for k, v in state["stats"].items()}
     return model, metadata, state
+
+
+def is_run_in_progress(run_dir: Path) -> bool:
+    """Whether ``run_dir`` exists and holds anything (a run's files or others): training there needs
+    ``--resume`` or ``--force``, so an earlier run is never silently replaced or mixed with a new one."""
+    run_dir = Path(run_dir)
+    return run_dir.is_dir() and any(run_dir.iterdir())
+
+
+def clear_run(run_dir: Path) -> None:
+    """Delete a run's checkpoints and final model (``--force``), so a fresh run cannot resume from or keep them.
+    Other files in the folder are left alone."""
+    run_dir = Path(run_dir)
+    folder = run_dir / "checkpoints"
+    if folder.is_dir():
+        for p in folder.iterdir():
+            if re.fullmatch(r"(model_\d{7}\.safetensors|state_\d{7}\.pt)", p.name):
+                p.unlink()
+    (run_dir / "model.safetensors").unlink(missing_ok=True)

@@ -1,0 +1,277 @@
+"""Forged ``.omg4`` files: what a hostile or damaged file can look like *past* the checksums.
+
+The container's CRCs catch accidental damage; a forged file recomputes them. This module
+makes valid compressed models of several sizes (:func:`valid_file`) and mutates them
+(:func:`forged_files`) in the ways a decoder must survive: hostile header values (huge,
+negative, overflowing, non-finite, wrong-typed, control characters) at any place of the
+header and its ``meta``, deleted fields, changed codec, damaged, truncated, extended,
+swapped or re-split section bytes, hostile section names — each with every checksum
+recomputed — plus raw byte flips and truncations that the checksums must catch.
+:func:`exercise` runs a file through everything a user's command does with it (``omg4
+info``, decoding, loading, rendering a frame). ``benchmarks/fuzz_omg4.py`` and the test
+suite drive it; a correct decoder lets every case end as "ok" or a one-line
+:class:`~omg4.errors.CorruptFileError`.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import struct
+import zlib
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from omg4.codec.container import FORMAT_VERSION, MAGIC
+from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
+
+_PREFIX = struct.Struct("<8sHHII")
+#: attribute → (width, sub-vector length, codebook size) of the M preset (paper appendix)
+_LAYOUT = {"scale": (3, 1, 512), "rotation": (4, 2, 8192), "app": (6, 2, 1024), "scale_t": (1, 1, 512),
+           "rotation_r": (4, 2, 8192)}
+#: stand-ins for JSON numbers that ``json.dumps`` refuses to write (overflowing to ±inf when parsed)
+_RAW_NUMBERS = {"__forge_inf__": "1e400", "__forge_ninf__": "-1e400", "__forge_tiny__": "1e-400"}
+_HOSTILE = [None, True, False, -1, 0, 1, 2, 3, 99, 2**24, 2**31 - 1, 2**31, 2**53 + 1, 2**63, 2**64 + 1, -2**63, 0.5,
+            -0.5, 1e308, "__forge_inf__", "__forge_ninf__", "__forge_tiny__", "", "x", "\x1b[31mred\x1b[0m\n",
+            "a" * 300, [], [0], [1, 1], [2**24, 2**24, 2**14, 3], [-1, 3], [[1, 1]], [[2**16, 64]] * 64, {},
+            {"a": 1}, [None], ["1", "2"]]
+
+
+def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0) -> CompressedPayload:
+    """A fully specified compressed model of ``num_gaussians`` Gaussians with random (but well-formed) values:
+    the M preset's SVQ layout (codebooks scaled by ``codebook_scale``), default appearance MLPs, and the
+    metadata the decoder reads."""
+    from omg4.gaussians.appearance import AppearanceMLP
+    from omg4.gaussians.model import GaussianConfig
+
+    import torch
+
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    n = num_gaussians
+    xyz = rng.normal(size=(n, 3)) * 0.8
+    attributes = {}
+    for name, (width, sub, size) in _LAYOUT.items():
+        k = max(2, int(size * codebook_scale))
+        offset = 0.5 if name == "scale_t" else (-4.0 if name == "scale" else 0.0)
+        attributes[name] = QuantizedAttribute([offset + 0.3 * rng.normal(size=(k, sub)) for _ in range(width // sub)],
+                                              [rng.integers(0, k, n) for _ in range(width // sub)])
+    meta = {"preset": "M", "scene": "forge", "time_range": [0.0, 1.0],
+            "gaussian_config": GaussianConfig(time_range=(0.0, 1.0)).to_json(),
+            "active_sh_degree": 3, "active_sh_degree_t": 2,
+            "normalization": {"scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]}}
+    return CompressedPayload(xyz, rng.uniform(0, 1, n), attributes, AppearanceMLP().to_fp16_state(), meta)
+
+
+def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: int = 0,
+               codebook_scale: float = 1.0) -> bytes:
+    """Write :func:`valid_payload` to ``path`` with ``codec``; returns the file's bytes."""
+    encode_payload(valid_payload(num_gaussians, seed, codebook_scale), path, codec=codec)
+    return Path(path).read_bytes()
+
+
+# ------------------------------------------------------------------------- assembly
+def _split(data: bytes) -> tuple[dict, list[tuple[str, bytes]]]:
+    """(JSON document, [(section name, bytes)]) of a valid container."""
+    _, _, _, json_len, _ = _PREFIX.unpack_from(data)
+    doc = json.loads(data[_PREFIX.size:_PREFIX.size + json_len])
+    pos, sections = _PREFIX.size + json_len, []
+    for name, size, _ in doc["sections"]:
+        sections.append((name, data[pos:pos + size]))
+        pos += size
+    return doc["header"], sections
+
+
+def _assemble(header: object, sections: list[tuple[str, bytes]], table: list | None = None) -> bytes:
+    """A container with correct checksums (JSON and sections) around ``header`` and ``sections``;
+    ``table`` replaces the section table (names, sizes) when given, checksums still computed over the bytes."""
+    if table is None:
+        table = [[name, len(data), zlib.crc32(data) & 0xFFFFFFFF] for name, data in sections]
+    text = json.dumps({"header": header, "sections": table}, separators=(",", ":"), ensure_ascii=False)
+    for token, raw in _RAW_NUMBERS.items():
+        text = text.replace(f'"{token}"', raw)
+    blob = text.encode("utf-8", "surrogatepass")
+    prefix = _PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), zlib.crc32(blob) & 0xFFFFFFFF)
+    return prefix + blob + b"".join(data for _, data in sections)
+
+
+# ------------------------------------------------------------------------ mutations
+def _paths(node: object, prefix: tuple = ()) -> list[tuple]:
+    """Every key/index path inside a JSON value (containers and leaves)."""
+    out = [prefix] if prefix else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _paths(v, prefix + (k,))
+    elif isinstance(node, list) and len(node) <= 16:
+        for i, v in enumerate(node):
+            out += _paths(v, prefix + (i,))
+    return out
+
+
+def _get(node, path):
+    for key in path:
+        node = node[key]
+    return node
+
+
+def _hostile_value(rng: random.Random, current: object) -> object:
+    if isinstance(current, (int, float)) and not isinstance(current, bool) and rng.random() < 0.4:
+        v = current
+        return rng.choice([v + 1, v - 1, -v, 2 * v, v * 1000, v * 2**20, (int(v) or 1) * 2**31, v / 3])
+    return rng.choice(_HOSTILE)
+
+
+def _mutate_header(rng: random.Random, header: dict, sections) -> bytes:
+    header = json.loads(json.dumps(header))
+    path = rng.choice(_paths(header))
+    parent = _get(header, path[:-1])
+    if isinstance(parent, dict) and rng.random() < 0.2:
+        del parent[path[-1]]
+    else:
+        parent[path[-1]] = _hostile_value(rng, parent[path[-1]])
+    return _assemble(header, sections)
+
+
+def _damaged_bytes(rng: random.Random, data: bytes) -> bytes:
+    b = bytearray(data)
+    choice = rng.randrange(7)
+    if choice == 0 and b:  # a few flipped bits
+        for _ in range(rng.randint(1, 8)):
+            i = rng.randrange(len(b))
+            b[i] ^= 1 << rng.randrange(8)
+    elif choice == 1 and b:  # a run set to 0x00 or 0xFF
+        i = rng.randrange(len(b))
+        b[i:i + rng.randint(1, 64)] = bytes([rng.choice((0, 255))]) * len(b[i:i + 64])
+    elif choice == 2:  # truncated
+        b = b[:rng.randrange(len(b) + 1)]
+    elif choice == 3:  # extended
+        b += bytes(rng.randrange(256) for _ in range(rng.randint(1, 64)))
+    elif choice == 4:  # replaced by noise of the same length
+        b = bytearray(rng.randbytes(len(b)))
+    elif choice == 5 and b:  # the first bytes (tags, modes, varint sizes) changed
+        b[rng.randrange(min(len(b), 12))] = rng.randrange(256)
+    else:  # a varint-looking huge length spliced in
+        i = rng.randrange(len(b) + 1)
+        b[i:i] = b"\xff\xff\xff\xff\xff\xff\xff\xff\x7f"
+    return bytes(b)
+
+
+def _mutate_section(rng: random.Random, header: dict, sections) -> bytes:
+    i = rng.randrange(len(sections))
+    sections = list(sections)
+    sections[i] = (sections[i][0], _damaged_bytes(rng, sections[i][1]))
+    return _assemble(header, sections)
+
+
+def _swap_sections(rng: random.Random, header: dict, sections) -> bytes:
+    i, j = rng.sample(range(len(sections)), 2)
+    sections = list(sections)
+    sections[i], sections[j] = (sections[i][0], sections[j][1]), (sections[j][0], sections[i][1])
+    return _assemble(header, sections)
+
+
+def _resplit_sections(rng: random.Random, header: dict, sections) -> bytes:
+    """Move the boundary between two neighbouring sections: sizes lie about where data starts."""
+    i = rng.randrange(len(sections) - 1)
+    blob = sections[i][1] + sections[i + 1][1]
+    cut = rng.randrange(len(blob) + 1)
+    sections = list(sections)
+    sections[i], sections[i + 1] = (sections[i][0], blob[:cut]), (sections[i + 1][0], blob[cut:])
+    return _assemble(header, sections)
+
+
+def _rename_section(rng: random.Random, header: dict, sections) -> bytes:
+    i = rng.randrange(len(sections))
+    name = rng.choice(["\x1b[2J\x1b[31mxyz", "xyz", "t", "svq.rotation.index0", "mlp.x\n", "é" * 50, "svq..", "."])
+    sections = list(sections)
+    sections[i] = (name, sections[i][1])
+    return _assemble(header, sections)
+
+
+def _inflated(num_gaussians: int, codec: str) -> bytes:
+    """A file declaring many Gaussians in few bytes, its sections consistent with the count: every Gaussian
+    identical, so each index stream is one constant symbol and the Morton gaps are all zero (what a
+    memory-exhaustion attack would send; :func:`encode_payload` itself refuses to write it)."""
+    import tempfile
+
+    from omg4.codec import payload as layout
+    from omg4.codec.entropy import encode_indices
+
+    n = num_gaussians
+    with tempfile.TemporaryDirectory() as tmp:
+        encode_payload(valid_payload(2, codebook_scale=0.01), Path(tmp) / "base.omg4", codec=codec)
+        header, sections = _split((Path(tmp) / "base.omg4").read_bytes())
+    float_encoding = "f16-lzma" if codec == "paper" else "f16-planes"
+    replaced = {"xyz": layout._encode_xyz_morton(np.zeros((n, 3), np.float16)) if codec == "ans"
+                else layout._encode_f16(np.zeros(3 * n, np.float16), float_encoding),
+                "t": layout._encode_f16(np.full(n, 0.5, np.float16), float_encoding)}
+    for attr, shapes in header["attributes"].items():
+        for j, (k, _) in enumerate(shapes):
+            replaced[f"svq.{attr}.index{j}"] = encode_indices(np.zeros(n, np.int64), k, codec)
+    header = {**header, "num_gaussians": n,
+              "encodings": {**header["encodings"], "t": float_encoding} | ({} if codec == "ans" else
+                                                                              {"xyz": float_encoding})}
+    return _assemble(header, [(name, replaced.get(name, data)) for name, data in sections])
+
+
+def _raw_damage(rng: random.Random, data: bytes) -> bytes:
+    return _damaged_bytes(rng, data)
+
+
+MUTATIONS = ("header", "section", "swap", "resplit", "rename", "raw", "inflate")
+
+
+def forged_files(base: bytes, count: int, seed: int = 0) -> Iterator[tuple[str, bytes]]:
+    """``count`` forged variants of the valid container ``base``: ``(mutation kind, file bytes)``.
+
+    Kinds cycle through :data:`MUTATIONS` (headers twice as often: they hold every count and shape);
+    all but "raw" carry correct checksums.
+    """
+    rng = random.Random(seed)
+    header, sections = _split(base)
+    kinds = ("header",) + MUTATIONS
+    inflated = [_inflated(n, codec) for n in (10**5, 2 * 10**6) for codec in ("ans", "paper")] if count >= 8 else []
+    for k in range(count):
+        kind = kinds[k % len(kinds)]
+        if kind == "header":
+            data = _mutate_header(rng, header, sections)
+        elif kind == "section":
+            data = _mutate_section(rng, header, sections)
+        elif kind == "swap":
+            data = _swap_sections(rng, header, sections)
+        elif kind == "resplit":
+            data = _resplit_sections(rng, header, sections)
+        elif kind == "rename":
+            data = _rename_section(rng, header, sections)
+        elif kind == "inflate" and inflated:
+            data = inflated[(k // len(kinds)) % len(inflated)]
+        else:
+            kind, data = "raw", _raw_damage(rng, base)
+        yield kind, data
+
+
+# -------------------------------------------------------------------------- running
+def exercise(path: str | Path) -> str:
+    """What the commands do with an ``.omg4`` file: ``omg4 info``'s summary, decoding and loading it, and one
+    64×48 frame at the middle of its time range. Returns "ok"; a bad file raises (CorruptFileError if right)."""
+    import torch
+
+    from omg4.commands.info import summarize
+    from omg4.data.scene import Camera
+    from omg4.evaluate import load_model
+    from omg4.render.view import render_view
+
+    summarize(Path(path))
+    model = load_model(path)
+    t0, t1 = model.config.time_range
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    viewmat = np.eye(4)
+    viewmat[2, 3] = 4.0
+    with torch.no_grad():
+        render_view(model, Camera(K=K, viewmat=viewmat, width=64, height=48), 0.5 * (t0 + t1))
+    return "ok"
+
+
+__all__ = ["MUTATIONS", "exercise", "forged_files", "valid_file", "valid_payload"]

@@ -1,0 +1,105 @@
+"""Output paths checked before any work: writable, not a folder where a file goes, never over an input.
+
+The rule every command follows (the README's "Outputs never destroy inputs"):
+
+* an output that resolves to one of the command's inputs (model, dataset file or folder,
+  scores, camera file) is refused, ``--force`` or not;
+* an output that would replace an existing file inside a dataset folder is refused unless
+  ``--force``, and one of the files a reader takes from there
+  (:data:`omg4.data.readers.DATASET_FILES`: videos, poses, points, images, metadata) always;
+* two outputs of one command may not be the same file;
+* the output's folder must exist or be creatable, and be writable (tried with a real file,
+  so read-only mounts and permissions are caught as well), and a file output may not name
+  a folder — all checked before the expensive step, so nothing is computed for nothing.
+
+Every refusal is a one-line :class:`~omg4.errors.OMG4Error` (exit 2 on the command line).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable
+
+from omg4.errors import OMG4Error
+
+
+def _resolved(path: str | os.PathLike) -> Path:
+    return Path(os.path.realpath(os.path.abspath(path)))
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` are one file or folder (same resolved path, or hard links of one inode)."""
+    if _resolved(a) == _resolved(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return _resolved(folder) in _resolved(path).parents
+
+
+def _check_writable_folder(folder: Path, what: str) -> None:
+    """``folder`` (or its nearest existing ancestor, where it will be created) is a writable folder."""
+    existing = folder
+    while not existing.exists():
+        if existing.is_symlink():
+            raise OMG4Error(f"{what}: {existing} is a broken link")
+        existing = existing.parent
+    if not existing.is_dir():
+        raise OMG4Error(f"{what}: {existing} is not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".omg4-write-test-", dir=existing)
+    except OSError as exc:
+        raise OMG4Error(f"{what}: cannot write in {existing} ({exc.strerror or exc})") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
+                  datasets: Iterable[str | os.PathLike | None] = (), folders: Iterable[str] = (),
+                  force: bool = False) -> None:
+    """Refuse, before any work, outputs that cannot be written or would destroy an input.
+
+    Args:
+        outputs: option name (for messages, e.g. ``"--out"``) → output path; ``None`` entries are skipped.
+        inputs: files and folders the command reads; an output may be none of them.
+        datasets: dataset folders among the inputs; an existing file inside one is not replaced
+            without ``force``.
+        folders: the option names whose output is a folder (the others are files).
+        force: allow replacing existing files inside dataset folders.
+    """
+    given = {name: Path(p) for name, p in outputs.items() if p is not None}
+    inputs = [Path(p) for p in inputs if p is not None]
+    datasets = [Path(p) for p in datasets if p is not None]
+    folder_outputs = set(folders)
+    seen: dict[Path, str] = {}
+    for name, path in given.items():
+        for source in inputs:
+            if _same_file(path, source):
+                raise OMG4Error(f"{name} {path} would overwrite the input {source}; choose another output path")
+        key = _resolved(path)
+        if key in seen:
+            raise OMG4Error(f"{name} and {seen[key]} name the same file {path}")
+        seen[key] = name
+        is_folder = name in folder_outputs
+        if is_folder and path.exists() and not path.is_dir():
+            raise OMG4Error(f"{name} {path} exists and is not a folder")
+        if not is_folder and path.is_dir():
+            raise OMG4Error(f"{name} {path} is a folder; give a file name")
+        if not is_folder and path.exists() and any(_inside(path, d) for d in datasets):
+            from omg4.data.readers import is_dataset_file
+
+            if is_dataset_file(path):
+                raise OMG4Error(f"{name} {path} would overwrite a file of the dataset; choose another output path")
+            if not force:
+                raise OMG4Error(f"{name} {path} would replace a file inside the dataset folder; choose another "
+                                "output path or add --force")
+        _check_writable_folder(path if is_folder else path.parent, name)
+
+
+__all__ = ["check_outputs"]

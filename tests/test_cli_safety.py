@@ -1,0 +1,191 @@
+"""The command line refuses bad input before any work, in one line, and never destroys its inputs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omg4.cli import main
+from omg4.codec import forge
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("model") / "m.omg4"
+    forge.valid_file(path, 300, codebook_scale=0.1)
+    return path
+
+
+def _digest(path: Path) -> str:
+    if path.is_dir():
+        return hashlib.sha256(b"".join(_digest(p).encode() + p.name.encode() for p in sorted(path.rglob("*"))
+                                       if p.is_file())).hexdigest()
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _refused(argv: list[str], capsys, *, contains: str) -> str:
+    """Run ``omg4 argv``: exit 2 and one line on stderr naming ``contains``."""
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert contains in err, err
+    return err
+
+
+# ----------------------------------------------------------------- inputs stay intact
+def test_every_command_refuses_an_output_that_is_one_of_its_inputs(tiny_scene_dir, model_file, tmp_path, capsys):
+    scene = str(tiny_scene_dir)
+    checkpoint = tmp_path / "baseline.safetensors"
+    checkpoint.write_bytes(b"not really a checkpoint, never read")
+    poses = tiny_scene_dir / "poses_bounds.npy"
+    cases = [
+        ["compress", scene, "--model", str(checkpoint), "--out", str(checkpoint)],
+        ["compress", scene, "--model", str(checkpoint), "--out", str(tmp_path / "x.omg4"), "--json", str(poses),
+         "--force"],
+        ["eval", scene, "--model", str(model_file), "--json", str(model_file)],
+        ["render", "--model", str(model_file), "--data", scene, "--out", str(poses)],
+        ["render", "--model", str(model_file), "--data", scene, "--out", str(poses), "--force"],
+        ["info", scene, "--json", str(tiny_scene_dir / "points3d.ply")],
+        ["info", str(model_file), "--json", str(model_file)],
+        ["train", scene, "--out", scene],
+        ["bench", scene, "--model", str(checkpoint), "--out", str(checkpoint)],
+        ["import-rt4dgs", str(checkpoint), "--out", str(checkpoint), "--time-range", "0", "1"],
+    ]
+    before = {p: _digest(p) for p in (tiny_scene_dir, model_file, checkpoint)}
+    for argv in cases:
+        _refused(argv, capsys, contains="overwrite")
+    assert {p: _digest(p) for p in before} == before
+
+
+def test_existing_files_inside_a_dataset_folder_need_force(tiny_scene_dir, model_file, capsys):
+    notes = tiny_scene_dir / "notes.json"
+    notes.write_text("{}")
+    try:
+        _refused(["eval", str(tiny_scene_dir), "--model", str(model_file), "--json", str(notes)], capsys,
+                 contains="--force")
+        assert notes.read_text() == "{}"
+    finally:
+        notes.unlink()
+
+
+def test_two_outputs_of_one_command_may_not_be_the_same_file(tiny_scene_dir, tmp_path, capsys):
+    out = tmp_path / "m.omg4"
+    _refused(["compress", str(tiny_scene_dir), "--model", str(tmp_path / "b.safetensors"), "--out", str(out),
+              "--json", str(out)], capsys, contains="same file")
+
+
+def test_train_into_an_existing_run_folder_needs_resume_or_force(tiny_scene_dir, tmp_path, capsys):
+    from omg4.train.run_state import clear_run
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    files = [run / "model.safetensors", run / "checkpoints" / "model_0000100.safetensors",
+             run / "checkpoints" / "state_0000100.pt", run / "notes.txt"]
+    for f in files:
+        f.write_text("x")
+    _refused(["train", str(tiny_scene_dir), "--out", str(run)], capsys, contains="--resume")
+    assert all(f.read_text() == "x" for f in files)
+    clear_run(run)  # what --force does before training afresh
+    assert [f.exists() for f in files] == [False, False, False, True]
+
+
+# ------------------------------------------------------------- checked before work
+@pytest.mark.parametrize("argv, contains", [
+    (["train", "DATA", "--out", "OUT", "--iterations", "-5"], "--iterations"),
+    (["train", "DATA", "--out", "OUT", "--batch-size", "0"], "--batch-size"),
+    (["train", "DATA", "--out", "OUT", "--downscale", "nan"], "--downscale"),
+    (["render", "--model", "M", "--data", "DATA", "--out", "x.png", "--time", "nan"], "--time"),
+    (["render", "--model", "M", "--data", "DATA", "--out", "x.mp4", "--fps", "0"], "--fps"),
+    (["render", "--model", "M", "--data", "DATA", "--out", "x.mp4", "--num-frames", "0"], "--num-frames"),
+    (["compress", "DATA", "--model", "M", "--out", "x.omg4", "--tau-gs", "1.5"], "--tau-gs"),
+    (["eval", "DATA", "--model", "M", "--max-views", "0"], "--max-views"),
+    (["import-rt4dgs", "C", "--out", "x", "--time-range", "0", "inf"], "--time-range"),
+    (["import-rt4dgs", "C", "--out", "x", "--time-range", "1", "0"], "T0 < T1"),
+])
+def test_bad_numbers_are_one_line_errors(argv, contains, capsys):
+    with pytest.raises(SystemExit) as info:
+        code = main(argv)
+        raise SystemExit(code)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.count("\n") == 1 and contains in err, err
+
+
+def test_outputs_are_checked_before_the_inputs_are_even_read(tmp_path, capsys):
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    missing = str(tmp_path / "no_such_data")
+    # an output under a file, in a folder nothing can write to, or naming a folder: refused first
+    _refused(["eval", missing, "--model", "M", "--json", str(a_file / "x.json")], capsys, contains="not a folder")
+    _refused(["compress", missing, "--model", "M", "--out", "/proc/omg4-test/x.omg4"], capsys, contains="cannot write")
+    (tmp_path / "frame.png").mkdir()
+    _refused(["render", "--model", "M", "--data", missing, "--out", str(tmp_path / "frame.png")], capsys,
+             contains="is a folder")
+    _refused(["train", missing, "--out", str(a_file)], capsys, contains="not a folder")
+
+
+def test_time_outside_the_model_range_is_refused(tiny_scene_dir, model_file, tmp_path, capsys):
+    out = tmp_path / "x.png"
+    _refused(["render", "--model", str(model_file), "--data", str(tiny_scene_dir), "--out", str(out),
+              "--time", "7"], capsys, contains="time range")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("width, height", [(0, 10), (-5, 10), (200000, 200000), (10.5, 10)])
+def test_camera_sizes_outside_sane_bounds_are_refused(model_file, tmp_path, capsys, width, height):
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"K": np.eye(3).tolist(), "viewmat": np.eye(4).tolist(), "width": width,
+                               "height": height}))
+    _refused(["render", "--model", str(model_file), "--camera", str(cam), "--out", str(tmp_path / "x.png")], capsys,
+             contains="camera")
+
+
+def test_ply_declaring_more_vertices_than_its_bytes_is_refused(tmp_path):
+    from omg4.data.points import read_ply
+    from omg4.errors import DataError
+
+    for fmt in ("binary_little_endian", "ascii"):
+        path = tmp_path / f"{fmt}.ply"
+        path.write_bytes(f"ply\nformat {fmt} 1.0\nelement vertex 100000000000\nproperty float x\nproperty float y\n"
+                         "property float z\nend_header\n".encode() + b"\0" * 120)
+        with pytest.raises(DataError, match="declares 100000000000 vertices"):
+            read_ply(path)
+
+
+# ------------------------------------------------------------- interrupted writes
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_temporaries_of_interrupted_writes_are_removed_by_the_next_write(tmp_path):
+    from omg4.atomic import write_text_atomic
+
+    dead = tmp_path / f".summary.{_dead_pid()}-abcd1234.tmp.json"
+    old_style = tmp_path / ".summary.k2j4h5g6.tmp.json"
+    alive = tmp_path / f".summary.{os.getppid()}-abcd1234.tmp.json"  # a running process: maybe still writing
+    other = tmp_path / f".summary.v2.{_dead_pid()}-abcd1234.tmp.json"  # another target's
+    for p in (dead, old_style, alive, other):
+        p.write_text("partial")
+    write_text_atomic(tmp_path / "summary.json", "{}")
+    assert (tmp_path / "summary.json").read_text() == "{}"
+    assert [p.exists() for p in (dead, old_style, alive, other)] == [False, False, True, True]
+
+
+def test_synth_removes_the_folders_an_interrupted_synth_left(tmp_path):
+    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+
+    stale = tmp_path / f".scene.tmp-{_dead_pid()}-0123456789ab"
+    stale.mkdir()
+    (stale / "cam00.mp4").write_bytes(b"partial")
+    write_synthetic_scene(tmp_path / "scene", SynthConfig(num_cameras=2, num_frames=1, width=16, height=16,
+                                                          num_points=10), progress=False)
+    assert not stale.exists() and (tmp_path / "scene" / "poses_bounds.npy").exists()
