@@ -76,6 +76,33 @@ def test_existing_files_inside_a_dataset_folder_need_force(tiny_scene_dir, model
         notes.unlink()
 
 
+def test_dataset_rule_refuses_files_a_reader_takes_even_new_ones_and_force_allows_the_rest(tmp_path):
+    from omg4.errors import OMG4Error
+    from omg4.outputs import check_outputs
+
+    data = tmp_path / "data"
+    (data / "train").mkdir(parents=True)
+    (data / "frame.png").write_text("old")
+    (data / "m.omg4.scores.npz").write_text("old")
+    for new in ("cam99.mp4", "poses_bounds.npy", "transforms_val.json", "train/r_999.png"):
+        with pytest.raises(OMG4Error, match="file of the dataset"):
+            check_outputs({"--out": data / new}, inputs=[data], datasets=[data], force=True)
+    for existing in ("frame.png", "m.omg4.scores.npz"):
+        with pytest.raises(OMG4Error, match="--force"):
+            check_outputs({"--out": data / existing}, inputs=[data], datasets=[data])
+        check_outputs({"--out": data / existing}, inputs=[data], datasets=[data], force=True)
+    check_outputs({"--out": data / "preview.png"}, inputs=[data], datasets=[data])  # new, read by no reader
+    with pytest.raises(OMG4Error, match="cannot check"):
+        check_outputs({"--json": tmp_path / ("x" * 300 + ".json")})
+
+
+def test_info_json_beside_a_model_may_be_rewritten(model_file, tmp_path, capsys):
+    out = model_file.parent / "summary.json"
+    for _ in range(2):
+        assert main(["info", str(model_file), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["kind"] == "omg4"
+
+
 def test_two_outputs_of_one_command_may_not_be_the_same_file(tiny_scene_dir, tmp_path, capsys):
     out = tmp_path / "m.omg4"
     _refused(["compress", str(tiny_scene_dir), "--model", str(tmp_path / "b.safetensors"), "--out", str(out),
@@ -95,6 +122,22 @@ def test_train_into_an_existing_run_folder_needs_resume_or_force(tiny_scene_dir,
     assert all(f.read_text() == "x" for f in files)
     clear_run(run)  # what --force does before training afresh
     assert [f.exists() for f in files] == [False, False, False, True]
+
+
+def test_train_force_starts_afresh_in_an_existing_run_folder(tiny_scene_dir, tmp_path, capsys):
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    stale = run / "checkpoints" / "model_0000500.safetensors"
+    stale.write_text("from an earlier run")
+    (run / "checkpoints" / "state_0000500.pt").write_text("from an earlier run")
+    argv = ["train", str(tiny_scene_dir), "--out", str(run), "--iterations", "2", "--init", "random",
+            "--num-random-points", "200", "--test-interval", "0"]
+    assert main(argv + ["--force"]) == 0
+    assert not stale.exists() and (run / "model.safetensors").exists()
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["model_0000002.safetensors",
+                                                                     "state_0000002.pt"]
+    capsys.readouterr()
+    assert main(argv + ["--resume"]) == 0  # resuming the finished run is allowed (and trains no further)
 
 
 # ------------------------------------------------------------- checked before work

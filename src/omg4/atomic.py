@@ -66,10 +66,13 @@ def remove_stale_temporaries(folder: Path, prefix: str, suffix: str = "") -> Non
         match = _TEMP_MIDDLE.fullmatch(name[len(prefix):len(name) - len(suffix)])
         if match is None or (match.group(1) and _process_alive(int(match.group(1)))):
             continue
-        if entry.is_dir() and not entry.is_symlink():
-            shutil.rmtree(entry, ignore_errors=True)
-        else:
-            entry.unlink(missing_ok=True)
+        try:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+        except OSError:  # another user's, say: not ours to remove, and no reason to fail the write
+            continue
 
 
 def _process_alive(pid: int) -> bool:

@@ -4,9 +4,10 @@ The rule every command follows (the README's "Outputs never destroy inputs"):
 
 * an output that resolves to one of the command's inputs (model, dataset file or folder,
   scores, camera file) is refused, ``--force`` or not;
-* an output that would replace an existing file inside a dataset folder is refused unless
-  ``--force``, and one of the files a reader takes from there
-  (:data:`omg4.data.readers.DATASET_FILES`: videos, poses, points, images, metadata) always;
+* a file a dataset reader takes from a dataset folder (or would take, were it created:
+  :func:`omg4.data.readers.is_dataset_file` — videos, poses, points, metadata, images in
+  subfolders) is never an output; any other existing file inside a dataset folder is
+  replaced only with ``--force``;
 * two outputs of one command may not be the same file;
 * the output's folder must exist or be creatable, and be writable (tried with a real file,
   so read-only mounts and permissions are caught as well), and a file output may not name
@@ -60,7 +61,17 @@ def _check_writable_folder(folder: Path, what: str) -> None:
     os.unlink(probe)
 
 
-def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
+def check_outputs(outputs: dict[str, str | os.PathLike | None], **kwargs) -> None:
+    """Refuse, before any work, outputs that cannot be written or would destroy an input (arguments of
+    :func:`_check_outputs`); an operating-system error while looking (a name too long, a folder that cannot be
+    listed) is a one-line :class:`OMG4Error` too."""
+    try:
+        _check_outputs(outputs, **kwargs)
+    except OSError as exc:
+        raise OMG4Error(f"cannot check the output paths: {exc.strerror or exc}") from None
+
+
+def _check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
                   datasets: Iterable[str | os.PathLike | None] = (), folders: Iterable[str] = (),
                   force: bool = False) -> None:
     """Refuse, before any work, outputs that cannot be written or would destroy an input.
@@ -91,12 +102,14 @@ def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Itera
             raise OMG4Error(f"{name} {path} exists and is not a folder")
         if not is_folder and path.is_dir():
             raise OMG4Error(f"{name} {path} is a folder; give a file name")
-        if not is_folder and path.exists() and any(_inside(path, d) for d in datasets):
+        dataset = next((d for d in datasets if _inside(path, d)), None)
+        if not is_folder and dataset is not None:
             from omg4.data.readers import is_dataset_file
 
-            if is_dataset_file(path):
-                raise OMG4Error(f"{name} {path} would overwrite a file of the dataset; choose another output path")
-            if not force:
+            if is_dataset_file(path, dataset):
+                raise OMG4Error(f"{name} {path} would overwrite or add a file of the dataset; choose another "
+                                "output path")
+            if path.exists() and not force:
                 raise OMG4Error(f"{name} {path} would replace a file inside the dataset folder; choose another "
                                 "output path or add --force")
         _check_writable_folder(path if is_folder else path.parent, name)

@@ -219,7 +219,7 @@ def _huffman_decode(codec: dahuffman.HuffmanCodec, counts: np.ndarray, bits: byt
     completed by the end-of-stream code), so the walk is bounded by the counts table; the walk
     itself runs in a numba kernel (dahuffman's decoder tests one bit at a time in Python).
     """
-    table = codec.get_code_table()
+    table = dict(codec.get_code_table())
     eof = table.pop(dahuffman.huffmancodec._EOF)
     lengths = np.array([table[s][0] for s in sorted(table)] + [eof[0]], np.int64)
     values = np.array([table[s][1] for s in sorted(table)] + [eof[1]], np.uint64)

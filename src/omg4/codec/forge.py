@@ -15,6 +15,7 @@ suite drive it; a correct decoder lets every case end as "ok" or a one-line
 
 from __future__ import annotations
 
+import functools
 import json
 import random
 import struct
@@ -141,7 +142,7 @@ def _damaged_bytes(rng: random.Random, data: bytes) -> bytes:
         for _ in range(rng.randint(1, 8)):
             i = rng.randrange(len(b))
             b[i] ^= 1 << rng.randrange(8)
-    elif choice == 1 and b:  # a run set to 0x00 or 0xFF
+    elif choice == 1 and b:  # a run of up to 64 bytes replaced by 0x00 or 0xFF (past the end: appended)
         i = rng.randrange(len(b))
         b[i:i + rng.randint(1, 64)] = bytes([rng.choice((0, 255))]) * len(b[i:i + 64])
     elif choice == 2:  # truncated
@@ -190,6 +191,7 @@ def _rename_section(rng: random.Random, header: dict, sections) -> bytes:
     return _assemble(header, sections)
 
 
+@functools.lru_cache(maxsize=8)
 def _inflated(num_gaussians: int, codec: str) -> bytes:
     """A file declaring many Gaussians in few bytes, its sections consistent with the count: every Gaussian
     identical, so each index stream is one constant symbol and the Morton gaps are all zero (what a

@@ -316,8 +316,8 @@ def _is_int(v: object, lo: int, hi: int) -> bool:
 def _check_header(h: dict, section_bytes: int) -> None:
     """Structural validation of a payload header against hard limits and the file's own size.
 
-    Every count and shape is an exact Python integer; the Gaussian count may not exceed the
-    section bytes / :data:`MIN_BYTES_PER_GAUSSIAN`, and the values the sections decode to
+    Every count and shape is an exact Python integer; a count above :data:`GAUSSIANS_ALWAYS_ALLOWED`
+    may not exceed the section bytes / :data:`MIN_BYTES_PER_GAUSSIAN`, and the values the sections decode to
     (floats, indices, reconstructed attributes) may not exceed :data:`MAX_VALUES_PER_BYTE` per
     section byte plus :data:`VALUES_SLACK`, so a forged header cannot make the decoder
     allocate or inflate more than a bounded multiple of the file. Raises CorruptFileError.

@@ -50,13 +50,15 @@ def run(args) -> int:
 
     from omg4.outputs import check_outputs
 
-    scores_out = None if args.scores else args.out.with_name(args.out.name + ".scores.npz")
+    stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
+    computes_scores = args.scores is None and any(s in stages for s in ("sample", "prune", "sample+prune"))
+    scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
     check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out},
                   inputs=[args.data, args.model, args.scores], datasets=[args.data], force=args.force)
     device = device_from_args(args)
     scene = load_scene_from_args(args)
     baseline, _ = load_gaussians(args.model, device)
-    cfg = CompressConfig(preset=args.preset, stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()),
+    cfg = CompressConfig(preset=args.preset, stages=stages,
                          schedule=args.schedule, num_merge=args.num_merge, batch_size=args.batch_size,
                          seed=args.seed, official_score_quirk=args.official_score_quirk,
                          baseline_iterations=args.baseline_iterations, backend=args.backend, device=str(device),

@@ -22,25 +22,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
     parser.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
     parser.add_argument("--force", action="store_true",
-                        help="allow --json to replace an existing file inside a dataset folder (never PATH itself)")
+                        help="allow --json to replace an existing file inside the dataset folder PATH")
 
 
 def run(args) -> int:
     from omg4.outputs import check_outputs
 
-    check_outputs({"--json": args.json}, inputs=[args.path], datasets=[_dataset_of(args.path)], force=args.force)
+    check_outputs({"--json": args.json}, inputs=[args.path], datasets=[args.path] if args.path.is_dir() else [],
+                  force=args.force)
     summary, text = summarize(args.path, format=args.format)
     print(text)
     if args.json:
         write_text_atomic(args.json, json.dumps(summary, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0
-
-
-def _dataset_of(path: Path) -> Path:
-    """The dataset folder ``path`` is (a folder) or lies in (a file's folder: a model beside its data is
-    treated alike, so ``--json`` never replaces a file next to the input without ``--force``)."""
-    return path if path.is_dir() else path.parent
 
 
 def summarize(path: Path, **options) -> tuple[dict, str]:

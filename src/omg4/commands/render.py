@@ -47,7 +47,7 @@ def _camera(args):
         cams = [c for c in cams if c.name == args.camera_name]
         if not cams:
             raise OMG4Error(f"no camera named '{args.camera_name}' in {args.data}")
-    return cams[0], scene
+    return cams[0].check_renderable(), scene
 
 
 def run(args) -> int:

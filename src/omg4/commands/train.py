@@ -50,7 +50,7 @@ def run(args) -> int:
     from omg4.train.trainer import Trainer, evaluate_psnr
 
     check_outputs({"--out": args.out, "--json": args.json}, inputs=[args.data], datasets=[args.data],
-                  folders=["--out"])
+                  folders=["--out"], force=args.force)
     if is_run_in_progress(args.out) and not (args.resume or args.force):
         raise OMG4Error(f"{args.out} already holds a training run: add --resume to continue it or --force to "
                         "start afresh (its checkpoints and model are deleted)")

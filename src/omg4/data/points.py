@@ -79,7 +79,7 @@ def read_ply(path: str | Path) -> PointCloud:
             remaining = os.fstat(f.fileno()).st_size - f.tell()
             # bytes each vertex needs at least: its binary record, or one digit and a separator per ASCII value
             least = 2 * len(props) if fmt == "ascii" else np.dtype([(n, "<" + t) for n, t in props]).itemsize
-            if count < 0 or count * max(least, 1) > remaining:
+            if count < 0 or count * max(least, 1) - 1 > remaining:  # the last value needs no separator
                 raise DataError(f"{path}: PLY file is truncated or damaged: its header declares {count} vertices, "
                                 f"more than its {remaining} bytes of data can hold")
             if fmt == "ascii":

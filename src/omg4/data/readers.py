@@ -15,15 +15,19 @@ from omg4.data.scene import Scene
 from omg4.errors import DataError
 
 READERS = {"n3dv": read_n3dv, "blender": read_blender, "panoptic": read_panoptic}
-#: Name patterns of the files the readers take from a dataset folder (any depth): never an output.
-DATASET_FILES = ("poses_bounds.npy", "points3d.ply", "*.mp4", "transforms_*.json", "*_meta.json", "synth.json",
-                 "*.png", "*.jpg", "*.jpeg", "*.npz")
+#: Name patterns of the files the readers take from the top of a dataset folder (N3DV videos, poses and
+#: points; Blender transforms; Panoptic metadata), and of the images they take from its subfolders.
+DATASET_FILES = ("poses_bounds.npy", "points3d.ply", "*.mp4", "transforms_*.json", "*_meta.json", "synth.json")
+DATASET_IMAGES = ("*.png", "*.jpg", "*.jpeg")
 
 
-def is_dataset_file(path: str | os.PathLike) -> bool:
-    """Whether a file of this name is one a reader may take from a dataset folder (:data:`DATASET_FILES`)."""
-    name = Path(path).name.lower()
-    return any(fnmatch.fnmatch(name, pattern) for pattern in DATASET_FILES)
+def is_dataset_file(path: str | os.PathLike, folder: str | os.PathLike) -> bool:
+    """Whether a file at ``path`` inside the dataset ``folder`` is one a reader takes (or would take, were it
+    created: a new ``camXX.mp4`` becomes an N3DV camera) — :data:`DATASET_FILES` at the top level,
+    :data:`DATASET_IMAGES` in subfolders."""
+    rel = Path(os.path.relpath(os.path.realpath(os.path.abspath(path)), os.path.realpath(os.path.abspath(folder))))
+    patterns = DATASET_FILES if len(rel.parts) == 1 else DATASET_IMAGES
+    return any(fnmatch.fnmatch(rel.name.lower(), pattern) for pattern in patterns)
 
 
 def detect_format(path: str | os.PathLike) -> str:

@@ -39,14 +39,20 @@ class Camera:
 
     def __post_init__(self):
         label = f"camera {self.name!r}" if self.name else "camera"
-        size_ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE
-                      for v in (self.width, self.height))
-        if not size_ok or self.width * self.height > MAX_PIXELS:
-            raise DataError(f"{label}: image size {self.width}x{self.height} is not a positive size within "
-                            f"{MAX_IMAGE_SIDE} pixels a side and {MAX_PIXELS} pixels")
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
+                   for v in (self.width, self.height)):
+            raise DataError(f"{label}: image size {self.width}x{self.height} is not a positive size in pixels")
         K, viewmat = np.asarray(self.K), np.asarray(self.viewmat)
         if K.shape != (3, 3) or viewmat.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(viewmat).all()):
             raise DataError(f"{label}: K must be a finite 3x3 and viewmat a finite 4x4 matrix")
+
+    def check_renderable(self) -> "Camera":
+        """This camera, after checking that one image of its size fits the limits (:data:`MAX_IMAGE_SIDE` a side,
+        :data:`MAX_PIXELS` in all); raises :class:`DataError` otherwise."""
+        if max(self.width, self.height) > MAX_IMAGE_SIDE or self.width * self.height > MAX_PIXELS:
+            raise DataError(f"camera image size {self.width}x{self.height} exceeds {MAX_IMAGE_SIDE} pixels a side "
+                            f"or {MAX_PIXELS} pixels")
+        return self
 
     @property
     def center(self) -> np.ndarray:
@@ -84,9 +90,11 @@ class Camera:
         K = np.asarray(d["K"], dtype=np.float64).reshape(3, 3)
         viewmat = np.asarray(d["viewmat"], dtype=np.float64).reshape(4, 4)
         width, height = d["width"], d["height"]
-        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (width, height)):
+        if not all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                   and float(v).is_integer() for v in (width, height)):
             raise DataError(f"camera width and height must be whole numbers, got {width!r} x {height!r}")
-        return Camera(K=K, viewmat=viewmat, width=int(width), height=int(height), name=str(d.get("name", "")))
+        camera = Camera(K=K, viewmat=viewmat, width=int(width), height=int(height), name=str(d.get("name", "")))
+        return camera.check_renderable()
 
 
 @dataclass

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from omg4.atomic import atomic_path
-from omg4.errors import CorruptFileError
+from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians.checkpoint import load_gaussians, save_gaussians
 
 _STATE_RE = re.compile(r"state_(\d{7})\.pt$")
@@ -88,7 +88,10 @@ def is_run_in_progress(run_dir: Path) -> bool:
     """Whether ``run_dir`` exists and holds anything (a run's files or others): training there needs
     ``--resume`` or ``--force``, so an earlier run is never silently replaced or mixed with a new one."""
     run_dir = Path(run_dir)
-    return run_dir.is_dir() and any(run_dir.iterdir())
+    try:
+        return run_dir.is_dir() and any(run_dir.iterdir())
+    except OSError as exc:
+        raise OMG4Error(f"cannot look into {run_dir}: {exc.strerror or exc}") from None
 
 
 def clear_run(run_dir: Path) -> None:
