@@ -7,10 +7,11 @@ into the repository.
 
 from __future__ import annotations
 
+import atexit
 import os
-from pathlib import Path
-
+import shutil
 import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -18,8 +19,11 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("OMG4_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
 
 
-# Keep frame caches and converted weights of a test session out of the user's cache folder.
-os.environ.setdefault("OMG4_CACHE_DIR", tempfile.mkdtemp(prefix="omg4-test-cache-"))
+# Keep frame caches and converted weights of a test session out of the user's cache folder,
+# in a folder of the session's own that is removed when the session ends.
+if "OMG4_CACHE_DIR" not in os.environ:
+    os.environ["OMG4_CACHE_DIR"] = tempfile.mkdtemp(prefix="omg4-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["OMG4_CACHE_DIR"], ignore_errors=True)
 
 
 def shared_scene(name: str) -> Path:
