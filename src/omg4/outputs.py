@@ -61,17 +61,7 @@ def _check_writable_folder(folder: Path, what: str) -> None:
     os.unlink(probe)
 
 
-def check_outputs(outputs: dict[str, str | os.PathLike | None], **kwargs) -> None:
-    """Refuse, before any work, outputs that cannot be written or would destroy an input (arguments of
-    :func:`_check_outputs`); an operating-system error while looking (a name too long, a folder that cannot be
-    listed) is a one-line :class:`OMG4Error` too."""
-    try:
-        _check_outputs(outputs, **kwargs)
-    except OSError as exc:
-        raise OMG4Error(f"cannot check the output paths: {exc.strerror or exc}") from None
-
-
-def _check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
+def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
                   datasets: Iterable[str | os.PathLike | None] = (), folders: Iterable[str] = (),
                   force: bool = False) -> None:
     """Refuse, before any work, outputs that cannot be written or would destroy an input.
@@ -79,40 +69,48 @@ def _check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iter
     Args:
         outputs: option name (for messages, e.g. ``"--out"``) → output path; ``None`` entries are skipped.
         inputs: files and folders the command reads; an output may be none of them.
-        datasets: dataset folders among the inputs; an existing file inside one is not replaced
-            without ``force``.
+        datasets: dataset folders among the inputs: no output may be a file their readers take, and an
+            existing file inside one is not replaced without ``force``.
         folders: the option names whose output is a folder (the others are files).
         force: allow replacing existing files inside dataset folders.
+
+    An operating-system error while looking (a name too long, a folder that cannot be listed) is a
+    one-line :class:`OMG4Error` too.
     """
-    given = {name: Path(p) for name, p in outputs.items() if p is not None}
     inputs = [Path(p) for p in inputs if p is not None]
     datasets = [Path(p) for p in datasets if p is not None]
-    folder_outputs = set(folders)
     seen: dict[Path, str] = {}
-    for name, path in given.items():
-        for source in inputs:
-            if _same_file(path, source):
+    try:
+        for name, path in ((name, Path(p)) for name, p in outputs.items() if p is not None):
+            source = next((s for s in inputs if _same_file(path, s)), None)
+            if source is not None:
                 raise OMG4Error(f"{name} {path} would overwrite the input {source}; choose another output path")
-        key = _resolved(path)
-        if key in seen:
-            raise OMG4Error(f"{name} and {seen[key]} name the same file {path}")
-        seen[key] = name
-        is_folder = name in folder_outputs
-        if is_folder and path.exists() and not path.is_dir():
-            raise OMG4Error(f"{name} {path} exists and is not a folder")
-        if not is_folder and path.is_dir():
-            raise OMG4Error(f"{name} {path} is a folder; give a file name")
-        dataset = next((d for d in datasets if _inside(path, d)), None)
-        if not is_folder and dataset is not None:
-            from omg4.data.readers import is_dataset_file
+            key = _resolved(path)
+            if key in seen:
+                raise OMG4Error(f"{name} and {seen[key]} name the same file {path}")
+            seen[key] = name
+            _check_output(name, path, name in folders, datasets, force)
+    except OSError as exc:
+        raise OMG4Error(f"cannot check the output paths: {exc.strerror or exc}") from None
 
-            if is_dataset_file(path, dataset):
-                raise OMG4Error(f"{name} {path} would overwrite or add a file of the dataset; choose another "
-                                "output path")
-            if path.exists() and not force:
-                raise OMG4Error(f"{name} {path} would replace a file inside the dataset folder; choose another "
-                                "output path or add --force")
-        _check_writable_folder(path if is_folder else path.parent, name)
+
+def _check_output(name: str, path: Path, is_folder: bool, datasets: list[Path], force: bool) -> None:
+    """One output of :func:`check_outputs`, once it is known to be no input and no other output."""
+    if is_folder and path.exists() and not path.is_dir():
+        raise OMG4Error(f"{name} {path} exists and is not a folder")
+    if not is_folder and path.is_dir():
+        raise OMG4Error(f"{name} {path} is a folder; give a file name")
+    dataset = None if is_folder else next((d for d in datasets if _inside(path, d)), None)
+    if dataset is not None:
+        from omg4.data.readers import is_dataset_file
+
+        if is_dataset_file(path, dataset):
+            raise OMG4Error(f"{name} {path} would overwrite or add a file of the dataset; choose another "
+                            "output path")
+        if path.exists() and not force:
+            raise OMG4Error(f"{name} {path} would replace a file inside the dataset folder; choose another "
+                            "output path or add --force")
+    _check_writable_folder(path if is_folder else path.parent, name)
 
 
 __all__ = ["check_outputs"]

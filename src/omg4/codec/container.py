@@ -34,10 +34,11 @@ MAGIC = b"\x89OMG4\r\n\x1a"
 FORMAT_VERSION = 1
 MAX_JSON_BYTES = 16 * 1024 * 1024
 MAX_SECTION_NAME = 200
-_PREFIX = struct.Struct("<8sHHII")  # magic, version, flags, json length, json crc32
+PREFIX = struct.Struct("<8sHHII")  # magic, version, flags, json length, json crc32
 
 
-def _crc(data: bytes | memoryview) -> int:
+def crc32(data: bytes | memoryview) -> int:
+    """The CRC-32 the container stores for the JSON and for each section (unsigned)."""
     return zlib.crc32(data) & 0xFFFFFFFF
 
 
@@ -72,11 +73,11 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
             raise OMG4Error(f"invalid container section name {name!r}")
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise OMG4Error(f"container section {name!r} must be bytes, got {type(data).__name__}")
-        table.append([name, len(data), _crc(data)])
+        table.append([name, len(data), crc32(data)])
     blob = _encode_json(header, table)
     if len(blob) > MAX_JSON_BYTES:
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
-    prefix = _PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), _crc(blob))
+    prefix = PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), crc32(blob))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(prefix)
         f.write(blob)
@@ -142,12 +143,12 @@ def _parse_table(label: str, doc: object) -> tuple[dict, list[tuple[str, int, in
 def _read_prefix_and_table(src: _Source) -> tuple[dict, list[tuple[str, int, int]]]:
     """Validate magic, version and the checksummed JSON; returns (header, section table)."""
     label = src.label
-    if src.size < _PREFIX.size:
+    if src.size < PREFIX.size:
         start = src.read(min(src.size, len(MAGIC)), "the magic bytes")
         if not MAGIC.startswith(start):
             raise CorruptFileError(f"{label}: not an .omg4 file (wrong magic bytes)")
         raise CorruptFileError(f"{label}: truncated ({src.size} bytes, shorter than the fixed header)")
-    magic, version, flags, json_len, json_crc = _PREFIX.unpack(src.read(_PREFIX.size, "the fixed header"))
+    magic, version, flags, json_len, json_crc = PREFIX.unpack(src.read(PREFIX.size, "the fixed header"))
     if magic != MAGIC:
         raise CorruptFileError(f"{label}: not an .omg4 file (wrong magic bytes)")
     if version != FORMAT_VERSION:
@@ -156,18 +157,18 @@ def _read_prefix_and_table(src: _Source) -> tuple[dict, list[tuple[str, int, int
                                f"(this build reads version {FORMAT_VERSION})")
     if flags != 0:
         raise CorruptFileError(f"{label}: unknown container flags {flags:#06x}")
-    if json_len > MAX_JSON_BYTES or json_len > src.size - _PREFIX.size:
+    if json_len > MAX_JSON_BYTES or json_len > src.size - PREFIX.size:
         raise CorruptFileError(f"{label}: header length {json_len} exceeds the file size or limit "
                                "(truncated or damaged)")
     blob = src.read(json_len, "the JSON header")
-    if _crc(blob) != json_crc:
+    if crc32(blob) != json_crc:
         raise CorruptFileError(f"{label}: header checksum mismatch (file is damaged)")
     try:
         doc = json.loads(blob.decode("utf-8"), parse_constant=_reject_constant)
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise CorruptFileError(f"{label}: header is not valid JSON ({type(exc).__name__})") from None
     header, table = _parse_table(label, doc)
-    expected = _PREFIX.size + json_len + sum(size for _, size, _ in table)
+    expected = PREFIX.size + json_len + sum(size for _, size, _ in table)
     if expected != src.size:
         state = "truncated" if expected > src.size else "has trailing bytes"
         raise CorruptFileError(f"{label}: file {state} ({src.size} bytes, the section table needs {expected})")
@@ -186,7 +187,7 @@ def read_container(source: str | os.PathLike | bytes | bytearray | memoryview) -
         sections = {}
         for name, size, crc in table:
             data = src.read(size, f"section {name!r}")
-            if _crc(data) != crc:
+            if crc32(data) != crc:
                 raise CorruptFileError(f"{src.label}: checksum mismatch in section {name!r} (file is damaged)")
             sections[name] = data
     finally:

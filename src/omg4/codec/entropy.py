@@ -221,8 +221,9 @@ def _huffman_decode(codec: dahuffman.HuffmanCodec, counts: np.ndarray, bits: byt
     """
     table = dict(codec.get_code_table())
     eof = table.pop(dahuffman.huffmancodec._EOF)
-    lengths = np.array([table[s][0] for s in sorted(table)] + [eof[0]], np.int64)
-    values = np.array([table[s][1] for s in sorted(table)] + [eof[1]], np.uint64)
+    codes = [table[s] for s in sorted(table)] + [eof]  # ascending symbols, then the end-of-stream code
+    lengths = np.array([length for length, _ in codes], np.int64)
+    values = np.array([value for _, value in codes], np.uint64)
     if lengths.max() > 63:
         raise CorruptFileError("damaged Huffman+LZMA stream (code longer than 63 bits)")
     if len(bits) != (int((counts * lengths[:-1]).sum()) + 7) // 8:

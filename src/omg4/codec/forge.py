@@ -18,17 +18,14 @@ from __future__ import annotations
 import functools
 import json
 import random
-import struct
-import zlib
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from omg4.codec.container import FORMAT_VERSION, MAGIC
+from omg4.codec.container import FORMAT_VERSION, MAGIC, PREFIX, crc32, read_container
 from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
 
-_PREFIX = struct.Struct("<8sHHII")
 #: attribute → (width, sub-vector length, codebook size) of the M preset (paper appendix)
 _LAYOUT = {"scale": (3, 1, 512), "rotation": (4, 2, 8192), "app": (6, 2, 1024), "scale_t": (1, 1, 512),
            "rotation_r": (4, 2, 8192)}
@@ -75,26 +72,21 @@ def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: i
 
 # ------------------------------------------------------------------------- assembly
 def _split(data: bytes) -> tuple[dict, list[tuple[str, bytes]]]:
-    """(JSON document, [(section name, bytes)]) of a valid container."""
-    _, _, _, json_len, _ = _PREFIX.unpack_from(data)
-    doc = json.loads(data[_PREFIX.size:_PREFIX.size + json_len])
-    pos, sections = _PREFIX.size + json_len, []
-    for name, size, _ in doc["sections"]:
-        sections.append((name, data[pos:pos + size]))
-        pos += size
-    return doc["header"], sections
+    """(header, [(section name, bytes)] in file order) of a valid container."""
+    header, sections = read_container(data)
+    return header, list(sections.items())
 
 
-def _assemble(header: object, sections: list[tuple[str, bytes]], table: list | None = None) -> bytes:
-    """A container with correct checksums (JSON and sections) around ``header`` and ``sections``;
-    ``table`` replaces the section table (names, sizes) when given, checksums still computed over the bytes."""
-    if table is None:
-        table = [[name, len(data), zlib.crc32(data) & 0xFFFFFFFF] for name, data in sections]
+def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
+    """A container with correct checksums (JSON and sections) around any JSON ``header`` and any section names
+    (what :func:`~omg4.codec.container.write_container` would refuse); the :data:`_RAW_NUMBERS` tokens become
+    numbers JSON cannot hold."""
+    table = [[name, len(data), crc32(data)] for name, data in sections]
     text = json.dumps({"header": header, "sections": table}, separators=(",", ":"), ensure_ascii=False)
     for token, raw in _RAW_NUMBERS.items():
         text = text.replace(f'"{token}"', raw)
     blob = text.encode("utf-8", "surrogatepass")
-    prefix = _PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), zlib.crc32(blob) & 0xFFFFFFFF)
+    prefix = PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), crc32(blob))
     return prefix + blob + b"".join(data for _, data in sections)
 
 
@@ -218,10 +210,6 @@ def _inflated(num_gaussians: int, codec: str) -> bytes:
     return _assemble(header, [(name, replaced.get(name, data)) for name, data in sections])
 
 
-def _raw_damage(rng: random.Random, data: bytes) -> bytes:
-    return _damaged_bytes(rng, data)
-
-
 MUTATIONS = ("header", "section", "swap", "resplit", "rename", "raw", "inflate")
 
 
@@ -250,7 +238,7 @@ def forged_files(base: bytes, count: int, seed: int = 0) -> Iterator[tuple[str, 
         elif kind == "inflate" and inflated:
             data = inflated[(k // len(kinds)) % len(inflated)]
         else:
-            kind, data = "raw", _raw_damage(rng, base)
+            kind, data = "raw", _damaged_bytes(rng, base)
         yield kind, data
 
 

@@ -298,12 +298,12 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = "
         "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
         "encodings": encodings,
     }
+    sizes = {name: len(data) for name, data in sections.items()}
     try:  # the decoder's limits hold for every file written, so no written file is refused on reading
-        check_sections(header, {name: len(data) for name, data in sections.items()})
+        check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
     total = write_container(path, header, sections)
-    sizes = {name: len(data) for name, data in sections.items()}
     sizes["header"] = total - sum(sizes.values())
     return sizes
 
@@ -354,14 +354,13 @@ def _check_header(h: dict, section_bytes: int) -> None:
 def check_sections(header: dict, section_sizes: dict[str, int]) -> None:
     """Validate a payload header (:func:`_check_header`) and that the sections present (name → byte size) are
     exactly those it names; raises :class:`CorruptFileError`. Used by the decoder and by ``omg4 info``."""
-    sections = section_sizes
-    _check_header(header, sum(sections.values()))
+    _check_header(header, sum(section_sizes.values()))
     expected = ["xyz", "t"]
     expected += [f"svq.{a}.{kind}{j}" for a, shapes in header["attributes"].items()
                  for kind in ("codebook", "index") for j in range(len(shapes))]
     expected += [f"mlp.{name}" for name in header["mlp"]]
     encodings = header["encodings"]
-    if (sorted(expected) != sorted(sections) or sorted(expected) != sorted(encodings)
+    if (sorted(expected) != sorted(section_sizes) or sorted(expected) != sorted(encodings)
             or not all(isinstance(e, str) for e in encodings.values())):
         raise CorruptFileError("section list does not match the header")
 

@@ -31,13 +31,12 @@ def run(args) -> int:
     from omg4.bench import ROWS, run_bench
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.outputs import check_outputs
 
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
     unknown = [r for r in rows or [] if r not in ROWS]
     if unknown:
         raise OMG4Error(f"unknown bench rows {unknown}; known: {', '.join(ROWS)}")
-    from omg4.outputs import check_outputs
-
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     device = device_from_args(args)
     scene = load_scene_from_args(args)

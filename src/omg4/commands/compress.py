@@ -47,7 +47,6 @@ def run(args) -> int:
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.gaussians.checkpoint import load_gaussians
-
     from omg4.outputs import check_outputs
 
     stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())

@@ -19,7 +19,6 @@ def run(args) -> int:
     from dataclasses import replace
 
     from omg4.demo import QUICK, DemoSettings, run_demo
-
     from omg4.outputs import check_outputs
 
     check_outputs({"--out": args.out}, folders=["--out"])

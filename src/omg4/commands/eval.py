@@ -27,7 +27,6 @@ def run(args) -> int:
 
     from omg4.atomic import write_text_atomic
     from omg4.evaluate import evaluate, load_model
-
     from omg4.outputs import check_outputs
 
     check_outputs({"--json": args.json}, inputs=[args.data, args.model], datasets=[args.data], force=args.force)

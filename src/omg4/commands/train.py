@@ -46,12 +46,12 @@ def run(args) -> int:
     from omg4.outputs import check_outputs
     from omg4.train import make_config
     from omg4.train.init import initial_points
-    from omg4.train.run_state import clear_run, is_run_in_progress, latest_iteration
+    from omg4.train.run_state import clear_run, holds_files, latest_iteration
     from omg4.train.trainer import Trainer, evaluate_psnr
 
     check_outputs({"--out": args.out, "--json": args.json}, inputs=[args.data], datasets=[args.data],
                   folders=["--out"], force=args.force)
-    if is_run_in_progress(args.out) and not (args.resume or args.force):
+    if holds_files(args.out) and not (args.resume or args.force):
         raise OMG4Error(f"{args.out} already holds a training run: add --resume to continue it or --force to "
                         "start afresh (its checkpoints and model are deleted)")
     device = device_from_args(args)

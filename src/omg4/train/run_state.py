@@ -84,7 +84,7 @@ def load_run_checkpoint(run_dir: Path, iteration: int, device: torch.device | st
     return model, metadata, state
 
 
-def is_run_in_progress(run_dir: Path) -> bool:
+def holds_files(run_dir: Path) -> bool:
     """Whether ``run_dir`` exists and holds anything (a run's files or others): training there needs
     ``--resume`` or ``--force``, so an earlier run is never silently replaced or mixed with a new one."""
     run_dir = Path(run_dir)
