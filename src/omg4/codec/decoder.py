@@ -20,26 +20,23 @@ from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.model import GaussianConfig
 from omg4.gaussians.visibility import WindowedModel
 
-#: SVQ attribute → the parameters its reconstruction fills, with their widths
-QUANTIZED_PARAMS: dict[str, tuple[tuple[str, int], ...]] = {
-    "scale": (("scaling", 3),),
-    "rotation": (("rotation", 4),),
-    "app": (("f_static", 3), ("f_view", 3)),
-    "scale_t": (("scaling_t", 1),),
-    "rotation_r": (("rotation_r", 4),),
-}
-
 
 class CompactModel(WindowedModel):
-    """A decoded OMG4 model: positions, time centres, codebook lookups and the appearance MLPs, on ``device``."""
+    """A decoded OMG4 model: positions, time centres, codebook lookups and the appearance MLPs, on ``device``.
+
+    The header's backbone (``gaussian_config.backbone``) says which quantized attributes fill which
+    parameters (:class:`omg4.gaussians.backbone.Backbone`); files that name none are Real-Time4DGS.
+    """
 
     def __init__(self, payload: CompressedPayload, device: torch.device | str = "cpu"):
         meta = payload.meta
         config, active_sh_degree, active_sh_degree_t = model_settings(meta)
+        schema = config.schema
         n = payload.num_gaussians
         values = {"xyz": torch.from_numpy(np.asarray(payload.xyz, np.float32).reshape(n, 3)),
                   "t": torch.from_numpy(np.asarray(payload.t, np.float32).reshape(n, 1))}
-        for attr, targets in QUANTIZED_PARAMS.items():
+        for attr in (g.name for g in schema.svq_groups):
+            targets = schema.svq_widths(attr)
             if attr not in payload.attributes:
                 raise CorruptFileError(f"compressed model lacks the quantized attribute '{attr}'")
             quantized = payload.attributes[attr]
@@ -51,7 +48,7 @@ class CompactModel(WindowedModel):
             for name, w in targets:
                 values[name] = recon[:, start:start + w]
                 start += w
-        appearance = AppearanceMLP.from_fp16_state(payload.mlp).eval().to(device)
+        appearance = AppearanceMLP.from_fp16_state(payload.mlp, schema.mlp_inputs).eval().to(device)
         if appearance.num_rest < config.num_coeffs - 1:
             raise CorruptFileError(f"appearance MLP predicts {appearance.num_rest} SH coefficients, the model "
                                    f"config needs {config.num_coeffs - 1}")

@@ -25,10 +25,11 @@ import numpy as np
 
 from omg4.codec.container import FORMAT_VERSION, MAGIC, PREFIX, crc32, read_container
 from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
+from omg4.gaussians.backbone import RT4DGS
 
-#: attribute → (width, sub-vector length, codebook size) of the M preset (paper appendix)
-_LAYOUT = {"scale": (3, 1, 512), "rotation": (4, 2, 8192), "app": (6, 2, 1024), "scale_t": (1, 1, 512),
-           "rotation_r": (4, 2, 8192)}
+#: codebook sizes of the M preset (paper appendix) per Real-Time4DGS SVQ attribute; widths and sub-vector
+#: lengths come from the backbone table
+_M_CODEBOOK_SIZES = {"scale": 512, "rotation": 8192, "app": 1024, "scale_t": 512, "rotation_r": 8192}
 #: stand-ins for JSON numbers that ``json.dumps`` refuses to write (overflowing to ±inf when parsed)
 _RAW_NUMBERS = {"__forge_inf__": "1e400", "__forge_ninf__": "-1e400", "__forge_tiny__": "1e-400"}
 _HOSTILE = [None, True, False, -1, 0, 1, 2, 3, 99, 2**24, 2**31 - 1, 2**31, 2**53 + 1, 2**63, 2**64 + 1, -2**63, 0.5,
@@ -51,8 +52,10 @@ def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0
     n = num_gaussians
     xyz = rng.normal(size=(n, 3)) * 0.8
     attributes = {}
-    for name, (width, sub, size) in _LAYOUT.items():
-        k = max(2, int(size * codebook_scale))
+    for group in RT4DGS.svq_groups:
+        name, sub = group.name, group.sub_length
+        width = sum(w for _, w in RT4DGS.svq_widths(name))
+        k = max(2, int(_M_CODEBOOK_SIZES[name] * codebook_scale))
         offset = 0.5 if name == "scale_t" else (-4.0 if name == "scale" else 0.0)
         attributes[name] = QuantizedAttribute([offset + 0.3 * rng.normal(size=(k, sub)) for _ in range(width // sub)],
                                               [rng.integers(0, k, n) for _ in range(width // sub)])

@@ -16,31 +16,34 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--schedule", default="cpu", choices=["official", "cpu", "short", "tiny"], help="fine-tuning lengths")
     p.add_argument("--batch-size", type=int_at_least(1), default=4)
     p.add_argument("--baseline-iterations", type=int_at_least(1), default=30000)
-    p.add_argument("--rows", help="comma-separated subset of rows (default: all): " + ", ".join(_row_names()))
+    p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "
+                   + "; ".join(f"{b}: {', '.join(rows)}" for b, rows in _row_names().items()))
     p.add_argument("--codec", default="ans", choices=["ans", "paper"])
     add_device_arguments(p)
 
 
-def _row_names() -> list[str]:
-    from omg4.bench import ROWS
+def _row_names() -> dict[str, list[str]]:
+    from omg4.bench import ROWS_BY_BACKBONE
 
-    return list(ROWS)
+    return {backbone: list(rows) for backbone, rows in ROWS_BY_BACKBONE.items()}
 
 
 def run(args) -> int:
-    from omg4.bench import ROWS, run_bench
+    from omg4.bench import ROWS_BY_BACKBONE, run_bench
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
 
-    rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
-    unknown = [r for r in rows or [] if r not in ROWS]
-    if unknown:
-        raise OMG4Error(f"unknown bench rows {unknown}; known: {', '.join(ROWS)}")
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     device = device_from_args(args)
-    scene = load_scene_from_args(args)
     baseline, _ = load_gaussians(args.model)
+    known = ROWS_BY_BACKBONE[baseline.config.backbone]
+    rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
+    unknown = [r for r in rows or [] if r not in known]
+    if unknown:
+        raise OMG4Error(f"unknown bench rows {unknown} for a {baseline.config.backbone} baseline; known: "
+                        f"{', '.join(known)}")
+    scene = load_scene_from_args(args)
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule, batch_size=args.batch_size,
               baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
               device=device)

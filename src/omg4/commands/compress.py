@@ -8,6 +8,7 @@ from pathlib import Path
 
 from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
                                   float_in, int_at_least, load_scene_from_args)
+from omg4.compress.presets import PRESETS_BY_BACKBONE
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -15,7 +16,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
     p.add_argument("--out", required=True, type=Path,
                    help="output .omg4 file (with --stop-after: a .safetensors checkpoint of the minimized model)")
-    p.add_argument("--preset", default="M", choices=["L", "M", "S", "T"], help="size preset (paper appendix)")
+    p.add_argument("--preset", choices=sorted({name for presets in PRESETS_BY_BACKBONE.values() for name in presets}),
+                   help="size preset (paper appendix): L, M, S, T for Real-Time4DGS (default M); L, S for "
+                        "FreeTimeGS (default L)")
     p.add_argument("--schedule", default="official", choices=["official", "cpu", "short", "tiny"],
                    help="fine-tuning lengths: official (1000 per stage, 5000 MLP), cpu (a fifth), short (a tenth, "
                         "600 MLP), tiny (smoke test)")

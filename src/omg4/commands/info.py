@@ -98,7 +98,7 @@ def _dataset_text(s: dict) -> str:
 
 
 def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
-    """Summary of a Real-Time4DGS checkpoint (``.safetensors``): count, degrees, time range, size."""
+    """Summary of a baseline checkpoint (``.safetensors``, any backbone): count, degrees, time range, size."""
     from omg4.gaussians.checkpoint import describe_checkpoint
 
     d = {"kind": "checkpoint", "path": str(path), **describe_checkpoint(path)}
@@ -133,11 +133,16 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
         groups[key] = groups.get(key, 0) + size
     groups["header"] = d["header_bytes"]
     total = d["total_bytes"]
-    summary = {"kind": "omg4", "path": str(path), "codec": header.get("codec"), "num_gaussians": n,
+    meta = header.get("meta", {})
+    config = meta.get("gaussian_config") if isinstance(meta, dict) else None
+    backbone = config.get("backbone", "rt4dgs") if isinstance(config, dict) else "rt4dgs"
+    summary = {"kind": "omg4", "path": str(path), "codec": header.get("codec"), "backbone": backbone,
+               "num_gaussians": n,
                "total_bytes": total, "storage_mb": total / 2**20,
                "bits_per_gaussian": 8 * total / n if n else None, "groups": groups, "sections": d["sections"],
-               "meta": header.get("meta", {})}
-    lines = [f"{printable(path)}: OMG4 file, codec {summary['codec']}, {n} Gaussians, {total} bytes "
+               "meta": meta}
+    lines = [f"{printable(path)}: OMG4 file ({printable(str(backbone))} backbone), codec {summary['codec']}, "
+             f"{n} Gaussians, {total} bytes "
              f"({summary['storage_mb']:.4f} MB), {summary['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
     for key, size in groups.items():
         lines.append(f"  {key:<22} {size:>10} B  {100 * size / total:5.1f}%  "

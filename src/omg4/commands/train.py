@@ -1,4 +1,4 @@
-"""``omg4 train DATA --out RUN_DIR``: train the Real-Time4DGS baseline."""
+"""``omg4 train DATA --out RUN_DIR [--backbone freetimegs]``: train a baseline (Real-Time4DGS by default)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from pathlib import Path
 
 from omg4.commands.common import (add_device_arguments, add_scene_arguments, device_from_args, int_at_least,
                                   load_scene_from_args)
+from omg4.gaussians.backbone import BACKBONES
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -16,7 +17,14 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="official", help="training schedule: official (30k iterations) or cpu-small")
     p.add_argument("--iterations", type=int_at_least(1), help="optimizer steps (overrides the preset)")
     p.add_argument("--batch-size", type=int_at_least(1), help="views per step")
-    p.add_argument("--max-gaussians", type=int_at_least(0), help="cap on the Gaussian count (0 = none)")
+    p.add_argument("--backbone", choices=list(BACKBONES), default="rt4dgs",
+                   help="representation: rt4dgs (Real-Time4DGS 4D Gaussians) or freetimegs (FreeTimeGS moving "
+                        "Gaussians with a fixed budget and periodic relocation)")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--max-gaussians", type=int_at_least(0), help="cap on the Gaussian count (0 = none)")
+    budget.add_argument("--budget", type=int_at_least(1), dest="max_gaussians", metavar="N",
+                        help="FreeTimeGS: the fixed Gaussian count (default: one per initial point); "
+                             "the same as --max-gaussians")
     p.add_argument("--densify-until", type=int_at_least(0), help="last densification iteration")
     p.add_argument("--densify-interval", type=int_at_least(1), help="iterations between densification events")
     p.add_argument("--test-interval", type=int_at_least(0),
@@ -58,6 +66,7 @@ def run(args) -> int:
     scene = load_scene_from_args(args)
     cfg = make_config(
         args.preset, iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
+        backbone=args.backbone,
         densify_until=args.densify_until, densify_interval=args.densify_interval, test_interval=args.test_interval,
         checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
         backend=args.backend, device=str(device), background=(1.0, 1.0, 1.0) if args.white_background else None)

@@ -24,7 +24,7 @@ from omg4.gaussians.checkpoint import save_gaussians
 
 def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
     """The file contents of a fully compressed model (every SVQ attribute and the MLPs present), as CPU arrays."""
-    missing = [a for a in ("scale", "rotation", "app", "scale_t", "rotation_r") if a not in model.quantizers]
+    missing = [g.name for g in model.config.schema.svq_groups if g.name not in model.quantizers]
     if model.appearance is None or missing:
         raise OMG4Error(f"the model is not fully compressed (missing: {', '.join(missing) or 'appearance MLPs'}); "
                         "run every stage or use --stop-after to write a checkpoint")
@@ -58,7 +58,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         pipeline.ensure_scores().save(out.with_name(out.name + ".scores.npz"))
     model = pipeline.run(stop_after=stop_after)
-    meta = {"preset": cfg.preset, "stages": list(cfg.stages), "scene": scene.name,
+    meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
     if stop_after is not None:
         save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
@@ -73,7 +73,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "baseline_gaussians": baseline.num_gaussians,
         "wall_time_s": time.perf_counter() - t0,
         "stages": [asdict(r) for r in pipeline.records],
-        "config": {"preset": cfg.preset, "stages": list(cfg.stages), "schedule": cfg.schedule, "codec": codec,
+        "config": {"preset": pipeline.size.name, "backbone": baseline.config.backbone, "stages": list(cfg.stages),
+                   "schedule": cfg.schedule, "codec": codec,
                    "tau_gs": pipeline.size.tau_gs, "prune_quantile": pipeline.size.prune_quantile,
                    "device": str(pipeline.device)},
     }

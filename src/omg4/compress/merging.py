@@ -16,24 +16,21 @@ import torch
 
 from omg4.compress.merge_clusters import (MergeConfig, MergeGroups, StarClusters, build_merge_groups,
                                           build_star_clusters, make_disjoint)
-
-# parameter name → name of its logit vector (reference omg4 §6a: xyz / dc / rest logits)
-MERGED_ATTRIBUTES: dict[str, str] = {
-    "xyz": "merge_xyz_logits",
-    "features_dc": "merge_dc_logits",
-    "features_rest": "merge_rest_logits",
-}
+from omg4.gaussians.backbone import RT4DGS
 
 
 class MergeProxy(torch.nn.Module):
     """Learnable per-member merge weights of one round (paper §4.3, Alg. 1).
 
+    ``merged`` maps each averaged parameter to its logit vector (the backbone's
+    :attr:`~omg4.gaussians.backbone.Backbone.merged`: position, base colour, other colour terms).
     ``apply`` deliberately shadows :meth:`torch.nn.Module.apply` (the API the pipeline calls);
     this module has no submodules, so the generic recursive ``apply(fn)`` is never needed.
     """
 
-    def __init__(self, groups: MergeGroups, num_gaussians: int):
+    def __init__(self, groups: MergeGroups, num_gaussians: int, merged: dict[str, str] = RT4DGS.merged):
         super().__init__()
+        self.merged = dict(merged)
         self.num_gaussians = int(num_gaussians)
         self.register_buffer("members", groups.members)
         self.register_buffer("group_of", groups.group_of)
@@ -41,7 +38,7 @@ class MergeProxy(torch.nn.Module):
         m = groups.members.shape[0]
         dev = groups.members.device
         self.logits = torch.nn.ParameterDict(
-            {logit: torch.nn.Parameter(torch.zeros(m, device=dev)) for logit in MERGED_ATTRIBUTES.values()})
+            {logit: torch.nn.Parameter(torch.zeros(m, device=dev)) for logit in self.merged.values()})
 
     @property
     def num_groups(self) -> int:
@@ -49,7 +46,7 @@ class MergeProxy(torch.nn.Module):
 
     def param_groups(self, lr: float) -> list[dict]:
         """Adam parameter groups ``{"params": [logits], "lr": lr, "name": "merge_xyz_logits"}``, ...."""
-        return [{"params": [self.logits[name]], "lr": lr, "name": name} for name in MERGED_ATTRIBUTES.values()]
+        return [{"params": [self.logits[name]], "lr": lr, "name": name} for name in self.merged.values()]
 
     def weights(self, name: str) -> torch.Tensor:
         """Normalized member weights w [M] of logit vector ``name`` (sums to 1 within each group)."""
@@ -76,7 +73,7 @@ class MergeProxy(torch.nn.Module):
         if rows != self.num_gaussians:
             raise ValueError(f"merge proxy built for {self.num_gaussians} Gaussians, got {rows}")
         values = dict(params)
-        for attr, logit in MERGED_ATTRIBUTES.items():
+        for attr, logit in self.merged.items():
             if attr not in params:
                 continue
             v = params[attr]
@@ -98,5 +95,5 @@ class MergeProxy(torch.nn.Module):
         return {k: v.detach() for k, v in values.items()}, self.keep_mask()
 
 
-__all__ = ["MERGED_ATTRIBUTES", "MergeConfig", "MergeGroups", "MergeProxy", "StarClusters", "build_merge_groups",
+__all__ = ["MergeConfig", "MergeGroups", "MergeProxy", "StarClusters", "build_merge_groups",
            "build_star_clusters", "make_disjoint"]

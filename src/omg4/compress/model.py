@@ -1,11 +1,12 @@
 """The model that moves through the OMG4 stages.
 
-It starts as a Real-Time4DGS model (explicit parameters) and gains, stage by stage:
-learnable merge proxies (paper §4.3), MLP appearance replacing opacity and SH (§4.4), and
-sub-vector quantizers replacing scale, rotation and appearance features, then the 4D
-attributes (staged SVQ, §4.4). ``slice_at`` always assembles the effective Real-Time4DGS
-parameters and renders them with the baseline's conditioning and 4D SH, so every stage is
-measured with the same renderer.
+It starts as a baseline model of its backbone (explicit parameters) and gains, stage by
+stage: learnable merge proxies (paper §4.3), MLP appearance replacing opacity and SH (§4.4),
+and sub-vector quantizers replacing scale, rotation and appearance features, then the 4D
+attributes (staged SVQ, §4.4) — which attributes each stage treats is the backbone's table
+(:mod:`omg4.gaussians.backbone`). ``slice_at`` always assembles the effective per-Gaussian
+values and renders them with the baseline's time slice and SH, so every stage is measured
+with the same renderer.
 """
 
 from __future__ import annotations
@@ -15,17 +16,6 @@ import torch
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.model import slice_values
 from omg4.render.view import ViewSlicer
-
-# SVQ attribute → the parameter(s) it replaces (reference omg4 §7)
-SVQ_ATTRIBUTES: dict[str, tuple[str, ...]] = {
-    "scale": ("scaling",),
-    "rotation": ("rotation",),
-    "app": ("f_static", "f_view"),
-    "scale_t": ("scaling_t",),
-    "rotation_r": ("rotation_r",),
-}
-SVQ_STAGE_3D = ("scale", "rotation", "app")
-SVQ_STAGE_4D = ("scale_t", "rotation_r")
 
 
 class CompressibleModel(ViewSlicer):
@@ -54,12 +44,10 @@ class CompressibleModel(ViewSlicer):
         """Per-Gaussian values with quantized attributes replaced by their codebook reconstructions."""
         values = dict(self.params)
         for attr, q in self.quantizers.items():
-            names = SVQ_ATTRIBUTES[attr]
-            recon = q.values()
-            if len(names) == 1:
-                values[names[0]] = recon.reshape(self.params[names[0]].shape) if names[0] in self.params else recon
-            else:
-                values[names[0]], values[names[1]] = recon[:, :3], recon[:, 3:6]
+            recon, start = q.values(), 0
+            for name, width in self.config.schema.svq_widths(attr):
+                values[name] = recon[:, start:start + width]
+                start += width
         return values
 
     def merged_values(self) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
@@ -85,12 +73,12 @@ class CompressibleModel(ViewSlicer):
         return sl
 
     def to_gaussians(self) -> Gaussians4D:
-        """A plain Real-Time4DGS model (only before attribute compression: appearance must be explicit)."""
+        """A plain baseline model (only before attribute compression: appearance must be explicit)."""
         if self.appearance is not None:
-            raise ValueError("a model with MLP appearance cannot be written as a Real-Time4DGS checkpoint")
+            raise ValueError("a model with MLP appearance cannot be written as a baseline checkpoint")
         values, _ = self.merged_values()
         params = {k: v.detach().clone() for k, v in values.items()}
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
 
 
-__all__ = ["CompressibleModel", "SVQ_ATTRIBUTES", "SVQ_STAGE_3D", "SVQ_STAGE_4D"]
+__all__ = ["CompressibleModel"]

@@ -1,4 +1,4 @@
-"""The OMG4 compression pipeline: a trained Real-Time4DGS model → a minimal, quantized model.
+"""The OMG4 compression pipeline: a trained baseline (any backbone) → a minimal, quantized model.
 
 Runs the events of :mod:`omg4.compress.schedule` and fine-tunes in between with the
 baseline loss (paper §5.1): each iteration renders ``batch_size`` random training views,
@@ -6,6 +6,9 @@ back-propagates ``loss_v / B`` and steps every optimizer (main Adam over per-Gau
 tensors and merge logits; MLP Adam with its schedule; codebook Adam). The model, its MLPs,
 codebooks and optimizer states live on ``CompressConfig.device``; random draws come from CPU
 generators, and merge clustering and k-means run on the CPU and hand their results back.
+Which attributes each stage merges, replaces or quantizes is the baseline's backbone table
+(:mod:`omg4.gaussians.backbone`); steps and parameter groups go through the layer the
+trainer uses (:mod:`omg4.train.step`, :mod:`omg4.train.optim`).
 """
 
 from __future__ import annotations
@@ -17,8 +20,8 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4.compress import appearance_stage, merging
-from omg4.compress.model import SVQ_ATTRIBUTES, SVQ_STAGE_3D, SVQ_STAGE_4D, CompressibleModel
-from omg4.compress.presets import SizePreset, size_preset
+from omg4.compress.model import CompressibleModel
+from omg4.compress.presets import DEFAULT_PRESET, SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
 from omg4.compress.sampling import sampling_mask
 from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
@@ -29,18 +32,21 @@ from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
+from omg4.gaussians.backbone import Backbone
 from omg4.render.api import resolve_backend
-from omg4.train.optim import baseline_lrs, expon_lr, keep_rows, make_adam, replace_param, step_optimizers
-from omg4.train.trainer import backward_batch, step_generator
+from omg4.train.optim import (baseline_lrs, expon_lr, keep_rows, make_adam, rebuilt_adam, replace_param, set_group_lr,
+                              step_optimizers)
+from omg4.train.step import backward_batch, step_generator
 
 FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
 
 
 @dataclass
 class CompressConfig:
-    """Everything that decides an OMG4 run; ``preset`` sets τ_GS, p and the codebook sizes."""
+    """Everything that decides an OMG4 run; ``preset`` sets τ_GS, p and the codebook sizes (None: the
+    backbone's default, M for Real-Time4DGS and L for FreeTimeGS)."""
 
-    preset: str = "M"
+    preset: str | None = None
     stages: tuple[str, ...] = FULL_STAGES
     schedule: str = "official"
     lengths: StageLengths | None = None
@@ -59,8 +65,8 @@ class CompressConfig:
     tau_gs: float | None = None  # overrides of the preset
     prune_quantile: float | None = None
 
-    def size(self) -> SizePreset:
-        p = size_preset(self.preset)
+    def size(self, backbone: str = "rt4dgs") -> SizePreset:
+        p = size_preset(self.preset or DEFAULT_PRESET[backbone], backbone)
         return replace(p, tau_gs=self.tau_gs if self.tau_gs is not None else p.tau_gs,
                        prune_quantile=self.prune_quantile if self.prune_quantile is not None else p.prune_quantile)
 
@@ -94,7 +100,8 @@ class CompressionPipeline:
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         self.scene, self.cfg, self.progress, self.log = scene, cfg, progress, log
-        self.size = cfg.size()
+        self.schema: Backbone = baseline.config.schema
+        self.size = cfg.size(baseline.config.backbone)
         self.device = resolve_device(cfg.device)
         resolve_backend(cfg.backend, self.device)
         self.model = CompressibleModel.from_gaussians(baseline.to(self.device))
@@ -104,33 +111,29 @@ class CompressionPipeline:
         self.records: list[StageRecord] = []
         for p in self.model.params.values():
             p.requires_grad_(True)
-        self.optimizer = make_adam(self.model.params, baseline_lrs_for(self.model.params, self.extent))
+        self.optimizer = make_adam(self.model.params, self._lrs())
         self.mlp_optimizer = None
         self.mlp_scheduler = None
         self.codebook_optimizer = None
         self.events, self.total_iterations = build_events(cfg.stages, cfg.stage_lengths(), cfg.num_merge)
 
     # ----------------------------------------------------------------- optimizers
+    def _lrs(self) -> dict[str, float]:
+        """Learning rates of the current per-Gaussian tensors (reference omg4 §9)."""
+        return baseline_lrs_for(self.model.params, self.extent, self.schema)
+
     def _rebuild_main_optimizer(self) -> None:
         """New main Adam over the current params (+ merge logits), keeping moments of surviving tensors."""
-        old = self.optimizer
-        new = make_adam(self.model.params, baseline_lrs_for(self.model.params, self.extent))
-        if self.model.merge is not None:
-            for group in self.model.merge.param_groups(self.cfg.merge.logit_lr):
-                new.add_param_group(group)
-        for g in new.param_groups:
-            p = g["params"][0]
-            if p in old.state:
-                new.state[p] = old.state[p]
-        self.optimizer = new
+        merge = self.model.merge
+        extra = merge.param_groups(self.cfg.merge.logit_lr) if merge is not None else []
+        self.optimizer = rebuilt_adam(self.optimizer, self.model.params, self._lrs(), extra)
 
     def _set_position_lr(self, step: int) -> None:
+        """The baseline's position decay, continued over the fine-tuning iterations."""
         total = self.cfg.baseline_iterations + self.total_iterations
-        lr = expon_lr(self.cfg.baseline_iterations + step, self.cfg.position_lr_init * self.extent,
-                      self.cfg.position_lr_final * self.extent, total)
-        for g in self.optimizer.param_groups:
-            if g["name"] == "xyz":
-                g["lr"] = lr
+        set_group_lr(self.optimizer, "xyz", expon_lr(self.cfg.baseline_iterations + step,
+                                                      self.cfg.position_lr_init * self.extent,
+                                                      self.cfg.position_lr_final * self.extent, total))
 
     # ---------------------------------------------------------------------- stages
     def _remove(self, keep: torch.Tensor) -> None:
@@ -169,7 +172,7 @@ class CompressionPipeline:
         if proxy is None:
             return
         baked, keep = proxy.bake(self.model.params)
-        for name in ("xyz", "features_dc", "features_rest"):
+        for name in proxy.merged:
             replace_param(self.model.params, self.optimizer, name, baked[name], reset_state=False)
         self.model.merge = None
         self._rebuild_main_optimizer()
@@ -183,20 +186,20 @@ class CompressionPipeline:
         p = self.model.params
         groups = merging.build_merge_groups(p["xyz"].detach(), p["t"].detach(), p["features_dc"].detach(),
                                             self.model.config.time_range, grid, mc)
-        self.model.merge = merging.MergeProxy(groups, self.model.num_gaussians)
+        self.model.merge = merging.MergeProxy(groups, self.model.num_gaussians, self.schema.merged)
         self._rebuild_main_optimizer()
 
     def stage_appearance(self) -> None:
         """Replace opacity and SH by the time-conditioned MLPs and per-Gaussian features (paper §4.4)."""
         self._bake_merge()
         features = appearance_stage.init_appearance_features(self.model.params)
-        for name in ("opacity", "features_dc", "features_rest"):
+        for name in self.schema.by_mlp:
             self.model.params.pop(name)
         for name, value in features.items():
             self.model.params[name] = value.detach().clone().requires_grad_(True)
         torch.manual_seed(self.cfg.seed)
         with torch.device("cpu"):  # initialized by the seeded CPU generator whatever the device
-            self.model.appearance = AppearanceMLP().to(self.device)
+            self.model.appearance = AppearanceMLP(num_inputs=self.schema.mlp_inputs).to(self.device)
         remaining = self._remaining_after("appearance")
         self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
             self.model.appearance, total_iterations=remaining)
@@ -210,7 +213,7 @@ class CompressionPipeline:
     def _quantize(self, attributes: tuple[str, ...]) -> None:
         self._bake_merge()
         for attr in attributes:
-            names = SVQ_ATTRIBUTES[attr]
+            names = self.schema.svq_group(attr).params
             if not all(n in self.model.params for n in names):
                 raise OMG4Error(f"SVQ of '{attr}' needs {names}: run the appearance stage first")
             values = torch.cat([self.model.params[n].detach().reshape(self.model.num_gaussians, -1) for n in names], 1)
@@ -224,11 +227,12 @@ class CompressionPipeline:
 
     def stage_svq3d(self) -> None:
         """SVQ of scale, rotation and appearance features (paper §4.4, stage 3D)."""
-        self._quantize(SVQ_STAGE_3D)
+        self._quantize(self.schema.svq_stage("svq3d"))
 
     def stage_svq4d(self) -> None:
-        """SVQ of the time scale and right quaternion (paper §4.4, stage 4D)."""
-        self._quantize(SVQ_STAGE_4D)
+        """SVQ of the 4D attributes (paper §4.4, stage 4D): Real-Time4DGS's time scale and right quaternion,
+        FreeTimeGS's duration and velocity."""
+        self._quantize(self.schema.svq_stage("svq4d"))
 
     def apply_event(self, name: str, round_index: int, iteration: int) -> None:
         t0 = time.perf_counter()
@@ -281,10 +285,10 @@ class CompressionPipeline:
         return self.model
 
 
-def baseline_lrs_for(params: dict[str, torch.Tensor], extent: float) -> dict[str, float]:
-    """Learning rates of the per-Gaussian tensors (reference omg4 §9)."""
+def baseline_lrs_for(params: dict[str, torch.Tensor], extent: float, schema: Backbone) -> dict[str, float]:
+    """Learning rates of the per-Gaussian tensors (reference omg4 §9), in ``params``' order."""
     from omg4.train.config import TrainConfig
 
-    lrs = baseline_lrs(TrainConfig(), extent)
+    lrs = baseline_lrs(TrainConfig(), extent, schema)
     lrs.update({"f_static": appearance_stage.FEATURE_LR, "f_view": appearance_stage.FEATURE_LR})
     return {k: lrs[k] for k in params}

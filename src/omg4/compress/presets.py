@@ -10,8 +10,12 @@
   cause. omg4's T therefore samples τ_GS = 0.25 (≈ 0.83 × S's count) with S's codebooks:
   an inference from the table, not a stated setting.
 
-Sub-vector lengths follow OMG (reference omg4 §7): scale 1, rotation 2, appearance 2,
-time scale 1, right quaternion 2.
+FreeTimeGS (paper appendix, Table 3): L samples τ_GS = 0.7 and prunes at the 0.6-quantile,
+S τ_GS = 0.3 and the 0.4-quantile; both keep the M codebooks for scale, rotation and
+appearance and add 2^10 for velocity and duration. It has no M or T.
+
+Sub-vector lengths are the backbone's (:mod:`omg4.gaussians.backbone`; OMG's, reference omg4 §7:
+scale 1, rotation 2, appearance 2, time scale 1, right quaternion 2).
 """
 
 from __future__ import annotations
@@ -19,8 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from omg4.errors import OMG4Error
-
-SUB_LENGTHS = {"scale": 1, "rotation": 2, "app": 2, "scale_t": 1, "rotation_r": 2}
+from omg4.gaussians.backbone import backbone_named
 
 
 @dataclass(frozen=True)
@@ -31,10 +34,11 @@ class SizePreset:
     tau_gs: float
     prune_quantile: float
     codebook_sizes: dict[str, int] = field(default_factory=dict)
+    backbone: str = "rt4dgs"
 
     def codebook(self, attribute: str) -> tuple[int, int]:
         """(sub-vector length, codebook size) of an SVQ attribute."""
-        return SUB_LENGTHS[attribute], self.codebook_sizes[attribute]
+        return backbone_named(self.backbone).svq_group(attribute).sub_length, self.codebook_sizes[attribute]
 
 
 _M_CODEBOOKS = {"scale": 2**9, "rotation": 2**13, "app": 2**10, "scale_t": 2**9, "rotation_r": 2**13}
@@ -46,10 +50,21 @@ SIZE_PRESETS: dict[str, SizePreset] = {
     "T": SizePreset("T", 0.25, 0.9, {**_M_CODEBOOKS, "scale": 2**8}),
 }
 
+_FTGS_CODEBOOKS = {"scale": 2**9, "rotation": 2**13, "app": 2**10, "duration": 2**10, "velocity": 2**10}
 
-def size_preset(name: str) -> SizePreset:
-    """The preset called ``name`` (case-insensitive)."""
+#: the size presets of each backbone
+PRESETS_BY_BACKBONE: dict[str, dict[str, SizePreset]] = {
+    "rt4dgs": SIZE_PRESETS,
+    "freetimegs": {"L": SizePreset("L", 0.7, 0.6, dict(_FTGS_CODEBOOKS), "freetimegs"),
+                   "S": SizePreset("S", 0.3, 0.4, dict(_FTGS_CODEBOOKS), "freetimegs")},
+}
+DEFAULT_PRESET = {"rt4dgs": "M", "freetimegs": "L"}
+
+
+def size_preset(name: str, backbone: str = "rt4dgs") -> SizePreset:
+    """The preset called ``name`` (case-insensitive) of ``backbone``."""
+    presets = PRESETS_BY_BACKBONE[backbone]
     try:
-        return SIZE_PRESETS[name.upper()]
+        return presets[name.upper()]
     except KeyError:
-        raise OMG4Error(f"unknown size preset '{name}' (choose from {', '.join(SIZE_PRESETS)})") from None
+        raise OMG4Error(f"unknown size preset '{name}' for {backbone} (choose from {', '.join(presets)})") from None

@@ -21,7 +21,7 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4.data.scene import View
-from omg4.train.trainer import view_losses
+from omg4.train.step import view_losses
 
 
 @dataclass

@@ -8,7 +8,7 @@ differentiable with respect to the codebooks alone.
 
 Codebook sizes, sub-vector lengths, τ_GS and the pruning quantile p per size preset
 (L / M / S / T, paper appendix "Additional Implementation Details") live in one table,
-:data:`omg4.compress.presets.SIZE_PRESETS` (``size_preset(name).codebook(attribute)``).
+:data:`omg4.compress.presets.PRESETS_BY_BACKBONE` (``size_preset(name, backbone).codebook(attribute)``).
 What the paper states: M (the official N3DV config) has b_s = 2^9 (s = 1), b_r = 2^13
 (s = 2), b_f = 2^10 (s = 2), 2^9 for the time scale (s = 1) and 2^13 for the right
 quaternion (s = 2), with τ_GS = 0.2, p = 0.8; L has τ_GS = 0.4, p = 0.8 and no codebook

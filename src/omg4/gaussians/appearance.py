@@ -10,6 +10,8 @@ all 4D SH coefficients are predicted by four tiny bias-free MLPs with one hidden
 
 ``xyz`` is the canonical (not time-shifted) mean, detached so the MLPs send no gradient into
 positions; ``t_norm = (τ − t0) / (t1 − t0)`` is the camera time, the same for every Gaussian.
+On FreeTimeGS (paper Table 3) the shared network has 3 inputs: the position at the view's
+time, μx + v (τ − μt), detached, and no time.
 The official code uses tiny-cuda-nn ``FullyFusedMLP``s; these are plain ``nn.Linear(bias=False)``
 layers with tcnn's Xavier-uniform initialisation (over tcnn's 16-padded widths).
 
@@ -89,37 +91,43 @@ def _two_layer(n_in: int, hidden: int, n_out: int, activation: nn.Module) -> nn.
 class AppearanceMLP(nn.Module):
     """The four OMG4 appearance networks (paper §4.4; reference omg4 §6b).
 
-    ``shared`` (OMG4 ``mlp_cont``): Freq(contracted xyz, t_norm) [N, 4·2F] → [N, shared_dim];
-    ``dc``, ``opacity`` take ``[shared, f_static]``; ``rest`` (``mlp_view``) takes ``[shared, f_view]``.
-    The opacity sigmoid is applied here: :meth:`forward` returns activated opacity.
+    ``shared`` (OMG4 ``mlp_cont``): Freq(contracted xyz, t_norm) [N, 4·2F] → [N, shared_dim]
+    (``num_inputs = 3``: Freq(contracted xyz) only); ``dc``, ``opacity`` take ``[shared, f_static]``;
+    ``rest`` (``mlp_view``) takes ``[shared, f_view]``. The opacity sigmoid is applied here:
+    :meth:`forward` returns activated opacity.
     """
 
-    def __init__(self, num_rest: int = 47, hidden: int = 64, num_freqs: int = 16, shared_dim: int = 13):
+    def __init__(self, num_rest: int = 47, hidden: int = 64, num_freqs: int = 16, shared_dim: int = 13,
+                 num_inputs: int = 4):
         super().__init__()
         self.num_rest = num_rest
         self.num_freqs = num_freqs
+        self.num_inputs = num_inputs
         head_in = shared_dim + 3
-        self.shared = _two_layer(4 * 2 * num_freqs, hidden, shared_dim, nn.ReLU())
+        self.shared = _two_layer(num_inputs * 2 * num_freqs, hidden, shared_dim, nn.ReLU())
         self.dc = _two_layer(head_in, hidden, 3, nn.LeakyReLU(0.01))
         self.opacity = _two_layer(head_in, hidden, 1, nn.LeakyReLU(0.01))
         self.rest = _two_layer(head_in, hidden, 3 * num_rest, nn.LeakyReLU(0.01))
 
-    def predict(self, xyz_canonical: Tensor, t_norm: float | Tensor, f_static: Tensor, f_view: Tensor
+    def predict(self, xyz_canonical: Tensor, t_norm: float | Tensor | None, f_static: Tensor, f_view: Tensor
                 ) -> tuple[Tensor, Tensor, Tensor]:
         """Appearance at normalized camera time ``t_norm`` with the opacity as a logit.
 
-        xyz_canonical: [N, 3] canonical means (normalized world; detached here);
-        t_norm: camera time mapped to [0, 1] by the time range, one for all rows or [N] (rows
-        of several views); f_static, f_view: [N, 3].
+        xyz_canonical: [N, 3] means (normalized world; detached here): canonical, or the positions
+        at the view's time for a 3-input network; t_norm: camera time mapped to [0, 1] by the time
+        range, one for all rows or [N] (rows of several views), None for a 3-input network;
+        f_static, f_view: [N, 3].
         Returns ``features_dc [N, 1, 3]``, ``features_rest [N, num_rest, 3]`` and the opacity
         logit ``[N]`` (the opacity is its sigmoid).
         """
         xyz = contract_to_unisphere(xyz_canonical.detach())
-        if torch.is_tensor(t_norm):
-            t = t_norm.reshape(-1, 1).to(xyz).expand(xyz.shape[0], 1)
+        if self.num_inputs == 3:
+            inputs = xyz
+        elif torch.is_tensor(t_norm):
+            inputs = torch.cat((xyz, t_norm.reshape(-1, 1).to(xyz).expand(xyz.shape[0], 1)), dim=1)
         else:
-            t = torch.full_like(xyz[:, :1], float(t_norm))
-        shared = self.shared(frequency_encoding(torch.cat((xyz, t), dim=1), self.num_freqs))  # [N, 13]
+            inputs = torch.cat((xyz, torch.full_like(xyz[:, :1], float(t_norm))), dim=1)
+        shared = self.shared(frequency_encoding(inputs, self.num_freqs))  # [N, 13]
         static_in = torch.cat((shared, f_static), dim=1)
         dc = self.dc(static_in).unsqueeze(1)  # [N, 1, 3]
         opacity_logit = self.opacity(static_in).squeeze(1)  # [N]
@@ -141,8 +149,9 @@ class AppearanceMLP(nn.Module):
         return {k: v.detach().cpu().numpy().astype(np.float16) for k, v in self.state_dict().items()}
 
     @classmethod
-    def from_fp16_state(cls, state: dict[str, np.ndarray]) -> "AppearanceMLP":
-        """Rebuild the networks from :meth:`to_fp16_state` output; sizes are read from the weight shapes.
+    def from_fp16_state(cls, state: dict[str, np.ndarray], num_inputs: int = 4) -> "AppearanceMLP":
+        """Rebuild the networks from :meth:`to_fp16_state` output; sizes are read from the weight shapes
+        (``num_inputs``, the backbone's, is not: it fixes how the encoding width splits into bands).
 
         Raises :class:`~omg4.errors.CorruptFileError` on missing keys, wrong shapes or non-finite weights.
         """
@@ -157,8 +166,9 @@ class AppearanceMLP(nn.Module):
         hidden, enc_dim = arrays["shared.0.weight"].shape
         shared_dim = arrays["shared.2.weight"].shape[0]
         rest_out = arrays["rest.2.weight"].shape[0]
-        if (enc_dim % 8 or not 1 <= enc_dim // 8 <= MAX_FREQS or rest_out % 3 or not 1 <= hidden <= MAX_WIDTH
-                or not 1 <= shared_dim <= MAX_WIDTH):
+        bands = 2 * num_inputs
+        if (enc_dim % bands or not 1 <= enc_dim // bands <= MAX_FREQS or rest_out % 3
+                or not 1 <= hidden <= MAX_WIDTH or not 1 <= shared_dim <= MAX_WIDTH):
             raise CorruptFileError(f"appearance MLP: invalid sizes (encoding {enc_dim}, hidden {hidden}, "
                                    f"shared {shared_dim}, rest {rest_out})")
         head_in = shared_dim + 3
@@ -169,7 +179,8 @@ class AppearanceMLP(nn.Module):
         for k, a in arrays.items():  # checked before any network is built: sizes come from the file
             if tuple(a.shape) != expected_shapes[k]:
                 raise CorruptFileError(f"appearance MLP weight {k}: shape {a.shape}, expected {expected_shapes[k]}")
-        mlp = cls(num_rest=rest_out // 3, hidden=hidden, num_freqs=enc_dim // 8, shared_dim=shared_dim)
+        mlp = cls(num_rest=rest_out // 3, hidden=hidden, num_freqs=enc_dim // bands, shared_dim=shared_dim,
+                  num_inputs=num_inputs)
         mlp.load_state_dict({k: torch.from_numpy(a.astype(np.float32)) for k, a in arrays.items()})
         return mlp
 

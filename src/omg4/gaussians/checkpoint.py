@@ -1,8 +1,9 @@
 """Safe checkpoints of :class:`Gaussians4D` models (safetensors, no pickle).
 
-A checkpoint is a safetensors file holding the nine raw parameters as float32 (written
+A checkpoint is a safetensors file holding the backbone's raw parameters as float32 (written
 from CPU copies whatever the model's device; read onto the caller's device) and one
-metadata entry ``"omg4"``: a JSON object with ``format`` (``"omg4-rt4dgs"``), ``version``,
+metadata entry ``"omg4"``: a JSON object with ``format`` (``"omg4-<backbone>"``: ``omg4-rt4dgs``,
+``omg4-freetimegs``), ``version``,
 ``config`` (:class:`GaussianConfig`), the active SH degrees, the Gaussian count and the
 caller's ``metadata`` (scene normalization, time range, iteration, ...). Files are written
 atomically; anything unreadable or of another kind raises :class:`CorruptFileError`.
@@ -18,9 +19,10 @@ import torch
 
 from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError
-from omg4.gaussians.model import PARAM_NAMES, GaussianConfig, Gaussians4D, param_shapes
+from omg4.gaussians.backbone import BACKBONES
+from omg4.gaussians.model import GaussianConfig, Gaussians4D, param_shapes
 
-FORMAT_NAME = "omg4-rt4dgs"
+FORMAT_NAMES = {f"omg4-{name}": name for name in BACKBONES}
 FORMAT_VERSION = 1
 _META_KEY = "omg4"
 
@@ -29,9 +31,10 @@ def save_gaussians(path: str | os.PathLike, model: Gaussians4D, metadata: dict |
     """Write ``model`` (params as float32) and JSON-serializable ``metadata`` to ``path`` atomically."""
     from safetensors.torch import save_file
 
-    tensors = {k: model.params[k].detach().to("cpu", torch.float32).contiguous() for k in PARAM_NAMES}
+    tensors = {k: model.params[k].detach().to("cpu", torch.float32).contiguous()
+               for k in model.config.schema.param_names}
     header = {
-        "format": FORMAT_NAME,
+        "format": f"omg4-{model.config.backbone}",
         "version": FORMAT_VERSION,
         "config": model.config.to_json(),
         "active_sh_degree": model.active_sh_degree,
@@ -60,8 +63,9 @@ def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
         header = json.loads(meta[_META_KEY])
     except (KeyError, ValueError):
         raise CorruptFileError(f"{path}: a safetensors file but not an omg4 checkpoint (no omg4 metadata)") from None
-    if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
-        raise CorruptFileError(f"{path}: not an omg4 Real-Time4DGS checkpoint")
+    if not isinstance(header, dict) or header.get("format") not in FORMAT_NAMES:
+        kinds = " or ".join(b.title for b in BACKBONES.values())
+        raise CorruptFileError(f"{path}: not an omg4 {kinds} checkpoint")
     if header.get("version") != FORMAT_VERSION:
         raise CorruptFileError(f"{path}: checkpoint format version {header.get('version')} is not supported "
                                f"(this omg4 reads version {FORMAT_VERSION})")
@@ -70,9 +74,13 @@ def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
 
 def _config_of(path: Path, header: dict) -> GaussianConfig:
     try:
-        return GaussianConfig.from_json(header["config"])
+        config = GaussianConfig.from_json(header["config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CorruptFileError(f"{path}: invalid model config in checkpoint ({e})") from None
+    if FORMAT_NAMES[header["format"]] != config.backbone:
+        raise CorruptFileError(f"{path}: a {header['format']} checkpoint whose config names the {config.backbone} "
+                               "backbone")
+    return config
 
 
 def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") -> tuple[Gaussians4D, dict]:
@@ -91,12 +99,13 @@ def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") 
     config = _config_of(path, header)
     n = shapes.get("xyz", (0,))[0]
     expected = param_shapes(n, config)
-    for k in PARAM_NAMES:
+    names = config.schema.param_names
+    for k in names:
         if shapes.get(k) != expected[k]:
             raise CorruptFileError(f"{path}: parameter '{k}' has shape {shapes.get(k)}, expected {expected[k]}")
     try:
         with safe_open(str(path), framework="pt") as f:
-            params = {k: f.get_tensor(k) for k in PARAM_NAMES}
+            params = {k: f.get_tensor(k) for k in names}
     except Exception as e:
         raise CorruptFileError(f"{path}: cannot read checkpoint tensors ({type(e).__name__})") from None
     for k, v in params.items():
@@ -119,7 +128,7 @@ def describe_checkpoint(path: str | os.PathLike) -> dict:
     size = path.stat().st_size
     meta = header.get("metadata") or {}
     return {
-        "kind": "rt4dgs-checkpoint",
+        "kind": f"{config.backbone}-checkpoint",
         "path": str(path),
         "format_version": header["version"],
         "num_gaussians": int(shapes.get("xyz", (0,))[0]),
@@ -127,6 +136,7 @@ def describe_checkpoint(path: str | os.PathLike) -> dict:
         "sh_degree_t": config.sh_degree_t,
         "active_sh_degree": header.get("active_sh_degree"),
         "active_sh_degree_t": header.get("active_sh_degree_t"),
+        "backbone": config.backbone,
         "time_range": list(config.time_range),
         "rotation_convention": config.rotation_convention,
         "sh_direction": config.sh_direction,
@@ -137,4 +147,4 @@ def describe_checkpoint(path: str | os.PathLike) -> dict:
     }
 
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "save_gaussians", "load_gaussians", "describe_checkpoint"]
+__all__ = ["FORMAT_NAMES", "FORMAT_VERSION", "save_gaussians", "load_gaussians", "describe_checkpoint"]

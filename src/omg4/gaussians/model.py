@@ -1,6 +1,7 @@
-"""The Real-Time4DGS model container (reference rt4dgs §1–2, §3.5).
+"""The 4D Gaussian model container of every backbone (:mod:`omg4.gaussians.backbone`).
 
-Raw (pre-activation) parameters live in ``params``; activations are applied here only:
+Raw (pre-activation) parameters live in ``params``, named and shaped by the backbone's
+attribute table. Real-Time4DGS (reference rt4dgs §1–2, §3.5), for example:
 
 | name | shape | activation |
 | --- | --- | --- |
@@ -14,6 +15,9 @@ Raw (pre-activation) parameters live in ``params``; activations are applied here
 | features_dc | [N, 1, 3] | SH coefficient 0 |
 | features_rest | [N, K−1, 3] | SH coefficients 1..K−1 (K = 48 for degrees 3 × 2) |
 
+FreeTimeGS replaces ``scaling_t`` and ``rotation_r`` by ``duration`` [N, 1] (exp) and
+``velocity`` [N, 3], with 3D SH only (K = 16).
+
 The trainer replaces entries of ``params`` (densification) and owns ``requires_grad``.
 """
 
@@ -26,7 +30,8 @@ import numpy as np
 import torch
 
 from omg4.errors import DataError
-from omg4.gaussians.covariance import covariance_4d, slice_geometry
+from omg4.gaussians.backbone import BACKBONES, FREETIMEGS, RT4DGS, Backbone, backbone_named
+from omg4.gaussians.covariance import covariance_4d
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
 from omg4.gaussians.sh import colors_from_sh, num_sh_coeffs, rgb_to_sh, view_directions
 from omg4.render.view import TimeSlice, ViewSlicer
@@ -34,7 +39,7 @@ from omg4.render.view import TimeSlice, ViewSlicer
 if TYPE_CHECKING:
     from omg4.gaussians.appearance import AppearanceMLP
 
-PARAM_NAMES = ("xyz", "t", "scaling", "scaling_t", "rotation", "rotation_r", "opacity", "features_dc", "features_rest")
+PARAM_NAMES = RT4DGS.param_names
 SH_DIRECTIONS = ("conditioned", "canonical")
 
 
@@ -49,6 +54,8 @@ class GaussianConfig:
         time_cull: cull Gaussians whose temporal marginal p_t ≤ this (rt4dgs §1.4).
         sh_direction: SH view direction from the ``"conditioned"`` mean μ_3D(τ) (default,
             paper-consistent) or the ``"canonical"`` μ_xyz (official CUDA forward, §1.6-1).
+        backbone: the representation (:data:`omg4.gaussians.backbone.BACKBONES`); files that do
+            not name one are Real-Time4DGS. FreeTimeGS needs ``sh_degree_t = 0``.
     """
 
     time_range: tuple[float, float]
@@ -57,6 +64,7 @@ class GaussianConfig:
     rotation_convention: str = "flip"
     time_cull: float = 0.05
     sh_direction: str = "conditioned"
+    backbone: str = "rt4dgs"
 
     def __post_init__(self):
         t0, t1 = _finite_pair(self.time_range, "time_range")
@@ -73,6 +81,14 @@ class GaussianConfig:
         self.time_cull = float(self.time_cull)
         if self.sh_direction not in SH_DIRECTIONS:
             raise ValueError(f"sh_direction must be one of {SH_DIRECTIONS}")
+        required_t = backbone_named(self.backbone).sh_degree_t
+        if required_t is not None and self.sh_degree_t != required_t:
+            raise ValueError(f"the {self.backbone} backbone needs sh_degree_t = {required_t}, got {self.sh_degree_t}")
+
+    @property
+    def schema(self) -> Backbone:
+        """The backbone's attribute table and time slice."""
+        return BACKBONES[self.backbone]
 
     @property
     def period(self) -> float:
@@ -123,10 +139,8 @@ def _finite_pair(v: object, what: str) -> tuple[float, float]:
 
 
 def param_shapes(n: int, config: GaussianConfig) -> dict[str, tuple[int, ...]]:
-    """Expected raw parameter shapes for ``n`` Gaussians."""
-    return {"xyz": (n, 3), "t": (n, 1), "scaling": (n, 3), "scaling_t": (n, 1), "rotation": (n, 4),
-            "rotation_r": (n, 4), "opacity": (n, 1), "features_dc": (n, 1, 3),
-            "features_rest": (n, config.num_coeffs - 1, 3)}
+    """Expected raw parameter shapes for ``n`` Gaussians of ``config``'s backbone."""
+    return config.schema.param_shapes(n, config.num_coeffs)
 
 
 def mean_neighbour_sq_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -145,16 +159,17 @@ def mean_neighbour_sq_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
 
 class Gaussians4D(ViewSlicer):
-    """A Real-Time4DGS model: raw parameters, fixed config and active SH degrees."""
+    """A baseline 4D Gaussian model of any backbone: raw parameters, fixed config and active SH degrees."""
 
     def __init__(self, params: dict[str, torch.Tensor], config: GaussianConfig,
                  active_sh_degree: int | None = None, active_sh_degree_t: int | None = None):
-        missing = [k for k in PARAM_NAMES if k not in params]
+        names = config.schema.param_names
+        missing = [k for k in names if k not in params]
         if missing:
             raise ValueError(f"missing parameters {missing}")
         n = int(params["xyz"].shape[0])
         expected = param_shapes(n, config)
-        for k in PARAM_NAMES:
+        for k in names:
             if tuple(params[k].shape) != expected[k]:
                 raise ValueError(f"parameter '{k}' has shape {tuple(params[k].shape)}, expected {expected[k]}")
         self.params = params
@@ -172,11 +187,14 @@ class Gaussians4D(ViewSlicer):
     @classmethod
     def from_points(cls, xyz: torch.Tensor, rgb: torch.Tensor, config: GaussianConfig, *,
                     generator: torch.Generator | None = None) -> "Gaussians4D":
-        """Initial model from a point cloud (rt4dgs §3.5).
+        """Initial model from a point cloud (rt4dgs §3.5), one Gaussian per point.
 
         t ~ U(t0 − 0.1 D, t1 + 0.1 D); isotropic log-scale log √max(d², 1e-7) with d² the mean
         squared distance to the 3 nearest neighbours; log time scale log √(D/5); identity
         quaternions (a static Gaussian); opacity logit(0.1); DC = RGB2SH(rgb), other SH 0.
+        FreeTimeGS: the points spread over the clip, t ~ U(t0, t1), with the same spatial
+        terms and zero velocity; a point given k times (a budget above the point count) makes
+        k Gaussians that share the clip: duration min(√(D/5), D / 2k).
         The model is built on the CPU (``generator`` is a CPU one); move it with :meth:`to`.
 
         Args:
@@ -194,20 +212,32 @@ class Gaussians4D(ViewSlicer):
             raise DataError("the point cloud contains NaN or Inf values")
         t0, t1 = config.time_range
         d = config.period
-        dist2 = torch.from_numpy(mean_neighbour_sq_distance(xyz.double().numpy())).float()
+        points = xyz.double().numpy()
+        if config.schema is FREETIMEGS:  # repeated points (copies that share the clip) take their point's scale
+            unique, inverse = np.unique(points, axis=0, return_inverse=True)
+            dist2 = torch.from_numpy(mean_neighbour_sq_distance(unique)[inverse.reshape(-1)]).float()
+        else:
+            dist2 = torch.from_numpy(mean_neighbour_sq_distance(points)).float()
         log_s = 0.5 * torch.log(dist2.clamp_min(1e-7))
         identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=cpu).repeat(m, 1)
+        log_time_scale = 0.5 * float(np.log(d / 5.0))
         params = {
             "xyz": xyz.clone(),
-            "t": (torch.rand(m, 1, generator=generator, device=cpu) * 1.2 - 0.1) * d + t0,
             "scaling": log_s.unsqueeze(1).repeat(1, 3),
-            "scaling_t": torch.full((m, 1), 0.5 * float(np.log(d / 5.0)), device=cpu),
             "rotation": identity.clone(),
-            "rotation_r": identity.clone(),
             "opacity": torch.full((m, 1), float(np.log(0.1 / 0.9)), device=cpu),
             "features_dc": rgb_to_sh(rgb).unsqueeze(1),
             "features_rest": torch.zeros(m, config.num_coeffs - 1, 3, device=cpu),
         }
+        if config.schema is FREETIMEGS:
+            copies = m / len(unique)
+            duration = torch.full((m, 1), min(log_time_scale, float(np.log(d / (2.0 * copies)))), device=cpu)
+            params.update(t=torch.rand(m, 1, generator=generator, device=cpu) * d + t0, duration=duration,
+                          velocity=torch.zeros(m, 3, device=cpu))
+        else:
+            params.update(t=(torch.rand(m, 1, generator=generator, device=cpu) * 1.2 - 0.1) * d + t0,
+                          scaling_t=torch.full((m, 1), log_time_scale, device=cpu), rotation_r=identity.clone())
+        params = {k: params[k] for k in config.schema.param_names}
         return cls(params, config, active_sh_degree=0, active_sh_degree_t=0)
 
     # activations -----------------------------------------------------------------------
@@ -216,7 +246,7 @@ class Gaussians4D(ViewSlicer):
         return torch.sigmoid(self.params["opacity"][:, 0])
 
     def scales(self) -> torch.Tensor:
-        """[N, 4] exp of the log scales, (x, y, z, t)."""
+        """[N, 4] exp of a Real-Time4DGS model's log scales, (x, y, z, t)."""
         return activated_scales(self.params)
 
     def features(self) -> torch.Tensor:
@@ -224,7 +254,7 @@ class Gaussians4D(ViewSlicer):
         return torch.cat([self.params["features_dc"], self.params["features_rest"]], dim=1)
 
     def covariance_4d(self) -> torch.Tensor:
-        """[N, 4, 4] Σ4 (rt4dgs §1.3)."""
+        """[N, 4, 4] Σ4 of a Real-Time4DGS model (rt4dgs §1.3)."""
         p = self.params
         return covariance_4d(self.scales(), p["rotation"], p["rotation_r"], self.config.rotation_convention)
 
@@ -264,34 +294,37 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
                  appearance: "AppearanceMLP | None" = None) -> TimeSlice:
     """The 3D Gaussians that raw per-Gaussian ``values`` show to ``V`` views (rt4dgs §1.4 + §2).
 
-    Conditional means and covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for
-    all views in one pass (:func:`omg4.gaussians.covariance.slice_geometry`); colours
-    max(SH4D + 0.5, 0) with the active degrees only and Δt = μ_t − τ. The appearance
-    (opacity, SH) is either explicit in ``values`` or, with ``appearance`` (paper §4.4),
-    predicted by the MLPs from ``f_static``/``f_view`` — only for the rows that passed
-    the cull, in one pass for every view. Differentiable w.r.t. every value.
+    Positions, covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for all views
+    in one pass, by the backbone's time slice (``config.schema.geometry``: the Real-Time4DGS
+    conditioning or the FreeTimeGS motion); colours max(SH + 0.5, 0) with the active degrees
+    only and Δt = μ_t − τ. The appearance (opacity, SH) is either explicit in ``values`` or,
+    with ``appearance`` (paper §4.4), predicted by the MLPs from ``f_static``/``f_view`` —
+    only for the rows that passed the cull, in one pass for every view. Differentiable
+    w.r.t. every value.
 
     Args:
-        values: ``xyz, t, scaling, scaling_t, rotation, rotation_r`` and either
-            ``opacity, features_dc, features_rest`` or ``f_static, f_view``.
+        values: the backbone's geometry attributes and either ``opacity, features_dc,
+            features_rest`` or ``f_static, f_view``.
         timestamps: [V] view times; camera_centers: [V, 3] viewer positions.
     """
     xyz = values["xyz"]
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
     times = times64.to(xyz.dtype)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
-    geom = slice_geometry(xyz, values["t"], activated_scales(values), values["rotation"], values["rotation_r"], times,
-                          convention=config.rotation_convention, time_cull=config.time_cull)
+    geom = config.schema.geometry(values, config, times)
     idx = geom.index
 
     def rows(name: str) -> torch.Tensor:
         return values[name].index_select(0, idx)
 
     if appearance is not None:
-        t0, t1 = config.time_range
-        t_norm = ((times64 - t0) / (t1 - t0)).to(xyz.dtype)  # normalized in float64, as training did
-        dc, rest, logit = appearance.predict(rows("xyz"), t_norm.index_select(0, geom.views), rows("f_static"),
-                                             rows("f_view"))
+        if config.schema.mlp_time_input:  # canonical position and normalized view time (Real-Time4DGS)
+            t0, t1 = config.time_range
+            t_norm = ((times64 - t0) / (t1 - t0)).to(xyz.dtype)  # normalized in float64, as training did
+            positions, t_rows = rows("xyz"), t_norm.index_select(0, geom.views)
+        else:  # the position at the view's time carries the time (FreeTimeGS)
+            positions, t_rows = geom.means, None
+        dc, rest, logit = appearance.predict(positions, t_rows, rows("f_static"), rows("f_view"))
         coeffs = torch.cat([dc, rest], dim=1)
     else:
         coeffs = torch.cat([rows("features_dc"), rows("features_rest")], dim=1)

@@ -18,8 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from omg4.errors import CorruptFileError
-from omg4.gaussians.covariance import scaled_rotation_4d, temporal_variance
-from omg4.gaussians.model import GaussianConfig, activated_scales, slice_values
+from omg4.gaussians.model import GaussianConfig, slice_values
 from omg4.render.view import TimeSlice, ViewSlicer
 
 DEFAULT_WINDOWS = 32
@@ -67,7 +66,7 @@ class VisibilityIndex:
 class WindowedModel(ViewSlicer):
     """A render-only 4D model whose frames touch only their time window's Gaussians.
 
-    Holds raw per-Gaussian ``values`` (the Real-Time4DGS parameters, or geometry plus
+    Holds raw per-Gaussian ``values`` (the backbone's parameters, or its geometry plus
     ``f_static``/``f_view`` for a model whose appearance comes from ``appearance`` MLPs,
     paper §4.4), no gradients, and the :class:`VisibilityIndex` built from them at load.
     A frame gathers its window's candidate rows, then conditions, culls and evaluates the
@@ -82,9 +81,8 @@ class WindowedModel(ViewSlicer):
         self.active_sh_degree_t = active_sh_degree_t
         self.appearance = appearance
         v = self.values
-        scales = activated_scales(v)
-        L = scaled_rotation_4d(scales, v["rotation"], v["rotation_r"], config.rotation_convention)
-        var_t = temporal_variance(L)
+        scales = torch.cat([v[a.name] for a in config.schema.attributes if a.activation == "exp"], dim=1).exp()
+        var_t = config.schema.time_variance(v, config)
         if not bool(torch.isfinite(scales).all() & torch.isfinite(var_t).all() & (var_t > 0).all()):
             raise CorruptFileError("the model's scales overflow or its temporal variances are not positive "
                                    "(damaged or diverged values)")

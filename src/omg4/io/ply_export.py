@@ -23,7 +23,6 @@ import torch
 from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import OMG4Error
-from omg4.gaussians.covariance import slice_geometry
 from omg4.gaussians.model import Gaussians4D
 from omg4.gaussians.sh import fold_time_sh, rgb_to_sh, sh_basis
 from omg4.render.view import TimeSlice
@@ -136,9 +135,7 @@ def export_ply(path: str | os.PathLike, model: Gaussians4D, timestamp: float, *,
         raise OMG4Error(f"export time must be finite, got {timestamp}")
     cfg = model.config
     p = {k: v.detach().to("cpu", torch.float64) for k, v in model.params.items()}
-    scales = torch.cat([p["scaling"], p["scaling_t"]], dim=1).exp()
-    geom = slice_geometry(p["xyz"], p["t"], scales, p["rotation"], p["rotation_r"], float(timestamp),
-                          convention=cfg.rotation_convention, time_cull=cfg.time_cull)
+    geom = cfg.schema.geometry(p, cfg, torch.tensor([float(timestamp)], dtype=torch.float64))
     idx = geom.index
     coeffs = torch.cat([p["features_dc"][idx], p["features_rest"][idx]], dim=1)
     sh = fold_time_sh(coeffs, geom.dt, cfg.period, model.active_sh_degree, model.active_sh_degree_t,

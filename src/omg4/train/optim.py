@@ -13,6 +13,7 @@ import math
 
 import torch
 
+from omg4.gaussians.backbone import RT4DGS, Backbone
 from omg4.train.config import TrainConfig
 
 
@@ -24,19 +25,10 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> floa
     return math.exp(math.log(lr_init) * (1 - u) + math.log(lr_final) * u)
 
 
-def baseline_lrs(cfg: TrainConfig, extent: float) -> dict[str, float]:
-    """Initial learning rate of each baseline parameter group (rt4dgs §3.3)."""
-    return {
-        "xyz": cfg.position_lr_init * extent,
-        "t": cfg.time_lr * extent,
-        "features_dc": cfg.feature_lr,
-        "features_rest": cfg.feature_rest_lr,
-        "opacity": cfg.opacity_lr,
-        "scaling": cfg.scaling_lr,
-        "scaling_t": cfg.scaling_lr,
-        "rotation": cfg.rotation_lr,
-        "rotation_r": cfg.rotation_lr,
-    }
+def baseline_lrs(cfg: TrainConfig, extent: float, schema: Backbone = RT4DGS) -> dict[str, float]:
+    """Initial learning rate of each baseline parameter group (rt4dgs §3.3), from the backbone's table:
+    ``cfg``'s field named by each attribute, times ``extent`` for positions, times and velocities."""
+    return {a.name: getattr(cfg, a.lr) * (extent if a.extent_lr else 1.0) for a in schema.attributes}
 
 
 def make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
@@ -63,12 +55,17 @@ def step_optimizers(optimizers, device: torch.device | str) -> None:
                 opt.zero_grad(set_to_none=True)
 
 
+def set_group_lr(optimizer: torch.optim.Optimizer, name: str, lr: float) -> None:
+    """Set the learning rate of the parameter group called ``name`` (if the optimizer has one)."""
+    for g in optimizer.param_groups:
+        if g.get("name") == name:
+            g["lr"] = lr
+
+
 def set_position_lr(optimizer: torch.optim.Optimizer, cfg: TrainConfig, extent: float, step: int) -> float:
     """Apply the position schedule at ``step``; returns the new xyz learning rate."""
     lr = expon_lr(step, cfg.position_lr_init * extent, cfg.position_lr_final * extent, cfg.position_lr_max_steps)
-    for g in optimizer.param_groups:
-        if g.get("name") == "xyz":
-            g["lr"] = lr
+    set_group_lr(optimizer, "xyz", lr)
     return lr
 
 
@@ -123,3 +120,36 @@ def replace_param(params: dict[str, torch.Tensor], optimizer: torch.optim.Optimi
     group = _group(optimizer, name) if optimizer is not None else None
     if group is not None:
         _swap_param(optimizer, group, new, (lambda s: torch.zeros_like(s)) if reset_state else (lambda s: s))
+
+
+def overwrite_rows(params: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None, rows: torch.Tensor,
+                   values: dict[str, torch.Tensor]) -> None:
+    """Write ``values[name]`` into the rows ``rows`` (int64 [K]) of every tensor named, zeroing those rows' Adam
+    moments."""
+    def zero_rows(state: torch.Tensor) -> torch.Tensor:
+        state = state.clone()
+        state[rows] = 0
+        return state
+
+    for name, value in values.items():
+        old = params[name]
+        new = old.detach().clone()
+        new[rows] = value.to(new.dtype)
+        params[name] = new.requires_grad_(old.requires_grad)
+        group = _group(optimizer, name) if optimizer is not None else None
+        if group is not None:
+            _swap_param(optimizer, group, params[name], zero_rows)
+
+
+def rebuilt_adam(old: torch.optim.Adam, params: dict[str, torch.Tensor], lrs: dict[str, float],
+                 extra_groups: list[dict] = ()) -> torch.optim.Adam:
+    """A new Adam (:func:`make_adam`) over ``params`` plus ``extra_groups``, with the moments ``old`` holds for
+    tensors that survive (used when a stage adds or removes parameter tensors)."""
+    new = make_adam(params, lrs)
+    for group in extra_groups:
+        new.add_param_group(group)
+    for g in new.param_groups:
+        p = g["params"][0]
+        if p in old.state:
+            new.state[p] = old.state[p]
+    return new

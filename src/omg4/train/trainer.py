@@ -1,4 +1,4 @@
-"""The Real-Time4DGS training loop (reference rt4dgs §3).
+"""The baseline training loop (reference rt4dgs §3; FreeTimeGS with ``TrainConfig.backbone``).
 
 Each iteration renders a batch of random (camera, frame) views, back-propagates
 ``loss_v / B`` per view, and takes one Adam step; densification, opacity resets and the SH
@@ -6,6 +6,8 @@ degree schedule happen at fixed iterations. Everything random is drawn from gene
 seeded by ``(seed, iteration)``, so a run resumed from a checkpoint continues exactly as
 an uninterrupted run of the same seed. The model, optimizer state, statistics and images live
 on ``TrainConfig.device``; the generators are CPU ones whose draws are moved there.
+A FreeTimeGS run keeps a fixed budget: relocation (:mod:`omg4.train.relocate`) replaces
+densification and opacity resets, and its 4D regularization joins the loss early on.
 """
 
 from __future__ import annotations
@@ -26,14 +28,16 @@ from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.evaluate import render_image, view_image
 from omg4.gaussians import GaussianConfig, Gaussians4D
+from omg4.gaussians.backbone import FREETIMEGS, backbone_named
 from omg4.gaussians.checkpoint import save_gaussians
+from omg4.gaussians.freetime import opacity_regularizer
 from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
-from omg4.render.view import render_views, views_by_size
 from omg4.train import densify
 from omg4.train.config import TrainConfig
-from omg4.train.loss import photometric_losses
+from omg4.train.relocate import relocate
 from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_optimizers
+from omg4.train.step import backward_batch, step_generator
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 
 
@@ -48,68 +52,18 @@ class TrainResult:
     history: list[dict] = field(default_factory=list)
 
 
-def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
-    """A CPU generator determined by (seed, step, stream) alone (resume-safe, device-independent randomness)."""
-    g = torch.Generator()
-    g.manual_seed((seed * 1_000_003 + step * 7919 + stream) % (2**63 - 1))
-    return g
-
-
 def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) -> tuple[int, int]:
     """SH degrees at ``step``: spatial 0→max one per interval, then temporal 0→max (rt4dgs §2)."""
     k = step // max(interval, 1)
     return min(k, max_deg), min(max(k - max_deg, 0), max_deg_t)
 
 
-def view_losses(model, views: list[View], *, background: torch.Tensor | None, backend: str, lambda_dssim: float,
-                device: torch.device | str = "cpu"):
-    """Render ``views`` in one pass per image size and yield, group by group,
-    ``(positions in views, rendered, time slice, ground truths [V, H, W, 3], per-view losses [V])``
-    (rt4dgs §3.2 loss; :func:`omg4.render.view.render_views`)."""
-    for group in views_by_size([v.camera for v in views]):
-        members = [views[i] for i in group]
-        rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
-                                    background=background, backend=backend, device=device)
-        gts = torch.stack([view_image(v, device) for v in members])
-        yield group, rendered, sl, gts, photometric_losses(rendered.image, gts, lambda_dssim)
-
-
-def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
-                   lambda_dssim: float, what: str, step: int, device: torch.device | str = "cpu",
-                   on_views=None) -> tuple[float, float]:
-    """Render the views ``views[i]``, i in ``batch``, and back-propagate Σ_v loss_v / B once (rt4dgs §3.1).
-
-    Views of one image size are sliced and rasterized together (:func:`omg4.render.view.render_views`);
-    the loss is computed on the whole batch; the step synchronizes with the device once, to
-    read the loss. ``model`` and ``background`` live on ``device``; the ground truths are moved there.
-
-    ``on_views(rendered, time_slice)`` runs after the backward for each group of views
-    (gradient statistics: ``rendered.means2d.grad`` rows follow ``time_slice.index``).
-    Returns the batch's mean per-view loss and mean PSNR (renders clamped); a non-finite
-    loss is a one-line error naming ``what``.
-    """
-    chosen = [views[i] for i in batch.tolist()]
-    total, psnr_sum, rendered_groups = 0.0, 0.0, []
-    for _, rendered, sl, gts, losses in view_losses(model, chosen, background=background, backend=backend,
-                                                    lambda_dssim=lambda_dssim, device=device):
-        total = total + losses.sum() / len(chosen)
-        mse = (rendered.image.detach().clamp(0, 1) - gts).square().mean((1, 2, 3))
-        psnr_sum = psnr_sum + (-10.0 * torch.log10(mse)).sum()
-        rendered_groups.append((rendered, sl))
-    loss, psnr_total = torch.stack([total.detach(), psnr_sum]).tolist()  # the step's one synchronization
-    if not np.isfinite(loss):
-        raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {loss}")
-    total.backward()
-    if on_views is not None:
-        for rendered, sl in rendered_groups:
-            on_views(rendered, sl)
-    return loss, psnr_total / len(chosen)
-
-
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
     """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume.
 
-    Built on the CPU (so the random draws do not depend on the device); the caller moves it.
+    At most ``cfg.max_gaussians`` (a random subset). A FreeTimeGS model starts at its budget
+    exactly: with fewer points than ``max_gaussians``, points are drawn again (they spread over
+    time). Built on the CPU (so the random draws do not depend on the device); the caller moves it.
     """
     if points is None:
         points = scene.initial_points
@@ -119,13 +73,18 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
         points = random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
     if len(points.xyz) == 0:
         raise OMG4Error("the initial point cloud is empty")
-    config = GaussianConfig(time_range=tuple(scene.time_range))
+    backbone = backbone_named(cfg.backbone)
+    config = GaussianConfig(time_range=tuple(scene.time_range), backbone=backbone.name,
+                            **({} if backbone.sh_degree_t is None else {"sh_degree_t": backbone.sh_degree_t}))
     gen = torch.Generator().manual_seed(cfg.seed)
     xyz = torch.as_tensor(points.xyz, dtype=torch.float32, device="cpu")
     rgb = torch.as_tensor(points.rgb, dtype=torch.float32, device="cpu")
     if cfg.max_gaussians and len(xyz) > cfg.max_gaussians:
         keep = torch.randperm(len(xyz), generator=gen, device="cpu")[: cfg.max_gaussians]
         xyz, rgb = xyz[keep], rgb[keep]
+    elif backbone is FREETIMEGS and cfg.max_gaussians > len(xyz):
+        extra = torch.randint(len(xyz), (cfg.max_gaussians - len(xyz),), generator=gen, device="cpu")
+        xyz, rgb = torch.cat([xyz, xyz[extra]]), torch.cat([rgb, rgb[extra]])
     return Gaussians4D.from_points(xyz, rgb, config, generator=gen)
 
 
@@ -178,7 +137,7 @@ class Trainer:
     def _make_optimizer(self) -> torch.optim.Adam:
         for p in self.model.params.values():
             p.requires_grad_(True)
-        return make_adam(self.model.params, baseline_lrs(self.cfg, self.extent))
+        return make_adam(self.model.params, baseline_lrs(self.cfg, self.extent, self.model.config.schema))
 
     def train_step(self, step: int) -> tuple[float, float]:
         """One optimizer step (1-based ``step``); returns (mean loss, mean PSNR) of the batch."""
@@ -197,13 +156,26 @@ class Trainer:
 
         loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
                                           lambda_dssim=cfg.lambda_dssim, what="training", step=step,
-                                          device=self.device, on_views=on_views)
+                                          device=self.device, on_views=on_views,
+                                          regularizer=self._regularizer if densifying else None)
         step_optimizers([self.optimizer], self.device)
         self._density_events(step)
         return loss, batch_psnr
 
+    def _regularizer(self, timestamps: torch.Tensor) -> torch.Tensor | None:
+        """FreeTimeGS's 4D regularization of the batch (None for other backbones)."""
+        if self.model.config.schema is not FREETIMEGS or not self.cfg.lambda_reg:
+            return None
+        p = self.model.params
+        return self.cfg.lambda_reg * opacity_regularizer(p["opacity"], p["t"], p["duration"], timestamps)
+
     def _density_events(self, step: int) -> None:
         cfg = self.cfg
+        if self.model.config.schema is FREETIMEGS:
+            if cfg.densify_from < step < cfg.densify_until and step % cfg.densify_interval == 0:
+                relocate(self.model, self.optimizer, self.stats, min_opacity=cfg.relocate_opacity,
+                         generator=step_generator(cfg.seed, step, stream=1))
+            return
         if step < cfg.densify_until:
             if step > cfg.densify_from and step % cfg.densify_interval == 0:
                 size_threshold = cfg.prune_screen_size if step > cfg.opacity_reset_interval else None
@@ -256,5 +228,4 @@ def train(scene: Scene, cfg: TrainConfig, run_dir: str | Path, **kwargs) -> Trai
     return Trainer(scene, cfg, run_dir, **kwargs).run()
 
 
-__all__ = ["TrainResult", "Trainer", "train", "initial_model", "evaluate_psnr", "active_sh_degrees", "view_losses",
-           "backward_batch"]
+__all__ = ["TrainResult", "Trainer", "train", "initial_model", "evaluate_psnr", "active_sh_degrees"]

@@ -1,0 +1,238 @@
+"""The backbones omg4 trains and compresses, each described once.
+
+A :class:`Backbone` lists its per-Gaussian attributes — name, shape, activation, learning
+rate and what each OMG4 stage does with it (merged by a proxy, §4.3; replaced by the
+appearance MLPs, §4.4; sub-vector quantized in stage 3D or 4D, §4.4; else kept explicit,
+positions and time centres in fp16) — and says how a time slice is formed. Training,
+every OMG4 stage, the codec and the decoder read these tables; nothing else names
+attributes. The ``.omg4`` header and checkpoints name their backbone
+(``GaussianConfig.backbone``); files without the name are Real-Time4DGS.
+
+* ``rt4dgs`` — Real-Time4DGS (Yang et al., ICLR 2024): 4D Gaussians conditioned on time,
+  4D SH; the paper's main backbone.
+* ``freetimegs`` — FreeTimeGS (Wang et al., CVPR 2025): moving 3D Gaussians with a duration,
+  3D SH; the paper's Table 3. Its MLPs see the time-shifted position and no time input.
+
+Part of the render-only decoder: imports only Gaussian math.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from omg4.gaussians.covariance import SliceGeometry, scaled_rotation_4d, slice_geometry, temporal_variance
+from omg4.gaussians.freetime import duration_variance, slice_geometry_ftgs
+
+SH_REST = "sh_rest"
+"""Shape placeholder: the number of SH coefficients after the DC term, K − 1 (from the model config)."""
+
+
+@dataclass(frozen=True)
+class Attribute:
+    """One per-Gaussian tensor of a backbone.
+
+    Attributes:
+        name: key in a model's ``params``.
+        shape: per-Gaussian shape (:data:`SH_REST` stands for K − 1).
+        activation: ``none``, ``exp``, ``sigmoid`` or ``quaternion`` (normalized at use).
+        lr: the :class:`omg4.train.config.TrainConfig` field holding its learning rate.
+        extent_lr: the learning rate is multiplied by the scene extent.
+        merge_logit: name of its merge-proxy logit vector when Gaussian Merging averages it (§4.3).
+        by_mlp: replaced by the appearance MLPs at attribute compression (§4.4).
+        svq: the sub-vector-quantized attribute it becomes part of (§4.4), or None.
+    """
+
+    name: str
+    shape: tuple[int | str, ...]
+    activation: str
+    lr: str
+    extent_lr: bool = False
+    merge_logit: str | None = None
+    by_mlp: bool = False
+    svq: str | None = None
+
+    def full_shape(self, n: int, num_coeffs: int) -> tuple[int, ...]:
+        """``(n, *shape)`` with :data:`SH_REST` resolved for ``num_coeffs`` SH coefficients per channel."""
+        return (n, *(num_coeffs - 1 if d == SH_REST else d for d in self.shape))
+
+
+@dataclass(frozen=True)
+class SVQGroup:
+    """A sub-vector-quantized attribute (§4.4): the parameters it concatenates, its sub-vector length, its stage."""
+
+    name: str
+    params: tuple[str, ...]
+    sub_length: int
+    stage: str  # "svq3d" or "svq4d"
+
+
+#: The per-Gaussian appearance features that replace opacity and SH at attribute compression (§4.4):
+#: a 3-d static feature (from the base colour) and a 3-d view feature, quantized together as ``app``.
+APPEARANCE_FEATURES = (
+    Attribute("f_static", (3,), "none", lr="feature_lr", svq="app"),
+    Attribute("f_view", (3,), "none", lr="feature_lr", svq="app"),
+)
+
+_POSITION = Attribute("xyz", (3,), "none", lr="position_lr_init", extent_lr=True, merge_logit="merge_xyz_logits")
+_TIME = Attribute("t", (1,), "none", lr="time_lr", extent_lr=True)
+_OPACITY = Attribute("opacity", (1,), "sigmoid", lr="opacity_lr", by_mlp=True)
+_SH_DC = Attribute("features_dc", (1, 3), "none", lr="feature_lr", merge_logit="merge_dc_logits", by_mlp=True)
+_SH_REST = Attribute("features_rest", (SH_REST, 3), "none", lr="feature_rest_lr", merge_logit="merge_rest_logits",
+                     by_mlp=True)
+_SCALE = Attribute("scaling", (3,), "exp", lr="scaling_lr", svq="scale")
+_ROTATION = Attribute("rotation", (4,), "quaternion", lr="rotation_lr", svq="rotation")
+
+
+@dataclass(frozen=True)
+class Backbone:
+    """A 4D Gaussian representation: its attributes, SVQ groups, MLP input and time slice.
+
+    Attributes:
+        name: the name files carry (``GaussianConfig.backbone``).
+        title: for tables and messages.
+        attributes: the baseline's per-Gaussian tensors, in optimizer-group order (a resumed run's
+            Adam state is matched to groups by position).
+        svq_groups: the quantized attributes of a compressed model, in stage order.
+        mlp_time_input: the appearance MLPs see (canonical position, time) — else the position at the
+            view's time, with no time input.
+        geometry: ``(values, config, timestamps [V]) →`` :class:`SliceGeometry` (conditioning and cull).
+        time_variance: ``(values, config) → [N]`` variance in time of each Gaussian's temporal opacity.
+        sh_degree_t: the temporal SH degree it requires (None: any).
+    """
+
+    name: str
+    title: str
+    attributes: tuple[Attribute, ...]
+    svq_groups: tuple[SVQGroup, ...]
+    mlp_time_input: bool
+    geometry: Callable[..., SliceGeometry]
+    time_variance: Callable[..., torch.Tensor]
+    sh_degree_t: int | None = None
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(a.name for a in self.attributes)
+
+    @property
+    def mlp_inputs(self) -> int:
+        """Inputs of the shared appearance network: position (3) and, for Real-Time4DGS, time."""
+        return 4 if self.mlp_time_input else 3
+
+    def attribute(self, name: str) -> Attribute:
+        """The attribute called ``name`` (the appearance features included)."""
+        for a in (*self.attributes, *APPEARANCE_FEATURES):
+            if a.name == name:
+                return a
+        raise KeyError(f"{self.name} has no attribute '{name}'")
+
+    def param_shapes(self, n: int, num_coeffs: int) -> dict[str, tuple[int, ...]]:
+        """Raw parameter shapes of a baseline with ``n`` Gaussians and ``num_coeffs`` SH coefficients."""
+        return {a.name: a.full_shape(n, num_coeffs) for a in self.attributes}
+
+    @property
+    def merged(self) -> dict[str, str]:
+        """Attribute → merge-proxy logit name, for the attributes Gaussian Merging averages (§4.3)."""
+        return {a.name: a.merge_logit for a in self.attributes if a.merge_logit}
+
+    @property
+    def by_mlp(self) -> tuple[str, ...]:
+        """The attributes the appearance MLPs replace (§4.4)."""
+        return tuple(a.name for a in self.attributes if a.by_mlp)
+
+    def svq_group(self, name: str) -> SVQGroup:
+        """The SVQ attribute called ``name``."""
+        for g in self.svq_groups:
+            if g.name == name:
+                return g
+        raise KeyError(f"{self.name} has no quantized attribute '{name}'")
+
+    def svq_stage(self, stage: str) -> tuple[str, ...]:
+        """Names of the SVQ attributes quantized at ``stage`` (``svq3d`` or ``svq4d``)."""
+        return tuple(g.name for g in self.svq_groups if g.stage == stage)
+
+    def svq_widths(self, name: str) -> tuple[tuple[str, int], ...]:
+        """(parameter, width per Gaussian) of the parameters an SVQ attribute concatenates, in order."""
+        widths = []
+        for p in self.svq_group(name).params:
+            shape = self.attribute(p).shape
+            if SH_REST in shape:
+                raise ValueError(f"SH coefficients cannot be sub-vector quantized ({p})")
+            width = 1
+            for d in shape:
+                width *= int(d)
+            widths.append((p, width))
+        return tuple(widths)
+
+    def explicit_after_compression(self) -> tuple[str, ...]:
+        """The per-Gaussian tensors a fully compressed model stores unquantized (fp16 in the file)."""
+        quantized = {p for g in self.svq_groups for p in g.params}
+        return tuple(a.name for a in self.attributes if not a.by_mlp and a.name not in quantized)
+
+
+def _rt4dgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Tensor) -> SliceGeometry:
+    return slice_geometry(values["xyz"], values["t"], _rt4dgs_scales(values), values["rotation"],
+                          values["rotation_r"], timestamps, convention=config.rotation_convention,
+                          time_cull=config.time_cull)
+
+
+def _rt4dgs_scales(values: dict[str, torch.Tensor]) -> torch.Tensor:
+    return torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
+
+
+def _rt4dgs_time_variance(values: dict[str, torch.Tensor], config) -> torch.Tensor:
+    return temporal_variance(scaled_rotation_4d(_rt4dgs_scales(values), values["rotation"], values["rotation_r"],
+                                                config.rotation_convention))
+
+
+def _ftgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Tensor) -> SliceGeometry:
+    return slice_geometry_ftgs(values["xyz"], values["t"], values["duration"], values["velocity"], values["scaling"],
+                               values["rotation"], timestamps, time_cull=config.time_cull)
+
+
+RT4DGS = Backbone(
+    name="rt4dgs",
+    title="Real-Time4DGS",
+    attributes=(_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE,
+                Attribute("scaling_t", (1,), "exp", lr="scaling_lr", svq="scale_t"), _ROTATION,
+                Attribute("rotation_r", (4,), "quaternion", lr="rotation_lr", svq="rotation_r")),
+    svq_groups=(SVQGroup("scale", ("scaling",), 1, "svq3d"), SVQGroup("rotation", ("rotation",), 2, "svq3d"),
+                SVQGroup("app", ("f_static", "f_view"), 2, "svq3d"), SVQGroup("scale_t", ("scaling_t",), 1, "svq4d"),
+                SVQGroup("rotation_r", ("rotation_r",), 2, "svq4d")),
+    mlp_time_input=True,
+    geometry=_rt4dgs_geometry,
+    time_variance=_rt4dgs_time_variance,
+)
+
+FREETIMEGS = Backbone(
+    name="freetimegs",
+    title="FreeTimeGS",
+    attributes=(_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE, _ROTATION,
+                Attribute("duration", (1,), "exp", lr="duration_lr", svq="duration"),
+                Attribute("velocity", (3,), "none", lr="velocity_lr", extent_lr=True, svq="velocity")),
+    # scale, rotation and appearance as Real-Time4DGS; duration and velocity (paper appendix) one
+    # scalar codebook per component, like the time scale
+    svq_groups=(SVQGroup("scale", ("scaling",), 1, "svq3d"), SVQGroup("rotation", ("rotation",), 2, "svq3d"),
+                SVQGroup("app", ("f_static", "f_view"), 2, "svq3d"), SVQGroup("duration", ("duration",), 1, "svq4d"),
+                SVQGroup("velocity", ("velocity",), 1, "svq4d")),
+    mlp_time_input=False,
+    geometry=_ftgs_geometry,
+    time_variance=lambda values, config: duration_variance(values["duration"]),
+    sh_degree_t=0,
+)
+
+BACKBONES: dict[str, Backbone] = {b.name: b for b in (RT4DGS, FREETIMEGS)}
+
+
+def backbone_named(name: str) -> Backbone:
+    """The backbone called ``name`` (``ValueError`` naming the choices otherwise)."""
+    try:
+        return BACKBONES[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown backbone {name!r} (choose from {', '.join(BACKBONES)})") from None
+
+
+__all__ = ["APPEARANCE_FEATURES", "Attribute", "SVQGroup", "Backbone", "RT4DGS", "FREETIMEGS", "BACKBONES",
+           "SH_REST", "backbone_named"]

@@ -1,0 +1,78 @@
+"""FreeTimeGS Gaussians: 3D Gaussians that move and live for a while (Wang et al., CVPR 2025; paper Table 3).
+
+Each Gaussian has a position μx, a time centre μt, a duration s (stored as log s), a
+velocity v, a 3D scale and rotation, an opacity and 3D SH colours. At time τ it shows
+
+    μ(τ)   = μx + v · (τ − μt)                      (linear motion)
+    p_t(τ) = exp(−½ ((τ − μt) / s)²)                 (temporal opacity, multiplies the opacity)
+    Σ      = R diag(scale²) Rᵀ                       (plain 3D covariance, constant in time)
+
+and is culled where p_t ≤ ``time_cull``, like a Real-Time4DGS Gaussian whose marginal is p_t.
+:func:`slice_geometry_ftgs` returns the same :class:`~omg4.gaussians.covariance.SliceGeometry`
+as the Real-Time4DGS conditioning, so colours, culling, the appearance MLPs and the
+rasterizer are shared. Part of the render-only decoder: imports no training code.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from omg4.gaussians.covariance import SliceGeometry, temporal_marginal
+from omg4.gaussians.rotation import build_rotation_3d
+from omg4.render.small_matmul import small_matmul
+
+
+def moved_means(xyz: torch.Tensor, velocity: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
+    """μx + v · dt. xyz, velocity: [M, 3]; dt: [M] (τ − μt) → [M, 3]."""
+    return xyz + velocity * dt[:, None]
+
+
+def covariance_3d(log_scales: torch.Tensor, quaternions: torch.Tensor) -> torch.Tensor:
+    """Σ = R diag(exp(log_scales)²) Rᵀ. log_scales: [M, 3], quaternions: [M, 4] (w, x, y, z) → [M, 3, 3]."""
+    M = build_rotation_3d(quaternions) * log_scales.exp().unsqueeze(-2)
+    return small_matmul(M, M.transpose(-1, -2))
+
+
+def duration_variance(log_duration: torch.Tensor) -> torch.Tensor:
+    """s² = exp(2 log s): the variance in time of the temporal opacity. [N, 1] or [N] → [N]."""
+    return (2.0 * log_duration.reshape(-1)).exp()
+
+
+def slice_geometry_ftgs(xyz: torch.Tensor, t: torch.Tensor, log_duration: torch.Tensor, velocity: torch.Tensor,
+                        log_scales: torch.Tensor, quaternions: torch.Tensor, timestamps: float | torch.Tensor, *,
+                        time_cull: float = 0.05) -> SliceGeometry:
+    """FreeTimeGS Gaussians at each of ``timestamps``, culled where p_t ≤ ``time_cull``.
+
+    Rows are (view, Gaussian) pairs grouped by view; ``dt`` holds μt − τ (the time argument
+    colours would take; FreeTimeGS colours do not depend on time). Differentiable w.r.t. all inputs.
+
+    Args:
+        xyz: [N, 3]; t: [N, 1]; log_duration: [N, 1]; velocity: [N, 3]; log_scales: [N, 3];
+        quaternions: [N, 4]; timestamps: one query time or [V] of them.
+    """
+    times = torch.as_tensor(timestamps, dtype=xyz.dtype, device=xyz.device).reshape(-1)
+    var_t = duration_variance(log_duration)
+    p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
+    views, index = (p_t > time_cull).nonzero(as_tuple=True)
+    dt = times.index_select(0, views) - t[:, 0].index_select(0, index)  # τ − μt
+    means = moved_means(xyz.index_select(0, index), velocity.index_select(0, index), dt)
+    covars = covariance_3d(log_scales.index_select(0, index), quaternions.index_select(0, index))
+    marginal = temporal_marginal(dt, var_t.index_select(0, index))
+    return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=-dt, views=views)
+
+
+def opacity_regularizer(opacity_logit: torch.Tensor, t: torch.Tensor, log_duration: torch.Tensor,
+                        timestamps: torch.Tensor) -> torch.Tensor:
+    """FreeTimeGS's 4D regularization: mean over Gaussians and views of σ · sg[p_t(τ)].
+
+    Penalizes high opacity where a Gaussian is visible in time, with the temporal opacity
+    detached so the penalty does not shorten durations (FreeTimeGS §3.3).
+    opacity_logit, t, log_duration: [N, 1]; timestamps: [V] → scalar.
+    """
+    times = torch.as_tensor(timestamps, dtype=t.dtype, device=t.device).reshape(-1)
+    with torch.no_grad():
+        p_t = temporal_marginal(times[:, None] - t[None, :, 0], duration_variance(log_duration))  # [V, N]
+    return (torch.sigmoid(opacity_logit[:, 0])[None, :] * p_t).mean()
+
+
+__all__ = ["covariance_3d", "duration_variance", "moved_means", "opacity_regularizer", "slice_geometry_ftgs"]

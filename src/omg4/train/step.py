@@ -1,0 +1,78 @@
+"""One optimization step's shared parts: the batch loss and its backward, and step randomness.
+
+The baseline trainer (:mod:`omg4.train.trainer`) and the OMG4 fine-tuning
+(:mod:`omg4.compress.pipeline`) take their steps through these, and their parameter groups
+through :mod:`omg4.train.optim`, so both optimize the same loss (rt4dgs §3.2; paper §5.1)
+the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from omg4.data.scene import View
+from omg4.errors import OMG4Error
+from omg4.evaluate import view_image
+from omg4.render.view import render_views, views_by_size
+from omg4.train.loss import photometric_losses
+
+
+def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
+    """A CPU generator determined by (seed, step, stream) alone (resume-safe, device-independent randomness)."""
+    g = torch.Generator()
+    g.manual_seed((seed * 1_000_003 + step * 7919 + stream) % (2**63 - 1))
+    return g
+
+
+def view_losses(model, views: list[View], *, background: torch.Tensor | None, backend: str, lambda_dssim: float,
+                device: torch.device | str = "cpu"):
+    """Render ``views`` in one pass per image size and yield, group by group,
+    ``(positions in views, rendered, time slice, ground truths [V, H, W, 3], per-view losses [V])``
+    (rt4dgs §3.2 loss; :func:`omg4.render.view.render_views`)."""
+    for group in views_by_size([v.camera for v in views]):
+        members = [views[i] for i in group]
+        rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
+                                    background=background, backend=backend, device=device)
+        gts = torch.stack([view_image(v, device) for v in members])
+        yield group, rendered, sl, gts, photometric_losses(rendered.image, gts, lambda_dssim)
+
+
+def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
+                   lambda_dssim: float, what: str, step: int, device: torch.device | str = "cpu",
+                   on_views=None, regularizer=None) -> tuple[float, float]:
+    """Render the views ``views[i]``, i in ``batch``, and back-propagate Σ_v loss_v / B once (rt4dgs §3.1).
+
+    Views of one image size are sliced and rasterized together (:func:`omg4.render.view.render_views`);
+    the loss is computed on the whole batch; the step synchronizes with the device once, to
+    read the loss. ``model`` and ``background`` live on ``device``; the ground truths are moved there.
+
+    ``on_views(rendered, time_slice)`` runs after the backward for each group of views
+    (gradient statistics: ``rendered.means2d.grad`` rows follow ``time_slice.index``).
+    ``regularizer(timestamps [B])``, when given, returns a scalar added to the loss (FreeTimeGS's
+    4D regularization), or None.
+    Returns the batch's mean per-view loss and mean PSNR (renders clamped); a non-finite
+    loss is a one-line error naming ``what``.
+    """
+    chosen = [views[i] for i in batch.tolist()]
+    total, psnr_sum, rendered_groups = 0.0, 0.0, []
+    for _, rendered, sl, gts, losses in view_losses(model, chosen, background=background, backend=backend,
+                                                    lambda_dssim=lambda_dssim, device=device):
+        total = total + losses.sum() / len(chosen)
+        mse = (rendered.image.detach().clamp(0, 1) - gts).square().mean((1, 2, 3))
+        psnr_sum = psnr_sum + (-10.0 * torch.log10(mse)).sum()
+        rendered_groups.append((rendered, sl))
+    extra = regularizer(torch.tensor([v.timestamp for v in chosen], dtype=torch.float64)) if regularizer else None
+    if extra is not None:
+        total = total + extra
+    loss, psnr_total = torch.stack([total.detach(), psnr_sum]).tolist()  # the step's one synchronization
+    if not np.isfinite(loss):
+        raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {loss}")
+    total.backward()
+    if on_views is not None:
+        for rendered, sl in rendered_groups:
+            on_views(rendered, sl)
+    return loss, psnr_total / len(chosen)
+
+
+__all__ = ["backward_batch", "step_generator", "view_losses"]
