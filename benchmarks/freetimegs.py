@@ -43,6 +43,14 @@ def omg4(*args: str) -> float:
     return time.perf_counter() - start
 
 
+def without_option(options: list[str], flag: str) -> list[str]:
+    """``options`` without ``flag`` and its value."""
+    if flag not in options:
+        return list(options)
+    i = options.index(flag)
+    return options[:i] + options[i + 2:]
+
+
 def scene_folder(name: str, work: Path) -> Path:
     if name == "basketball":
         return DATA / "n3dv_basketball"
@@ -58,6 +66,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, help="working folder (default runs/freetimegs_<scene>)")
     ap.add_argument("--schedule", default="cpu", help="OMG4 fine-tuning lengths for the bench rows")
     ap.add_argument("--rows", default="AC only,OMG4-FTGS-L")
+    ap.add_argument("--reuse", action="store_true", help="keep baselines already trained and evaluated in --work")
     args = ap.parse_args()
     work = args.work or Path("runs") / f"freetimegs_{args.scene}"
     work.mkdir(parents=True, exist_ok=True)
@@ -66,12 +75,18 @@ def main() -> None:
     results: dict = {"scene": args.scene, "reader_options": reader, "training_options": training, "budget": budget}
     for backbone in ("rt4dgs", "freetimegs"):
         run = work / backbone
-        extra = ["--backbone", backbone] + (["--budget", str(budget)] if backbone == "freetimegs" else [])
-        wall = omg4("train", str(data), *reader, *training, *extra, "--preset", "cpu-small", "--checkpoint-interval",
-                    "0", "--out", str(run), "--force", "--json", str(run / "train.json"))
-        omg4("eval", str(data), *reader, "--model", str(run / "model.safetensors"), "--json", str(run / "eval.json"),
-             "--force")
-        results[backbone] = {"train": json.loads((run / "train.json").read_text()), "train_command_s": wall,
+        extra = ["--backbone", backbone] + training
+        if backbone == "freetimegs":  # the fixed budget replaces the cap
+            extra = without_option(extra, "--max-gaussians") + ["--budget", str(budget)]
+        if not (args.reuse and (run / "eval.json").exists()):
+            wall = omg4("train", str(data), *reader, *extra, "--preset", "cpu-small", "--checkpoint-interval", "0",
+                        "--out", str(run), "--force", "--json", str(run / "train.json"))
+            omg4("eval", str(data), *reader, "--model", str(run / "model.safetensors"), "--json",
+                 str(run / "eval.json"), "--force")
+            (run / "command_s.txt").write_text(f"{wall}\n")
+        wall_file = run / "command_s.txt"
+        results[backbone] = {"train": json.loads((run / "train.json").read_text()),
+                             "train_command_s": float(wall_file.read_text()) if wall_file.exists() else None,
                              "eval": {k: v for k, v in json.loads((run / "eval.json").read_text()).items()
                                       if k != "per_view"}}
     bench = work / "bench"
