@@ -15,8 +15,10 @@ import torch
 from torch import Tensor
 
 from omg4.errors import OMG4Error
+from omg4.train.config import TrainConfig
 
-FEATURE_LR = 0.0025  # f_static / f_view in the main Adam (reference omg4 §9)
+FEATURE_LR = TrainConfig.feature_lr  # f_static / f_view in the main Adam (reference omg4 §9): the backbone table's
+# "feature_lr", the baseline's base-colour rate
 MLP_LR = 5e-3
 OFFICIAL_ITERATIONS = 7000  # iterations after MLP creation: 34000 → 41000 (reference omg4 §2)
 OFFICIAL_WARMUP = 100

@@ -290,5 +290,4 @@ def baseline_lrs_for(params: dict[str, torch.Tensor], extent: float, schema: Bac
     from omg4.train.config import TrainConfig
 
     lrs = baseline_lrs(TrainConfig(), extent, schema)
-    lrs.update({"f_static": appearance_stage.FEATURE_LR, "f_view": appearance_stage.FEATURE_LR})
     return {k: lrs[k] for k in params}

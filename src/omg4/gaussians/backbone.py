@@ -18,6 +18,7 @@ Part of the render-only decoder: imports only Gaussian math.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -61,12 +62,20 @@ class Attribute:
 
 @dataclass(frozen=True)
 class SVQGroup:
-    """A sub-vector-quantized attribute (§4.4): the parameters it concatenates, its sub-vector length, its stage."""
+    """A sub-vector-quantized attribute (§4.4): the parameters it concatenates (those whose
+    :attr:`Attribute.svq` names it, in table order), its sub-vector length, its stage."""
 
     name: str
     params: tuple[str, ...]
     sub_length: int
     stage: str  # "svq3d" or "svq4d"
+
+
+def _svq_groups(attributes: tuple[Attribute, ...], layout: tuple[tuple[str, int, str], ...]) -> tuple[SVQGroup, ...]:
+    """The SVQ groups of ``layout`` — (name, sub-vector length, stage) in stage order — with the parameters each
+    concatenates read from the attributes' ``svq`` fields."""
+    return tuple(SVQGroup(name, tuple(a.name for a in attributes if a.svq == name), sub_length, stage)
+                 for name, sub_length, stage in layout)
 
 
 #: The per-Gaussian appearance features that replace opacity and SH at attribute compression (§4.4):
@@ -84,6 +93,8 @@ _SH_REST = Attribute("features_rest", (SH_REST, 3), "none", lr="feature_rest_lr"
                      by_mlp=True)
 _SCALE = Attribute("scaling", (3,), "exp", lr="scaling_lr", svq="scale")
 _ROTATION = Attribute("rotation", (4,), "quaternion", lr="rotation_lr", svq="rotation")
+#: stage 3D of both backbones: scale (s = 1), rotation (s = 2), appearance features (s = 2) (reference omg4 §7)
+_SVQ_3D = (("scale", 1, "svq3d"), ("rotation", 2, "svq3d"), ("app", 2, "svq3d"))
 
 
 @dataclass(frozen=True)
@@ -160,10 +171,7 @@ class Backbone:
             shape = self.attribute(p).shape
             if SH_REST in shape:
                 raise ValueError(f"SH coefficients cannot be sub-vector quantized ({p})")
-            width = 1
-            for d in shape:
-                width *= int(d)
-            widths.append((p, width))
+            widths.append((p, math.prod(shape)))
         return tuple(widths)
 
     def explicit_after_compression(self) -> tuple[str, ...]:
@@ -172,18 +180,19 @@ class Backbone:
         return tuple(a.name for a in self.attributes if not a.by_mlp and a.name not in quantized)
 
 
+def activated_scales(values: dict[str, torch.Tensor]) -> torch.Tensor:
+    """[N, 4] exp of a Real-Time4DGS model's raw ``scaling`` and ``scaling_t`` values, (x, y, z, t)."""
+    return torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
+
+
 def _rt4dgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Tensor) -> SliceGeometry:
-    return slice_geometry(values["xyz"], values["t"], _rt4dgs_scales(values), values["rotation"],
+    return slice_geometry(values["xyz"], values["t"], activated_scales(values), values["rotation"],
                           values["rotation_r"], timestamps, convention=config.rotation_convention,
                           time_cull=config.time_cull)
 
 
-def _rt4dgs_scales(values: dict[str, torch.Tensor]) -> torch.Tensor:
-    return torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
-
-
 def _rt4dgs_time_variance(values: dict[str, torch.Tensor], config) -> torch.Tensor:
-    return temporal_variance(scaled_rotation_4d(_rt4dgs_scales(values), values["rotation"], values["rotation_r"],
+    return temporal_variance(scaled_rotation_4d(activated_scales(values), values["rotation"], values["rotation_r"],
                                                 config.rotation_convention))
 
 
@@ -192,31 +201,30 @@ def _ftgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Te
                                values["rotation"], timestamps, time_cull=config.time_cull)
 
 
+_RT4DGS_ATTRIBUTES = (_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE,
+                      Attribute("scaling_t", (1,), "exp", lr="scaling_lr", svq="scale_t"), _ROTATION,
+                      Attribute("rotation_r", (4,), "quaternion", lr="rotation_lr", svq="rotation_r"))
 RT4DGS = Backbone(
     name="rt4dgs",
     title="Real-Time4DGS",
-    attributes=(_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE,
-                Attribute("scaling_t", (1,), "exp", lr="scaling_lr", svq="scale_t"), _ROTATION,
-                Attribute("rotation_r", (4,), "quaternion", lr="rotation_lr", svq="rotation_r")),
-    svq_groups=(SVQGroup("scale", ("scaling",), 1, "svq3d"), SVQGroup("rotation", ("rotation",), 2, "svq3d"),
-                SVQGroup("app", ("f_static", "f_view"), 2, "svq3d"), SVQGroup("scale_t", ("scaling_t",), 1, "svq4d"),
-                SVQGroup("rotation_r", ("rotation_r",), 2, "svq4d")),
+    attributes=_RT4DGS_ATTRIBUTES,
+    svq_groups=_svq_groups((*_RT4DGS_ATTRIBUTES, *APPEARANCE_FEATURES),
+                           (*_SVQ_3D, ("scale_t", 1, "svq4d"), ("rotation_r", 2, "svq4d"))),
     mlp_time_input=True,
     geometry=_rt4dgs_geometry,
     time_variance=_rt4dgs_time_variance,
 )
 
+_FTGS_ATTRIBUTES = (_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE, _ROTATION,
+                    Attribute("duration", (1,), "exp", lr="duration_lr", svq="duration"),
+                    Attribute("velocity", (3,), "none", lr="velocity_lr", extent_lr=True, svq="velocity"))
 FREETIMEGS = Backbone(
     name="freetimegs",
     title="FreeTimeGS",
-    attributes=(_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE, _ROTATION,
-                Attribute("duration", (1,), "exp", lr="duration_lr", svq="duration"),
-                Attribute("velocity", (3,), "none", lr="velocity_lr", extent_lr=True, svq="velocity")),
-    # scale, rotation and appearance as Real-Time4DGS; duration and velocity (paper appendix) one
-    # scalar codebook per component, like the time scale
-    svq_groups=(SVQGroup("scale", ("scaling",), 1, "svq3d"), SVQGroup("rotation", ("rotation",), 2, "svq3d"),
-                SVQGroup("app", ("f_static", "f_view"), 2, "svq3d"), SVQGroup("duration", ("duration",), 1, "svq4d"),
-                SVQGroup("velocity", ("velocity",), 1, "svq4d")),
+    attributes=_FTGS_ATTRIBUTES,
+    # duration and velocity (paper appendix): one scalar codebook per component, like the time scale
+    svq_groups=_svq_groups((*_FTGS_ATTRIBUTES, *APPEARANCE_FEATURES),
+                           (*_SVQ_3D, ("duration", 1, "svq4d"), ("velocity", 1, "svq4d"))),
     mlp_time_input=False,
     geometry=_ftgs_geometry,
     time_variance=lambda values, config: duration_variance(values["duration"]),
@@ -235,4 +243,4 @@ def backbone_named(name: str) -> Backbone:
 
 
 __all__ = ["APPEARANCE_FEATURES", "Attribute", "SVQGroup", "Backbone", "RT4DGS", "FREETIMEGS", "BACKBONES",
-           "SH_REST", "backbone_named"]
+           "SH_REST", "activated_scales", "backbone_named"]

@@ -27,10 +27,16 @@ def moved_means(xyz: torch.Tensor, velocity: torch.Tensor, dt: torch.Tensor) -> 
     return xyz + velocity * dt[:, None]
 
 
+def scaled_rotation_3d(log_scales: torch.Tensor, quaternions: torch.Tensor) -> torch.Tensor:
+    """L = R diag(exp(log_scales)), so Σ = L Lᵀ and L ε (ε ~ N(0, I)) samples the Gaussian.
+    log_scales: [M, 3], quaternions: [M, 4] (w, x, y, z) → [M, 3, 3]."""
+    return build_rotation_3d(quaternions) * log_scales.exp().unsqueeze(-2)
+
+
 def covariance_3d(log_scales: torch.Tensor, quaternions: torch.Tensor) -> torch.Tensor:
     """Σ = R diag(exp(log_scales)²) Rᵀ. log_scales: [M, 3], quaternions: [M, 4] (w, x, y, z) → [M, 3, 3]."""
-    M = build_rotation_3d(quaternions) * log_scales.exp().unsqueeze(-2)
-    return small_matmul(M, M.transpose(-1, -2))
+    L = scaled_rotation_3d(log_scales, quaternions)
+    return small_matmul(L, L.transpose(-1, -2))
 
 
 def duration_variance(log_duration: torch.Tensor) -> torch.Tensor:
@@ -75,4 +81,5 @@ def opacity_regularizer(opacity_logit: torch.Tensor, t: torch.Tensor, log_durati
     return (torch.sigmoid(opacity_logit[:, 0])[None, :] * p_t).mean()
 
 
-__all__ = ["covariance_3d", "duration_variance", "moved_means", "opacity_regularizer", "slice_geometry_ftgs"]
+__all__ = ["scaled_rotation_3d", "covariance_3d", "duration_variance", "moved_means", "opacity_regularizer",
+           "slice_geometry_ftgs"]

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from omg4.errors import DataError
-from omg4.gaussians.backbone import BACKBONES, FREETIMEGS, RT4DGS, Backbone, backbone_named
+from omg4.gaussians.backbone import BACKBONES, FREETIMEGS, RT4DGS, Backbone, activated_scales, backbone_named
 from omg4.gaussians.covariance import covariance_4d
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
 from omg4.gaussians.sh import colors_from_sh, num_sh_coeffs, rgb_to_sh, view_directions
@@ -213,11 +213,11 @@ class Gaussians4D(ViewSlicer):
         t0, t1 = config.time_range
         d = config.period
         points = xyz.double().numpy()
-        if config.schema is FREETIMEGS:  # repeated points (copies that share the clip) take their point's scale
-            unique, inverse = np.unique(points, axis=0, return_inverse=True)
-            dist2 = torch.from_numpy(mean_neighbour_sq_distance(unique)[inverse.reshape(-1)]).float()
-        else:
-            dist2 = torch.from_numpy(mean_neighbour_sq_distance(points)).float()
+        freetime = config.schema is FREETIMEGS
+        if freetime:  # repeated points (copies that share the clip) take their point's scale
+            points, inverse = np.unique(points, axis=0, return_inverse=True)
+        dist2 = mean_neighbour_sq_distance(points)
+        dist2 = torch.from_numpy(dist2[inverse.reshape(-1)] if freetime else dist2).float()
         log_s = 0.5 * torch.log(dist2.clamp_min(1e-7))
         identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=cpu).repeat(m, 1)
         log_time_scale = 0.5 * float(np.log(d / 5.0))
@@ -229,8 +229,8 @@ class Gaussians4D(ViewSlicer):
             "features_dc": rgb_to_sh(rgb).unsqueeze(1),
             "features_rest": torch.zeros(m, config.num_coeffs - 1, 3, device=cpu),
         }
-        if config.schema is FREETIMEGS:
-            copies = m / len(unique)
+        if freetime:
+            copies = m / len(points)
             duration = torch.full((m, 1), min(log_time_scale, float(np.log(d / (2.0 * copies)))), device=cpu)
             params.update(t=torch.rand(m, 1, generator=generator, device=cpu) * d + t0, duration=duration,
                           velocity=torch.zeros(m, 3, device=cpu))
@@ -277,11 +277,6 @@ class Gaussians4D(ViewSlicer):
         """An independent copy with detached, cloned parameters."""
         params = {k: v.detach().clone() for k, v in self.params.items()}
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t)
-
-
-def activated_scales(values: dict[str, torch.Tensor]) -> torch.Tensor:
-    """[N, 4] exp of the raw ``scaling`` and ``scaling_t`` values, (x, y, z, t)."""
-    return torch.cat([values["scaling"], values["scaling_t"]], dim=1).exp()
 
 
 def _moved_leaf(value: torch.Tensor, device: torch.device | str) -> torch.Tensor:
@@ -336,5 +331,5 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
                      index=idx, num_total=int(xyz.shape[0]), views=geom.views)
 
 
-__all__ = ["slice_values", "activated_scales", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
+__all__ = ["slice_values", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
            "mean_neighbour_sq_distance"]

@@ -14,6 +14,7 @@ import math
 import torch
 
 from omg4.gaussians import build_rotation_4d
+from omg4.gaussians.backbone import activated_scales
 from omg4.train.optim import append_rows, keep_rows, replace_param
 
 
@@ -109,7 +110,7 @@ def _limit_to_budget(clone_mask, split_mask, grads, budget):
 def _split_children(params, idx, convention: str, generator: torch.Generator, n_children: int = 2):
     """Children of split Gaussians: (xyz, t) = R4 ε + μ with ε ~ N(0, diag(s²)) (rt4dgs §3.4)."""
     p = {k: v.detach()[idx] for k, v in params.items()}
-    scales = torch.cat([p["scaling"], p["scaling_t"]], 1).exp()  # [K, 4]
+    scales = activated_scales(p)  # [K, 4]
     R4 = build_rotation_4d(p["rotation"], p["rotation_r"], convention=convention)  # [K, 4, 4]
     out = {k: v.repeat(n_children, *([1] * (v.dim() - 1))) for k, v in p.items()}
     eps = torch.randn(out["xyz"].shape[0], 4, generator=generator, device=generator.device)  # CPU draw: reproducible

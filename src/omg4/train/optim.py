@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from omg4.gaussians.backbone import RT4DGS, Backbone
+from omg4.gaussians.backbone import APPEARANCE_FEATURES, RT4DGS, Backbone
 from omg4.train.config import TrainConfig
 
 
@@ -26,9 +26,11 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> floa
 
 
 def baseline_lrs(cfg: TrainConfig, extent: float, schema: Backbone = RT4DGS) -> dict[str, float]:
-    """Initial learning rate of each baseline parameter group (rt4dgs §3.3), from the backbone's table:
-    ``cfg``'s field named by each attribute, times ``extent`` for positions, times and velocities."""
-    return {a.name: getattr(cfg, a.lr) * (extent if a.extent_lr else 1.0) for a in schema.attributes}
+    """Initial learning rate of each per-Gaussian parameter group (rt4dgs §3.3; the appearance features of
+    paper §4.4 included), from the backbone's table: ``cfg``'s field named by each attribute, times
+    ``extent`` for positions, times and velocities."""
+    return {a.name: getattr(cfg, a.lr) * (extent if a.extent_lr else 1.0)
+            for a in (*schema.attributes, *APPEARANCE_FEATURES)}
 
 
 def make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
@@ -57,9 +59,9 @@ def step_optimizers(optimizers, device: torch.device | str) -> None:
 
 def set_group_lr(optimizer: torch.optim.Optimizer, name: str, lr: float) -> None:
     """Set the learning rate of the parameter group called ``name`` (if the optimizer has one)."""
-    for g in optimizer.param_groups:
-        if g.get("name") == name:
-            g["lr"] = lr
+    group = _group(optimizer, name)
+    if group is not None:
+        group["lr"] = lr
 
 
 def set_position_lr(optimizer: torch.optim.Optimizer, cfg: TrainConfig, extent: float, step: int) -> float:

@@ -20,7 +20,7 @@ import math
 
 import torch
 
-from omg4.gaussians.rotation import build_rotation_3d
+from omg4.gaussians.freetime import scaled_rotation_3d
 from omg4.train.densify import DensifyStats
 from omg4.train.optim import overwrite_rows
 
@@ -30,15 +30,23 @@ SPLIT_SHRINK = math.log(1.6)
 
 
 def relocate(model, optimizer, stats: DensifyStats, *, min_opacity: float, generator: torch.Generator) -> int:
-    """Move the Gaussians with opacity < ``min_opacity`` onto sampled live ones; returns how many moved."""
-    params = model.params
-    opacity = torch.sigmoid(params["opacity"].detach()[:, 0])
+    """Move the Gaussians with opacity < ``min_opacity`` onto sampled live ones; returns how many moved.
+
+    The gradient statistics restart afterwards, whether anything moved or not.
+    """
+    opacity = torch.sigmoid(model.params["opacity"].detach()[:, 0])
     dead = (opacity < min_opacity).nonzero().squeeze(1)
     alive = (opacity >= min_opacity).nonzero().squeeze(1)
-    if dead.numel() == 0 or alive.numel() == 0:
-        stats.reset(opacity.shape[0])
-        return 0
-    grads = stats.mean_grad()
+    moved = int(dead.numel()) if alive.numel() else 0
+    if moved:
+        _move(model.params, optimizer, dead, alive, opacity, stats.mean_grad(), generator)
+    stats.reset(opacity.shape[0])
+    return moved
+
+
+def _move(params: dict[str, torch.Tensor], optimizer, dead: torch.Tensor, alive: torch.Tensor, opacity: torch.Tensor,
+          grads: torch.Tensor, generator: torch.Generator) -> None:
+    """Copy sampled ``alive`` rows into the ``dead`` rows (see the module docstring)."""
     score = LAMBDA_GRAD * grads / grads.max().clamp_min(1e-12) + LAMBDA_OPACITY * opacity
     weights = score.index_select(0, alive).double().cpu().clamp_min(1e-12)
     draws = torch.multinomial(weights, dead.numel(), replacement=True, generator=generator)
@@ -50,12 +58,10 @@ def relocate(model, optimizer, stats: DensifyStats, *, min_opacity: float, gener
     copied["opacity"] = logit
     kept = dict(copied)  # the targets keep their place
     eps = torch.randn(targets.numel(), 4, generator=generator).to(logit)  # CPU draw: reproducible on any device
-    offset = (build_rotation_3d(copied["rotation"]) * copied["scaling"].exp()[:, None, :]) @ eps[:, :3, None]
+    offset = scaled_rotation_3d(copied["scaling"], copied["rotation"]) @ eps[:, :3, None]
     copied["xyz"] = copied["xyz"] + offset[:, :, 0]
     copied["t"] = copied["t"] + copied["duration"].exp() * eps[:, 3:]
     copied["scaling"] = copied["scaling"] - SPLIT_SHRINK
     kept["scaling"] = kept["scaling"] - SPLIT_SHRINK
     rows = torch.cat([dead, targets])  # the moved rows take the copies; the targets their shared opacity
     overwrite_rows(params, optimizer, rows, {name: torch.cat([copied[name], kept[name]]) for name in copied})
-    stats.reset(opacity.shape[0])
-    return int(dead.numel())
