@@ -1,4 +1,4 @@
-"""Baseline quality runs of issue 4: train Real-Time4DGS on the shared scenes on the CPU, then evaluate.
+"""Baseline quality runs: train Real-Time4DGS on the shared scenes on the CPU, then evaluate.
 
 * ``n3dv_basketball`` at half resolution (320×180), all 60 frames, cam00 held out;
 * ``dnerf_mutant`` at 200×200 (downscale 4), its test split.

@@ -1,4 +1,4 @@
-"""Benchmark: index-stream entropy coders and position coding of the .omg4 file (reference omg4 §8).
+"""Benchmark: index-stream entropy coders and position coding of the .omg4 file (omg4 §8).
 
 Index streams: 500k skewed indices for K = 8192 and K = 512, uniform indices, and real k-means
 labels (200k rotation-like sub-vectors into 8192 centroids). For each: the empirical entropy

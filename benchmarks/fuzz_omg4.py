@@ -1,4 +1,4 @@
-"""Fuzz benchmark: forged ``.omg4`` files through info, decoding, loading and rendering (issue 13).
+"""Fuzz benchmark: forged ``.omg4`` files through info, decoding, loading and rendering.
 
 Valid compressed models of three size classes (both codecs) are mutated by
 :mod:`omg4.codec.forge` — hostile header values, damaged or re-split sections, hostile

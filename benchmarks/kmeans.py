@@ -1,4 +1,4 @@
-"""Benchmark: k-means for SVQ codebooks (paper §4.4, reference omg4 §7).
+"""Benchmark: k-means for SVQ codebooks (paper §4.4, omg4 §7).
 
 Target: 200k sub-vectors of length 2 into 8192 centroids in under 60 s on 2 cores. Inputs mimic
 the quantized attributes: halves of random unit quaternions (rotation, s = 2), log-scales (s = 1),

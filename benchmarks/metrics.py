@@ -7,7 +7,7 @@ interleaved round by round; the table gives the median and minimum over rounds.
 ``ssim fwd+bwd`` is the training-loss cost; ``ssim separable`` times two 1-D passes
 instead of the one depthwise 11×11 convolution the package uses, the measurement behind
 that choice. LPIPS-vgg runs once per size after the others (about 14 s at 1352×1014 on
-2 idle cores, data_metrics_viewer §2).
+2 idle cores, data §2).
 
     python benchmarks/metrics.py [--threads 2] [--repeats 7] [--quick] [--json PATH]
 

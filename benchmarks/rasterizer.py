@@ -1,4 +1,4 @@
-"""Benchmark: the differentiable rasterizer (issue 3; reference ``rasterizer_backends.md``).
+"""Benchmark: the differentiable rasterizer (docs/paper-map.md "Rasterizer backends").
 
 Scene as in the reference measurements: N Gaussians at random in a box 2–4 units in front
 of a pinhole camera with f = 1.2·W, arbitrary random SPD covariances ``A·Aᵀ`` with

@@ -1,4 +1,4 @@
-"""Benchmark: one rendered frame of a baseline and of its compressed model (issue 11, "a lean frame").
+"""Benchmark: one rendered frame of a baseline and of its compressed model (the appearance MLPs only on the Gaussians that pass the cull).
 
 For each model file (a ``.safetensors`` checkpoint or an ``.omg4`` file) on the test views of
 a dataset: median render time per frame (render only, as ``omg4 eval`` measures FPS), the

@@ -1,4 +1,4 @@
-"""Benchmark: one training step and one compression step — wall time and aten operations (issue 11).
+"""Benchmark: one training step and one compression step — wall time and aten operations (the CPU proxy of GPU kernel launches).
 
 On a GPU a step is bound by kernel launches and Python, not by the rasterizer; the number
 of aten operations a step dispatches (forward, backward and optimizer together) is the

@@ -22,7 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the whole pipeline on a built-in synthetic scene (synth, train, compress, decode, eval)"),
     "synth": ("synth", "write the built-in procedural dynamic scene in N3DV layout"),
     "info": ("info", "summary of a dataset folder, a checkpoint or an .omg4 file"),
-    "train": ("train", "train the Real-Time4DGS baseline"),
+    "train": ("train", "train a Real-Time4DGS or FreeTimeGS baseline"),
     "import-rt4dgs": ("import_rt4dgs", "convert an official Real-Time4DGS checkpoint"),
     "compress": ("compress", "run the OMG4 pipeline and write the compressed .omg4 file"),
     "eval": ("eval", "PSNR, SSIM, LPIPS, FPS, Gaussian count and storage on the test views"),

@@ -8,7 +8,7 @@ import pytest
 from omg4.codec import entropy, forge
 from omg4.codec.decoder import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
-from omg4.errors import CorruptFileError
+from omg4.errors import CorruptFileError, OMG4Error
 
 @pytest.fixture(scope="module")
 def valid(tmp_path_factory):
@@ -137,3 +137,16 @@ def test_printable_escapes_control_characters():
 
     assert printable("a\x1b[31mb\nc\u200bd") == "a\\x1b[31mb\\nc\\u200bd"
     assert printable("Gaußian 4D") == "Gaußian 4D"
+
+
+def test_names_with_a_trailing_newline_are_refused(valid, tmp_path):
+    """Attribute and MLP weight names must match their pattern whole: ``$`` alone lets ``"app\\n"`` through."""
+    header, sections = forge._split(valid["ans"])
+    attribute = next(iter(header["attributes"]))
+    header["attributes"][attribute + "\n"] = header["attributes"].pop(attribute)
+    with pytest.raises(CorruptFileError, match="invalid codebook shapes"):
+        decode_payload(forge._assemble(header, sections))
+    p = forge.valid_payload(50)
+    p.attributes[attribute + "\n"] = p.attributes.pop(attribute)
+    with pytest.raises(OMG4Error, match="invalid attribute name"):
+        encode_payload(p, tmp_path / "x.omg4")

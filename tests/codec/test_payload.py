@@ -16,7 +16,7 @@ from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical
                                 encode_payload, morton_codes, morton_to_xyz)
 from omg4.errors import CorruptFileError, OMG4Error
 
-# attribute → (D, sub-vector length, codebook size): the M preset (reference omg4 §7)
+# attribute → (D, sub-vector length, codebook size): the M preset (omg4 §7)
 LAYOUT = {"scale": (3, 1, 512), "rotation": (4, 2, 8192), "app": (6, 2, 1024), "scale_t": (1, 1, 512),
           "rotation_r": (4, 2, 8192)}
 

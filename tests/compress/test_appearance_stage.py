@@ -1,4 +1,4 @@
-"""The appearance stage's feature init and MLP optimizer/schedule (reference omg4 §6b, §9)."""
+"""The appearance stage's feature init and MLP optimizer/schedule (omg4 §6b, §9)."""
 
 from __future__ import annotations
 

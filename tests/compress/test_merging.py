@@ -1,4 +1,4 @@
-"""Gaussian Merging (paper §4.3, reference omg4 §6a, §14.7): cluster building and proxies.
+"""Gaussian Merging (paper §4.3, omg4 §6a, §14.7): cluster building and proxies.
 
 Cluster building is checked against a brute-force Python reference written from the spec
 (loops over cells and pairs, numpy quantiles, the official greedy dedup/subset filter);

@@ -109,7 +109,7 @@ def test_decoded_file_renders_like_the_fp16_rounded_model(baseline, tiny_scene, 
 
 
 def _mlp_on_every_gaussian(values, mlp, config, degrees, tau):
-    """The order before issue 11: the appearance MLPs on all N Gaussians, then the baseline's slice."""
+    """The former order: the appearance MLPs on all N Gaussians, then the baseline's slice."""
     t0, t1 = config.time_range
     with torch.no_grad():
         dc, rest, logit = mlp.predict(values["xyz"], (tau - t0) / (t1 - t0), values["f_static"], values["f_view"])

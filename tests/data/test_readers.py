@@ -46,7 +46,7 @@ def camtoworld_opengl(viewmat: np.ndarray) -> np.ndarray:
 
 def n3v2blender_reference(poses_bounds: np.ndarray) -> np.ndarray:
     """[N, 4, 4] OpenGL camera-to-world in the normalized world, transcribed step by step from the
-    official ``n3v2blender.py`` (reference rt4dgs §4.1) with explicit loops."""
+    official ``n3v2blender.py`` (rt4dgs §4.1) with explicit loops."""
     poses = poses_bounds[:, :15].reshape(-1, 3, 5)
     out = []
     for p in poses:

@@ -1,7 +1,7 @@
 """The built-in synthetic scene (``omg4 synth``): layout, determinism, geometry, dynamics, errors.
 
 Geometry is checked against an independent reading of ``poses_bounds.npy`` (LLFF
-[down, right, back] → OpenCV [right, down, forward], reference notes rt4dgs §4.1) and
+[down, right, back] → OpenCV [right, down, forward], rt4dgs §4.1) and
 an independent PLY parser; frames are checked by decoding the videos with PyAV.
 """
 
@@ -36,7 +36,7 @@ def decode(path: Path) -> list[np.ndarray]:
 
 def llff_to_opencv(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
     """(K [3, 3], world-to-camera [4, 4], W, H) of one poses_bounds row, written from the
-    reference notes: c2w columns [down, right, back] → [right, down, forward]; cx = W/2, cy = H/2."""
+    LLFF convention (rt4dgs §4.1): c2w columns [down, right, back] → [right, down, forward]; cx = W/2, cy = H/2."""
     m = row[:15].reshape(3, 5)
     H, W, f = m[:, 4]
     c2w = np.eye(4)

@@ -1,4 +1,4 @@
-"""OMG4 appearance MLPs (paper §4.4, reference omg4 §6b): contraction, encoding, wiring, storage, fitting."""
+"""OMG4 appearance MLPs (paper §4.4, omg4 §6b): contraction, encoding, wiring, storage, fitting."""
 
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def test_frequency_encoding_matches_tcnn_layout():
 
 
 def _reference_forward(state: dict[str, np.ndarray], xyz, t_norm, fs, fv, num_freqs=16):
-    """Independent float64 numpy forward pass from the weight matrices (reference omg4 §6b)."""
+    """Independent float64 numpy forward pass from the weight matrices (omg4 §6b)."""
     W = {k: v.astype(np.float64) for k, v in state.items()}
     x = np.asarray(xyz, np.float64)
     mag = np.linalg.norm(x, axis=1, keepdims=True)

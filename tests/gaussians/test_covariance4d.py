@@ -1,4 +1,4 @@
-"""4D covariance, conditioning on time and the temporal cull (reference rt4dgs §1.3–1.4).
+"""4D covariance, conditioning on time and the temporal cull (rt4dgs §1.3–1.4).
 
 Oracles: the 4D covariance from the quaternion-product rotation, the conditional from the
 precision matrix (inverse of Σ4) instead of the Schur complement, and a Monte-Carlo

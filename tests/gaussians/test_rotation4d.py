@@ -1,4 +1,4 @@
-"""4D / 3D rotations against an independent quaternion-product oracle (reference rt4dgs §1.2)."""
+"""4D / 3D rotations against an independent quaternion-product oracle (rt4dgs §1.2)."""
 
 import numpy as np
 import pytest

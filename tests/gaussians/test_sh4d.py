@@ -1,4 +1,4 @@
-"""Spherical harmonics (reference rt4dgs §2) against closed forms and scipy's complex SH."""
+"""Spherical harmonics (rt4dgs §2) against closed forms and scipy's complex SH."""
 
 import math
 

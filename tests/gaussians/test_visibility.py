@@ -1,4 +1,4 @@
-"""The per-time-window visibility index never drops a Gaussian that passes the temporal cull (issue 11)."""
+"""The per-time-window visibility index never drops a Gaussian that passes the temporal cull."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Import of official Real-Time4DGS checkpoints (reference rt4dgs §5).
+"""Import of official Real-Time4DGS checkpoints (rt4dgs §5).
 
 The test writes a checkpoint in the official layout (``torch.save((model_args, iteration))``,
 the 19-tuple with ``nn.Parameter`` tensors, a real Adam state dict over the nine named

@@ -1,4 +1,4 @@
-"""Dynamic-region mask and masked metrics (issue 12): a known moving square on a static texture."""
+"""Dynamic-region mask and masked metrics (beyond the paper): a known moving square on a static texture."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Offline LPIPS against the published calibration values, weight loading and caching (data_metrics_viewer §2)."""
+"""Offline LPIPS against the published calibration values, weight loading and caching (data §2)."""
 
 import pickle
 from collections import OrderedDict
@@ -48,7 +48,7 @@ def test_vgg_basic_properties_and_one_calibration_pair(lpips_calibration):
     assert lpips(a, a, net="vgg") == 0.0
     assert lpips(a, b, net="vgg") > 0.01
     assert lpips(a, b, net="vgg") == pytest.approx(lpips(b, a, net="vgg"), abs=1e-6)
-    # I06 with VGG: 0.0544 per data_metrics_viewer §2 (an independent pure-torch implementation)
+    # I06 with VGG: 0.0544 per data §2 (an independent pure-torch implementation)
     assert lpips(*_pair(lpips_calibration, "I06"), net="vgg") == pytest.approx(0.0544, abs=6e-5)
 
 

@@ -1,6 +1,6 @@
 """Test support: a dense pure-torch reference rasterizer and random test scenes.
 
-The reference applies gsplat 1.5.3's rules (``rasterizer_backends.md``, "Test oracles" 3)
+The reference applies gsplat 1.5.3's rules (docs/paper-map.md "Rasterizer backends")
 with no tiles, boxes or kernels: every pixel sees every Gaussian, sorted by depth;
 ``α = min(α_max, o·e^{−σ})`` is dropped where ``σ < 0`` or ``α < 1/255``; everything from the
 first Gaussian whose inclusive transmittance is ≤ 1e-4 on is masked; compositing uses an

@@ -1,4 +1,4 @@
-"""Several views in one rasterizer call equal the views rendered one by one (issue 11, "a lean step").
+"""Several views in one rasterizer call equal the views rendered one by one (one rasterizer call per training step).
 
 The batched CPU path projects, bins and composites the rows of all views in one pass (one
 kernel launch forward and one backward); images, alpha, depth, projected means, radii and

@@ -1,4 +1,4 @@
-"""make_config: scaling a preset's schedule with --iterations (issue 11: densification must not explode)."""
+"""make_config: scaling a preset's schedule with --iterations (densification must not run more often than every 100 steps, or the count explodes)."""
 
 from __future__ import annotations
 

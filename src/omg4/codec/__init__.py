@@ -1,7 +1,9 @@
 """The ``.omg4`` file: versioned container, index entropy coders, compressed-model payload.
 
-Decoding needs nothing from training or compression code (DESIGN.md): this package only
-depends on numpy, constriction, dahuffman and the standard library.
+Decoding needs nothing from training or compression code (docs/architecture.md, "Layers"):
+the container, coders and payload depend only on numpy, numba, constriction, dahuffman and the
+standard library. ``forge`` (hostile-file generation for tests and fuzzing) is the exception: it
+runs files through the commands and is never imported by the decoder.
 """
 
 from omg4.codec.container import FORMAT_VERSION, MAGIC, describe_container, read_container, write_container

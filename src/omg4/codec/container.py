@@ -1,4 +1,4 @@
-"""The versioned ``.omg4`` binary container (DESIGN.md "No pickle"; reference omg4 §8).
+"""The versioned ``.omg4`` binary container (no pickle: docs/file-format.md; omg4 §8).
 
 Layout (all integers little-endian)::
 

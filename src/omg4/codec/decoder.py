@@ -1,8 +1,8 @@
 """The render-only decoder: an ``.omg4`` file → a compact model that renders (paper §4.4).
 
 Imports the container, the Real-Time4DGS math and the appearance MLP definition only — no
-training or compression code (DESIGN.md: a compressed file must be decodable by code that
-does not import them). Sub-vector-quantized attributes are looked up and a per-time-window
+training or compression code (docs/architecture.md §2: a compressed file must be decodable by
+code that does not import them). Sub-vector-quantized attributes are looked up and a per-time-window
 visibility index is built once at load; the MLPs run per frame, as in the paper's FPS
 measurements, but only on the Gaussians that pass the temporal cull.
 """

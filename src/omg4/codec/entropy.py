@@ -1,4 +1,4 @@
-"""Entropy coders for the index streams of an ``.omg4`` file (reference omg4 §8, data notes §6).
+"""Entropy coders for the index streams of an ``.omg4`` file (omg4 §8, data §6).
 
 Two interchangeable methods behind :func:`encode_indices` / :func:`decode_indices`:
 

@@ -1,4 +1,4 @@
-"""What an ``.omg4`` file stores, and its mapping onto container sections (reference omg4 §8).
+"""What an ``.omg4`` file stores, and its mapping onto container sections (omg4 §8).
 
 A :class:`CompressedPayload` holds the explicit per-Gaussian data OMG4 keeps after
 attribute compression (paper §4.4): positions ``xyz`` and time centres ``t`` (fp16), for
@@ -54,14 +54,14 @@ GAUSSIANS_ALWAYS_ALLOWED = 4096
 #: declare about 1 per byte.
 MAX_VALUES_PER_BYTE = 64
 VALUES_SLACK = 1 << 20
-_NAME = re.compile(r"^[A-Za-z0-9_]{1,64}$")  # SVQ attribute names
-_MLP_NAME = re.compile(r"^[A-Za-z0-9_.]{1,128}$")  # state-dict style weight names
+_NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
+_MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
 
 
 @dataclass
 class QuantizedAttribute:
-    """One sub-vector-quantized attribute (paper §4.4; reference omg4 §7).
+    """One sub-vector-quantized attribute (paper §4.4; omg4 §7).
 
     ``codebooks[j]: [K_j, s_j]`` (fp16) holds the centroids of sub-vector slot j and
     ``indices[j]: [N]`` (int) picks a row per Gaussian; the attribute is the concatenation
@@ -78,7 +78,7 @@ class QuantizedAttribute:
 
 @dataclass
 class CompressedPayload:
-    """Everything an ``.omg4`` file stores (reference omg4 §8).
+    """Everything an ``.omg4`` file stores (omg4 §8).
 
     xyz: [N, 3] positions; t: [N] time centres; attributes: SVQ attribute name (scale,
     rotation, app, scale_t, rotation_r) → :class:`QuantizedAttribute`; mlp: weight name →
@@ -236,10 +236,10 @@ def _check_payload(p: CompressedPayload) -> CompressedPayload:
     with np.errstate(over="ignore"):
         q = p.to_fp16()
     for name in q.attributes:
-        if not _NAME.match(name):
+        if not _NAME.fullmatch(name):
             raise OMG4Error(f"invalid attribute name {name!r} (letters, digits, underscore)")
     for name in q.mlp:
-        if not _MLP_NAME.match(name):
+        if not _MLP_NAME.fullmatch(name):
             raise OMG4Error(f"invalid MLP weight name {name!r} (letters, digits, underscore, dot)")
     for name, arr in [("xyz", q.xyz), ("t", q.t), *q.mlp.items()]:
         if not np.isfinite(arr).all():
@@ -335,14 +335,14 @@ def _check_header(h: dict, section_bytes: int) -> None:
                                f"(limits {MAX_ATTRIBUTES} and {MAX_MLP_WEIGHTS})")
     values = 4 * n  # xyz and t
     for attr, shapes in h["attributes"].items():
-        if not (_NAME.match(attr) and isinstance(shapes, list) and 1 <= len(shapes) <= MAX_SLOTS and all(
+        if not (_NAME.fullmatch(attr) and isinstance(shapes, list) and 1 <= len(shapes) <= MAX_SLOTS and all(
                 isinstance(s, list) and len(s) == 2 and _is_int(s[0], 1, MAX_SYMBOLS) and _is_int(s[1], 1, MAX_SUB_LEN)
                 for s in shapes)):
             raise CorruptFileError(f"invalid codebook shapes for attribute {attr!r}")
         # codebooks, one index per Gaussian and slot, and the reconstructed [N, D] attribute
         values += sum(k * d for k, d in shapes) + n * len(shapes) + n * sum(d for _, d in shapes)
     for name, shape in h["mlp"].items():
-        ok = (_MLP_NAME.match(name) and isinstance(shape, list) and len(shape) <= MAX_MLP_DIMS
+        ok = (_MLP_NAME.fullmatch(name) and isinstance(shape, list) and len(shape) <= MAX_MLP_DIMS
               and all(_is_int(s, 0, MAX_MLP_ELEMENTS) for s in shape) and math.prod(shape) <= MAX_MLP_ELEMENTS)
         if not ok:
             raise CorruptFileError(f"invalid shape for MLP weight {name!r}")

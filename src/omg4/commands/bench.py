@@ -5,20 +5,27 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from omg4.codec.entropy import METHODS
 from omg4.commands.common import (add_device_arguments, add_scene_arguments, device_from_args, int_at_least,
                                   load_scene_from_args)
+from omg4.compress.pipeline import CompressConfig
+from omg4.compress.schedule import SCHEDULES
 
 
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
     p.add_argument("--out", type=Path, default=Path("omg4_bench"), help="output folder")
-    p.add_argument("--schedule", default="cpu", choices=["official", "cpu", "short", "tiny"], help="fine-tuning lengths")
-    p.add_argument("--batch-size", type=int_at_least(1), default=4)
-    p.add_argument("--baseline-iterations", type=int_at_least(1), default=30000)
+    p.add_argument("--schedule", choices=list(SCHEDULES),
+                   help="fine-tuning lengths (see omg4 compress --help; default: official on cuda, cpu elsewhere)")
+    p.add_argument("--batch-size", type=int_at_least(1), default=CompressConfig.batch_size,
+                   help="views per fine-tuning step")
+    p.add_argument("--baseline-iterations", type=int_at_least(1), default=CompressConfig.baseline_iterations,
+                   help="iterations the baseline was trained for (the position learning rate continues its decay)")
     p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "
                    + "; ".join(f"{b}: {', '.join(rows)}" for b, rows in _row_names().items()))
-    p.add_argument("--codec", default="ans", choices=["ans", "paper"])
+    p.add_argument("--codec", default=METHODS[0], choices=list(METHODS),
+                   help="index coding: ans (default, smaller) or paper (Huffman + LZMA as OMG4)")
     add_device_arguments(p)
 
 
@@ -30,13 +37,14 @@ def _row_names() -> dict[str, list[str]]:
 
 def run(args) -> int:
     from omg4.bench import ROWS_BY_BACKBONE, run_bench
+    from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
 
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     device = device_from_args(args)
-    baseline, _ = load_gaussians(args.model)
+    baseline, _ = load_gaussians(args.model, device)
     known = ROWS_BY_BACKBONE[baseline.config.backbone]
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
     unknown = [r for r in rows or [] if r not in known]
@@ -44,7 +52,7 @@ def run(args) -> int:
         raise OMG4Error(f"unknown bench rows {unknown} for a {baseline.config.backbone} baseline; known: "
                         f"{', '.join(known)}")
     scene = load_scene_from_args(args)
-    run_bench(scene, baseline, args.model, args.out, schedule=args.schedule, batch_size=args.batch_size,
+    run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
               baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
               device=device)
     return 0

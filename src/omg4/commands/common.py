@@ -56,18 +56,26 @@ def add_scene_arguments(p: argparse.ArgumentParser, positional: bool = True) -> 
     """DATA and the reader options (format, resolution, frame range, camera subset)."""
     if positional:
         p.add_argument("data", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic layout)")
-    p.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
+    add_format_argument(p)
     p.add_argument("--downscale", type=positive_float, default=1.0, help="divide the image resolution by this factor")
     p.add_argument("--frames", type=str, help="frame range START:END (end exclusive), e.g. 0:60")
     p.add_argument("--cameras", type=str, help="comma-separated camera names to use (default: all)")
 
 
+def add_format_argument(p: argparse.ArgumentParser) -> None:
+    """``--format``: force one of the dataset readers (:data:`omg4.data.readers.READERS`)."""
+    from omg4.data.readers import READERS
+
+    p.add_argument("--format", choices=list(READERS), help="force the dataset reader")
+
+
 def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True) -> None:
     """``--device`` (where models, images and optimizers live) and, with ``backend``, the rasterizer ``--backend``."""
     from omg4.device import DEVICE_HELP
+    from omg4.render.rendered import BACKENDS
 
     if backend:
-        p.add_argument("--backend", default="auto", choices=["auto", "cpu", "gsplat"],
+        p.add_argument("--backend", default="auto", choices=list(BACKENDS),
                        help="rasterizer: auto (gsplat on cuda, the numba CPU rasterizer on cpu), cpu, or gsplat "
                             "(cuda only)")
     p.add_argument("--device", default="cpu", help=f"where to compute: {DEVICE_HELP}")
@@ -91,6 +99,15 @@ def device_from_args(args):
     return device
 
 
+def config_from_args(config_class, args, **values):
+    """``config_class`` (a dataclass) from the parsed arguments whose names are its fields, plus ``values``
+    (fields computed by the command); arguments left unset (``None``) keep the dataclass default."""
+    from dataclasses import fields
+
+    given = {f.name: getattr(args, f.name) for f in fields(config_class) if getattr(args, f.name, None) is not None}
+    return config_class(**{**given, **values})
+
+
 def parse_frames(text: str | None) -> range | None:
     """``"a:b"`` → range(a, b); ``None`` → None."""
     if not text:
@@ -104,13 +121,25 @@ def parse_frames(text: str | None) -> range | None:
         raise OMG4Error(f"--frames expects START:END, got '{text}'") from None
 
 
-def load_scene_from_args(args, background=(0.0, 0.0, 0.0)):
-    """The scene named by ``args.data`` with the reader options of :func:`add_scene_arguments`."""
+def add_background_argument(p: argparse.ArgumentParser) -> None:
+    """``--white-background``: composite RGBA images over white and render on white (default black)."""
+    p.add_argument("--white-background", action="store_true",
+                   help="composite RGBA images (D-NeRF/Blender) over white and render on white (default: black)")
+
+
+def background_from_args(args) -> tuple[float, float, float]:
+    """The RGB background of ``--white-background`` (black when the command has no such option)."""
+    return (1.0, 1.0, 1.0) if getattr(args, "white_background", False) else (0.0, 0.0, 0.0)
+
+
+def load_scene_from_args(args):
+    """The scene named by ``args.data`` with the reader options of :func:`add_scene_arguments`, its RGBA
+    images composited over the background of :func:`background_from_args`."""
     from omg4.data import load_scene
 
     cameras = [c.strip() for c in args.cameras.split(",")] if getattr(args, "cameras", None) else None
     return load_scene(args.data, format=args.format, downscale=args.downscale, frames=parse_frames(args.frames),
-                      cameras=cameras, background=background)
+                      cameras=cameras, background=background_from_args(args))
 
 
 def printable(value: object) -> str:

@@ -6,9 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
-                                  float_in, int_at_least, load_scene_from_args)
+from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
+                                  background_from_args, config_from_args, device_from_args, float_in, int_at_least,
+                                  load_scene_from_args)
+from omg4.codec.entropy import METHODS
+from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.presets import PRESETS_BY_BACKBONE
+from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -19,28 +23,30 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=sorted({name for presets in PRESETS_BY_BACKBONE.values() for name in presets}),
                    help="size preset (paper appendix): L, M, S, T for Real-Time4DGS (default M); L, S for "
                         "FreeTimeGS (default L)")
-    p.add_argument("--schedule", default="official", choices=["official", "cpu", "short", "tiny"],
-                   help="fine-tuning lengths: official (1000 per stage, 5000 MLP), cpu (a fifth), short (a tenth, "
-                        "600 MLP), tiny (smoke test)")
-    p.add_argument("--stages", default="sample,prune,merge,appearance,svq3d,svq4d",
-                   help="comma-separated stages in order (ablations: e.g. sample,appearance,svq3d,svq4d or "
-                        "sample+prune,merge,appearance,svq3d,svq4d)")
-    p.add_argument("--stop-after", choices=["sample", "prune", "sample+prune", "merge"],
+    p.add_argument("--schedule", choices=list(SCHEDULES),
+                   help="fine-tuning lengths: official (1000 per stage, 5000 MLP; the default on cuda), cpu (a fifth; "
+                        "the default elsewhere), short (a tenth, 600 MLP), tiny (smoke test)")
+    p.add_argument("--stages", default=",".join(FULL_STAGES),
+                   help="comma-separated stages in order, from " + ", ".join(STAGE_NAMES) + " (ablations: e.g. "
+                        "sample,appearance,svq3d,svq4d or sample+prune,merge,appearance,svq3d,svq4d)")
+    p.add_argument("--stop-after", choices=list(MINIMIZING_STAGES),
                    help="stop after this stage and write a checkpoint of the minimized model")
-    p.add_argument("--num-merge", type=int_at_least(1), default=2, help="merge rounds M")
-    p.add_argument("--batch-size", type=int_at_least(1), default=4, help="views per fine-tuning step")
+    p.add_argument("--num-merge", type=int_at_least(1), default=CompressConfig.num_merge, help="merge rounds M")
+    p.add_argument("--batch-size", type=int_at_least(1), default=CompressConfig.batch_size,
+                   help="views per fine-tuning step")
     p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help="override the preset's sampling ratio, in (0, 1]")
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
-    p.add_argument("--codec", default="ans", choices=["ans", "paper"],
+    p.add_argument("--codec", default=METHODS[0], choices=list(METHODS),
                    help="index coding: ans (default, smaller) or paper (Huffman + LZMA as OMG4)")
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
                    help="accumulate the time gradient without zeroing, as the official release does")
-    p.add_argument("--baseline-iterations", type=int_at_least(1), default=30000,
+    p.add_argument("--baseline-iterations", type=int_at_least(1), default=CompressConfig.baseline_iterations,
                    help="iterations the baseline was trained for (the position learning rate continues its decay)")
+    add_background_argument(p)
     add_device_arguments(p)
-    p.add_argument("--seed", type=int, default=6666)
+    p.add_argument("--seed", type=int, default=CompressConfig.seed)
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
     add_force_argument(p)
 
@@ -48,7 +54,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.compress.api import compress_to_file
-    from omg4.compress.pipeline import CompressConfig
+    from omg4.compress.schedule import default_schedule
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
 
@@ -60,12 +66,8 @@ def run(args) -> int:
     device = device_from_args(args)
     scene = load_scene_from_args(args)
     baseline, _ = load_gaussians(args.model, device)
-    cfg = CompressConfig(preset=args.preset, stages=stages,
-                         schedule=args.schedule, num_merge=args.num_merge, batch_size=args.batch_size,
-                         seed=args.seed, official_score_quirk=args.official_score_quirk,
-                         baseline_iterations=args.baseline_iterations, backend=args.backend, device=str(device),
-                         tau_gs=args.tau_gs,
-                         prune_quantile=args.prune_quantile)
+    cfg = config_from_args(CompressConfig, args, stages=stages, schedule=args.schedule or default_schedule(device),
+                           device=str(device), background=background_from_args(args))
     report = compress_to_file(baseline, scene, cfg, args.out, codec=args.codec, stop_after=args.stop_after,
                               scores_path=args.scores)
     for r in report["stages"]:

@@ -6,17 +6,18 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
-                                  int_at_least, load_scene_from_args)
+from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
+                                  background_from_args, device_from_args, int_at_least, load_scene_from_args)
+from omg4.data.scene import SPLITS
 
 
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--model", required=True, type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
     p.add_argument("--lpips", default="alex", help="LPIPS backbones, comma-separated: alex, vgg (vgg is slow on CPU)")
-    p.add_argument("--split", default="test", choices=["test", "train"], help="views to evaluate")
+    p.add_argument("--split", default=SPLITS[0], choices=list(SPLITS), help="views to evaluate")
     p.add_argument("--max-views", type=int_at_least(1), help="evaluate at most this many views (evenly spaced)")
-    p.add_argument("--white-background", action="store_true")
+    add_background_argument(p)
     add_device_arguments(p)
     p.add_argument("--json", type=Path, help="write per-view and mean metrics as JSON")
     add_force_argument(p)
@@ -33,10 +34,10 @@ def run(args) -> int:
     device = device_from_args(args)
     model = load_model(args.model, device)
     scene = load_scene_from_args(args)
-    views = scene.test_views if args.split == "test" else scene.train_views
+    views = scene.split_views(args.split)
     if args.max_views and len(views) > args.max_views:
         views = views[:: -(-len(views) // args.max_views)]
-    bg = torch.full((3,), 1.0 if args.white_background else 0.0, device=device)
+    bg = torch.tensor(background_from_args(args), device=device)
     nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
     result = evaluate(model, views, storage_bytes=args.model.stat().st_size, lpips_nets=nets, background=bg,
                       backend=args.backend, device=device)

@@ -1,6 +1,6 @@
 """``omg4 import-rt4dgs CKPT --out MODEL --time-range T0 T1 [--legacy-rotation]``.
 
-Converts an official Real-Time4DGS ``chkpnt*.pth`` into an omg4 checkpoint (reference rt4dgs §5).
+Converts an official Real-Time4DGS ``chkpnt*.pth`` into an omg4 checkpoint (rt4dgs §5).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from omg4.commands.common import finite_float
+from omg4.gaussians.model import SH_DIRECTIONS
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -20,7 +21,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="time_duration the model was trained with (N3V: 0 10, D-NeRF: 0 1)")
     parser.add_argument("--legacy-rotation", action="store_true",
                         help="unflipped 4D rotation of official code before commit 900c592 (September 2024)")
-    parser.add_argument("--sh-direction", choices=["conditioned", "canonical"], default="conditioned",
+    parser.add_argument("--sh-direction", choices=list(SH_DIRECTIONS), default=SH_DIRECTIONS[0],
                         help="SH view direction from the time-conditioned mean (default) or the canonical mean "
                              "(parity with official CUDA renders)")
     parser.add_argument("--json", type=Path, help="also write the summary as JSON to this file")

@@ -13,14 +13,14 @@ from pathlib import Path
 from typing import Callable
 
 from omg4.atomic import write_text_atomic
-from omg4.commands.common import printable
+from omg4.commands.common import add_format_argument, printable
 from omg4.errors import OMG4Error
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", type=Path, help="dataset folder (N3DV, D-NeRF/Blender or Panoptic), checkpoint (.safetensors) or .omg4 file")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
-    parser.add_argument("--format", choices=["n3dv", "blender", "panoptic"], help="force the dataset reader")
+    add_format_argument(parser)
     parser.add_argument("--force", action="store_true",
                         help="allow --json to replace an existing file inside the dataset folder PATH")
 

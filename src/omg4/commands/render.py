@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_device_arguments, add_force_argument, add_scene_arguments, device_from_args,
-                                  finite_float, float_in, int_at_least)
+from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
+                                  background_from_args, device_from_args, finite_float, float_in, int_at_least)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -24,7 +24,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num-frames", type=int_at_least(1),
                    help="frames of an .mp4 (default: the dataset's frame count, or 60)")
     p.add_argument("--fps", type=float_in(0.0, 1000.0), default=30.0, help="frame rate of an .mp4, in (0, 1000]")
-    p.add_argument("--white-background", action="store_true")
+    add_background_argument(p)
     add_device_arguments(p)
     add_force_argument(p)
 
@@ -72,7 +72,7 @@ def run(args) -> int:
     if args.time is not None and not t0 <= args.time <= t1:
         raise OMG4Error(f"--time {args.time:g} lies outside the model's time range [{t0:g}, {t1:g}]")
     camera, scene = _camera(args)
-    bg = torch.full((3,), 1.0 if args.white_background else 0.0, device=device)
+    bg = torch.tensor(background_from_args(args), device=device)
 
     def frame(t: float) -> np.ndarray:
         with torch.no_grad():

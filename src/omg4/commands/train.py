@@ -6,15 +6,18 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_device_arguments, add_scene_arguments, device_from_args, int_at_least,
-                                  load_scene_from_args)
+from omg4.commands.common import (add_background_argument, add_device_arguments, add_scene_arguments,
+                                  background_from_args, device_from_args, int_at_least, load_scene_from_args)
 from omg4.gaussians.backbone import BACKBONES
+from omg4.train.config import PRESETS
+from omg4.train.init import INIT_MODES
 
 
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", required=True, type=Path, help="run folder (checkpoints, config, final model.safetensors)")
-    p.add_argument("--preset", default="official", help="training schedule: official (30k iterations) or cpu-small")
+    p.add_argument("--preset", default="official", choices=list(PRESETS),
+                   help="training schedule: official (30k iterations) or cpu-small")
     p.add_argument("--iterations", type=int_at_least(1), help="optimizer steps (overrides the preset)")
     p.add_argument("--batch-size", type=int_at_least(1), help="views per step")
     p.add_argument("--backbone", choices=list(BACKBONES), default="rt4dgs",
@@ -33,13 +36,13 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="write a resumable checkpoint every N iterations (0 = only at the end)")
     p.add_argument("--num-random-points", type=int_at_least(1),
                    help="initial points (random, rays, mvs) when the data has no points3d.ply")
-    p.add_argument("--init", choices=["auto", "random", "rays", "mvs", "colmap"], default="auto",
+    p.add_argument("--init", choices=list(INIT_MODES), default="auto",
                    help="initial points: auto (points3d.ply if present, else mvs for multi-view video, else "
                         "random), random, rays (coloured points along the first frame's pixel rays), mvs "
                         "(plane-sweep stereo of the first frame) or colmap (pycolmap triangulation of the "
                         "first frame)")
     p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--white-background", action="store_true", help="train on a white background")
+    add_background_argument(p)
     add_device_arguments(p)
     run = p.add_mutually_exclusive_group()
     run.add_argument("--resume", action="store_true", help="continue from the run folder's last checkpoint")
@@ -69,7 +72,7 @@ def run(args) -> int:
         backbone=args.backbone,
         densify_until=args.densify_until, densify_interval=args.densify_interval, test_interval=args.test_interval,
         checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
-        backend=args.backend, device=str(device), background=(1.0, 1.0, 1.0) if args.white_background else None)
+        backend=args.backend, device=str(device), background=background_from_args(args))
     resuming = args.resume and latest_iteration(args.out) is not None
     if args.force:
         clear_run(args.out)

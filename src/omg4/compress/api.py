@@ -1,7 +1,7 @@
 """One call from a trained baseline to an ``.omg4`` file (or a minimized checkpoint).
 
 Computes (or reuses) the SD scores, runs the OMG4 pipeline, and encodes the result with
-fp16 positions, time centres, codebooks and MLP weights (paper §4.4; reference omg4 §8).
+fp16 positions, time centres, codebooks and MLP weights (paper §4.4; omg4 §8).
 """
 
 from __future__ import annotations

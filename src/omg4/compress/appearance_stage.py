@@ -1,4 +1,4 @@
-"""Switching a model from explicit to MLP appearance (paper §4.4; reference omg4 §6b, §9).
+"""Switching a model from explicit to MLP appearance (paper §4.4; omg4 §6b, §9).
 
 At the appearance event the per-Gaussian opacity and 4D SH are dropped and replaced by
 :class:`omg4.gaussians.appearance.AppearanceMLP` outputs. Each Gaussian gets a 3-d static
@@ -17,17 +17,17 @@ from torch import Tensor
 from omg4.errors import OMG4Error
 from omg4.train.config import TrainConfig
 
-FEATURE_LR = TrainConfig.feature_lr  # f_static / f_view in the main Adam (reference omg4 §9): the backbone table's
+FEATURE_LR = TrainConfig.feature_lr  # f_static / f_view in the main Adam (omg4 §9): the backbone table's
 # "feature_lr", the baseline's base-colour rate
 MLP_LR = 5e-3
-OFFICIAL_ITERATIONS = 7000  # iterations after MLP creation: 34000 → 41000 (reference omg4 §2)
+OFFICIAL_ITERATIONS = 7000  # iterations after MLP creation: 34000 → 41000 (omg4 §2)
 OFFICIAL_WARMUP = 100
 OFFICIAL_MILESTONES = (1000, 3500, 6000)
 DECAY = 0.33
 
 
 def init_appearance_features(params: dict[str, Tensor]) -> dict[str, Tensor]:
-    """Per-Gaussian appearance features from a Real-Time4DGS parameter dict (reference omg4 §6b).
+    """Per-Gaussian appearance features from a Real-Time4DGS parameter dict (omg4 §6b).
 
     params["features_dc"]: [N, 1, 3] → ``{"f_static": [N, 3] = features_dc[:, 0], "f_view": zeros [N, 3]}``
     (fresh tensors, no gradient history).
@@ -55,7 +55,7 @@ def mlp_lr_schedule(total_iterations: int) -> tuple[int, list[int]]:
 
 def make_mlp_optimizer(mlp: torch.nn.Module, lr: float = MLP_LR, total_iterations: int = OFFICIAL_ITERATIONS
                        ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.ChainedScheduler]:
-    """Adam(eps 1e-15) over the MLP weights with OMG4's schedule (reference omg4 §6b).
+    """Adam(eps 1e-15) over the MLP weights with OMG4's schedule (omg4 §6b).
 
     ``ChainedScheduler(LinearLR(start_factor=0.01, total_iters=warmup), MultiStepLR(milestones, gamma=0.33))``
     with ``warmup, milestones = mlp_lr_schedule(total_iterations)``; call ``scheduler.step()`` once per

@@ -1,4 +1,4 @@
-"""k-means for the sub-vector quantization codebooks (paper §4.4; reference omg4 §7).
+"""k-means for the sub-vector quantization codebooks (paper §4.4; omg4 §7).
 
 OMG4 runs cuML ``KMeans(n_clusters=K, max_iter=1000, n_init=1)`` with scalable k-means++
 initialization. This is the CPU equivalent, vectorized throughout:

@@ -1,15 +1,15 @@
-"""OMG4 Gaussian Merging, cluster building (paper §4.3 "Gaussian Clustering", Eq. 8–9, Alg. 1).
+"""OMG4 Gaussian Merging, cluster building (paper §4.3 "Gaussian Clustering", Eq. 3–4, Alg. 1).
 
 Gaussians are binned into 4D cells ``(⌊x/g⌋, ⌊y/g⌋, ⌊z/g⌋, ⌊(t − t0)/(φ·D)⌋)`` (g: spatial cell in
 normalized units, φ: time cell as a fraction of the duration D). Within a cell, for pairs i < j
-(reference omg4 §6a):
+(omg4 §6a):
 
     sim_ij = −‖x̂_i − x̂_j‖² − λ‖f̂_i − f̂_j‖²    (x̂: robust-normalized positions, f̂: min-max DC)
     thr    = max(τ_sim, Q_0.7(sims of the cell))
     C_i    = {i} ∪ {j > i : sim_ij ≥ thr}          (star clusters, kept when |C_i| ≥ 2)
 
-Duplicates and subsets are removed, leaving the maximal clusters (reference §6a), which may
-overlap; :func:`make_disjoint` then gives every Gaussian to one group (reference §14.7).
+Duplicates and subsets are removed, leaving the maximal clusters (omg4 §6a), which may
+overlap; :func:`make_disjoint` then gives every Gaussian to one group (omg4 §14.7).
 
 Everything is vectorized in torch. The work is organised in *chunks of whole cells* whose pair
 count is bounded by ``MergeConfig.pair_chunk`` (a Python loop over chunks, never over cells):
@@ -44,13 +44,13 @@ _WORD_BITS = 32  # bits used per int64 word of a neighbour bit row (no sign-bit 
 
 @dataclass
 class MergeConfig:
-    """Gaussian Merging hyperparameters (paper §4.3, §5.1; official configs, reference omg4 §6a)."""
+    """Gaussian Merging hyperparameters (paper §4.3, §5.1; official configs, omg4 §6a)."""
 
     grid_size: float = 0.1  # spatial cell, normalized units; multiplied by grid_growth after each round
     time_cell_fraction: float = 0.2  # temporal cell = fraction × duration (official 2.0 s of 10 s)
     grid_growth: float = 1.2
     color_weight: float = 4.0  # λ
-    tau_sim: float = -3e-4  # threshold floor (the configs' value; note the sign, reference §14.3)
+    tau_sim: float = -3e-4  # threshold floor (the configs' value; note the sign, omg4 §14.3)
     sim_quantile: float = 0.7  # per-cell quantile of similarities
     logit_lr: float = 0.01
     max_cell_size: int = 2048  # larger cells are split into slabs along x (module docstring)
@@ -114,7 +114,7 @@ def _sorted_quantile(sorted_values: torch.Tensor, q: float) -> torch.Tensor:
 
 
 def robust_normalize_positions(xyz: torch.Tensor) -> torch.Tensor:
-    """x̂ = (x − Q_0.001) / (Q_0.999 − Q_0.001 + 1e-6) per axis over all Gaussians (reference §6a).
+    """x̂ = (x − Q_0.001) / (Q_0.999 − Q_0.001 + 1e-6) per axis over all Gaussians (omg4 §6a).
 
     xyz: [N, 3] → [N, 3] float64
     """
@@ -125,7 +125,7 @@ def robust_normalize_positions(xyz: torch.Tensor) -> torch.Tensor:
 
 
 def minmax_normalize_colors(dc: torch.Tensor) -> torch.Tensor:
-    """f̂ = (f − min) / (max − min + 1e-6) per channel over all Gaussians (reference §6a).
+    """f̂ = (f − min) / (max − min + 1e-6) per channel over all Gaussians (omg4 §6a).
 
     dc: [N, 3] → [N, 3] float64
     """
@@ -212,7 +212,7 @@ def _subset_of_source(ca: torch.Tensor, cb: torch.Tensor, bits: torch.Tensor, ro
 
 
 def _cell_thresholds(sim: torch.Tensor, pblock: torch.Tensor, npairs: torch.Tensor, cfg: MergeConfig) -> torch.Tensor:
-    """thr_b = max(τ_sim, Q_q(sims of block b)) (reference omg4 §6a), by a segmented sort.
+    """thr_b = max(τ_sim, Q_q(sims of block b)) (omg4 §6a), by a segmented sort.
 
     Only the pairs with sim > τ are sorted: with v_0 ≤ … ≤ v_{P−1} the sorted sims and c_b of them
     above τ, the quantile lerp(v_lo, v_hi) can exceed τ only if hi ≥ P − c_b; then v_hi is among the
@@ -249,7 +249,7 @@ def _cell_thresholds(sim: torch.Tensor, pblock: torch.Tensor, npairs: torch.Tens
 
 def _pair_similarity(x: torch.Tensor, f: torch.Tensor, first: torch.Tensor, second: torch.Tensor,
                      color_weight: float) -> torch.Tensor:
-    """sim = −‖x̂_p − x̂_q‖² − λ‖f̂_p − f̂_q‖² for pairs (p, q) (paper §4.3 Eq. 8, reference §6a signs).
+    """sim = −‖x̂_p − x̂_q‖² − λ‖f̂_p − f̂_q‖² for pairs (p, q) (paper §4.3 Eq. 3, with omg4 §6a signs).
 
     x, f: [n, 3]; first, second: [P] → [P]. Column by column (1-D gathers, in-place sums).
     """
@@ -327,7 +327,7 @@ def _empty_clusters() -> StarClusters:
 
 def build_star_clusters(xyz: torch.Tensor, t: torch.Tensor, dc: torch.Tensor, time_range: tuple[float, float],
                         grid_size: float, cfg: MergeConfig) -> StarClusters:
-    """Maximal star clusters C_i (paper §4.3 Eq. 9; reference omg4 §6a), before disjointness.
+    """Maximal star clusters C_i (paper §4.3 Eq. 4; omg4 §6a), before disjointness.
 
     xyz: [N, 3] normalized world; t: [N] or [N, 1] dataset time units; dc: [N, 3] or [N, 1, 3] SH DC;
     time_range: (t0, t1); grid_size: spatial cell g of this round. Results live on the CPU.
@@ -368,7 +368,7 @@ def build_star_clusters(xyz: torch.Tensor, t: torch.Tensor, dc: torch.Tensor, ti
 
 
 def make_disjoint(clusters: StarClusters, num_gaussians: int) -> MergeGroups:
-    """Disjoint merge groups from overlapping maximal clusters (reference omg4 §14.7).
+    """Disjoint merge groups from overlapping maximal clusters (omg4 §14.7).
 
     Rule: clusters are ranked by size (descending), ties by centre index (ascending). Every
     Gaussian goes to the highest-ranked cluster that contains it (equivalently: process the
@@ -398,7 +398,7 @@ def make_disjoint(clusters: StarClusters, num_gaussians: int) -> MergeGroups:
 
 def build_merge_groups(xyz: torch.Tensor, t: torch.Tensor, dc: torch.Tensor, time_range: tuple[float, float],
                        grid_size: float, cfg: MergeConfig) -> MergeGroups:
-    """Disjoint merge groups of one round (paper §4.3 clustering + reference §14.7 disjointness).
+    """Disjoint merge groups of one round (paper §4.3 clustering + omg4 §14.7 disjointness).
 
     xyz: [N, 3], t: [N] or [N, 1], dc: [N, 3] or [N, 1, 3]; see :func:`build_star_clusters` and
     :func:`make_disjoint`. Returned tensors are on ``xyz``'s device.

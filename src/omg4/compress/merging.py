@@ -1,7 +1,7 @@
-"""OMG4 Gaussian Merging, learnable proxies and baking (paper §4.3 Eq. 10, appendix Alg. 1).
+"""OMG4 Gaussian Merging, learnable proxies and baking (paper §4.3 Eq. 5, appendix Alg. 1).
 
 Each disjoint group (built by :mod:`omg4.compress.merge_clusters`) renders as one proxy in the
-slot of its representative r (smallest index; reference omg4 §6a):
+slot of its representative r (smallest index; omg4 §6a):
 
     x̄ = Σ_i w_i^x x_i,   f̄_dc = Σ_i w_i^dc f_dc,i,   f̄_rest = Σ_i w_i^rest f_rest,i,   ā = a_r
     w_i = (σ(ℓ_i) + 1e-12) / (Σ_{j ∈ group} (σ(ℓ_j) + 1e-12) + 1e-12),   ℓ initialised to 0

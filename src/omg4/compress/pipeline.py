@@ -34,7 +34,7 @@ from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
 from omg4.render.api import resolve_backend
-from omg4.train.optim import (baseline_lrs, expon_lr, keep_rows, make_adam, rebuilt_adam, replace_param, set_group_lr,
+from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
                               step_optimizers)
 from omg4.train.step import backward_batch, step_generator
 
@@ -119,7 +119,7 @@ class CompressionPipeline:
 
     # ----------------------------------------------------------------- optimizers
     def _lrs(self) -> dict[str, float]:
-        """Learning rates of the current per-Gaussian tensors (reference omg4 §9)."""
+        """Learning rates of the current per-Gaussian tensors (omg4 §9)."""
         return baseline_lrs_for(self.model.params, self.extent, self.schema)
 
     def _rebuild_main_optimizer(self) -> None:
@@ -127,13 +127,6 @@ class CompressionPipeline:
         merge = self.model.merge
         extra = merge.param_groups(self.cfg.merge.logit_lr) if merge is not None else []
         self.optimizer = rebuilt_adam(self.optimizer, self.model.params, self._lrs(), extra)
-
-    def _set_position_lr(self, step: int) -> None:
-        """The baseline's position decay, continued over the fine-tuning iterations."""
-        total = self.cfg.baseline_iterations + self.total_iterations
-        set_group_lr(self.optimizer, "xyz", expon_lr(self.cfg.baseline_iterations + step,
-                                                      self.cfg.position_lr_init * self.extent,
-                                                      self.cfg.position_lr_final * self.extent, total))
 
     # ---------------------------------------------------------------------- stages
     def _remove(self, keep: torch.Tensor) -> None:
@@ -246,7 +239,10 @@ class CompressionPipeline:
     # -------------------------------------------------------------------- training
     def finetune_step(self, step: int) -> float:
         """One fine-tuning iteration (1-based ``step``); returns the mean batch loss."""
-        self._set_position_lr(step)
+        # the baseline's position decay, continued over the fine-tuning iterations
+        set_position_lr(self.optimizer, self.cfg.baseline_iterations + step, init=self.cfg.position_lr_init,
+                        final=self.cfg.position_lr_final, extent=self.extent,
+                        max_steps=self.cfg.baseline_iterations + self.total_iterations)
         views = self.scene.train_views
         batch = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2),
                               device="cpu")
@@ -286,7 +282,7 @@ class CompressionPipeline:
 
 
 def baseline_lrs_for(params: dict[str, torch.Tensor], extent: float, schema: Backbone) -> dict[str, float]:
-    """Learning rates of the per-Gaussian tensors (reference omg4 §9), in ``params``' order."""
+    """Learning rates of the per-Gaussian tensors (omg4 §9), in ``params``' order."""
     from omg4.train.config import TrainConfig
 
     lrs = baseline_lrs(TrainConfig(), extent, schema)

@@ -14,7 +14,7 @@ FreeTimeGS (paper appendix, Table 3): L samples τ_GS = 0.7 and prunes at the 0.
 S τ_GS = 0.3 and the 0.4-quantile; both keep the M codebooks for scale, rotation and
 appearance and add 2^10 for velocity and duration. It has no M or T.
 
-Sub-vector lengths are the backbone's (:mod:`omg4.gaussians.backbone`; OMG's, reference omg4 §7:
+Sub-vector lengths are the backbone's (:mod:`omg4.gaussians.backbone`; OMG's, omg4 §7:
 scale 1, rotation 2, appearance 2, time scale 1, right quaternion 2).
 """
 

@@ -1,7 +1,7 @@
-"""OMG4 Gaussian Pruning (paper §4.2, Eq. 7): keep S ≥ Q_p(S) **or** T ≥ Q_p(T).
+"""OMG4 Gaussian Pruning (paper §4.2, Eq. 2): keep S ≥ Q_p(S) **or** T ≥ Q_p(T).
 
 The raw scores computed once on the pretrained model are reused, restricted to the
-sampled set (reference omg4 §5); quantiles use linear interpolation.
+sampled set (omg4 §5); quantiles use linear interpolation.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""OMG4 Gaussian Sampling (paper §4.1, Eq. 6): keep the top τ_GS fraction by SD score.
+"""OMG4 Gaussian Sampling (paper §4.1): keep the top τ_GS fraction by SD score.
 
 SD_i = minmax(S)_i · minmax(T)_i, min-max normalized over all Gaussians (T keeps its
-sign, so the most negative dynamic score maps to 0; reference omg4 §4).
+sign, so the most negative dynamic score maps to 0; omg4 §4).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The OMG4 stage schedule (paper §5.1 "Implementation Details"; reference omg4 §2).
+"""The OMG4 stage schedule (paper §5.1 "Implementation Details"; omg4 §2).
 
 Stages run at fixed iterations and the model is fine-tuned with the baseline loss in
 between: sampling at 0, pruning at T_GS, M merge rounds every T_GM, MLP appearance, then
@@ -11,6 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 STAGE_NAMES = ("sample", "prune", "sample+prune", "merge", "appearance", "svq3d", "svq4d")
+MINIMIZING_STAGES = ("sample", "prune", "sample+prune", "merge")
+"""The stages that only remove or merge Gaussians: after them the model is still a baseline
+model, written as a checkpoint by ``omg4 compress --stop-after``."""
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,12 @@ SCHEDULES: dict[str, StageLengths] = {
     # smoke tests
     "tiny": StageLengths(sample=4, prune=4, merge=4, appearance=8, svq3d=4, svq4d=4),
 }
+
+
+def default_schedule(device: object) -> str:
+    """The fine-tuning lengths a command uses when none is named: the paper's (``official``) on a
+    CUDA device, a fifth of them (``cpu``) anywhere else."""
+    return "official" if str(device).startswith("cuda") else "cpu"
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""The Static–Dynamic score of OMG4 Gaussian Sampling (paper §4.1, Eq. 4–5).
+"""The Static–Dynamic score of OMG4 Gaussian Sampling (paper §4.1, Eq. 1).
 
 For every training view j of the pretrained model, with L_j the photometric loss of that
 view:
@@ -7,7 +7,7 @@ view:
 * dynamic score T_i = Σ_j ∂L_j/∂t_i, the **signed** gradient w.r.t. the temporal centre.
 
 The time gradient is zeroed for every view. The official release never zeroes it, so its
-stored T is Σ_k Σ_{j≤k} g_j (reference omg4 §3); ``official_quirk=True`` reproduces that
+stored T is Σ_k Σ_{j≤k} g_j (omg4 §3); ``official_quirk=True`` reproduces that
 for parity. A Gaussian culled or off-screen in a view contributes nothing for that view.
 """
 

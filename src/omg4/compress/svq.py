@@ -1,4 +1,4 @@
-"""Sub-vector quantization (paper §4.4, "Attribute Compression"; reference omg4 §7).
+"""Sub-vector quantization (paper §4.4, "Attribute Compression"; omg4 §7).
 
 An attribute ``[N, D]`` is split into ``D / s`` contiguous sub-vectors of length ``s``;
 each sub-vector slot gets its own codebook fitted by k-means on all N Gaussians. The
@@ -41,7 +41,7 @@ class SubVectorQuantizer(nn.Module):
     @classmethod
     def fit(cls, values: torch.Tensor, sub_len: int, codebook_size: int, seed: int = 0,
             iters: int = 100) -> "SubVectorQuantizer":
-        """k-means codebooks for ``values: [N, D]`` split into ``D / sub_len`` slots (reference omg4 §7).
+        """k-means codebooks for ``values: [N, D]`` split into ``D / sub_len`` slots (omg4 §7).
 
         A slot's codebook has ``min(codebook_size, #distinct sub-vectors)`` rows. k-means runs on
         the CPU; the quantizer is returned on ``values``' device.

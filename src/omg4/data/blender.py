@@ -1,4 +1,4 @@
-"""D-NeRF / Blender reader: ``transforms_{train,val,test}.json`` (reference rt4dgs §4.2, §4.4).
+"""D-NeRF / Blender reader: ``transforms_{train,val,test}.json`` (rt4dgs §4.2, §4.4).
 
 * Frames: ``file_path`` (``.png`` appended when it has no suffix), ``transform_matrix``
   (OpenGL camera-to-world; columns 1, 2 are negated to OpenCV), ``time``  (0 when absent).

@@ -28,7 +28,7 @@ def image_size(path: Path) -> tuple[int, int]:
 def read_rgb(path: Path, background: tuple[float, float, float]) -> np.ndarray:
     """uint8 [H, W, 3] of an image file; RGBA is composited as ``rgb·a + bg·(1 − a)``.
 
-    The Blender-reader composite of Real-Time4DGS (reference §4.2), without its quirk of
+    The Blender-reader composite of Real-Time4DGS (rt4dgs §4.2), without its quirk of
     multiplying by alpha a second time.
     """
     try:

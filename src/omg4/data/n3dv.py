@@ -1,4 +1,4 @@
-"""N3DV / DyNeRF reader: ``poses_bounds.npy`` (LLFF) + ``camXX.mp4`` (reference rt4dgs §4.1).
+"""N3DV / DyNeRF reader: ``poses_bounds.npy`` (LLFF) + ``camXX.mp4`` (rt4dgs §4.1).
 
 Layout and conventions (official ``n3v2blender.py`` unless noted):
 

@@ -1,4 +1,4 @@
-"""The normalized world every reader returns (reference rt4dgs §4.1, DESIGN.md "Scene normalization").
+"""The normalized world every reader returns (rt4dgs §4.1; docs/architecture.md §3 "The normalized world").
 
 This is the official N3DV preprocessing of Real-Time4DGS (``scripts/n3v2blender.py``, itself
 taken from instant-ngp's ``colmap2nerf``), written as one similarity transform

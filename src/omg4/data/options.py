@@ -20,7 +20,7 @@ class LoadOptions:
 
     Attributes:
         downscale: divide both image dimensions by this factor (``round(W / downscale)``,
-            the Real-Time4DGS ``resolution`` rule, reference §4.2).
+            the Real-Time4DGS ``resolution`` rule, rt4dgs §4.2).
         width: explicit target width in pixels; overrides ``downscale`` (height keeps the
             aspect ratio, rounded).
         frames: frame indices to keep (slice, range or iterable), ``None`` for all.

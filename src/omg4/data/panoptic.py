@@ -1,4 +1,4 @@
-"""Panoptic reader, Dynamic3DGaussians layout (reference data_metrics_viewer §1).
+"""Panoptic reader, Dynamic3DGaussians layout (data §1).
 
 ``train_meta.json`` / ``test_meta.json`` hold ``w``, ``h`` and, per frame ``t`` (outer list)
 and camera (inner list), ``k`` (3×3 intrinsics), ``w2c`` (4×4 OpenCV world-to-camera),

@@ -7,7 +7,7 @@ bodies are read; :func:`write_ply` writes binary little-endian float x, y, z + u
 Points without colours get mid grey (0.5).
 
 Random initialization (:func:`random_initial_points`): Real-Time4DGS draws D-NeRF points
-uniformly in a cube when no point cloud exists (reference §3.5); for multi-view scenes we
+uniformly in a cube when no point cloud exists (rt4dgs §3.5); for multi-view scenes we
 restrict the cube to the training cameras' common view volume (documented below).
 """
 
@@ -162,10 +162,10 @@ def random_initial_points(scene: Scene, num_points: int, seed: int = 0, *, min_v
     default ``min_views`` is half the training cameras (at least 2): points seen by only a
     couple of cameras of a dome are mostly empty space, and sparse far-off points become
     huge initial Gaussians that make every tile slow
-    (normalized units; 0.2 is the rasterizer's near plane, reference §4.3). Batches of
+    (normalized units; 0.2 is the rasterizer's near plane, rt4dgs §4.3). Batches of
     ``batch`` candidates are drawn until ``num_points`` are kept. Colours are grey-ish:
     0.5 + U(−0.05, 0.05) per channel, as Real-Time4DGS's random D-NeRF init is ≈ 0.5 grey
-    (reference §3.5). Deterministic for a given scene, ``num_points`` and ``seed``.
+    (rt4dgs §3.5). Deterministic for a given scene, ``num_points`` and ``seed``.
 
     Returns:
         PointCloud with xyz [num_points, 3] float64 and rgb [num_points, 3] float32.

@@ -1,6 +1,6 @@
 """The scene model every reader returns: cameras, timed views and the normalized world.
 
-Conventions (DESIGN.md, fixed): OpenCV cameras (x right, y down, z forward), ``viewmat`` is
+Conventions (fixed; docs/architecture.md §3): OpenCV cameras (x right, y down, z forward), ``viewmat`` is
 the 4×4 world-to-camera matrix, ``K`` is 3×3 in pixels at the image's actual resolution,
 pixel centres at +0.5. Every reader returns its scene in a normalized world (up axis +z,
 centred, mean camera distance 4) and records the transform in :class:`Normalization`.
@@ -174,6 +174,10 @@ class PointCloud:
     rgb: np.ndarray
 
 
+SPLITS = ("test", "train")
+"""The view splits of a :class:`Scene`: the held-out test cameras and the training cameras."""
+
+
 @dataclass
 class Scene:
     """A dynamic multi-view scene in the normalized world.
@@ -200,6 +204,12 @@ class Scene:
     def duration(self) -> float:
         return float(self.time_range[1] - self.time_range[0])
 
+    def split_views(self, split: str) -> list[View]:
+        """The views of ``split``, one of :data:`SPLITS`."""
+        if split not in SPLITS:
+            raise DataError(f"unknown split '{split}' (choose from {', '.join(SPLITS)})")
+        return self.test_views if split == "test" else self.train_views
+
     def train_cameras(self) -> list[Camera]:
         """The distinct training cameras, in first-seen order."""
         return _distinct_cameras(self.train_views)
@@ -210,7 +220,7 @@ class Scene:
 
     def first_frame_views(self) -> list[View]:
         """The training views of the first frame, one per camera (the first seen kept); the
-        frame the official initialization reconstructs (reference rt4dgs §3.5)."""
+        frame the official initialization reconstructs (rt4dgs §3.5)."""
         if not self.train_views:
             raise DataError("the scene has no training views")
         first = min(v.frame_index for v in self.train_views)
@@ -224,7 +234,7 @@ class Scene:
     def extent(self) -> float:
         """Scene extent: 1.1 × the largest distance of a training camera centre from their mean.
 
-        Real-Time4DGS ``getNerfppNorm`` (reference §4.3); learning rates scale with it.
+        Real-Time4DGS ``getNerfppNorm`` (rt4dgs §4.3); learning rates scale with it.
         """
         centers = np.stack([c.center for c in self.train_cameras()])
         radius = np.linalg.norm(centers - centers.mean(0), axis=1).max()

@@ -1,4 +1,4 @@
-"""OMG4's time-conditioned appearance MLPs (paper §4.4 "Attribute Compression"; reference omg4 §6b).
+"""OMG4's time-conditioned appearance MLPs (paper §4.4 "Attribute Compression"; omg4 §6b).
 
 After merging, each Gaussian keeps only a 3-d static and a 3-d view feature; opacity and
 all 4D SH coefficients are predicted by four tiny bias-free MLPs with one hidden layer of 64:
@@ -17,7 +17,7 @@ layers with tcnn's Xavier-uniform initialisation (over tcnn's 16-padded widths).
 
 Size: without tcnn's output padding the four networks hold 21,376 parameters
 (shared 9,024, dc 1,216, opacity 1,088, view 10,048), i.e. 42,752 bytes in fp16; the official
-tcnn networks pad outputs to multiples of 16 and hold 23,552 (reference §6b).
+tcnn networks pad outputs to multiples of 16 and hold 23,552 (omg4 §6b).
 
 This module is part of the render-only decoder: it imports no training or compression code.
 """
@@ -38,7 +38,7 @@ MAX_WIDTH = 4096  # hidden and shared widths a decoded network may declare
 
 
 def contract_to_unisphere(x: Tensor) -> Tensor:
-    """Scene contraction of reference omg4 §6b (nerfacc's ``contract_to_unisphere``, aabb [-1, 1]^3).
+    """Scene contraction of omg4 §6b (nerfacc's ``contract_to_unisphere``, aabb [-1, 1]^3).
 
     Inside the unit ball x is kept; outside it becomes ``(2 − 1/‖x‖) x/‖x‖`` (radius in (1, 2));
     the result is mapped by ``x/4 + 0.5`` into [0, 1]^3 (strictly inside the ball of radius 1/2
@@ -53,7 +53,7 @@ def contract_to_unisphere(x: Tensor) -> Tensor:
 
 
 def frequency_encoding(x: Tensor, num_freqs: int = 16) -> Tensor:
-    """tiny-cuda-nn ``Frequency`` encoding (reference omg4 §6b), no passthrough of the raw input.
+    """tiny-cuda-nn ``Frequency`` encoding (omg4 §6b), no passthrough of the raw input.
 
     Output column ``j`` of input dimension ``d`` (``j`` in [0, 2F)) is ``sin(2^k π x_d)`` for even ``j``
     and ``cos(2^k π x_d)`` for odd ``j`` with ``k = j // 2``: per dimension
@@ -89,7 +89,7 @@ def _two_layer(n_in: int, hidden: int, n_out: int, activation: nn.Module) -> nn.
 
 
 class AppearanceMLP(nn.Module):
-    """The four OMG4 appearance networks (paper §4.4; reference omg4 §6b).
+    """The four OMG4 appearance networks (paper §4.4; omg4 §6b).
 
     ``shared`` (OMG4 ``mlp_cont``): Freq(contracted xyz, t_norm) [N, 4·2F] → [N, shared_dim]
     (``num_inputs = 3``: Freq(contracted xyz) only); ``dc``, ``opacity`` take ``[shared, f_static]``;

@@ -93,7 +93,7 @@ _SH_REST = Attribute("features_rest", (SH_REST, 3), "none", lr="feature_rest_lr"
                      by_mlp=True)
 _SCALE = Attribute("scaling", (3,), "exp", lr="scaling_lr", svq="scale")
 _ROTATION = Attribute("rotation", (4,), "quaternion", lr="rotation_lr", svq="rotation")
-#: stage 3D of both backbones: scale (s = 1), rotation (s = 2), appearance features (s = 2) (reference omg4 §7)
+#: stage 3D of both backbones: scale (s = 1), rotation (s = 2), appearance features (s = 2) (omg4 §7)
 _SVQ_3D = (("scale", 1, "svq3d"), ("rotation", 2, "svq3d"), ("app", 2, "svq3d"))
 
 

@@ -1,4 +1,4 @@
-"""4D covariance and conditioning on time (reference rt4dgs §1.3–1.4).
+"""4D covariance and conditioning on time (rt4dgs §1.3–1.4).
 
 ``Σ4 = R4 diag(s²) R4ᵀ`` with blocks Σ11 [3, 3], Σ12 [3], Σtt (scalar). At a query time τ
 the 4D Gaussian shows the conditional 3D Gaussian

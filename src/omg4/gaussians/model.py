@@ -1,7 +1,7 @@
 """The 4D Gaussian model container of every backbone (:mod:`omg4.gaussians.backbone`).
 
 Raw (pre-activation) parameters live in ``params``, named and shaped by the backbone's
-attribute table. Real-Time4DGS (reference rt4dgs §1–2, §3.5), for example:
+attribute table. Real-Time4DGS (rt4dgs §1–2, §3.5), for example:
 
 | name | shape | activation |
 | --- | --- | --- |
@@ -53,7 +53,7 @@ class GaussianConfig:
         rotation_convention: ``"flip"`` (official current) or ``"legacy"`` (pre-900c592).
         time_cull: cull Gaussians whose temporal marginal p_t ≤ this (rt4dgs §1.4).
         sh_direction: SH view direction from the ``"conditioned"`` mean μ_3D(τ) (default,
-            paper-consistent) or the ``"canonical"`` μ_xyz (official CUDA forward, §1.6-1).
+            paper-consistent) or the ``"canonical"`` μ_xyz (official CUDA forward, rt4dgs §1.6-1).
         backbone: the representation (:data:`omg4.gaussians.backbone.BACKBONES`); files that do
             not name one are Real-Time4DGS. FreeTimeGS needs ``sh_degree_t = 0``.
     """

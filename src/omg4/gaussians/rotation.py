@@ -1,7 +1,7 @@
 """3D and 4D rotations from quaternions (w, x, y, z).
 
 A 4D rotation is built from a left and a right unit quaternion as in Real-Time4DGS
-(reference rt4dgs §1.2): ``A = M_l(q_l) @ M_r(q_r)`` where ``M_l`` is left multiplication by
+(rt4dgs §1.2): ``A = M_l(q_l) @ M_r(q_r)`` where ``M_l`` is left multiplication by
 ``q_l`` and ``M_r`` is right multiplication by the conjugate of ``q_r``. Two conventions:
 
 * ``"flip"`` (official code since commit 900c592, our default): ``R4 = P A P`` with ``P`` the

@@ -1,8 +1,8 @@
 """Image files: 8-bit PNG and float32 ``.npy`` output, and loading either back.
 
-Float images are ``[H, W, 3]`` in [0, 1]; a PNG stores ``floor(clip(x, 0, 1)·255 + 0.5)``
-(round half up), and a ``.npy`` keeps the float32 values before that rounding, for exact
-comparisons (DESIGN.md, ``omg4 render``). Every write is atomic.
+Float images are ``[H, W, 3]`` in [0, 1]; a PNG stores ``rint(clip(x, 0, 1)·255)`` (ties to
+even), and a ``.npy`` keeps the float32 values before that rounding, for exact comparisons
+(docs/architecture.md §3 "Colour and background"). Every write is atomic.
 """
 
 from __future__ import annotations
@@ -40,11 +40,12 @@ def to_float32(img: ImageLike) -> np.ndarray:
 
 
 def to_uint8(img: ImageLike) -> np.ndarray:
-    """8-bit ``[H, W, 3]`` image: uint8 input as is, floats as ``floor(clip(x, 0, 1)·255 + 0.5)``."""
+    """8-bit ``[H, W, 3]`` image: uint8 input as is, floats as ``rint(clip(x, 0, 1)·255)`` (ties to even,
+    numpy's rounding, as :func:`omg4.data.points.write_ply` rounds colours)."""
     arr = _as_rgb_array(img)
     if arr.dtype == np.uint8:
         return np.ascontiguousarray(arr)
-    return np.floor(np.clip(to_float32(arr), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return np.rint(np.clip(to_float32(arr), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 def save_png(path: str | os.PathLike, img: ImageLike) -> None:

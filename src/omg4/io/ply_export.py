@@ -1,4 +1,4 @@
-"""Standard 3DGS ``.ply`` export of a time slice (reference data_metrics_viewer §5).
+"""Standard 3DGS ``.ply`` export of a time slice (data §5).
 
 Layout read by SuperSplat, PlayCanvas and most viewers: ``binary_little_endian``, one
 ``vertex`` element with float properties ``x y z nx ny nz f_dc_0..2 f_rest_0.. opacity

@@ -1,4 +1,4 @@
-"""Import of official Real-Time4DGS checkpoints (``chkpnt*.pth``, reference rt4dgs §5).
+"""Import of official Real-Time4DGS checkpoints (``chkpnt*.pth``, rt4dgs §5).
 
 The official file is ``torch.save((model_args, iteration))`` with ``model_args`` the 19-tuple
 of ``GaussianModel.capture()`` (gaussian_dim = 4): CUDA ``nn.Parameter`` tensors, the Adam

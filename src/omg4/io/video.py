@@ -1,7 +1,7 @@
 """Video output: H.264 ``.mp4`` writing with PyAV, and side-by-side comparison frames.
 
 PyAV's wheel bundles FFmpeg with libx264, so no system ffmpeg is needed
-(data_metrics_viewer §4). Frames are encoded as yuv420p, which needs even sides: odd
+(data §4). Frames are encoded as yuv420p, which needs even sides: odd
 widths/heights are padded by repeating the last column/row.
 """
 

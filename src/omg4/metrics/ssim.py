@@ -10,7 +10,7 @@ Inputs may be torch tensors or numpy arrays; the computation runs in torch in th
 promoted dtype of the two inputs, on the render's device, and is differentiable.
 
 :func:`ssim` follows Real-Time4DGS / OMG4 ``utils/loss_utils.py: ssim`` (rt4dgs §3.2,
-data_metrics_viewer §3): 11×11 Gaussian window with σ = 1.5, zero padding of 5 pixels
+data §3): 11×11 Gaussian window with σ = 1.5, zero padding of 5 pixels
 (so the map has the image's size and its border sees zeros), C1 = 0.01², C2 = 0.03², and
 the mean of the SSIM map over pixels, channels and batch. The window is applied as one
 depthwise 11×11 ``conv2d`` over the five stacked statistics (x, y, x², y², xy): on CPU

@@ -1,6 +1,6 @@
 """Differentiable Gaussian rasterization (:func:`rasterize`) and per-view rendering of models.
 
-``rasterize`` renders 3D Gaussians with a numba CPU backend or gsplat on CUDA (issue 3);
+``rasterize`` renders 3D Gaussians with a numba CPU backend or gsplat on CUDA;
 ``render_view`` renders a model's time slice at a camera (:mod:`omg4.render.view`).
 """
 

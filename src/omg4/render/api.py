@@ -1,18 +1,17 @@
 """The rendering entry points, :func:`rasterize` (one view) and :func:`rasterize_views` (a batch), and the CPU backend.
 
-Issue 3 / DESIGN.md "render/": one differentiable call with two backends that follow
+One differentiable call with two backends that follow
 gsplat 1.5.3's rules. The CPU backend runs the EWA projection
 (:mod:`omg4.render.projection`) and tile binning (:mod:`omg4.render.binning`) in torch and
 composites in numba (:mod:`omg4.render.cpu_kernels`) behind a custom autograd function
 whose backward gives ∂L/∂means2d (pixels) and ∂L/∂conic; autograd carries them on to the
 3D means and covariances. View depth is composited as one more feature channel
-(``depth = Σ z·α·T``, ``rt4dgs_reference.md`` §1.5), so its gradient reaches the means too.
+(``depth = Σ z·α·T``, rt4dgs §1.5), so its gradient reaches the means too.
 """
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
 from typing import Iterator
 
 import numba
@@ -20,32 +19,10 @@ import numpy as np
 import torch
 
 from omg4.errors import OMG4Error
+from omg4.render.rendered import BACKENDS, Rendered
 from omg4.render.binning import TileBins, bin_tiles, pixel_boxes, sigma_cutoff
 from omg4.render.cpu_kernels import composite_backward, composite_forward
 from omg4.render.projection import ALPHA_THRESHOLD, max_radius, project_gaussians
-
-BACKENDS = ("auto", "cpu", "gsplat")
-
-
-@dataclass
-class Rendered:
-    """One rendered view, or several (leading ``V`` axis on the images) from :func:`rasterize_views`.
-
-    Attributes:
-        image: [H, W, C] (or [V, H, W, C]) composited colours over the background.
-        alpha: [H, W, 1] (or [V, H, W, 1]) accumulated opacity ``1 − T_final``.
-        depth: [H, W, 1] (or [V, H, W, 1]) alpha-weighted view depth ``Σ z·α·T`` (not normalized by alpha).
-        means2d: [N, 2] projected means in pixels (of each row's view); after ``backward()`` its
-            ``.grad`` is ∂loss/∂means2d (the OMG4 SD score and densification read it).
-        radii: [N] int32 box radius in pixels, 0 = not rendered.
-    """
-
-    image: torch.Tensor
-    alpha: torch.Tensor
-    depth: torch.Tensor
-    means2d: torch.Tensor
-    radii: torch.Tensor
-
 
 def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
               viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,

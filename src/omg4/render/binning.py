@@ -1,7 +1,7 @@
 """Which tiles and pixels each projected Gaussian touches, vectorized in torch.
 
-Tile lists follow gsplat 1.5.3's ``isect_tiles``/``isect_offset_encode`` (reference notes
-``rasterizer_backends.md``, "Recommendation" and "Test oracles" 2): a Gaussian with box
+Tile lists follow gsplat 1.5.3's ``isect_tiles``/``isect_offset_encode`` (docs/paper-map.md
+"Rasterizer backends"): a Gaussian with box
 half-widths ``(rx, ry)`` around ``(mx, my)`` covers tiles ``floor(m/ts − r/ts) …
 ceil(m/ts + r/ts) − 1`` (clamped to the grid); intersections are sorted by the key
 ``tile_id << 32 | float32 bits of depth``, i.e. by tile, then front to back.
@@ -113,8 +113,8 @@ def bin_tiles(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, 
 def sigma_cutoff(opacities: torch.Tensor) -> torch.Tensor:
     """[N] exponent above which ``o·exp(−σ) < 1/255`` for sure: ``ln(255·o) + SIGMA_MARGIN``.
 
-    Skipping ``exp`` when σ exceeds it is exact (reference ``rasterizer_backends.md``: the
-    ln(255) skip gave a 1.7× forward speed-up); computed in float64.
+    Skipping ``exp`` when σ exceeds it is exact (no kept α is lost; the skip made the forward
+    pass 1.7× faster); computed in float64.
     """
     o = opacities.detach().double().clamp(min=1e-30)
     return torch.log(o / ALPHA_THRESHOLD) + SIGMA_MARGIN

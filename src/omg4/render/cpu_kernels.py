@@ -1,6 +1,6 @@
 """numba tile kernels: alpha compositing forward and its hand-written backward.
 
-Design from ``rasterizer_backends.md`` ("Recommendation"): one ``prange`` iteration per
+Design (docs/paper-map.md "Rasterizer backends"): one ``prange`` iteration per
 image tile; within a tile the Gaussians of the tile's depth-sorted list are visited front
 to back (backward: back to front), each only over the pixels of its box
 (:func:`omg4.render.binning.pixel_boxes`). The backward writes one gradient row per

@@ -1,6 +1,6 @@
 """GPU backend of :func:`omg4.render.rasterize`: ``gsplat.rasterization`` (gsplat 1.5.3, CUDA).
 
-DESIGN.md "Performance model" and ``rt4dgs_reference.md`` §8: the Gaussians go in with
+As in docs/paper-map.md "Rasterizer backends" (and rt4dgs §8): the Gaussians go in with
 ``covars=`` (no quaternions/scales), one camera, ``packed=False`` so per-Gaussian outputs
 keep the input order, and ``render_mode="RGB+D"`` so the extra channel is the
 alpha-weighted depth Σ z·α·T (not the alpha-normalized "ED"). gsplat caps alpha at 0.999
@@ -10,6 +10,8 @@ inside its CUDA kernel, so this backend only accepts ``alpha_max=0.999``.
 from __future__ import annotations
 
 import torch
+
+from omg4.render.rendered import Rendered
 
 GSPLAT_ALPHA_MAX = 0.999
 """The alpha cap hard-coded in gsplat's rasterization kernels."""
@@ -32,7 +34,6 @@ def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height
                          f"got {alpha_max}; use backend='cpu'")
     import gsplat
 
-    from omg4.render.api import Rendered
     from omg4.render.projection import max_radius
 
     like = dict(dtype=torch.float32, device=means.device)
@@ -56,7 +57,6 @@ def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks
     The views' Gaussian sets differ (each is its own time slice), so they cannot share gsplat's
     leading camera axis; ``means2d [N, 2]`` gathers every view's rows and their gradients.
     """
-    from omg4.render.api import Rendered
 
     num_views = viewmats.shape[0]
     if num_views == 1:

@@ -1,8 +1,8 @@
 """EWA projection of 3D Gaussians through a pinhole camera, differentiable by autograd.
 
 Follows gsplat 1.5.3's CUDA projection (``ProjectionEWA3DGSFused.cu``, ``persp_proj`` in
-``Utils.cuh``) so that the CPU and gsplat backends agree (reference notes
-``rasterizer_backends.md``, "Recommendation"; ``rt4dgs_reference.md`` §1.5):
+``Utils.cuh``) so that the CPU and gsplat backends agree (docs/paper-map.md "Rasterizer backends";
+rt4dgs §1.5):
 
 * world → camera with the 4×4 OpenCV ``viewmat``; near/far cull on the view depth
   (kept when ``near ≤ z ≤ far``);

@@ -3,7 +3,7 @@
 Every model kind (the Real-Time4DGS baseline, the models of the OMG4 stages, the decoded
 compact model) exposes ``slice_at(timestamp, camera_center) -> TimeSlice`` (and
 ``slice_views`` for several views in one pass, :func:`render_views`): the 3D
-Gaussians it shows at that time (reference rt4dgs §1.4: conditional mean and covariance,
+Gaussians it shows at that time (rt4dgs §1.4: conditional mean and covariance,
 opacity × temporal marginal, culled where the marginal ≤ 0.05) with view-dependent colours.
 :func:`render_view` rasterizes such a slice through :func:`omg4.render.rasterize`.
 """

@@ -1,6 +1,6 @@
 """Training configuration of the baselines and their presets.
 
-Defaults follow the official Real-Time4DGS configs (reference rt4dgs §3.3–3.6): 30k
+Defaults follow the official Real-Time4DGS configs (rt4dgs §3.3–3.6): 30k
 iterations, densification every 100 iterations from 500 to 15k with gradient threshold
 2e-4, opacity reset every 3000, SH degree +1 every 1000. ``cpu-small`` scales the schedule
 for a 2-core machine and small scenes.

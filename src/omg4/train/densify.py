@@ -1,4 +1,4 @@
-"""Adaptive density control of Real-Time4DGS (reference rt4dgs §3.4).
+"""Adaptive density control of Real-Time4DGS (rt4dgs §3.4).
 
 Statistics: per Gaussian, the mean over the views where it was visible of the norm of
 ∂L_v/∂means2d, in the NDC units of the official code (pixel gradient × (W/2, H/2)), and

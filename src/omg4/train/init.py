@@ -1,4 +1,4 @@
-"""Initial point clouds for baseline training (reference rt4dgs §3.5).
+"""Initial point clouds for baseline training (rt4dgs §3.5).
 
 ``auto`` uses the data's ``points3d.ply`` when present, else plane-sweep stereo for
 multi-view video, else random points inside the cameras' common view volume
@@ -20,41 +20,56 @@ from omg4.train.config import TrainConfig
 
 
 def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str], None] = print) -> PointCloud:
-    """The initial points for ``mode`` in {auto, random, rays, mvs, colmap}.
+    """The initial points for ``mode``, one of :data:`INIT_MODES`."""
+    if mode not in INIT_MODES:
+        raise OMG4Error(f"unknown initialization '{mode}' (choose from {', '.join(INIT_MODES)})")
+    return INIT_MODES[mode](scene, cfg, log)
 
-    ``auto``: the data's ``points3d.ply``; else plane-sweep stereo (on ``cfg.device``) when the first frame has at
+
+def _auto_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
+    """The data's ``points3d.ply``; else plane-sweep stereo (on ``cfg.device``) when the first frame has at
     least three training cameras (multi-view video); else — a monocular scene such as D-NeRF,
-    or a sweep that finds nothing — random points, as the official code does for D-NeRF.
-    """
+    or a sweep that finds nothing — random points, as the official code does for D-NeRF."""
+    if scene.initial_points is not None:
+        return scene.initial_points
+    if len(scene.first_frame_views()) >= 3:
+        try:
+            points = _plane_sweep_points(scene, cfg, log)
+            log(f"initialization: {len(points.xyz)} plane-sweep stereo points of the first frame")
+            return points
+        except DataError as err:
+            log(f"initialization: {err}; using random points")
+    return _random_points(scene, cfg, log)
+
+
+def _random_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
     from omg4.data import random_initial_points
+
+    return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
+
+
+def _ray_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
+    return ray_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
+
+
+def _plane_sweep_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
     from omg4.device import resolve_device
+    from omg4.train.plane_sweep import plane_sweep_points
 
-    if mode == "auto":
-        if scene.initial_points is not None:
-            return scene.initial_points
-        if len(scene.first_frame_views()) >= 3:
-            from omg4.train.plane_sweep import plane_sweep_points
+    return plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed, device=resolve_device(cfg.device))
 
-            try:
-                points = plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed, device=resolve_device(cfg.device))
-                log(f"initialization: {len(points.xyz)} plane-sweep stereo points of the first frame")
-                return points
-            except DataError as err:
-                log(f"initialization: {err}; using random points")
-        return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
-    if mode == "random":
-        return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
-    if mode == "rays":
-        return ray_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
-    if mode == "mvs":
-        from omg4.train.plane_sweep import plane_sweep_points
 
-        return plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed, device=resolve_device(cfg.device))
-    if mode == "colmap":
-        from omg4.train.triangulate import triangulate_first_frame
+def _colmap_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
+    from omg4.train.triangulate import triangulate_first_frame
 
-        return triangulate_first_frame(scene)
-    raise OMG4Error(f"unknown initialization '{mode}'")
+    return triangulate_first_frame(scene)
+
+
+INIT_MODES: dict[str, Callable[[Scene, TrainConfig, Callable[[str], None]], PointCloud]] = {
+    "auto": _auto_points, "random": _random_points, "rays": _ray_points, "mvs": _plane_sweep_points,
+    "colmap": _colmap_points,
+}
+"""Initialization mode → the function that makes its points (see the module docstring)."""
 
 
 def ray_initial_points(scene: Scene, num_points: int, seed: int = 0, near: float = 0.5,

@@ -1,6 +1,6 @@
 """Per-parameter Adam groups, learning-rate schedules and optimizer-state surgery.
 
-Real-Time4DGS (reference rt4dgs §3.3) gives every tensor its own Adam group (eps 1e-15);
+Real-Time4DGS (rt4dgs §3.3) gives every tensor its own Adam group (eps 1e-15);
 the position learning rate decays log-linearly, the others are constant. Densification and
 the OMG4 stages add and remove Gaussians: :func:`keep_rows` and :func:`append_rows` edit the
 parameter tensors *and* their Adam moments together so no stage reaches into another's
@@ -64,9 +64,11 @@ def set_group_lr(optimizer: torch.optim.Optimizer, name: str, lr: float) -> None
         group["lr"] = lr
 
 
-def set_position_lr(optimizer: torch.optim.Optimizer, cfg: TrainConfig, extent: float, step: int) -> float:
-    """Apply the position schedule at ``step``; returns the new xyz learning rate."""
-    lr = expon_lr(step, cfg.position_lr_init * extent, cfg.position_lr_final * extent, cfg.position_lr_max_steps)
+def set_position_lr(optimizer: torch.optim.Optimizer, step: int, *, init: float, final: float, extent: float,
+                    max_steps: int) -> float:
+    """Apply the position schedule (rt4dgs §3.3) at ``step``: the xyz group's learning rate decays
+    log-linearly from ``init · extent`` to ``final · extent`` over ``max_steps``; returns it."""
+    lr = expon_lr(step, init * extent, final * extent, max_steps)
     set_group_lr(optimizer, "xyz", lr)
     return lr
 

@@ -1,7 +1,7 @@
 """Dense first-frame points by plane-sweep stereo (an initialization for scenes without points).
 
-The official pipeline starts from COLMAP multi-view-stereo points of frame 0 (reference
-rt4dgs §3.5: ``patch_match_stereo`` + ``stereo_fusion`` with known poses). This module does
+The official pipeline starts from COLMAP multi-view-stereo points of frame 0
+(rt4dgs §3.5: ``patch_match_stereo`` + ``stereo_fusion`` with known poses). This module does
 the same job with known cameras and no external tool, in the classic form:
 
 1. For every training camera of the first frame (the *reference*), pick its nearest cameras

@@ -1,4 +1,4 @@
-"""The baseline training loop (reference rt4dgs §3; FreeTimeGS with ``TrainConfig.backbone``).
+"""The baseline training loop (rt4dgs §3; FreeTimeGS with ``TrainConfig.backbone``).
 
 Each iteration renders a batch of random (camera, frame) views, back-propagates
 ``loss_v / B`` per view, and takes one Adam step; densification, opacity resets and the SH
@@ -142,7 +142,8 @@ class Trainer:
     def train_step(self, step: int) -> tuple[float, float]:
         """One optimizer step (1-based ``step``); returns (mean loss, mean PSNR) of the batch."""
         cfg, model = self.cfg, self.model
-        set_position_lr(self.optimizer, cfg, self.extent, step)
+        set_position_lr(self.optimizer, step, init=cfg.position_lr_init, final=cfg.position_lr_final,
+                        extent=self.extent, max_steps=cfg.position_lr_max_steps)
         model.active_sh_degree, model.active_sh_degree_t = active_sh_degrees(
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
@@ -224,7 +225,7 @@ class Trainer:
 
 
 def train(scene: Scene, cfg: TrainConfig, run_dir: str | Path, **kwargs) -> TrainResult:
-    """Train the Real-Time4DGS baseline on ``scene`` (see :class:`Trainer`)."""
+    """Train the baseline of ``cfg.backbone`` (Real-Time4DGS or FreeTimeGS) on ``scene`` (see :class:`Trainer`)."""
     return Trainer(scene, cfg, run_dir, **kwargs).run()
 
 

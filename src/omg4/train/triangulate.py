@@ -1,7 +1,7 @@
 """Sparse triangulation of the first frame with pycolmap (``omg4 train --init colmap``).
 
 The official Real-Time4DGS N3DV pipeline starts from COLMAP points of frame 0 of the
-training cameras, computed with the known poses (reference rt4dgs §3.5: feature_extractor
+training cameras, computed with the known poses (rt4dgs §3.5: feature_extractor
 → exhaustive_matcher → point_triangulator, then MVS; §4.1: in the normalized world). This
 module does the sparse part of that with ``pycolmap``, in the scene's normalized world:
 

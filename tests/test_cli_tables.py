@@ -1,0 +1,95 @@
+"""The command line offers exactly what the library's tables hold, with the library's defaults.
+
+Every option with a fixed set of values takes it from a library table; these tests fail
+when a table gains (or loses) an entry the CLI does not offer, or when an option with
+choices appears that no table backs.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from omg4.cli import COMMANDS, _build_parser
+from omg4.codec.entropy import METHODS
+from omg4.compress.pipeline import FULL_STAGES, CompressConfig
+from omg4.compress.presets import PRESETS_BY_BACKBONE
+from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
+from omg4.data.readers import READERS
+from omg4.data.scene import SPLITS
+from omg4.gaussians.backbone import BACKBONES
+from omg4.gaussians.model import SH_DIRECTIONS
+from omg4.render.rendered import BACKENDS
+from omg4.train.config import PRESETS
+from omg4.train.init import INIT_MODES
+
+SCENE = {"--format": READERS}
+DEVICE = {"--backend": BACKENDS}
+TABLES: dict[str, dict[str, object]] = {
+    "demo": {},
+    "synth": {},
+    "info": {**SCENE},
+    "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES},
+    "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
+    "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": METHODS,
+                 "--preset": {name for presets in PRESETS_BY_BACKBONE.values() for name in presets}},
+    "eval": {**SCENE, **DEVICE, "--split": SPLITS},
+    "render": {**SCENE, **DEVICE},
+    "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": METHODS},
+}
+
+
+def _subparser(command: str) -> argparse.ArgumentParser:
+    parser, _ = _build_parser(command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[command]
+
+
+def _options_with_choices(command: str) -> dict[str, argparse.Action]:
+    return {a.option_strings[-1]: a for a in _subparser(command)._actions if a.choices is not None and a.option_strings}
+
+
+def test_every_command_is_covered():
+    assert set(TABLES) == set(COMMANDS)
+
+
+@pytest.mark.parametrize("command", sorted(TABLES))
+def test_choices_are_the_library_tables(command):
+    offered = _options_with_choices(command)
+    assert set(offered) == set(TABLES[command]), "an option with choices that no library table backs, or one missing"
+    for flag, table in TABLES[command].items():
+        assert set(offered[flag].choices) == set(table), f"omg4 {command} {flag}"
+
+
+@pytest.mark.parametrize("command", ["compress", "bench"])
+def test_fine_tuning_defaults_are_the_library_defaults(command):
+    actions = {a.option_strings[-1]: a for a in _subparser(command)._actions if a.option_strings}
+    assert actions["--schedule"].default is None  # omg4.compress.schedule.default_schedule decides, per device
+    assert actions["--batch-size"].default == CompressConfig.batch_size
+    assert actions["--baseline-iterations"].default == CompressConfig.baseline_iterations
+    assert actions["--codec"].default == METHODS[0]
+
+
+def test_compress_stages_default_is_the_full_pipeline():
+    actions = {a.option_strings[-1]: a for a in _subparser("compress")._actions if a.option_strings}
+    assert tuple(actions["--stages"].default.split(",")) == FULL_STAGES
+    assert actions["--seed"].default == CompressConfig.seed and actions["--num-merge"].default == CompressConfig.num_merge
+
+
+@pytest.mark.parametrize("argv", [["train", "DATA", "--out", "RUN"], ["compress", "DATA", "--model", "M", "--out", "F"],
+                                  ["eval", "DATA", "--model", "M"], ["render", "--model", "M", "--data", "DATA",
+                                                                     "--out", "x.png"]])
+def test_white_background_reaches_the_reader(argv, monkeypatch):
+    """``--white-background`` composites the data's RGBA images over white, the colour the command renders on."""
+    import omg4.data
+
+    from omg4.commands.common import background_from_args, load_scene_from_args
+
+    seen = {}
+    monkeypatch.setattr(omg4.data, "load_scene", lambda *a, **kw: seen.update(kw))
+    parser, _ = _build_parser(argv[0])
+    for extra, colour in (([], (0.0, 0.0, 0.0)), (["--white-background"], (1.0, 1.0, 1.0))):
+        args = parser.parse_args(argv + extra)
+        load_scene_from_args(args)
+        assert seen["background"] == colour == background_from_args(args)
