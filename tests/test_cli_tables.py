@@ -20,6 +20,8 @@ from omg4.data.readers import READERS
 from omg4.data.scene import SPLITS
 from omg4.gaussians.backbone import BACKBONES
 from omg4.gaussians.model import SH_DIRECTIONS
+from omg4.io import EXPORT_FORMATS
+from omg4.render.paths import PATHS
 from omg4.render.rendered import BACKENDS
 from omg4.train.config import PRESETS
 from omg4.train.init import INIT_MODES
@@ -35,7 +37,9 @@ TABLES: dict[str, dict[str, object]] = {
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": METHODS,
                  "--preset": {name for presets in PRESETS_BY_BACKBONE.values() for name in presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
-    "render": {**SCENE, **DEVICE},
+    "render": {**SCENE, **DEVICE, "--path": PATHS},
+    "export": {"--format": set(EXPORT_FORMATS.values())},
+    "view": {**DEVICE},
     "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": METHODS},
 }
 

@@ -26,7 +26,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "import-rt4dgs": ("import_rt4dgs", "convert an official Real-Time4DGS checkpoint"),
     "compress": ("compress", "run the OMG4 pipeline and write the compressed .omg4 file"),
     "eval": ("eval", "PSNR, SSIM, LPIPS, FPS, Gaussian count and storage on the test views"),
-    "render": ("render", "render an image (.png/.npy) or a video (.mp4)"),
+    "render": ("render", "render an image (.png/.npy), a video or a free-viewpoint video (.mp4)"),
+    "export": ("export", "a time slice as a 3DGS .ply, or the 4D model as a .splatv for the splaTV web viewer"),
+    "view": ("view", "interactive browser viewer: scrub time, fly the camera (needs the viewer extra: viser)"),
     "bench": ("bench", "ablation and size-preset benchmark on one scene"),
 }
 

@@ -26,7 +26,8 @@ from omg4.render.view import render_view
 def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
     """A render-only model on ``device`` from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file.
 
-    Both come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`).
+    Both come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`) and
+    the file's metadata as ``.meta`` (scene name, time range, normalization).
     """
     path = Path(path)
     if not path.is_file():
@@ -40,8 +41,8 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.gaussians.visibility import WindowedModel
 
-    model = load_gaussians(path, device)[0]
-    return WindowedModel(model.params, model.config, model.active_sh_degree, model.active_sh_degree_t)
+    model, meta = load_gaussians(path, device)
+    return WindowedModel(model.params, model.config, model.active_sh_degree, model.active_sh_degree_t, meta=meta)
 
 
 def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:

@@ -53,8 +53,7 @@ class CompactModel(WindowedModel):
             raise CorruptFileError(f"appearance MLP predicts {appearance.num_rest} SH coefficients, the model "
                                    f"config needs {config.num_coeffs - 1}")
         super().__init__({k: v.to(device) for k, v in values.items()}, config, active_sh_degree, active_sh_degree_t,
-                         appearance)
-        self.meta = meta
+                         appearance, meta=meta)
 
 
 def model_settings(meta: dict) -> tuple[GaussianConfig, int, int]:

@@ -1,4 +1,9 @@
-"""``omg4 render --model M (--data DATA | --camera CAM.json) --time T --out PNG|NPY|MP4``."""
+"""``omg4 render --model M (--data DATA | --camera CAM.json) --time T --out PNG|NPY|MP4 [--path orbit|spiral|dataset]``.
+
+An ``.mp4`` plays the model's time range from one camera, or, with ``--path``, from a camera
+that moves along a path around the reference cameras while time advances (a free-viewpoint
+video; :mod:`omg4.render.paths`).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,7 @@ from pathlib import Path
 
 from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
                                   background_from_args, device_from_args, finite_float, float_in, int_at_least)
+from omg4.render.paths import PATHS
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -24,30 +30,53 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num-frames", type=int_at_least(1),
                    help="frames of an .mp4 (default: the dataset's frame count, or 60)")
     p.add_argument("--fps", type=float_in(0.0, 1000.0), default=30.0, help="frame rate of an .mp4, in (0, 1000]")
+    p.add_argument("--path", choices=list(PATHS),
+                   help="free-viewpoint .mp4: the camera moves while time advances — orbit (a circle around the "
+                        "scene), spiral (forward-facing, around the cameras) or dataset (through the dataset's "
+                        "cameras); reference cameras from --data, or the one --camera")
+    p.add_argument("--time-range", metavar="A:B", help="clip of an .mp4: times from A to B (default: the model's range)")
     add_background_argument(p)
     add_device_arguments(p)
     add_force_argument(p)
 
 
-def _camera(args):
+def _cameras(args):
+    """(the camera to render, the reference cameras of a path, the scene or None)."""
     from omg4.commands.common import load_scene_from_args
     from omg4.data.scene import Camera
     from omg4.errors import OMG4Error
 
     if args.camera is not None:
         try:
-            return Camera.from_json(json.loads(args.camera.read_text())), None
+            camera = Camera.from_json(json.loads(args.camera.read_text())).check_renderable()
         except FileNotFoundError:
             raise OMG4Error(f"camera file {args.camera} does not exist") from None
         except (ValueError, KeyError, TypeError) as e:
             raise OMG4Error(f"{args.camera}: not a camera JSON ({type(e).__name__}: {e})") from None
+        return camera, [camera], None
     scene = load_scene_from_args(args)
     cams = scene.test_cameras() + scene.train_cameras()
     if args.camera_name:
         cams = [c for c in cams if c.name == args.camera_name]
         if not cams:
             raise OMG4Error(f"no camera named '{args.camera_name}' in {args.data}")
-    return cams[0].check_renderable(), scene
+    references = scene.train_cameras() if args.path == "dataset" else scene.test_cameras() + scene.train_cameras()
+    return cams[0].check_renderable(), references, scene
+
+
+def _time_range(text: str | None, model_range: tuple[float, float]) -> tuple[float, float]:
+    from omg4.errors import OMG4Error
+
+    t0, t1 = model_range
+    if not text:
+        return t0, t1
+    try:
+        a, b = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise OMG4Error(f"--time-range expects A:B, got '{text}'") from None
+    if not (t0 <= a < b <= t1):
+        raise OMG4Error(f"--time-range {text} must satisfy {t0:g} <= A < B <= {t1:g} (the model's time range)")
+    return a, b
 
 
 def run(args) -> int:
@@ -71,24 +100,32 @@ def run(args) -> int:
     t0, t1 = model.config.time_range
     if args.time is not None and not t0 <= args.time <= t1:
         raise OMG4Error(f"--time {args.time:g} lies outside the model's time range [{t0:g}, {t1:g}]")
-    camera, scene = _camera(args)
+    if suffix != ".mp4" and (args.path or args.time_range):
+        raise OMG4Error("--path and --time-range make videos: give an --out ending in .mp4")
+    start, end = _time_range(args.time_range, (t0, t1))
+    camera, references, scene = _cameras(args)
     bg = torch.tensor(background_from_args(args), device=device)
 
-    def frame(t: float) -> np.ndarray:
+    def frame(cam, t: float) -> np.ndarray:
         with torch.no_grad():
-            rendered, _ = render_view(model, camera, t, background=bg, backend=args.backend, device=device)
+            rendered, _ = render_view(model, cam, t, background=bg, backend=args.backend, device=device)
         return rendered.image.clamp(0, 1).cpu().numpy()
 
     if suffix == ".mp4":
-        n = args.num_frames or (scene.num_frames if scene is not None and scene.num_frames else 60)
-        times = [t0 + (t1 - t0) * i / n for i in range(n)]
         from tqdm.auto import tqdm
 
-        count = write_video(args.out, (frame(t) for t in tqdm(times, desc="render")), fps=args.fps)
-        print(f"wrote {args.out} ({count} frames, {camera.width}x{camera.height}, camera {camera.name or 'custom'})")
+        from omg4.render.paths import camera_path
+
+        n = args.num_frames or (scene.num_frames if scene is not None and scene.num_frames else 60)
+        times = [start + (end - start) * i / n for i in range(n)]
+        cameras = camera_path(args.path, references, n) if args.path else [camera] * n
+        frames = (frame(c, t) for c, t in tqdm(list(zip(cameras, times)), desc="render"))
+        count = write_video(args.out, frames, fps=args.fps)
+        what = f"{args.path} path" if args.path else f"camera {camera.name or 'custom'}"
+        print(f"wrote {args.out} ({count} frames, {camera.width}x{camera.height}, {what}, t {start:g} to {end:g})")
         return 0
     t = t0 if args.time is None else args.time
-    img = frame(t)
+    img = frame(camera, t)
     (save_png if suffix == ".png" else save_npy)(args.out, img)
     print(f"wrote {args.out} ({camera.width}x{camera.height}, camera {camera.name or 'custom'}, t={t:g})")
     return 0

@@ -20,6 +20,22 @@ MAX_IMAGE_SIDE = 16384
 MAX_PIXELS = 1 << 26  # 8192 x 8192: what one rendered image may hold
 
 
+def look_at_viewmat(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """[4, 4] OpenCV world-to-camera matrix of a camera at ``center`` looking at ``target``.
+
+    Camera axes (the conventions above): x right = fwd × up, y down = fwd × right, z forward.
+    """
+    fwd = (target - center) / np.linalg.norm(target - center)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])  # rows: camera axes in world coordinates
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = R
+    viewmat[:3, 3] = -R @ center
+    return viewmat
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera in the normalized world.

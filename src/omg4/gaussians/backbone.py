@@ -24,8 +24,9 @@ from typing import Callable
 
 import torch
 
-from omg4.gaussians.covariance import SliceGeometry, scaled_rotation_4d, slice_geometry, temporal_variance
-from omg4.gaussians.freetime import duration_variance, slice_geometry_ftgs
+from omg4.gaussians.covariance import (SliceGeometry, covariance_4d, scaled_rotation_4d, slice_geometry,
+                                      temporal_variance)
+from omg4.gaussians.freetime import covariance_3d, duration_variance, slice_geometry_ftgs
 
 SH_REST = "sh_rest"
 """Shape placeholder: the number of SH coefficients after the DC term, K − 1 (from the model config)."""
@@ -111,6 +112,10 @@ class Backbone:
             view's time, with no time input.
         geometry: ``(values, config, timestamps [V]) →`` :class:`SliceGeometry` (conditioning and cull).
         time_variance: ``(values, config) → [N]`` variance in time of each Gaussian's temporal opacity.
+        motion: ``(values, config) → (velocity [N, 3], covariance [N, 3, 3])``: every backbone's Gaussian
+            shows a 3D Gaussian moving linearly through ``xyz`` at time ``t`` with a constant covariance
+            (the conditional mean and Schur complement of rt4dgs §1.4; FreeTimeGS's motion), which the
+            ``.splatv`` export writes exactly.
         sh_degree_t: the temporal SH degree it requires (None: any).
     """
 
@@ -121,6 +126,7 @@ class Backbone:
     mlp_time_input: bool
     geometry: Callable[..., SliceGeometry]
     time_variance: Callable[..., torch.Tensor]
+    motion: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     sh_degree_t: int | None = None
 
     @property
@@ -196,6 +202,13 @@ def _rt4dgs_time_variance(values: dict[str, torch.Tensor], config) -> torch.Tens
                                                 config.rotation_convention))
 
 
+def _rt4dgs_motion(values: dict[str, torch.Tensor], config) -> tuple[torch.Tensor, torch.Tensor]:
+    cov4 = covariance_4d(activated_scales(values), values["rotation"], values["rotation_r"], config.rotation_convention)
+    cov_xt = cov4[:, :3, 3]
+    gain = cov_xt / cov4[:, 3, 3:4]  # Σ12 / Σtt: the velocity of the conditional mean
+    return gain, cov4[:, :3, :3] - gain.unsqueeze(-1) * cov_xt.unsqueeze(-2)
+
+
 def _ftgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Tensor) -> SliceGeometry:
     return slice_geometry_ftgs(values["xyz"], values["t"], values["duration"], values["velocity"], values["scaling"],
                                values["rotation"], timestamps, time_cull=config.time_cull)
@@ -213,6 +226,7 @@ RT4DGS = Backbone(
     mlp_time_input=True,
     geometry=_rt4dgs_geometry,
     time_variance=_rt4dgs_time_variance,
+    motion=_rt4dgs_motion,
 )
 
 _FTGS_ATTRIBUTES = (_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE, _ROTATION,
@@ -228,6 +242,7 @@ FREETIMEGS = Backbone(
     mlp_time_input=False,
     geometry=_ftgs_geometry,
     time_variance=lambda values, config: duration_variance(values["duration"]),
+    motion=lambda values, config: (values["velocity"], covariance_3d(values["scaling"], values["rotation"])),
     sh_degree_t=0,
 )
 

@@ -31,9 +31,9 @@ import torch
 
 from omg4.errors import DataError
 from omg4.gaussians.backbone import BACKBONES, FREETIMEGS, RT4DGS, Backbone, activated_scales, backbone_named
-from omg4.gaussians.covariance import covariance_4d
+from omg4.gaussians.covariance import SliceGeometry, covariance_4d
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
-from omg4.gaussians.sh import colors_from_sh, num_sh_coeffs, rgb_to_sh, view_directions
+from omg4.gaussians.sh import colors_from_sh, fold_time_sh, num_sh_coeffs, rgb_to_sh, sh_to_rgb, view_directions
 from omg4.render.view import TimeSlice, ViewSlicer
 
 if TYPE_CHECKING:
@@ -304,32 +304,87 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
     """
     xyz = values["xyz"]
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
-    times = times64.to(xyz.dtype)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
-    geom = config.schema.geometry(values, config, times)
+    geom = config.schema.geometry(values, config, times64.to(xyz.dtype))
+    coeffs, logit = _appearance(values, config, geom, times64, appearance)
+    origin = geom.means if config.sh_direction == "conditioned" else values["xyz"].index_select(0, geom.index)
+    dirs = view_directions(origin, centers.index_select(0, geom.views))
+    colors = colors_from_sh(coeffs, dirs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size)
+    return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=torch.sigmoid(logit) * geom.marginal,
+                     index=geom.index, num_total=int(xyz.shape[0]), views=geom.views)
+
+
+def _appearance(values: dict[str, torch.Tensor], config: GaussianConfig, geom, times64: torch.Tensor,
+                appearance: "AppearanceMLP | None") -> tuple[torch.Tensor, torch.Tensor]:
+    """(4D SH coefficients [M, K, 3], opacity logits [M]) of the slice's rows ``geom.index``: explicit in
+    ``values``, or predicted by the appearance MLPs (paper §4.4) in one pass for every view."""
     idx = geom.index
 
     def rows(name: str) -> torch.Tensor:
         return values[name].index_select(0, idx)
 
-    if appearance is not None:
-        if config.schema.mlp_time_input:  # canonical position and normalized view time (Real-Time4DGS)
-            t0, t1 = config.time_range
-            t_norm = ((times64 - t0) / (t1 - t0)).to(xyz.dtype)  # normalized in float64, as training did
-            positions, t_rows = rows("xyz"), t_norm.index_select(0, geom.views)
-        else:  # the position at the view's time carries the time (FreeTimeGS)
-            positions, t_rows = geom.means, None
-        dc, rest, logit = appearance.predict(positions, t_rows, rows("f_static"), rows("f_view"))
-        coeffs = torch.cat([dc, rest], dim=1)
-    else:
-        coeffs = torch.cat([rows("features_dc"), rows("features_rest")], dim=1)
-        logit = rows("opacity")[:, 0]
-    origin = geom.means if config.sh_direction == "conditioned" else rows("xyz")
-    dirs = view_directions(origin, centers.index_select(0, geom.views))
-    colors = colors_from_sh(coeffs, dirs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size)
-    return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=torch.sigmoid(logit) * geom.marginal,
-                     index=idx, num_total=int(xyz.shape[0]), views=geom.views)
+    if appearance is None:
+        return torch.cat([rows("features_dc"), rows("features_rest")], dim=1), rows("opacity")[:, 0]
+    if config.schema.mlp_time_input:  # canonical position and normalized view time (Real-Time4DGS)
+        t0, t1 = config.time_range
+        t_norm = ((times64 - t0) / (t1 - t0)).to(values["xyz"].dtype)  # normalized in float64, as training did
+        positions, t_rows = rows("xyz"), t_norm.index_select(0, geom.views)
+    else:  # the position at the view's time carries the time (FreeTimeGS)
+        positions, t_rows = geom.means, None
+    dc, rest, logit = appearance.predict(positions, t_rows, rows("f_static"), rows("f_view"))
+    return torch.cat([dc, rest], dim=1), logit
 
 
-__all__ = ["slice_values", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
+@dataclass
+class StaticSlice:
+    """The plain 3D Gaussians a 4D model shows at one time, view dependence kept as 3D SH.
+
+    Attributes:
+        means: [M, 3]; covars: [M, 3, 3]; opacities: [M] opacity × temporal marginal;
+        sh: [M, (degree+1)², 3] 3D SH coefficients (the 4D time bands folded at τ, rt4dgs §2);
+        index: [M] rows of the model that passed the temporal cull.
+    """
+
+    means: torch.Tensor
+    covars: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    index: torch.Tensor
+
+
+def static_slice(values: dict[str, torch.Tensor], config: GaussianConfig, sh_degree: int, sh_degree_t: int,
+                 timestamp: float, *, appearance: "AppearanceMLP | None" = None) -> StaticSlice:
+    """The 3D Gaussians of raw per-Gaussian ``values`` at ``timestamp`` with 3D SH instead of colours.
+
+    Rendering it as plain 3DGS from any camera gives :func:`slice_values`' image for that camera
+    (with ``sh_direction="conditioned"``: the view direction starts at the conditional mean, as
+    a 3D Gaussian's does). The export formats (``.ply``, ``.splatv``) are written from it.
+    """
+    xyz = values["xyz"]
+    times64 = torch.tensor([float(timestamp)], dtype=torch.float64, device=xyz.device)
+    geom = config.schema.geometry(values, config, times64.to(xyz.dtype))
+    coeffs, logit = _appearance(values, config, geom, times64, appearance)
+    sh = fold_time_sh(coeffs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size)
+    return StaticSlice(means=geom.means, covars=geom.covars, opacities=torch.sigmoid(logit) * geom.marginal, sh=sh,
+                       index=geom.index)
+
+
+def centre_appearance(values: dict[str, torch.Tensor], config: GaussianConfig, sh_degree_t: int, *,
+                      appearance: "AppearanceMLP | None" = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each Gaussian's view-averaged colour and opacity at its own time centre τ = μ_t.
+
+    The view average of SH colours is the DC term (the other bands integrate to zero over the
+    sphere); its temporal bands are folded at Δt = 0. For formats that store one colour per
+    Gaussian (``.splatv``). Returns ``rgb [N, 3]`` clamped to [0, 1] and ``opacity [N]``.
+    """
+    xyz = values["xyz"]
+    rows = torch.arange(xyz.shape[0], device=xyz.device)
+    zeros = torch.zeros(xyz.shape[0], dtype=xyz.dtype, device=xyz.device)
+    centres = SliceGeometry(index=rows, means=xyz, covars=None, marginal=None, dt=zeros, views=rows)
+    coeffs, logit = _appearance(values, config, centres, values["t"][:, 0].double(), appearance)
+    dc = fold_time_sh(coeffs, zeros, config.period, 0, sh_degree_t, band_size=config.band_size)[:, 0]
+    return sh_to_rgb(dc).clamp(0.0, 1.0), torch.sigmoid(logit)
+
+
+__all__ = ["slice_values", "static_slice", "StaticSlice", "centre_appearance", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
            "mean_neighbour_sq_distance"]

@@ -74,8 +74,9 @@ class WindowedModel(ViewSlicer):
     """
 
     def __init__(self, values: dict[str, torch.Tensor], config: GaussianConfig, active_sh_degree: int,
-                 active_sh_degree_t: int, appearance=None, windows: int = DEFAULT_WINDOWS):
+                 active_sh_degree_t: int, appearance=None, windows: int = DEFAULT_WINDOWS, meta: dict | None = None):
         self.values = {k: v.detach() for k, v in values.items()}
+        self.meta = dict(meta or {})  # the file's metadata: scene, time range, normalization, ...
         self.config = config
         self.active_sh_degree = active_sh_degree
         self.active_sh_degree_t = active_sh_degree_t

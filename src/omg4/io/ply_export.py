@@ -15,6 +15,7 @@ numpy only (``plyfile`` is GPL).
 
 from __future__ import annotations
 
+import copy
 import os
 
 import numpy as np
@@ -23,8 +24,8 @@ import torch
 from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import OMG4Error
-from omg4.gaussians.model import Gaussians4D
-from omg4.gaussians.sh import fold_time_sh, rgb_to_sh, sh_basis
+from omg4.gaussians.model import Gaussians4D, StaticSlice, static_slice
+from omg4.gaussians.sh import rgb_to_sh, sh_basis
 from omg4.render.view import TimeSlice
 
 
@@ -123,29 +124,42 @@ def write_3dgs_ply(path: str | os.PathLike, means: np.ndarray, covars: np.ndarra
             f.write(np.ascontiguousarray(columns).tobytes())
 
 
-def export_ply(path: str | os.PathLike, model: Gaussians4D, timestamp: float, *,
-               normalization: Normalization | None = None) -> int:
+def export_ply(path: str | os.PathLike, model, timestamp: float, *, normalization: Normalization | None = None) -> int:
     """Write the time slice of ``model`` at ``timestamp`` as a standard 3DGS ``.ply``.
 
-    The model's active SH degrees are kept (spatial degree → f_rest count; temporal bands
-    folded at τ). With ``normalization`` the output is in the dataset's original world.
-    Returns the number of Gaussians written.
+    ``model``: a :class:`Gaussians4D` or a render-only model (a loaded checkpoint or decoded
+    ``.omg4`` file, :func:`omg4.evaluate.load_model`; its appearance MLPs give the SH). The
+    model's active SH degrees are kept (spatial degree → f_rest count; temporal bands folded
+    at τ). With ``normalization`` the output is in the dataset's original world. Returns the
+    number of Gaussians written.
     """
-    if not np.isfinite(timestamp):
-        raise OMG4Error(f"export time must be finite, got {timestamp}")
-    cfg = model.config
-    p = {k: v.detach().to("cpu", torch.float64) for k, v in model.params.items()}
-    geom = cfg.schema.geometry(p, cfg, torch.tensor([float(timestamp)], dtype=torch.float64))
-    idx = geom.index
-    coeffs = torch.cat([p["features_dc"][idx], p["features_rest"][idx]], dim=1)
-    sh = fold_time_sh(coeffs, geom.dt, cfg.period, model.active_sh_degree, model.active_sh_degree_t,
-                      band_size=cfg.band_size)
-    opacities = torch.sigmoid(p["opacity"][idx, 0]) * geom.marginal
-    means, covars, sh = geom.means.numpy(), geom.covars.numpy(), sh.numpy()
+    sl = slice_in_float64(model, timestamp)
+    means, covars, sh = sl.means.numpy(), sl.covars.numpy(), sl.sh.numpy()
     if normalization is not None:
         means, covars, sh = _to_original_world(means, covars, sh, normalization)
-    write_3dgs_ply(path, means, covars, opacities.numpy(), sh)
-    return int(idx.numel())
+    write_3dgs_ply(path, means, covars, sl.opacities.numpy(), sh)
+    return int(sl.index.numel())
+
+
+def model_in_float64(model) -> tuple[dict[str, torch.Tensor], "torch.nn.Module | None"]:
+    """(per-Gaussian values, appearance MLPs or None) of a :class:`Gaussians4D` or a render-only model, as
+    float64 CPU copies: exports compute in double precision whatever the model's device."""
+    values = model.params if isinstance(model, Gaussians4D) else model.values
+    values = {k: v.detach().to("cpu", torch.float64) for k, v in values.items()}
+    appearance = getattr(model, "appearance", None)
+    if appearance is not None:
+        appearance = copy.deepcopy(appearance).to("cpu", torch.float64)
+    return values, appearance
+
+
+def slice_in_float64(model, timestamp: float) -> StaticSlice:
+    """:func:`~omg4.gaussians.model.static_slice` of ``model`` at ``timestamp``, computed in float64 on the CPU."""
+    if not np.isfinite(timestamp):
+        raise OMG4Error(f"export time must be finite, got {timestamp}")
+    values, appearance = model_in_float64(model)
+    with torch.no_grad():
+        return static_slice(values, model.config, model.active_sh_degree, model.active_sh_degree_t, float(timestamp),
+                            appearance=appearance)
 
 
 def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
@@ -162,4 +176,4 @@ def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
 
 
 __all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "write_3dgs_ply",
-           "export_ply", "export_time_slice_ply"]
+           "export_ply", "export_time_slice_ply", "model_in_float64", "slice_in_float64"]

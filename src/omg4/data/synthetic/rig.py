@@ -9,28 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from omg4.data.scene import Camera
+from omg4.data.scene import Camera, look_at_viewmat
 
 TARGET = np.array([0.0, 0.5, 0.6])  # point every camera looks at
 RIG_RADIUS = 5.0          # horizontal distance of the cameras from TARGET
 RIG_HEIGHT = 1.6          # mean camera height
 FOV_X_DEG = 55.0          # horizontal field of view of every camera
-
-
-def look_at_viewmat(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """[4, 4] OpenCV world-to-camera matrix of a camera at ``center`` looking at ``target``.
-
-    Camera axes (docs/architecture.md §3): x right = fwd × up, y down = fwd × right, z forward.
-    """
-    fwd = (target - center) / np.linalg.norm(target - center)
-    right = np.cross(fwd, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    R = np.stack([right, down, fwd])  # rows: camera axes in world coordinates
-    viewmat = np.eye(4)
-    viewmat[:3, :3] = R
-    viewmat[:3, 3] = -R @ center
-    return viewmat
 
 
 def camera_rig(num_cameras: int, width: int, height: int, rng: np.random.Generator) -> list[Camera]:

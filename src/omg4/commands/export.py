@@ -1,0 +1,125 @@
+"""``omg4 export MODEL --out FILE [--time T | --times A:B:N] [--format ply|splatv] [--original-world]``.
+
+``ply``: the standard 3DGS ``.ply`` of one time slice (or ``--times A:B:N``: N slices from A to
+B, written as ``<stem>_0000.ply``, ``<stem>_0001.ply``, … beside ``--out``) for the 3DGS viewers
+users already have (SuperSplat, PlayCanvas, …): :func:`omg4.io.ply_export.export_ply`.
+``splatv``: the whole 4D model for the splaTV web viewer (:mod:`omg4.io.splatv`), with the
+dataset's cameras as presets when ``--data`` is given. MODEL is a checkpoint or an ``.omg4`` file.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from omg4.commands.common import add_force_argument, finite_float
+from omg4.io import EXPORT_FORMATS
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
+    p.add_argument("--out", required=True, type=Path, help="output file: .ply (a time slice) or .splatv (the 4D model)")
+    p.add_argument("--format", choices=sorted(set(EXPORT_FORMATS.values())),
+                   help="output format (default: from --out's suffix)")
+    when = p.add_mutually_exclusive_group()
+    when.add_argument("--time", type=finite_float, help="ply: the slice's time (default: the start of the time range)")
+    when.add_argument("--times", metavar="A:B:N", help="ply: N slices at evenly spaced times from A to B (inclusive)")
+    p.add_argument("--original-world", action="store_true",
+                   help="ply: write in the dataset's original world (the model file's normalization) instead of "
+                        "the normalized one")
+    p.add_argument("--data", type=Path, help="splatv: dataset folder whose cameras become the viewer's presets "
+                                             "(default: one camera framing the model)")
+    add_force_argument(p)
+
+
+def _times(args, model_range: tuple[float, float]) -> list[float]:
+    from omg4.errors import OMG4Error
+
+    t0, t1 = model_range
+    if args.times is None:
+        t = t0 if args.time is None else args.time
+        if not t0 <= t <= t1:
+            raise OMG4Error(f"--time {t:g} lies outside the model's time range [{t0:g}, {t1:g}]")
+        return [t]
+    try:
+        a, b, n = args.times.split(":")
+        a, b, n = float(a), float(b), int(n)
+    except ValueError:
+        raise OMG4Error(f"--times expects A:B:N (two times and a count), got '{args.times}'") from None
+    if not (t0 <= a <= b <= t1 and n >= 1):
+        raise OMG4Error(f"--times {args.times}: need {t0:g} <= A <= B <= {t1:g} and N >= 1")
+    return [a + (b - a) * i / max(n - 1, 1) for i in range(n)]
+
+
+def _outputs(out: Path, count: int) -> list[Path]:
+    if count == 1:
+        return [out]
+    return [out.with_name(f"{out.stem}_{i:04d}{out.suffix}") for i in range(count)]
+
+
+def run(args) -> int:
+    from omg4.errors import OMG4Error
+    from omg4.outputs import check_outputs
+
+    fmt = args.format or EXPORT_FORMATS.get(args.out.suffix.lower())
+    if fmt is None:
+        raise OMG4Error(f"--out must end in .ply or .splatv (or give --format), got '{args.out.name}'")
+    if fmt == "splatv" and (args.time is not None or args.times or args.original_world):
+        raise OMG4Error("--time, --times and --original-world apply to ply slices; a .splatv holds the whole 4D "
+                        "model in the normalized world")
+    if fmt == "ply" and args.data is not None:
+        raise OMG4Error("--data gives a .splatv its camera presets; a ply slice needs none")
+    if args.times and args.times.count(":") == 2 and args.times.rsplit(":", 1)[1].isdigit():
+        planned = _outputs(args.out, int(args.times.rsplit(":", 1)[1]))
+    else:
+        planned = [args.out]
+    check_outputs({f"--out ({p.name})": p for p in planned}, inputs=[args.model, args.data],
+                  datasets=[args.data] if args.data else [], force=args.force)
+    from omg4.evaluate import load_model
+
+    model = load_model(args.model)
+    if fmt == "splatv":
+        return _export_splatv(args, model)
+    times = _times(args, model.config.time_range)
+    normalization = _normalization(args, model) if args.original_world else None
+    from tqdm.auto import tqdm
+
+    from omg4.io.ply_export import export_ply
+
+    outputs = _outputs(args.out, len(times))
+    counts = [export_ply(path, model, t, normalization=normalization)
+              for path, t in tqdm(list(zip(outputs, times)), desc="export", disable=len(times) == 1)]
+    world = "original" if normalization is not None else "normalized"
+    if len(outputs) == 1:
+        print(f"wrote {outputs[0]} ({counts[0]} Gaussians at t={times[0]:g}, {world} world)")
+    else:
+        print(f"wrote {outputs[0]} … {outputs[-1].name} ({len(outputs)} slices, {min(counts)}–{max(counts)} "
+              f"Gaussians, t {times[0]:g} to {times[-1]:g}, {world} world)")
+    return 0
+
+
+def _normalization(args, model):
+    from omg4.data.scene import Normalization
+    from omg4.errors import OMG4Error
+
+    meta = model.meta.get("normalization")
+    try:
+        return Normalization.from_json(meta)
+    except (KeyError, TypeError, ValueError):
+        raise OMG4Error(f"{args.model} records no scene normalization: cannot write the original world") from None
+
+
+def _export_splatv(args, model) -> int:
+    from omg4.data import load_scene
+    from omg4.io.splatv import export_splatv
+    from omg4.render.paths import bounds_camera
+
+    if args.data is not None:
+        scene = load_scene(args.data, decode=False, progress=False)
+        cameras = scene.test_cameras() + scene.train_cameras()
+    else:
+        cameras = [bounds_camera(model.values["xyz"].cpu().numpy(), 1280, 720)]
+    count = export_splatv(args.out, model, cameras)
+    print(f"wrote {args.out} ({count} Gaussians, {len(cameras)} camera preset{'s' if len(cameras) > 1 else ''}; "
+          "open it in the splaTV viewer)")
+    return 0

@@ -1,0 +1,67 @@
+"""``omg4 export``: a decoded model's time slice as a 3DGS .ply re-renders as plain 3D Gaussians to our 4D
+render; the command's outputs, sequences and refusals."""
+
+import numpy as np
+import pytest
+import torch
+
+from omg4.cli import main
+from omg4.codec import forge
+from omg4.evaluate import load_model
+from omg4.render.api import rasterize
+from omg4.render.paths import bounds_camera
+from omg4.render.view import render_view
+
+from test_ply_export import eval_real_sh, ply_gaussians, read_ply
+
+
+@pytest.fixture(scope="module")
+def omg4_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("export") / "m.omg4"
+    forge.valid_file(path, 400, seed=3, codebook_scale=0.3)
+    return path
+
+
+def test_ply_slice_of_a_decoded_model_renders_like_the_4d_model(omg4_file, tmp_path, capsys):
+    model = load_model(omg4_file)
+    t0, t1 = model.config.time_range
+    tau = t0 + 0.37 * (t1 - t0)
+    assert main(["export", str(omg4_file), "--out", str(tmp_path / "s.ply"), "--time", repr(tau)]) == 0
+    names, v = read_ply(tmp_path / "s.ply")
+    means, cov, opacity, sh = ply_gaussians(names, v)
+    camera = bounds_camera(model.values["xyz"].numpy(), 96, 64)
+    d = means - camera.center
+    colors = np.maximum(eval_real_sh(sh, d / np.linalg.norm(d, axis=1, keepdims=True)) + 0.5, 0)
+    as_3d = rasterize(*(torch.as_tensor(a, dtype=torch.float32) for a in (means, cov, colors, opacity)),
+                      torch.as_tensor(camera.viewmat, dtype=torch.float32),
+                      torch.as_tensor(camera.K, dtype=torch.float32), camera.width, camera.height, backend="cpu")
+    with torch.no_grad():
+        as_4d, sl = render_view(model, camera, tau, backend="cpu")
+    assert len(v) == sl.index.numel() > 50
+    assert as_4d.image.std() > 0.02  # the camera sees the model
+    np.testing.assert_allclose(as_3d.image.numpy(), as_4d.image.numpy(), atol=2e-3)
+    assert f"{len(v)}" in capsys.readouterr().out
+
+
+def test_time_sequence_and_original_world(omg4_file, tmp_path):
+    out = tmp_path / "seq.ply"
+    assert main(["export", str(omg4_file), "--out", str(out), "--times", "0.1:0.9:3"]) == 0
+    files = sorted(tmp_path.glob("seq_*.ply"))
+    assert [f.name for f in files] == ["seq_0000.ply", "seq_0001.ply", "seq_0002.ply"]
+    assert not out.exists()
+    first, last = read_ply(files[0])[1], read_ply(files[-1])[1]
+    assert not np.array_equal(first["x"][:10], last["x"][:10]) or len(first) != len(last)  # time moved the slice
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--out", "x.obj"], "must end in .ply or .splatv"),
+    (["--out", "x.splatv", "--time", "0.5"], "apply to ply slices"),
+    (["--out", "x.ply", "--times", "0:1"], "expects A:B:N"),
+    (["--out", "x.ply", "--time", "99"], "outside the model's time range"),
+])
+def test_bad_requests_are_one_line_errors(omg4_file, tmp_path, capsys, argv, message):
+    argv = [a if not a.startswith("x.") else str(tmp_path / a) for a in argv]
+    assert main(["export", str(omg4_file), *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not list(tmp_path.iterdir())

@@ -1,0 +1,99 @@
+"""Camera paths of free-viewpoint videos: geometry of orbit, spiral and dataset paths; ``omg4 render --path``."""
+
+import json
+
+import av
+import numpy as np
+import pytest
+
+from omg4.cli import main
+from omg4.codec import forge
+from omg4.data.scene import Camera, look_at_viewmat
+from omg4.errors import OMG4Error
+from omg4.render.paths import bounds_camera, camera_path
+
+K = np.array([[80.0, 0.0, 40.0], [0.0, 80.0, 30.0], [0.0, 0.0, 1.0]])
+FOCUS = np.array([0.3, -0.2, 0.5])
+
+
+def rig(n=6):
+    """Cameras on an arc (radius 4, heights 1.0–1.5) in front of FOCUS, all looking at it, +z up."""
+    cams = []
+    for i, a in enumerate(np.linspace(-0.6, 0.6, n)):
+        centre = FOCUS + np.array([4 * np.sin(a), -4 * np.cos(a), 1.0 + 0.1 * i])
+        cams.append(Camera(K=K, viewmat=look_at_viewmat(centre, FOCUS), width=80, height=60, name=f"cam{i:02d}"))
+    return cams
+
+
+def projects_to_centre(cam, point):
+    p = cam.viewmat[:3, :3] @ point + cam.viewmat[:3, 3]
+    return p[2] > 0 and np.allclose((cam.K @ (p / p[2]))[:2], [40.0, 30.0], atol=1e-6)
+
+
+def test_orbit_circles_the_focus_at_the_rigs_distance_and_height():
+    cams = rig()
+    path = camera_path("orbit", cams, 12)
+    up = -np.sum([c.viewmat[1, :3] for c in cams], axis=0)  # "up" as the normalized world defines it
+    up /= np.linalg.norm(up)
+    rig_offsets = np.stack([c.center for c in cams]) - FOCUS
+    rig_heights = rig_offsets @ up
+    rig_radius = np.linalg.norm(rig_offsets - rig_heights[:, None] * up, axis=1).mean()
+    offsets = np.stack([c.center for c in path]) - FOCUS
+    heights = offsets @ up
+    horizontal = offsets - heights[:, None] * up
+    assert np.allclose(heights, rig_heights.mean(), atol=1e-9)
+    assert np.allclose(np.linalg.norm(horizontal, axis=1), rig_radius, atol=1e-9)
+    steps = [np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1, 1))
+             for a, b in zip(horizontal, np.roll(horizontal, -1, axis=0))]
+    assert np.allclose(steps, np.pi / 6)  # a full turn in equal steps
+    assert all(projects_to_centre(c, FOCUS) for c in path)
+    assert all(np.allclose(c.K, K) and (c.width, c.height) == (80, 60) for c in path)
+
+
+def test_spiral_stays_around_the_mean_camera_facing_the_focus():
+    cams = rig()
+    path = camera_path("spiral", cams, 16)
+    mean = np.mean([c.center for c in cams], axis=0)
+    spread = max(np.linalg.norm(c.center - mean) for c in cams)
+    centres = np.stack([c.center for c in path])
+    assert np.all(np.linalg.norm(centres - mean, axis=1) <= spread + 1e-9)
+    assert np.ptp(centres, axis=0).max() > 0.5 * spread  # it moves
+    assert all(projects_to_centre(c, FOCUS) for c in path)
+
+
+def test_dataset_path_runs_through_the_cameras_in_azimuth_order():
+    cams = rig()
+    shuffled = [cams[i] for i in (3, 0, 5, 1, 4, 2)]
+    path = camera_path("dataset", shuffled, 11)  # 11 frames: cameras every 2 frames
+    for k, cam in enumerate(cams):
+        np.testing.assert_allclose(path[2 * k].viewmat, cam.viewmat, atol=1e-9)
+    with pytest.raises(OMG4Error, match="at least two cameras"):
+        camera_path("dataset", cams[:1], 5)
+
+
+def test_bounds_camera_frames_the_points():
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(500, 3)) * 0.5 + FOCUS
+    cam = bounds_camera(xyz, 64, 48)
+    p = xyz @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
+    uv = (p @ cam.K.T)[:, :2] / p[:, 2:]
+    inside = (p[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 64) & (uv[:, 1] >= 0) & (uv[:, 1] < 48)
+    assert inside.mean() > 0.8
+
+
+def test_render_path_writes_a_moving_video(tmp_path):
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, 300, seed=2, codebook_scale=0.3)
+    from omg4.evaluate import load_model
+
+    camera = bounds_camera(load_model(model).values["xyz"].numpy(), 64, 48)
+    (tmp_path / "cam.json").write_text(json.dumps(camera.to_json()))
+    out = tmp_path / "orbit.mp4"
+    assert main(["render", "--model", str(model), "--camera", str(tmp_path / "cam.json"), "--path", "orbit",
+                 "--num-frames", "6", "--time-range", "0.2:0.8", "--out", str(out)]) == 0
+    with av.open(str(out)) as container:
+        frames = [f.to_ndarray(format="rgb24").astype(float) for f in container.decode(video=0)]
+    assert len(frames) == 6 and frames[0].shape == (48, 64, 3)
+    assert np.abs(frames[0] - frames[3]).mean() > 1.0  # half an orbit later the view differs
+    assert main(["render", "--model", str(model), "--camera", str(tmp_path / "cam.json"), "--path", "orbit",
+                 "--out", str(tmp_path / "x.png")]) == 2
