@@ -39,7 +39,7 @@ TABLES: dict[str, dict[str, object]] = {
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE, "--path": PATHS},
     "export": {"--format": set(EXPORT_FORMATS.values())},
-    "view": {**DEVICE},
+    "view": {**SCENE, **DEVICE},
     "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": METHODS},
 }
 

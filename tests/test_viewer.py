@@ -21,8 +21,12 @@ from omg4.cli import main
 from omg4.codec import forge
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-viser = pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 TIMEOUT_S = 60
+
+
+@pytest.fixture
+def viser():
+    return pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 
 
 def _free_port() -> int:
@@ -90,7 +94,7 @@ def _scene_pixels(image: Image.Image) -> np.ndarray:
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium to drive (Debian package 'chromium')")
-def test_the_page_shows_frames_and_follows_the_time_slider(model_file, tmp_path):
+def test_the_page_shows_frames_and_follows_the_time_slider(viser, model_file, tmp_path):
     from omg4.evaluate import load_model
     from omg4.viewer import Viewer, ViewerSettings, view_presets
 
@@ -116,7 +120,7 @@ def test_the_page_shows_frames_and_follows_the_time_slider(model_file, tmp_path)
         viewer.stop()
 
 
-def test_a_busy_port_is_a_one_line_error(model_file, capsys):
+def test_a_busy_port_is_a_one_line_error(viser, model_file, capsys):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
@@ -126,7 +130,7 @@ def test_a_busy_port_is_a_one_line_error(model_file, capsys):
     assert f"cannot serve the viewer on 127.0.0.1:{port}" in err and err.count("\n") == 1
 
 
-def test_a_missing_model_is_a_one_line_error(tmp_path, capsys):
+def test_a_missing_model_is_a_one_line_error(viser, tmp_path, capsys):
     assert main(["view", str(tmp_path / "none.omg4"), "--port", str(_free_port())]) == 2
     err = capsys.readouterr().err
     assert "does not exist" in err and err.count("\n") == 1
@@ -148,3 +152,8 @@ def test_camera_from_pose_inverts_a_cameras_pose():
     np.testing.assert_allclose(again.K, K, atol=1e-9)
     portrait = camera_from_pose(c2w[:3, 3], wxyz, fov_y, 0.5, 640)
     assert (portrait.width, portrait.height) == (320, 640)
+    from omg4.errors import OMG4Error
+
+    for aspect, fov in ((0.0, fov_y), (float("nan"), fov_y), (1.5, 0.0)):
+        with pytest.raises(OMG4Error, match="degenerate camera"):
+            camera_from_pose(c2w[:3, 3], wxyz, fov, aspect, 640)

@@ -6,9 +6,11 @@ browser's camera, and the image is sent as the page's background (JPEG). The pan
 slider with play/pause, speed and loop; camera presets (the dataset's cameras, or an orbit
 around the model's bounds, :mod:`omg4.render.paths`); and the model's Gaussian count, file
 size, the fraction of Gaussians visible at the current time and the measured render rate.
-While the camera moves, frames are rendered at :attr:`ViewerSettings.moving_long_side`
-pixels on the long side; once it has rested for :attr:`ViewerSettings.settle_s` one frame at
-:attr:`ViewerSettings.long_side` follows.
+While the camera moves or the clip plays, frames are rendered at
+:attr:`ViewerSettings.moving_long_side` pixels on the long side; once the camera has rested for
+:attr:`ViewerSettings.settle_s` and the clip is paused, one frame at
+:attr:`ViewerSettings.long_side` follows. A frame that fails to render is reported in the panel
+and on the console; the viewer keeps serving.
 """
 
 from __future__ import annotations
@@ -21,8 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from omg4.data.scene import Camera
+from omg4.data.scene import Camera, world_to_camera
 from omg4.errors import OMG4Error
+from omg4.io.images import to_uint8
+from omg4.render.paths import UP, scene_focus
 from omg4.render.view import render_view
 
 PLAY_SECONDS = 5.0
@@ -36,7 +40,7 @@ class ViewerSettings:
     host: str = "127.0.0.1"
     port: int = 8080
     long_side: int = 640  # pixels on the long side of a still frame
-    moving_long_side: int = 320  # while the camera moves
+    moving_long_side: int = 320  # while the camera moves or the clip plays
     settle_s: float = 0.25  # a camera at rest this long gets a full-resolution frame
     jpeg_quality: int = 85
     backend: str = "auto"
@@ -44,8 +48,12 @@ class ViewerSettings:
 
 
 def check_port_free(host: str, port: int) -> None:
-    """Raise a one-line :class:`OMG4Error` when ``host:port`` cannot be bound (busy, or not ours)."""
+    """Raise a one-line :class:`OMG4Error` when ``host:port`` cannot be bound (a live listener, or not ours).
+
+    Binds with ``SO_REUSEADDR`` as the server will, so a port left in TIME_WAIT by a viewer that just
+    stopped counts as free."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError as e:
@@ -58,24 +66,24 @@ def render_frame(model, camera: Camera, timestamp: float, *, background: torch.T
     """(uint8 image [H, W, 3], fraction of the model's Gaussians drawn) of ``camera`` at ``timestamp``."""
     with torch.no_grad():
         rendered, sl = render_view(model, camera, timestamp, background=background, backend=backend, device=device)
-    image = (rendered.image.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
-    return image, sl.index.numel() / max(model.num_gaussians, 1)
+    return to_uint8(rendered.image.cpu().numpy()), sl.index.numel() / max(model.num_gaussians, 1)
 
 
 def camera_from_pose(position: np.ndarray, wxyz: np.ndarray, fov_y: float, aspect: float, long_side: int) -> Camera:
     """An OpenCV :class:`Camera` from a viser client pose (camera-to-world ``[R(wxyz) | position]``, OpenCV
-    axes), its vertical field of view and the canvas aspect, ``long_side`` pixels on the longer side."""
+    axes), its vertical field of view and the canvas aspect, ``long_side`` pixels on the longer side.
+    Raises :class:`OMG4Error` for a degenerate pose (zero or non-finite aspect or field of view)."""
     from scipy.spatial.transform import Rotation
 
+    if not (np.isfinite(aspect) and aspect > 0 and np.isfinite(fov_y) and 0 < fov_y < np.pi):
+        raise OMG4Error(f"the browser reported a degenerate camera (aspect {aspect}, field of view {fov_y})")
     width, height = (long_side, max(1, round(long_side / aspect))) if aspect >= 1 else \
         (max(1, round(long_side * aspect)), long_side)
     R = Rotation.from_quat(np.asarray(wxyz, float)[[1, 2, 3, 0]]).as_matrix()
-    viewmat = np.eye(4)
-    viewmat[:3, :3] = R.T
-    viewmat[:3, 3] = -R.T @ np.asarray(position, float)
     fy = 0.5 * height / np.tan(0.5 * fov_y)
     K = np.array([[fy, 0.0, width / 2], [0.0, fy, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(K=K, viewmat=viewmat, width=int(width), height=int(height), name="viewer")
+    return Camera(K=K, viewmat=world_to_camera(R, position), width=int(width), height=int(height),
+                  name="viewer").check_renderable()
 
 
 class Viewer:
@@ -100,6 +108,8 @@ class Viewer:
         self.time_range = (float(t0), float(t1))
         self.frames_sent = 0
         self.render_ms = float("nan")
+        self.last_error: str | None = None
+        self.focus = scene_focus(self.presets)  # where the orbit controls pivot
         self._moved_at: dict[int, float] = {}
         self._sharp: set[int] = set()
         self._lock = threading.Lock()
@@ -115,6 +125,7 @@ class Viewer:
         self.stats = gui.add_markdown("")
         self.file_bytes = file_bytes
         self.time_slider.on_update(lambda _: self._refresh_all())
+        self.playing.on_update(lambda _: self._refresh_all())  # pausing sharpens the last frame
         self.preset.on_update(lambda _: self._apply_preset_to_all())
         self.server.on_client_connect(self._on_connect)
         self._thread = threading.Thread(target=self._loop, name="omg4-viewer", daemon=True)
@@ -131,9 +142,9 @@ class Viewer:
         c2w = cam.camtoworld
         with client.atomic():
             client.camera.fov = float(2.0 * np.arctan(0.5 * cam.height / cam.K[1, 1]))
-            client.camera.up_direction = -c2w[:3, 1]
+            client.camera.up_direction = UP
             client.camera.position = c2w[:3, 3]
-            client.camera.look_at = c2w[:3, 3] + c2w[:3, 2]
+            client.camera.look_at = self.focus
 
     def _apply_preset_to_all(self) -> None:
         for client in self.server.get_clients().values():
@@ -175,7 +186,10 @@ class Viewer:
             last = now
             busy = False
             for client in list(self.server.get_clients().values()):
-                busy |= self._serve(client)
+                try:
+                    busy |= self._serve(client)
+                except Exception as e:  # noqa: BLE001 — one bad frame must not stop the viewer
+                    self._report(f"frame not rendered: {type(e).__name__}: {e}")
             if not busy:
                 time.sleep(0.01)
 
@@ -189,16 +203,16 @@ class Viewer:
             moving = time.perf_counter() - moved_at < self.settings.settle_s
             if not (moving or self.playing.value or cid not in self._sharp):
                 return False
-            if not moving:
+            if not (moving or self.playing.value):
                 self._sharp.add(cid)
         cam = client.camera
-        try:
-            long_side = self.settings.moving_long_side if moving or self.playing.value else self.settings.long_side
-            camera = camera_from_pose(cam.position, cam.wxyz, cam.fov, cam.aspect, long_side)
-        except AssertionError:  # the browser has not reported its camera yet
+        if cam.update_timestamp == 0.0:  # the browser has not reported its camera yet
             with self._lock:
                 self._sharp.discard(cid)
             return False
+        playing = bool(self.playing.value)
+        camera = camera_from_pose(cam.position, cam.wxyz, cam.fov, cam.aspect,
+                                  self.settings.moving_long_side if moving or playing else self.settings.long_side)
         start = time.perf_counter()
         image, visible = self.render(camera, float(self.time_slider.value))
         ms = 1000 * (time.perf_counter() - start)
@@ -208,7 +222,15 @@ class Viewer:
         self.stats.content = (f"**{self.model.num_gaussians:,}** Gaussians · **{self.file_bytes / 2**20:.2f} MB**  \n"
                               f"visible now: {100 * visible:.0f} %  \n"
                               f"render: {1000 / self.render_ms:.1f} FPS at {camera.width}×{camera.height}")
+        self.last_error = None
         return True
+
+    def _report(self, message: str) -> None:
+        if message != self.last_error:
+            print(f"omg4 view: {message}", flush=True)
+            self.stats.content = f"**{message}**"
+        self.last_error = message
+        time.sleep(0.2)
 
     def stop(self) -> None:
         """Stop rendering and shut the server down."""

@@ -43,20 +43,40 @@ def test_ply_slice_of_a_decoded_model_renders_like_the_4d_model(omg4_file, tmp_p
     assert f"{len(v)}" in capsys.readouterr().out
 
 
-def test_time_sequence_and_original_world(omg4_file, tmp_path):
+def test_time_sequence(omg4_file, tmp_path):
     out = tmp_path / "seq.ply"
     assert main(["export", str(omg4_file), "--out", str(out), "--times", "0.1:0.9:3"]) == 0
     files = sorted(tmp_path.glob("seq_*.ply"))
     assert [f.name for f in files] == ["seq_0000.ply", "seq_0001.ply", "seq_0002.ply"]
     assert not out.exists()
-    first, last = read_ply(files[0])[1], read_ply(files[-1])[1]
-    assert not np.array_equal(first["x"][:10], last["x"][:10]) or len(first) != len(last)  # time moved the slice
+    for f, tau in zip(files, (0.1, 0.5, 0.9)):
+        assert main(["export", str(omg4_file), "--out", str(tmp_path / "one.ply"), "--time", str(tau), "--force"]) == 0
+        assert (tmp_path / "one.ply").read_bytes() == f.read_bytes()
+
+
+def test_original_world_undoes_the_files_normalization(omg4_file, tmp_path):
+    """x_norm = s (R x + t): the original-world slice maps back through the normalization the file records."""
+    header, sections = forge._split(omg4_file.read_bytes())
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    header["meta"]["normalization"] = {"scale": 2.0, "rotation": R.tolist(), "translation": [0.5, -1.0, 2.0]}
+    moved = tmp_path / "moved.omg4"
+    moved.write_bytes(forge._assemble(header, sections))
+    assert main(["export", str(moved), "--out", str(tmp_path / "n.ply"), "--time", "0.4"]) == 0
+    assert main(["export", str(moved), "--out", str(tmp_path / "o.ply"), "--time", "0.4", "--original-world"]) == 0
+    names, norm = read_ply(tmp_path / "n.ply")
+    _, orig = read_ply(tmp_path / "o.ply")
+    x_norm, x_orig = (np.stack([v[k] for k in "xyz"], 1).astype(np.float64) for v in (norm, orig))
+    np.testing.assert_allclose(2.0 * (x_orig @ R.T + [0.5, -1.0, 2.0]), x_norm, atol=1e-5)
+    cov_norm, cov_orig = ply_gaussians(names, norm)[1], ply_gaussians(names, orig)[1]
+    np.testing.assert_allclose(4.0 * R @ cov_orig @ R.T, cov_norm, rtol=1e-4, atol=1e-7)
+    assert main(["export", str(omg4_file), "--out", str(tmp_path / "x.ply"), "--original-world"]) == 0
 
 
 @pytest.mark.parametrize("argv, message", [
     (["--out", "x.obj"], "must end in .ply or .splatv"),
     (["--out", "x.splatv", "--time", "0.5"], "apply to ply slices"),
     (["--out", "x.ply", "--times", "0:1"], "expects A:B:N"),
+    (["--out", "x.ply", "--times", "0:1:0"], "1 <= N"),
     (["--out", "x.ply", "--time", "99"], "outside the model's time range"),
 ])
 def test_bad_requests_are_one_line_errors(omg4_file, tmp_path, capsys, argv, message):

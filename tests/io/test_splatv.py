@@ -97,7 +97,10 @@ def test_the_viewer_reproduces_every_time_slice(make, tmp_path):
         sl = model.slice_at(tau, torch.zeros(3, dtype=torch.float64))
         rows = {int(i): k for k, i in enumerate(sl.index)}
         shown = [j for j, g in enumerate(order) if g in rows]
-        assert len(shown) == len(rows) > 5  # the viewer shows every Gaussian our cull keeps
+        assert len(shown) == len(rows) > 5
+        dt = (tau - T0) / (T1 - T0) - f["trbf"][:n, 0]
+        temporal = np.exp(-((dt / f["trbf"][:n, 1]) ** 2))
+        assert np.all(temporal[shown] >= 0.02)  # splaTV's own cull keeps every Gaussian ours keeps
         ours = [rows[order[j]] for j in shown]
         np.testing.assert_allclose(pos[shown], sl.means[ours].numpy(), atol=5e-3, rtol=2e-3)  # fp16 velocity
         expected = sl.covars[ours].numpy()  # fp16 quaternions and scales: errors of a few 1e-4 of each matrix's size
@@ -144,6 +147,10 @@ def test_library_reader_agrees_with_the_independent_parser_and_refuses_other_fil
     means, _, _, opacities = splatv_state(ours, 0.5, min_opacity=0.0)
     np.testing.assert_allclose(means, pos)
     np.testing.assert_allclose(opacities, opacity)
-    (tmp_path / "bad.splatv").write_bytes(b"\x00" * 64)
-    with pytest.raises(CorruptFileError, match="not a .splatv file"):
+    good = (tmp_path / "m.splatv").read_bytes()
+    (tmp_path / "bad.splatv").write_bytes(b"\x00\x00" + good[2:])  # valid JSON, wrong magic
+    with pytest.raises(CorruptFileError, match="no 0x674B magic"):
         library_read(tmp_path / "bad.splatv")
+    (tmp_path / "short.splatv").write_bytes(good[:-64])  # one record short
+    with pytest.raises(CorruptFileError, match="texture bytes"):
+        library_read(tmp_path / "short.splatv")

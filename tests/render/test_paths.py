@@ -31,23 +31,25 @@ def projects_to_centre(cam, point):
 
 
 def test_orbit_circles_the_focus_at_the_rigs_distance_and_height():
-    cams = rig()
-    path = camera_path("orbit", cams, 12)
-    up = -np.sum([c.viewmat[1, :3] for c in cams], axis=0)  # "up" as the normalized world defines it
-    up /= np.linalg.norm(up)
-    rig_offsets = np.stack([c.center for c in cams]) - FOCUS
-    rig_heights = rig_offsets @ up
-    rig_radius = np.linalg.norm(rig_offsets - rig_heights[:, None] * up, axis=1).mean()
+    path = camera_path("orbit", rig(), 12)
     offsets = np.stack([c.center for c in path]) - FOCUS
-    heights = offsets @ up
-    horizontal = offsets - heights[:, None] * up
-    assert np.allclose(heights, rig_heights.mean(), atol=1e-9)
-    assert np.allclose(np.linalg.norm(horizontal, axis=1), rig_radius, atol=1e-9)
-    steps = [np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1, 1))
-             for a, b in zip(horizontal, np.roll(horizontal, -1, axis=0))]
-    assert np.allclose(steps, np.pi / 6)  # a full turn in equal steps
+    assert np.allclose(np.linalg.norm(offsets[:, :2], axis=1), 4.0, atol=1e-9)  # the rig's horizontal radius
+    assert np.allclose(offsets[:, 2], np.mean(1.0 + 0.1 * np.arange(6)), atol=1e-9)  # its mean height, +z up
+    angles = np.unwrap(np.arctan2(offsets[:, 1], offsets[:, 0]))
+    assert np.allclose(np.diff(angles), np.diff(angles)[0]) and abs(np.diff(angles)[0]) == pytest.approx(np.pi / 6)
     assert all(projects_to_centre(c, FOCUS) for c in path)
     assert all(np.allclose(c.K, K) and (c.width, c.height) == (80, 60) for c in path)
+
+
+def test_orbit_around_one_pitched_camera_stays_level():
+    """One camera looking down: the orbit still circles the vertical (+z), at the camera's height."""
+    cam = rig()[0]
+    focus = cam.center + np.linalg.norm(cam.center) * cam.viewmat[2, :3]  # in front, at its distance from 0
+    path = camera_path("orbit", [cam], 8)
+    assert np.allclose([c.center[2] for c in path], cam.center[2], atol=1e-9)
+    assert np.allclose([np.linalg.norm((c.center - focus)[:2]) for c in path],
+                       np.linalg.norm((cam.center - focus)[:2]), atol=1e-9)
+    assert all(projects_to_centre(c, focus) for c in path)
 
 
 def test_spiral_stays_around_the_mean_camera_facing_the_focus():
@@ -69,6 +71,8 @@ def test_dataset_path_runs_through_the_cameras_in_azimuth_order():
         np.testing.assert_allclose(path[2 * k].viewmat, cam.viewmat, atol=1e-9)
     with pytest.raises(OMG4Error, match="at least two cameras"):
         camera_path("dataset", cams[:1], 5)
+    with pytest.raises(OMG4Error, match="at least two cameras"):
+        camera_path("spiral", cams[:1], 5)
 
 
 def test_bounds_camera_frames_the_points():

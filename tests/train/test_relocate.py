@@ -51,9 +51,12 @@ def test_relocation_keeps_the_budget_and_moves_only_dead_gaussians():
         assert len(sources) == 1
         j = sources[0]
         torch.testing.assert_close(after["scaling"][i], before["scaling"][j] - shrink)
-        R = build_rotation_3d(before["rotation"][j:j + 1])[0]
-        eps = (R.T @ (after["xyz"][i] - before["xyz"][j])) / before["scaling"][j].exp()
+        assert 0.0 <= float(after["t"][i]) <= 1.0  # inside the clip
         eps_t = (after["t"][i] - before["t"][j]) / before["duration"][j].exp()
+        # on the target's trajectory at the copy's time, plus a draw from the target's spatial footprint
+        on_path = before["xyz"][j] + before["velocity"][j] * (after["t"][i] - before["t"][j])
+        R = build_rotation_3d(before["rotation"][j:j + 1])[0]
+        eps = (R.T @ (after["xyz"][i] - on_path)) / before["scaling"][j].exp()
         assert 0 < float(eps.norm()) < 6 and 0 < float(eps_t.abs()) < 6
     # the k + 1 copies keep the target's peak opacity where they overlap: 1 − Π(1 − σ') = σ
     sigma = torch.sigmoid(before["opacity"][:, 0])
@@ -66,6 +69,16 @@ def test_relocation_keeps_the_budget_and_moves_only_dead_gaussians():
     for i in range(n):
         zero = bool((state["exp_avg"][i] == 0).all())
         assert zero == (i in changed)
+
+
+def test_copies_of_long_lived_gaussians_stay_in_the_clip():
+    n, dead = 40, list(range(0, 40, 2))
+    model = _model(n, dead)
+    with torch.no_grad():
+        model.params["duration"][:] = 12.0  # s = e^12: practically static, centre anywhere
+    relocate(model, None, DensifyStats(n), min_opacity=0.005, generator=torch.Generator().manual_seed(2))
+    t = model.params["t"].detach()[dead]
+    assert float(t.min()) >= 0.0 and float(t.max()) <= 1.0 and float(t.std()) > 0.1
 
 
 def test_nothing_moves_without_dead_gaussians():

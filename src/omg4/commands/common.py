@@ -46,6 +46,18 @@ def float_in(low: float, high: float, *, low_open: bool = True, high_open: bool 
 positive_float = float_in(0.0, math.inf, high_open=True)
 
 
+def int_in(low: int, high: int):
+    """An argparse type: an integer in [``low``, ``high``]."""
+    at_least = int_at_least(low)
+
+    def parse(text: str) -> int:
+        value = at_least(text)
+        if value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {value}")
+        return value
+    return parse
+
+
 def add_force_argument(p: argparse.ArgumentParser) -> None:
     """``--force``: let outputs replace existing files inside a dataset folder (see :mod:`omg4.outputs`)."""
     p.add_argument("--force", action="store_true",
@@ -132,14 +144,15 @@ def background_from_args(args) -> tuple[float, float, float]:
     return (1.0, 1.0, 1.0) if getattr(args, "white_background", False) else (0.0, 0.0, 0.0)
 
 
-def load_scene_from_args(args):
+def load_scene_from_args(args, *, decode: bool = True):
     """The scene named by ``args.data`` with the reader options of :func:`add_scene_arguments`, its RGBA
-    images composited over the background of :func:`background_from_args`."""
+    images composited over the background of :func:`background_from_args` (``decode=False``: cameras and
+    times only, no frame decoded)."""
     from omg4.data import load_scene
 
     cameras = [c.strip() for c in args.cameras.split(",")] if getattr(args, "cameras", None) else None
     return load_scene(args.data, format=args.format, downscale=args.downscale, frames=parse_frames(args.frames),
-                      cameras=cameras, background=background_from_args(args))
+                      cameras=cameras, background=background_from_args(args), decode=decode, progress=decode)
 
 
 def printable(value: object) -> str:

@@ -12,8 +12,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from omg4.commands.common import add_force_argument, finite_float
 from omg4.io import EXPORT_FORMATS
+
+MAX_SLICES = 100_000
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -32,22 +36,34 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_force_argument(p)
 
 
-def _times(args, model_range: tuple[float, float]) -> list[float]:
+def _requested_times(args) -> tuple[float, float, int] | None:
+    """``--times A:B:N`` parsed (one-line error when malformed), or None."""
     from omg4.errors import OMG4Error
 
-    t0, t1 = model_range
     if args.times is None:
-        t = t0 if args.time is None else args.time
-        if not t0 <= t <= t1:
-            raise OMG4Error(f"--time {t:g} lies outside the model's time range [{t0:g}, {t1:g}]")
-        return [t]
+        return None
     try:
         a, b, n = args.times.split(":")
         a, b, n = float(a), float(b), int(n)
     except ValueError:
         raise OMG4Error(f"--times expects A:B:N (two times and a count), got '{args.times}'") from None
-    if not (t0 <= a <= b <= t1 and n >= 1):
-        raise OMG4Error(f"--times {args.times}: need {t0:g} <= A <= B <= {t1:g} and N >= 1")
+    if not (np.isfinite(a) and np.isfinite(b) and a <= b and 1 <= n <= MAX_SLICES):
+        raise OMG4Error(f"--times {args.times}: need finite A <= B and 1 <= N <= {MAX_SLICES}")
+    return a, b, n
+
+
+def _times(args, requested: tuple[float, float, int] | None, model_range: tuple[float, float]) -> list[float]:
+    from omg4.errors import OMG4Error
+
+    t0, t1 = model_range
+    if requested is None:
+        t = t0 if args.time is None else args.time
+        if not t0 <= t <= t1:
+            raise OMG4Error(f"--time {t:g} lies outside the model's time range [{t0:g}, {t1:g}]")
+        return [t]
+    a, b, n = requested
+    if not (t0 <= a and b <= t1):
+        raise OMG4Error(f"--times {args.times}: the times must lie in the model's time range [{t0:g}, {t1:g}]")
     return [a + (b - a) * i / max(n - 1, 1) for i in range(n)]
 
 
@@ -69,10 +85,8 @@ def run(args) -> int:
                         "model in the normalized world")
     if fmt == "ply" and args.data is not None:
         raise OMG4Error("--data gives a .splatv its camera presets; a ply slice needs none")
-    if args.times and args.times.count(":") == 2 and args.times.rsplit(":", 1)[1].isdigit():
-        planned = _outputs(args.out, int(args.times.rsplit(":", 1)[1]))
-    else:
-        planned = [args.out]
+    requested = _requested_times(args)
+    planned = _outputs(args.out, requested[2] if requested else 1)
     check_outputs({f"--out ({p.name})": p for p in planned}, inputs=[args.model, args.data],
                   datasets=[args.data] if args.data else [], force=args.force)
     from omg4.evaluate import load_model
@@ -80,7 +94,7 @@ def run(args) -> int:
     model = load_model(args.model)
     if fmt == "splatv":
         return _export_splatv(args, model)
-    times = _times(args, model.config.time_range)
+    times = _times(args, requested, model.config.time_range)
     normalization = _normalization(args, model) if args.original_world else None
     from tqdm.auto import tqdm
 
@@ -115,8 +129,7 @@ def _export_splatv(args, model) -> int:
     from omg4.render.paths import bounds_camera
 
     if args.data is not None:
-        scene = load_scene(args.data, decode=False, progress=False)
-        cameras = scene.test_cameras() + scene.train_cameras()
+        cameras = load_scene(args.data, decode=False, progress=False).cameras()
     else:
         cameras = [bounds_camera(model.values["xyz"].cpu().numpy(), 1280, 720)]
     count = export_splatv(args.out, model, cameras)

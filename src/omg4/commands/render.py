@@ -55,12 +55,12 @@ def _cameras(args):
             raise OMG4Error(f"{args.camera}: not a camera JSON ({type(e).__name__}: {e})") from None
         return camera, [camera], None
     scene = load_scene_from_args(args)
-    cams = scene.test_cameras() + scene.train_cameras()
+    cams = scene.cameras()
     if args.camera_name:
         cams = [c for c in cams if c.name == args.camera_name]
         if not cams:
             raise OMG4Error(f"no camera named '{args.camera_name}' in {args.data}")
-    references = scene.train_cameras() if args.path == "dataset" else scene.test_cameras() + scene.train_cameras()
+    references = scene.train_cameras() if args.path == "dataset" else scene.cameras()
     return cams[0].check_renderable(), references, scene
 
 

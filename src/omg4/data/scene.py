@@ -36,6 +36,15 @@ def look_at_viewmat(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.
     return viewmat
 
 
+def world_to_camera(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """[4, 4] world-to-camera matrix of a camera whose camera-to-world rotation is ``rotation`` [3, 3] (columns:
+    the camera's x, y, z axes in the world) and whose centre is ``position`` [3]."""
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = np.asarray(rotation).T
+    viewmat[:3, 3] = -np.asarray(rotation).T @ np.asarray(position)
+    return viewmat
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera in the normalized world.
@@ -233,6 +242,10 @@ class Scene:
     def test_cameras(self) -> list[Camera]:
         """The distinct test cameras, in first-seen order."""
         return _distinct_cameras(self.test_views)
+
+    def cameras(self) -> list[Camera]:
+        """The distinct cameras, test cameras first (presets and camera paths start at the held-out view)."""
+        return self.test_cameras() + self.train_cameras()
 
     def first_frame_views(self) -> list[View]:
         """The training views of the first frame, one per camera (the first seen kept); the

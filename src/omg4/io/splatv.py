@@ -38,6 +38,7 @@ MAGIC = 0x674B
 TEXTURE_WIDTH = 4096
 RECORD_WORDS = 16
 GAUSSIANS_PER_ROW = TEXTURE_WIDTH // 4
+FP16_MAX = float(np.finfo(np.float16).max)
 
 
 def _half_pair(low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -49,6 +50,11 @@ def _half_pair(low: np.ndarray, high: np.ndarray) -> np.ndarray:
 
 def _to_u8(x: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint32)
+
+
+def _fp16(x: np.ndarray) -> np.ndarray:
+    """``x`` clipped to the fp16 range, so no value becomes infinite (a NaN position in the viewer)."""
+    return np.clip(x, -FP16_MAX, FP16_MAX)
 
 
 def splatv_camera(camera: Camera, index: int) -> dict:
@@ -71,11 +77,11 @@ def splatv_records(model) -> np.ndarray:
         var_t = config.schema.time_variance(values, config)
         rgb, opacity = centre_appearance(values, config, model.active_sh_degree_t, appearance=appearance)
     log_scales, quats = covariance_to_scale_rotation(covars.numpy())
-    scales = np.exp(log_scales)
+    scales = _fp16(np.exp(log_scales))
     xyz, opacity, rgb = values["xyz"].numpy(), opacity.numpy(), rgb.numpy()
     centre = (values["t"][:, 0].numpy() - t0) / period
-    time_scale = np.sqrt(2.0 * var_t.numpy()) / period
-    motion = velocity.numpy() * period  # per unit of normalized time
+    time_scale = _fp16(np.sqrt(2.0 * var_t.numpy()) / period)
+    motion = _fp16(velocity.numpy() * period)  # per unit of normalized time
     order = np.argsort(-(scales.prod(axis=1) * opacity), kind="stable")
     n = xyz.shape[0]
     words = np.zeros((n, RECORD_WORDS), np.uint32)
@@ -93,8 +99,9 @@ def splatv_records(model) -> np.ndarray:
 
 
 def export_splatv(path: str | os.PathLike, model, cameras: list[Camera]) -> int:
-    """Write ``model`` as a ``.splatv`` file (atomically) with ``cameras`` as the viewer's presets
-    (the first is its initial view); returns the number of Gaussians written."""
+    """Write ``model`` as a ``.splatv`` file (atomically) with ``cameras`` as the viewer's presets (keys 0–9;
+    a file dropped onto the page starts at the first, a file opened by URL keeps the viewer's default view
+    and takes only the first camera's focal length); returns the number of Gaussians written."""
     if not cameras:
         raise ValueError("a .splatv file needs at least one camera (the viewer takes its focal length)")
     records = splatv_records(model)
@@ -117,16 +124,27 @@ def read_splatv(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
     (zero records dropped). Raises :class:`~omg4.errors.CorruptFileError` on a malformed file."""
     from omg4.errors import CorruptFileError
 
-    data = open(path, "rb").read()
+    from pathlib import Path
+
+    from omg4.errors import OMG4Error
+
     try:
-        magic, length = np.frombuffer(data[:8], "<u4")
-        (header,) = json.loads(data[8:8 + int(length)].decode("utf-8"))
-        body = np.frombuffer(data[8 + int(length):8 + int(length) + int(header["size"])], "<u4")
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise OMG4Error(f"cannot read {path}: {e.strerror or e}") from None
+    if len(data) < 8 or int(np.frombuffer(data[:4], "<u4")[0]) != MAGIC:
+        raise CorruptFileError(f"{path}: not a .splatv file (no 0x674B magic)")
+    length = int(np.frombuffer(data[4:8], "<u4")[0])
+    try:
+        (header,) = json.loads(data[8:8 + length].decode("utf-8"))
+        size = int(header["size"])
+        body = np.frombuffer(data[8 + length:8 + length + size], "<u4")
         words = body.reshape(-1, RECORD_WORDS)
     except (ValueError, KeyError, TypeError) as e:
-        raise CorruptFileError(f"{path}: not a .splatv file ({e})") from None
-    if magic != MAGIC or header.get("type") != "splat":
-        raise CorruptFileError(f"{path}: not a .splatv file (magic {int(magic):#x})")
+        raise CorruptFileError(f"{path}: not a .splatv file ({type(e).__name__}: {e})") from None
+    if header.get("type") != "splat" or body.nbytes != size:
+        raise CorruptFileError(f"{path}: malformed .splatv (chunk type {header.get('type')!r}, {body.nbytes} of "
+                               f"{size} texture bytes)")
     words = words[words[:, 15] != 0]  # zero records pad the last texture row
 
     def halves(col: int) -> np.ndarray:

@@ -13,7 +13,8 @@ normalized world and keeps the first reference camera's intrinsics and resolutio
 * ``dataset``: the reference cameras in order of azimuth around the focus, positions
   interpolated linearly and orientations by spherical linear interpolation.
 
-"Up" is the reference cameras' mean up axis (−y of an OpenCV camera), +z in the normalized world.
+"Up" is +z, the normalized world's up axis (the readers rotate the cameras' summed up vector onto
+it; Blender-layout worlds are +z up too).
 """
 
 from __future__ import annotations
@@ -24,19 +25,25 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from omg4.data.normalize import axes_focus
-from omg4.data.scene import Camera, look_at_viewmat
+from omg4.data.scene import Camera, look_at_viewmat, world_to_camera
 from omg4.errors import OMG4Error
 
 SPIRAL_TURNS = 2
 SPIRAL_PERCENTILE = 90  # spiral radii: this percentile of the camera centres' spread
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def scene_focus(cameras: list[Camera]) -> np.ndarray:
+    """The point the cameras look at (:func:`omg4.data.normalize.axes_focus`); for one camera, or parallel
+    axes, the point in front of them at their distance from the origin."""
+    return _frame(cameras)[1]
 
 
 def _frame(cameras: list[Camera], focus: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(centres [C, 3], the focus point [3] unless given, the unit up vector [3]) of the reference cameras."""
     centres = np.stack([c.center for c in cameras])
     forwards = np.stack([c.viewmat[2, :3] for c in cameras])
-    up = -np.stack([c.viewmat[1, :3] for c in cameras]).sum(0)
-    up /= np.linalg.norm(up)
+    up = UP
     if focus is None and len(cameras) > 1:
         focus = axes_focus(centres, forwards)
     if focus is None:  # one camera, or parallel axes: a point in front at the cameras' distance from the origin
@@ -68,6 +75,8 @@ def orbit_path(cameras: list[Camera], num_frames: int, focus: np.ndarray | None 
 
 def spiral_path(cameras: list[Camera], num_frames: int, turns: int = SPIRAL_TURNS) -> list[Camera]:
     """``num_frames`` cameras on NeRF's forward-facing spiral around the mean camera centre."""
+    if len(cameras) < 2:
+        raise OMG4Error("--path spiral needs at least two cameras to size the spiral (use --data)")
     centres, focus, up = _frame(cameras)
     mean = centres.mean(0)
     back = mean - focus
@@ -97,14 +106,8 @@ def dataset_path(cameras: list[Camera], num_frames: int) -> list[Camera]:
     s = np.linspace(0.0, 1.0, num_frames)
     positions = np.stack([np.interp(s, keys, c2w[:, k, 3]) for k in range(3)], axis=1)
     rotations = slerp(s).as_matrix()
-    path = []
-    for i in range(num_frames):
-        viewmat = np.eye(4)
-        viewmat[:3, :3] = rotations[i].T
-        viewmat[:3, 3] = -rotations[i].T @ positions[i]
-        path.append(Camera(K=cameras[0].K.copy(), viewmat=viewmat, width=cameras[0].width, height=cameras[0].height,
-                           name=f"dataset{i:04d}"))
-    return path
+    return [Camera(K=cameras[0].K.copy(), viewmat=world_to_camera(rotations[i], positions[i]), width=cameras[0].width,
+                   height=cameras[0].height, name=f"dataset{i:04d}") for i in range(num_frames)]
 
 
 PATHS: dict[str, Callable[[list[Camera], int], list[Camera]]] = {
@@ -135,4 +138,4 @@ def bounds_camera(xyz: np.ndarray, width: int, height: int, fov_x_deg: float = 5
     return Camera(K=K, viewmat=look_at_viewmat(position, centre), width=int(width), height=int(height), name="bounds")
 
 
-__all__ = ["PATHS", "bounds_camera", "camera_path", "dataset_path", "orbit_path", "spiral_path"]
+__all__ = ["PATHS", "UP", "bounds_camera", "camera_path", "dataset_path", "orbit_path", "scene_focus", "spiral_path"]

@@ -4,9 +4,12 @@ Instead of cloning, splitting and pruning, every densification event moves the G
 whose opacity fell below a threshold onto live ones, drawn with probability proportional to
 the sampling score ``λ_g · ĝ + λ_o · σ`` (ĝ the mean view-space gradient normalized to its
 maximum, σ the opacity; λ_g = λ_o = 0.5). A copy takes its target's attributes at a point
-drawn from the target's own Gaussian in space and time (μx + R diag(scale) ε, μt + s ε_t,
-ε ~ N(0, I)), so copies spread over the region they refine instead of coinciding, and both
-shrink by 1.6 like the halves of a Real-Time4DGS split. A target drawn k times and its k
+drawn from the target's own Gaussian in space and time: time centre μt' = μt + min(s, D) ε_t,
+kept inside the clip [t0, t1] (a long-lived Gaussian would otherwise throw its copies far
+outside it, where fp16 cannot even store the time), and position on the target's trajectory
+at that time plus a spatial draw, μx + v (μt' − μt) + R diag(scale) ε (ε ~ N(0, I)); so copies
+spread over the region they refine instead of coinciding, and both shrink by 1.6 like the
+halves of a Real-Time4DGS split. A target drawn k times and its k
 copies get opacity ``1 − (1 − σ)^(1/(k+1))`` each, which keeps their combined peak opacity σ
 where they overlap; the moved rows and their targets restart with zero Adam moments. The
 Gaussian count never changes. The threshold (``TrainConfig.relocate_opacity``, 0.05) is
@@ -39,13 +42,13 @@ def relocate(model, optimizer, stats: DensifyStats, *, min_opacity: float, gener
     alive = (opacity >= min_opacity).nonzero().squeeze(1)
     moved = int(dead.numel()) if alive.numel() else 0
     if moved:
-        _move(model.params, optimizer, dead, alive, opacity, stats.mean_grad(), generator)
+        _move(model.params, optimizer, dead, alive, opacity, stats.mean_grad(), generator, model.config.time_range)
     stats.reset(opacity.shape[0])
     return moved
 
 
 def _move(params: dict[str, torch.Tensor], optimizer, dead: torch.Tensor, alive: torch.Tensor, opacity: torch.Tensor,
-          grads: torch.Tensor, generator: torch.Generator) -> None:
+          grads: torch.Tensor, generator: torch.Generator, time_range: tuple[float, float]) -> None:
     """Copy sampled ``alive`` rows into the ``dead`` rows (see the module docstring)."""
     score = LAMBDA_GRAD * grads / grads.max().clamp_min(1e-12) + LAMBDA_OPACITY * opacity
     weights = score.index_select(0, alive).double().cpu().clamp_min(1e-12)
@@ -58,9 +61,11 @@ def _move(params: dict[str, torch.Tensor], optimizer, dead: torch.Tensor, alive:
     copied["opacity"] = logit
     kept = dict(copied)  # the targets keep their place
     eps = torch.randn(targets.numel(), 4, generator=generator).to(logit)  # CPU draw: reproducible on any device
+    t0, t1 = time_range
     offset = scaled_rotation_3d(copied["scaling"], copied["rotation"]) @ eps[:, :3, None]
-    copied["xyz"] = copied["xyz"] + offset[:, :, 0]
-    copied["t"] = copied["t"] + copied["duration"].exp() * eps[:, 3:]
+    t_new = (copied["t"] + copied["duration"].exp().clamp(max=t1 - t0) * eps[:, 3:]).clamp(t0, t1)
+    copied["xyz"] = copied["xyz"] + copied["velocity"] * (t_new - copied["t"]) + offset[:, :, 0]
+    copied["t"] = t_new
     copied["scaling"] = copied["scaling"] - SPLIT_SHRINK
     kept["scaling"] = kept["scaling"] - SPLIT_SHRINK
     rows = torch.cat([dead, targets])  # the moved rows take the copies; the targets their shared opacity
