@@ -12,7 +12,7 @@ import argparse
 import pytest
 
 from omg4.cli import COMMANDS, _build_parser
-from omg4.codec.entropy import METHODS
+from omg4.codec.payload import CODECS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.presets import PRESETS_BY_BACKBONE
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
@@ -34,13 +34,13 @@ TABLES: dict[str, dict[str, object]] = {
     "info": {**SCENE},
     "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES},
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
-    "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": METHODS,
+    "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
                  "--preset": {name for presets in PRESETS_BY_BACKBONE.values() for name in presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE, "--path": PATHS},
     "export": {"--format": set(EXPORT_FORMATS.values())},
     "view": {**SCENE, **DEVICE},
-    "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": METHODS},
+    "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": CODECS},
 }
 
 
@@ -72,7 +72,7 @@ def test_fine_tuning_defaults_are_the_library_defaults(command):
     assert actions["--schedule"].default is None  # omg4.compress.schedule.default_schedule decides, per device
     assert actions["--batch-size"].default == CompressConfig.batch_size
     assert actions["--baseline-iterations"].default == CompressConfig.baseline_iterations
-    assert actions["--codec"].default == METHODS[0]
+    assert actions["--codec"].default == CODECS[0]
 
 
 def test_compress_stages_default_is_the_full_pipeline():

@@ -1,6 +1,7 @@
 """The main job and the benchmark run end to end at tiny sizes and write what they promise."""
 
 import json
+from pathlib import Path
 
 import av
 import numpy as np
@@ -30,6 +31,11 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
 
     a, b = load_omg4(omg4_file), load_omg4(paper_file)  # one model, two coders
     assert a.num_gaussians == b.num_gaussians and sorted(a.values["xyz"].tolist()) == sorted(b.values["xyz"].tolist())
+    # the quality gate of the compact coder on a tiny pipeline run: smaller, same images within 0.05 dB / 0.002 SSIM
+    paper = saved["paper_codec"]
+    assert omg4_file.stat().st_size < paper_file.stat().st_size
+    assert abs(methods["OMG4-M"]["psnr"] - paper["psnr"]) <= 0.05
+    assert abs(methods["OMG4-M"]["ssim"] - paper["ssim"]) <= 0.002
     assert "PSNR dyn" in saved["table"]
     assert methods["OMG4-M"]["num_gaussians"] < methods["Real-Time4DGS (baseline)"]["num_gaussians"]
     assert Image.open(out / "rate_distortion.png").size[0] > 100
@@ -51,6 +57,9 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
     assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
     assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
     table = (tmp_path / "bench" / "bench.md").read_text()
-    assert "B/Gaussian" in table and "GS+AC" in table
+    assert "B/Gaussian" in table and "GS+AC" in table and "MB, paper coder" in table
     saved = json.loads((tmp_path / "bench" / "bench.json").read_text())
+    for row in ("GS+AC", "(GS+GP)+GM+AC"):  # both coders' sizes, the paper's from its own file
+        paper_file = Path(saved[row]["file"]).with_name(Path(saved[row]["file"]).stem + "_paper_codec.omg4")
+        assert saved[row]["paper_codec_mb"] == paper_file.stat().st_size / 2**20 > saved[row]["storage_mb"]
     assert saved["GS+AC"]["bytes_per_gaussian"] > 0 and (tmp_path / "bench" / "rate_distortion.png").exists()

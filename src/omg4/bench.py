@@ -37,20 +37,22 @@ ROWS_BY_BACKBONE: dict[str, dict[str, tuple[str, tuple[str, ...]]]] = {
 
 
 def bench_table(rows: dict[str, dict]) -> str:
-    """The paper's columns plus bytes per Gaussian and compression time."""
+    """The paper's columns plus bytes per Gaussian, the same model's size with the paper's coder, and
+    compression time."""
     base = format_table(rows).splitlines()
-    head = base[0] + " B/Gaussian | compress s |"
-    sep = base[1] + "---|---|"
+    head = base[0] + " B/Gaussian | MB, paper coder | compress s |"
+    sep = base[1] + "---|---|---|"
     lines = [head, sep]
     for line, r in zip(base[2:], rows.values()):
         bpg = f"{r['bytes_per_gaussian']:.1f}" if r.get("bytes_per_gaussian") else "-"
+        paper = f"{r['paper_codec_mb']:.3f}" if r.get("paper_codec_mb") else "-"
         secs = f"{r['compress_s']:.0f}" if r.get("compress_s") else "-"
-        lines.append(f"{line} {bpg} | {secs} |")
+        lines.append(f"{line} {bpg} | {paper} | {secs} |")
     return "\n".join(lines)
 
 
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
-              baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "ans",
+              baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
               backend: str = "auto", device: torch.device | str = "cpu", log=print) -> dict:
     """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and evaluate everything on
     the test views, computing on ``device``."""
@@ -78,10 +80,13 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
         path = out / (name.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-") + ".omg4")
         cfg = CompressConfig(preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
                              baseline_iterations=baseline_iterations, backend=backend, device=str(device))
-        report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path, log=log)
+        paper_copy = path.with_name(path.stem + "_paper_codec.omg4")
+        report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path,
+                                  paper_copy=paper_copy, log=log)
         r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size, backend=backend,
                      device=device, masks=masks)
         r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=report["file_bytes"] / r["num_gaussians"],
+                 paper_codec_mb=report["paper_file_bytes"] / 2**20,
                  stages=report["stages"], file=str(path))
         results[name] = r
         write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))

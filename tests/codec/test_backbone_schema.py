@@ -39,7 +39,7 @@ def _payload(name: str, n: int, seed: int) -> CompressedPayload:
                              mlp=mlp.to_fp16_state(), meta=meta)
 
 
-@pytest.mark.parametrize("codec", ["ans", "paper"])
+@pytest.mark.parametrize("codec", ["compact", "ans", "paper"])
 @pytest.mark.parametrize("name", sorted(BACKBONES))
 @pytest.mark.parametrize("seed", range(3))
 def test_every_attribute_survives_encode_decode_with_its_width_and_treatment(name, codec, seed, tmp_path):

@@ -16,7 +16,7 @@ HEADER = {"kind": "test", "preset": "M", "time_range": [0.0, 10.0], "note": "ün
 SECTIONS = {"xyz": bytes(range(40)), "empty": b"", "svq.scale.index0": b"\x00\xff" * 17, "mlp.cont": b"abc"}
 
 
-def _crafted(doc_bytes: bytes, body: bytes = b"", version: int = FORMAT_VERSION, flags: int = 0,
+def _crafted(doc_bytes: bytes, body: bytes = b"", version: int = 1, flags: int = 0,
              json_len: int | None = None, crc: int | None = None) -> bytes:
     """A container built by hand (independent of write_container) with arbitrary JSON and fields."""
     n = len(doc_bytes) if json_len is None else json_len
@@ -45,7 +45,7 @@ def test_layout_matches_spec(written):
     """Independent parse of the documented layout: prefix, checksummed JSON, sections in order."""
     data = written[0].read_bytes()
     magic, version, flags, n, crc = struct.unpack("<8sHHII", data[:20])
-    assert (magic, version, flags) == (MAGIC, FORMAT_VERSION, 0)
+    assert (magic, version, flags) == (MAGIC, 1, 0)
     blob = data[20:20 + n]
     assert zlib.crc32(blob) == crc
     doc = json.loads(blob)
@@ -56,6 +56,30 @@ def test_layout_matches_spec(written):
         assert zlib.crc32(SECTIONS[name]) == section_crc
         pos += length
     assert pos == len(data)
+
+
+def test_version_2_deflates_the_json_and_reads_like_version_1(tmp_path):
+    """Independent parse of version 2: the checksummed JSON is raw DEFLATE; sections as in version 1."""
+    path = tmp_path / "v2.omg4"
+    size = write_container(path, HEADER, SECTIONS, version=2)
+    data = path.read_bytes()
+    magic, version, flags, n, crc = struct.unpack("<8sHHII", data[:20])
+    assert (magic, version, flags) == (MAGIC, 2, 0) and zlib.crc32(data[20:20 + n]) == crc
+    doc = json.loads(zlib.decompress(data[20:20 + n], -15))
+    assert doc["header"] == HEADER and [s[0] for s in doc["sections"]] == list(SECTIONS)
+    assert read_container(path) == (HEADER, SECTIONS)
+    assert describe_container(path)["version"] == 2 and size == len(data)
+    assert size < write_container(tmp_path / "v1.omg4", HEADER, SECTIONS)  # the JSON shrank
+
+
+def test_damaged_version_2_header_is_one_line_error():
+    doc = json.dumps({"header": {}, "sections": []}).encode()
+    with pytest.raises(CorruptFileError, match="damaged compressed header"):
+        read_container(_crafted(doc, version=2))  # text where DEFLATE data belongs
+    packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+    bomb = packer.compress(b" " * (17 * 1024 * 1024)) + packer.flush()  # inflates past MAX_JSON_BYTES
+    with pytest.raises(CorruptFileError, match="compressed header"):
+        read_container(_crafted(bomb, version=2))
 
 
 def test_describe_accounts_for_every_byte(written):
@@ -116,7 +140,7 @@ def test_wrong_magic(tmp_path):
 
 def test_future_version_and_unknown_flags():
     doc = json.dumps({"header": {}, "sections": []}).encode()
-    with pytest.raises(CorruptFileError, match="version 2 is from a newer"):
+    with pytest.raises(CorruptFileError, match=f"version {FORMAT_VERSION + 1} is from a newer"):
         read_container(_crafted(doc, version=FORMAT_VERSION + 1))
     with pytest.raises(CorruptFileError, match="version 0"):
         read_container(_crafted(doc, version=0))

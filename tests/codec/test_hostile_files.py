@@ -15,7 +15,7 @@ def valid(tmp_path_factory):
     """A small valid file per codec: {codec: bytes}."""
     folder = tmp_path_factory.mktemp("valid")
     return {codec: forge.valid_file(folder / f"{codec}.omg4", 300, codec=codec, codebook_scale=0.1)
-            for codec in ("ans", "paper")}
+            for codec in ("compact", "ans", "paper")}
 
 
 def _forged(data: bytes, path: tuple, value) -> bytes:
@@ -29,7 +29,7 @@ def _forged(data: bytes, path: tuple, value) -> bytes:
     return forge._assemble(header, sections)
 
 
-@pytest.mark.parametrize("codec", ["ans", "paper"])
+@pytest.mark.parametrize("codec", ["compact", "ans", "paper"])
 def test_every_forged_file_is_ok_or_a_one_line_corrupt_file_error(valid, codec, tmp_path):
     outcomes = {"ok": 0, "corrupt": 0}
     path = tmp_path / "case.omg4"

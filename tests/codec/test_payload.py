@@ -87,7 +87,7 @@ def test_decoded_reconstruction_equals_fp16_codebook_lookup(tmp_path):
     np.testing.assert_array_equal(q.attributes["rotation"].reconstruct(), expected.astype(np.float32))
 
 
-@pytest.mark.parametrize("codec", ["ans", "paper"])
+@pytest.mark.parametrize("codec", ["compact", "ans", "paper"])
 def test_storage_accounting_equals_file_size(tmp_path, codec):
     path = tmp_path / "m.omg4"
     sizes = encode_payload(make_payload(), path, codec=codec)
@@ -113,7 +113,7 @@ def test_ans_is_smaller_than_paper(tmp_path):
 
 def test_header_carries_meta_counts_and_shapes(tmp_path):
     p = make_payload(100)
-    encode_payload(p, tmp_path / "m.omg4")
+    encode_payload(p, tmp_path / "m.omg4", codec="ans")
     header, _ = read_container(tmp_path / "m.omg4")
     assert header["num_gaussians"] == 100 and header["codec"] == "ans"
     assert header["meta"]["normalization"]["scale"] == 0.25
@@ -180,7 +180,7 @@ def test_encode_rejects_empty_payload_and_unknown_codec(tmp_path):
         encode_payload(make_payload(10), tmp_path / "m.omg4", codec="zip")
 
 
-@pytest.mark.parametrize("codec", ["ans", "paper"])
+@pytest.mark.parametrize("codec", ["compact", "ans", "paper"])
 def test_random_bit_flips_and_truncations_raise(tmp_path, codec):
     path = tmp_path / "m.omg4"
     encode_payload(make_payload(300), path, codec=codec)
@@ -262,11 +262,13 @@ def test_codec_decoder_does_not_import_training_or_torch():
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-def test_file_is_not_a_pickle(tmp_path):
+@pytest.mark.parametrize("codec, version", [("compact", 2), ("ans", 1), ("paper", 1)])
+def test_file_is_not_a_pickle(tmp_path, codec, version):
     path = tmp_path / "m.omg4"
-    encode_payload(make_payload(20), path)
+    encode_payload(make_payload(20), path, codec=codec)
     data = path.read_bytes()
-    assert data[:8] == b"\x89OMG4\r\n\x1a"
+    assert data[:8] == b"\x89OMG4\r\n\x1a" and int.from_bytes(data[8:10], "little") == version
     n = int.from_bytes(data[12:16], "little")
     assert zlib.crc32(data[20:20 + n]) == int.from_bytes(data[16:20], "little")
-    assert json.loads(data[20:20 + n])["header"]["kind"] == "omg4-compressed-model"
+    text = zlib.decompress(data[20:20 + n], -15) if version == 2 else data[20:20 + n]
+    assert json.loads(text)["header"]["kind"] == "omg4-compressed-model"

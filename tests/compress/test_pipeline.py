@@ -181,9 +181,16 @@ def test_info_breakdown_adds_up_to_file_size(tmp_path, baseline, tiny_scene, sco
                      scores_path=scores_file)
     summary, text = summarize(out)
     assert sum(summary["groups"].values()) == out.stat().st_size == summary["total_bytes"]
-    assert {"positions", "time centres", "MLPs", "header", "rotation indices", "rotation_r codebooks"} <= set(
-        summary["groups"])
+    # the default (compact) coder: a tiny model's rotations are cheaper as unit quaternions than as codebooks
+    assert {"positions", "time centres", "MLPs", "header", "scale indices", "rotation quaternions",
+            "rotation_r quaternions"} <= set(summary["groups"])
     assert summary["bits_per_gaussian"] == pytest.approx(8 * out.stat().st_size / summary["num_gaussians"])
+    from omg4.codec.payload import decode_payload, encode_payload
+
+    encode_payload(decode_payload(out), tmp_path / "ans.omg4", codec="ans")
+    groups = summarize(tmp_path / "ans.omg4")[0]["groups"]
+    assert sum(groups.values()) == (tmp_path / "ans.omg4").stat().st_size
+    assert {"rotation indices", "rotation_r codebooks"} <= set(groups)
 
 
 def test_explicit_cpu_under_a_meta_default_device_writes_the_same_file(baseline, tiny_scene, tmp_path):

@@ -9,6 +9,7 @@ Layout (all integers little-endian)::
     12      4     JSON length L (uint32, at most MAX_JSON_BYTES)
     16      4     CRC-32 of the JSON bytes
     20      L     JSON object {"header": <caller's dict>, "sections": [[name, size, crc32], ...]}
+                  (version 1: UTF-8 text; version 2: that text raw-DEFLATE-compressed)
     20+L    ...   the sections' bytes, concatenated in table order
 
 The file must end exactly after the last section. The section table lives inside the
@@ -31,7 +32,10 @@ from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAGIC = b"\x89OMG4\r\n\x1a"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: versions this build reads: 1 (plain JSON; the "ans" and "paper" codecs still write it, so older omg4
+#: builds read those files) and 2 (deflated JSON; the "compact" codec)
+READABLE_VERSIONS = (1, 2)
 MAX_JSON_BYTES = 16 * 1024 * 1024
 MAX_SECTION_NAME = 200
 PREFIX = struct.Struct("<8sHHII")  # magic, version, flags, json length, json crc32
@@ -62,11 +66,13 @@ def has_magic(path) -> bool:
         return f.read(len(MAGIC)) == MAGIC
 
 
-def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes]) -> int:
+def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes], version: int = 1) -> int:
     """Write ``header`` (a JSON-able dict) and named binary ``sections`` to ``path`` atomically.
 
-    Section order is the dict's order. Returns the file size in bytes.
+    Section order is the dict's order; ``version`` 2 deflates the JSON. Returns the file size in bytes.
     """
+    if version not in READABLE_VERSIONS:
+        raise OMG4Error(f"unknown container version {version}")
     table = []
     for name, data in sections.items():
         if not isinstance(name, str) or not name or len(name) > MAX_SECTION_NAME:
@@ -77,7 +83,12 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
     blob = _encode_json(header, table)
     if len(blob) > MAX_JSON_BYTES:
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
-    prefix = PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), crc32(blob))
+    if version == 2:
+        packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+        blob = packer.compress(blob) + packer.flush()
+    if len(blob) > MAX_JSON_BYTES:
+        raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
+    prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(prefix)
         f.write(blob)
@@ -140,8 +151,20 @@ def _parse_table(label: str, doc: object) -> tuple[dict, list[tuple[str, int, in
     return doc["header"], table
 
 
-def _read_prefix_and_table(src: _Source) -> tuple[dict, list[tuple[str, int, int]]]:
-    """Validate magic, version and the checksummed JSON; returns (header, section table)."""
+def _inflate_json(label: str, blob: bytes) -> bytes:
+    """The JSON text of a version-2 header (at most :data:`MAX_JSON_BYTES`)."""
+    d = zlib.decompressobj(-15)
+    try:
+        text = d.decompress(blob, MAX_JSON_BYTES)
+    except zlib.error:
+        raise CorruptFileError(f"{label}: damaged compressed header") from None
+    if not d.eof or d.unconsumed_tail or d.unused_data:
+        raise CorruptFileError(f"{label}: damaged compressed header (wrong length or over {MAX_JSON_BYTES} bytes)")
+    return text
+
+
+def _read_prefix_and_table(src: _Source) -> tuple[int, dict, list[tuple[str, int, int]]]:
+    """Validate magic, version and the checksummed JSON; returns (version, header, section table)."""
     label = src.label
     if src.size < PREFIX.size:
         start = src.read(min(src.size, len(MAGIC)), "the magic bytes")
@@ -151,10 +174,10 @@ def _read_prefix_and_table(src: _Source) -> tuple[dict, list[tuple[str, int, int
     magic, version, flags, json_len, json_crc = PREFIX.unpack(src.read(PREFIX.size, "the fixed header"))
     if magic != MAGIC:
         raise CorruptFileError(f"{label}: not an .omg4 file (wrong magic bytes)")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         newer = "a newer" if version > FORMAT_VERSION else "an unknown"
         raise CorruptFileError(f"{label}: .omg4 format version {version} is from {newer} omg4 "
-                               f"(this build reads version {FORMAT_VERSION})")
+                               f"(this build reads versions {', '.join(map(str, READABLE_VERSIONS))})")
     if flags != 0:
         raise CorruptFileError(f"{label}: unknown container flags {flags:#06x}")
     if json_len > MAX_JSON_BYTES or json_len > src.size - PREFIX.size:
@@ -163,6 +186,8 @@ def _read_prefix_and_table(src: _Source) -> tuple[dict, list[tuple[str, int, int
     blob = src.read(json_len, "the JSON header")
     if crc32(blob) != json_crc:
         raise CorruptFileError(f"{label}: header checksum mismatch (file is damaged)")
+    if version == 2:
+        blob = _inflate_json(label, blob)
     try:
         doc = json.loads(blob.decode("utf-8"), parse_constant=_reject_constant)
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
@@ -172,18 +197,20 @@ def _read_prefix_and_table(src: _Source) -> tuple[dict, list[tuple[str, int, int
     if expected != src.size:
         state = "truncated" if expected > src.size else "has trailing bytes"
         raise CorruptFileError(f"{label}: file {state} ({src.size} bytes, the section table needs {expected})")
-    return header, table
+    return version, header, table
 
 
-def read_container(source: str | os.PathLike | bytes | bytearray | memoryview) -> tuple[dict, dict[str, bytes]]:
-    """Read and verify a container from a path or from bytes; returns ``(header, sections)``.
+def read_container(source: str | os.PathLike | bytes | bytearray | memoryview,
+                   with_version: bool = False) -> tuple[dict, dict[str, bytes]] | tuple[int, dict, dict[str, bytes]]:
+    """Read and verify a container from a path or from bytes; returns ``(header, sections)``, or
+    ``(version, header, sections)`` with ``with_version``.
 
     Raises :class:`CorruptFileError` (one line) on any damage and :class:`OMG4Error` when
     the file is missing.
     """
     src = _Source(source)
     try:
-        header, table = _read_prefix_and_table(src)
+        version, header, table = _read_prefix_and_table(src)
         sections = {}
         for name, size, crc in table:
             data = src.read(size, f"section {name!r}")
@@ -192,7 +219,7 @@ def read_container(source: str | os.PathLike | bytes | bytearray | memoryview) -
             sections[name] = data
     finally:
         src.close()
-    return header, sections
+    return (version, header, sections) if with_version else (header, sections)
 
 
 def describe_container(source: str | os.PathLike | bytes | bytearray | memoryview) -> dict:
@@ -202,8 +229,8 @@ def describe_container(source: str | os.PathLike | bytes | bytearray | memoryvie
     where ``header_bytes`` counts the fixed prefix plus the JSON, so
     ``header_bytes + sum(sections.values()) == total_bytes``.
     """
-    header, sections = read_container(source)
+    version, header, sections = read_container(source, with_version=True)
     sizes = {name: len(data) for name, data in sections.items()}
     total = Path(source).stat().st_size if not isinstance(source, (bytes, bytearray, memoryview)) else len(source)
-    return {"version": FORMAT_VERSION, "total_bytes": total, "header_bytes": total - sum(sizes.values()),
+    return {"version": version, "total_bytes": total, "header_bytes": total - sum(sizes.values()),
             "sections": sizes, "header": header}

@@ -23,7 +23,7 @@ from typing import Iterator
 
 import numpy as np
 
-from omg4.codec.container import FORMAT_VERSION, MAGIC, PREFIX, crc32, read_container
+from omg4.codec.container import MAGIC, PREFIX, crc32, read_container
 from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
 from omg4.gaussians.backbone import RT4DGS
 
@@ -89,7 +89,7 @@ def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
     for token, raw in _RAW_NUMBERS.items():
         text = text.replace(f'"{token}"', raw)
     blob = text.encode("utf-8", "surrogatepass")
-    prefix = PREFIX.pack(MAGIC, FORMAT_VERSION, 0, len(blob), crc32(blob))
+    prefix = PREFIX.pack(MAGIC, 1, 0, len(blob), crc32(blob))  # version 1: the JSON as text
     return prefix + blob + b"".join(data for _, data in sections)
 
 

@@ -6,12 +6,20 @@ each sub-vector-quantized attribute its fp16 codebooks and index streams, the fp
 weights of the appearance MLPs, and a JSON-able ``meta`` dict (preset, SH degrees, time
 range, normalization, ...).
 
-Two codecs:
+Three codecs:
 
+* ``"compact"`` (default) — beyond OMG4's coder, at the same quality: Morton order, positions
+  and float sections as "ans"; each SVQ slot's codebook and indices coded without paying for
+  the codewords' order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped,
+  the smaller of a sorted codeword set or first-use order); rotation quaternions as unit
+  quaternions in 3 × 10 bits (:mod:`omg4.codec.quaternions`) where that is smaller than their
+  codebooks; MLP weight matrices in 8 bits per weight (:mod:`omg4.codec.weights`); the header
+  deflated (container version 2). Only the last two and the quaternion grid change values,
+  each by a measured, negligible amount (README, rate table).
 * ``"paper"`` — OMG4's ``encode``: fp16 positions, time centres, codebooks and MLP weights,
   Huffman-coded indices, everything LZMA-compressed (OMG4 wraps one pickle in xz; here
   each section is LZMA'd on its own — no pickle). Gaussians keep their order.
-* ``"ans"`` (default) — lossless w.r.t. the same fp16 values and indices, smaller:
+* ``"ans"`` — lossless w.r.t. the same fp16 values and indices, smaller:
   Gaussians are stored in Morton (Z-order) order of their fp16 positions (a free
   permutation: Gaussians are unordered), so positions become sorted 48-bit Morton codes
   whose gaps are hybrid-uint coded; indices are ANS-coded; every float section takes the
@@ -31,12 +39,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from omg4.codec import quaternions, weights
+from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, deinterleave, encode_codewords,
+                                  interleave, keys_to_fp16, ordered_keys)
 from omg4.codec.container import read_container, write_container
-from omg4.codec.entropy import (MAX_SYMBOLS, METHODS, decode_indices, decode_uints, encode_indices, encode_uints,
-                                pack_varints, unpack_varints)
+from omg4.codec.entropy import (MAX_SYMBOLS, decode_indices, decode_uints, encode_indices, encode_uints, pack_varints,
+                                unpack_varints)
 from omg4.errors import CorruptFileError, OMG4Error
 
 KIND = "omg4-compressed-model"
+#: payload codecs, the default first (module docstring)
+CODECS = ("compact", "ans", "paper")
 MAX_GAUSSIANS = 1 << 27
 MAX_SUB_LEN = 64
 MAX_MLP_ELEMENTS = 1 << 24
@@ -82,7 +95,9 @@ class CompressedPayload:
 
     xyz: [N, 3] positions; t: [N] time centres; attributes: SVQ attribute name (scale,
     rotation, app, scale_t, rotation_r) → :class:`QuantizedAttribute`; mlp: weight name →
-    array (any shape); meta: JSON-able settings. Floats are stored in fp16.
+    array (any shape); meta: JSON-able settings; rotations: the attributes that are one rotation
+    quaternion each, normalized at use (the backbone's ``quaternion_groups``; the "compact" codec
+    may store them as unit quaternions). Floats are stored in fp16.
     """
 
     xyz: np.ndarray
@@ -90,6 +105,7 @@ class CompressedPayload:
     attributes: dict[str, QuantizedAttribute] = field(default_factory=dict)
     mlp: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
+    rotations: tuple[str, ...] = ()
 
     @property
     def num_gaussians(self) -> int:
@@ -99,7 +115,7 @@ class CompressedPayload:
         """The same payload with Gaussians reordered: row i of the result is row ``order[i]``."""
         attrs = {a: QuantizedAttribute(list(q.codebooks), [ix[order] for ix in q.indices])
                  for a, q in self.attributes.items()}
-        return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta))
+        return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta), self.rotations)
 
     def to_fp16(self) -> "CompressedPayload":
         """What a decoder returns: floats rounded to fp16 (float16 arrays), indices as int64."""
@@ -108,47 +124,19 @@ class CompressedPayload:
                  for a, q in self.attributes.items()}
         return CompressedPayload(np.asarray(self.xyz, np.float16).reshape(-1, 3),
                                  np.asarray(self.t, np.float16).reshape(-1), attrs,
-                                 {k: np.asarray(v, np.float16) for k, v in self.mlp.items()}, dict(self.meta))
+                                 {k: np.asarray(v, np.float16) for k, v in self.mlp.items()}, dict(self.meta),
+                                 tuple(self.rotations))
 
 
 # ----------------------------------------------------------------------- Morton order
-def _ordered_key(h: np.ndarray) -> np.ndarray:
-    """fp16 → uint16 whose unsigned order is the float order (sign flip trick)."""
-    bits = h.view(np.uint16)
-    return np.where(bits & 0x8000, ~bits, bits | 0x8000).astype(np.uint16)
-
-
-def _key_to_fp16(key: np.ndarray) -> np.ndarray:
-    bits = np.where(key & 0x8000, key ^ 0x8000, ~key).astype(np.uint16)
-    return bits.view(np.float16)
-
-
-def _spread3(v: np.ndarray) -> np.ndarray:
-    """Insert two zero bits after each of the 16 low bits: b15..b0 → b15 0 0 … b0 (uint64)."""
-    x = v.astype(np.uint64)
-    for shift, mask in ((16, 0x0000FF0000FF), (8, 0x00F00F00F00F), (4, 0x0C30C30C30C3), (2, 0x249249249249)):
-        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
-    return x
-
-
-def _compact3(x: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_spread3`."""
-    x = x & np.uint64(0x249249249249)
-    for shift, mask in ((2, 0x0C30C30C30C3), (4, 0x00F00F00F00F), (8, 0x0000FF0000FF), (16, 0xFFFF)):
-        x = (x ^ (x >> np.uint64(shift))) & np.uint64(mask)
-    return x.astype(np.uint16)
-
-
 def morton_codes(xyz16: np.ndarray) -> np.ndarray:
     """48-bit Z-order codes of fp16 positions ``xyz16: float16 [N, 3]`` → uint64 [N] (x in the lowest bit)."""
-    k = _ordered_key(np.ascontiguousarray(xyz16, dtype=np.float16))
-    return _spread3(k[:, 0]) | (_spread3(k[:, 1]) << np.uint64(1)) | (_spread3(k[:, 2]) << np.uint64(2))
+    return interleave(ordered_keys(np.asarray(xyz16, np.float16).reshape(-1, 3)))
 
 
 def morton_to_xyz(codes: np.ndarray) -> np.ndarray:
     """Inverse of :func:`morton_codes`: float16 [N, 3]."""
-    keys = np.stack([_compact3(codes >> np.uint64(a)) for a in range(3)], axis=1)
-    return _key_to_fp16(keys)
+    return keys_to_fp16(deinterleave(codes, 3))
 
 
 def canonical_order(xyz: np.ndarray) -> np.ndarray:
@@ -257,18 +245,40 @@ def _check_payload(p: CompressedPayload) -> CompressedPayload:
     return q
 
 
-def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = "ans") -> dict[str, int]:
-    """Write ``p`` to ``path`` (atomically) with ``codec`` "ans" or "paper".
+def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool,
+                              sections: dict[str, bytes], encodings: dict[str, str]) -> list[list[int]] | None:
+    """Add the sections of one SVQ attribute in the "compact" codec; returns its codebook shapes, or None when
+    it was stored as unit quaternions (smaller than its codebooks and indices)."""
+    slots, shapes = {}, []
+    for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+        cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
+        slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
+        shapes.append([k, int(cb.shape[1])])
+    if as_quaternion:
+        data = quaternions.encode_quaternions(qa.reconstruct())
+        if len(data) < sum(len(b) for _, b in slots.values()):
+            sections[f"quat.{name}"], encodings[f"quat.{name}"] = data, f"smallest-three-{quaternions.BITS}"
+            return None
+    for section, (enc, data) in slots.items():
+        sections[section], encodings[section] = data, enc
+    return shapes
+
+
+def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = CODECS[0]) -> dict[str, int]:
+    """Write ``p`` to ``path`` (atomically) with ``codec`` from :data:`CODECS`.
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
-    ``p.to_fp16()``. Returns the byte size of every section plus ``"header"``; the values
-    sum to the file size.
+    ``p.to_fp16()``. With "compact" the order is the canonical one too and every SVQ
+    attribute reconstructs to the same fp16 values (codebooks relabelled, unused and
+    duplicate codewords dropped), except the quaternion attributes stored on the unit-quaternion
+    grid and the MLP weight matrices stored in 8 bits. Returns the byte size of every section
+    plus ``"header"``; the values sum to the file size.
     """
-    if codec not in METHODS:
-        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(METHODS)})")
+    if codec not in CODECS:
+        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODECS)})")
     q = _check_payload(p)
-    if codec == "ans":
+    if codec != "paper":
         q = q.permuted(canonical_order(q.xyz))
     sections: dict[str, bytes] = {}
     encodings: dict[str, str] = {}
@@ -278,32 +288,50 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = "
         sections[name], encodings[name] = data, enc
 
     float_encoding = "f16-lzma" if codec == "paper" else None
-    if codec == "ans":
-        sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
-    else:
+    if codec == "paper":
         put_float("xyz", q.xyz, float_encoding)
+    else:
+        sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
     put_float("t", q.t, float_encoding)
-    for attr, qa in q.attributes.items():
-        for j, cb in enumerate(qa.codebooks):
-            put_float(f"svq.{attr}.codebook{j}", cb, float_encoding)
-        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            name = f"svq.{attr}.index{j}"
-            sections[name], encodings[name] = encode_indices(ix, cb.shape[0], codec), codec
+    shapes: dict[str, list[list[int]]] = {}
+    stored_as_quaternions: list[str] = []
+    if codec == "compact":
+        for attr, qa in q.attributes.items():
+            as_quaternion = attr in q.rotations and qa.reconstruct().shape[1] == 4
+            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, sections, encodings)
+            if attr_shapes is None:
+                stored_as_quaternions.append(attr)
+            else:
+                shapes[attr] = attr_shapes
+    else:
+        for attr, qa in q.attributes.items():
+            for j, cb in enumerate(qa.codebooks):
+                put_float(f"svq.{attr}.codebook{j}", cb, float_encoding)
+            for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+                name = f"svq.{attr}.index{j}"
+                sections[name], encodings[name] = encode_indices(ix, cb.shape[0], codec), codec
+            shapes[attr] = [list(cb.shape) for cb in qa.codebooks]
     for name, w in q.mlp.items():
-        put_float(f"mlp.{name}", w, float_encoding)
+        if codec == "compact" and w.ndim == 2 and w.size:
+            sections[f"mlp.{name}"], encodings[f"mlp.{name}"] = weights.encode_rows(w), "int8-rows"
+        else:
+            put_float(f"mlp.{name}", w, float_encoding)
     header = {
-        "kind": KIND, "codec": codec, "order": "morton" if codec == "ans" else "original",
+        "kind": KIND, "codec": codec, "order": "original" if codec == "paper" else "morton",
         "num_gaussians": q.num_gaussians, "meta": q.meta,
-        "attributes": {a: [list(cb.shape) for cb in qa.codebooks] for a, qa in q.attributes.items()},
+        "attributes": shapes,
         "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
         "encodings": encodings,
+        "rotations": [a for a in q.rotations if a in q.attributes],
     }
+    if codec == "compact":
+        header["quaternions"] = stored_as_quaternions
     sizes = {name: len(data) for name, data in sections.items()}
     try:  # the decoder's limits hold for every file written, so no written file is refused on reading
         check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
-    total = write_container(path, header, sections)
+    total = write_container(path, header, sections, version=2 if codec == "compact" else 1)
     sizes["header"] = total - sum(sizes.values())
     return sizes
 
@@ -323,17 +351,26 @@ def _check_header(h: dict, section_bytes: int) -> None:
     allocate or inflate more than a bounded multiple of the file. Raises CorruptFileError.
     """
     n = h.get("num_gaussians")
-    ok = (h.get("kind") == KIND and h.get("codec") in METHODS and isinstance(h.get("meta"), dict)
+    ok = (h.get("kind") == KIND and h.get("codec") in CODECS and isinstance(h.get("meta"), dict)
           and isinstance(h.get("attributes"), dict) and isinstance(h.get("mlp"), dict)
           and isinstance(h.get("encodings"), dict) and _is_int(n, 1, MAX_GAUSSIANS))
     if not ok:
         raise CorruptFileError("not an OMG4 compressed model (header fields missing or invalid)")
+    rotations = h.get("quaternions", [])
+    if (("quaternions" in h) != (h["codec"] == "compact") or not isinstance(rotations, list)
+            or len(rotations) > MAX_ATTRIBUTES or len(set(map(str, rotations))) != len(rotations)
+            or not all(isinstance(a, str) and _NAME.fullmatch(a) and a not in h["attributes"] for a in rotations)):
+        raise CorruptFileError("invalid list of quaternion attributes")
+    named = h.get("rotations", [])
+    if not (isinstance(named, list) and len(named) <= MAX_ATTRIBUTES
+            and all(isinstance(a, str) and (a in h["attributes"] or a in rotations) for a in named)):
+        raise CorruptFileError("invalid list of rotation attributes")
     if n > GAUSSIANS_ALWAYS_ALLOWED and n * MIN_BYTES_PER_GAUSSIAN > section_bytes:
         raise CorruptFileError(f"header claims {n} Gaussians, more than the file's {section_bytes} data bytes can hold")
     if len(h["attributes"]) > MAX_ATTRIBUTES or len(h["mlp"]) > MAX_MLP_WEIGHTS:
         raise CorruptFileError(f"header lists {len(h['attributes'])} attributes and {len(h['mlp'])} MLP weights "
                                f"(limits {MAX_ATTRIBUTES} and {MAX_MLP_WEIGHTS})")
-    values = 4 * n  # xyz and t
+    values = 4 * n + 8 * n * len(rotations)  # xyz and t; per rotation 4 codes and 4 values
     for attr, shapes in h["attributes"].items():
         if not (_NAME.fullmatch(attr) and isinstance(shapes, list) and 1 <= len(shapes) <= MAX_SLOTS and all(
                 isinstance(s, list) and len(s) == 2 and _is_int(s[0], 1, MAX_SYMBOLS) and _is_int(s[1], 1, MAX_SUB_LEN)
@@ -359,6 +396,7 @@ def check_sections(header: dict, section_sizes: dict[str, int]) -> None:
     expected += [f"svq.{a}.{kind}{j}" for a, shapes in header["attributes"].items()
                  for kind in ("codebook", "index") for j in range(len(shapes))]
     expected += [f"mlp.{name}" for name in header["mlp"]]
+    expected += [f"quat.{attr}" for attr in header.get("quaternions", [])]
     encodings = header["encodings"]
     if (sorted(expected) != sorted(section_sizes) or sorted(expected) != sorted(encodings)
             or not all(isinstance(e, str) for e in encodings.values())):
@@ -381,16 +419,26 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
 def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayload:
     check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
+    index_encodings = ("ranks", "first-use") if codec == "compact" else (codec,)
 
-    def decode(name: str, count: int, num_symbols: int = 0) -> np.ndarray:
+    def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, int] | None = None) -> np.ndarray:
         try:
+            data, encoding = sections[name], enc[name]
             if num_symbols:
-                if enc[name] != codec:
-                    raise CorruptFileError(f"encoding {enc[name]!r} does not match the codec {codec!r}")
-                return decode_indices(sections[name], num_symbols, count, codec)
-            if enc[name] == "morton" and name == "xyz":
-                return _decode_xyz_morton(sections[name], count)
-            return _decode_f16(sections[name], enc[name], count)
+                if encoding not in index_encodings:
+                    raise CorruptFileError(f"encoding {encoding!r} is not an index encoding of the codec {codec!r}")
+                if encoding == "first-use":
+                    return decode_first_use_indices(data, num_symbols, count)
+                return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else codec)
+            if codec == "compact" and encoding == "sorted" and shape is not None:
+                return decode_sorted_codebook(data, *shape)
+            if codec == "compact" and encoding == "int8-rows" and shape is not None and len(shape) == 2:
+                return weights.decode_rows(data, shape)
+            if codec == "compact" and encoding == f"smallest-three-{quaternions.BITS}" and name.startswith("quat."):
+                return quaternions.decode_quaternions(data, count)
+            if encoding == "morton" and name == "xyz" and codec != "paper":
+                return _decode_xyz_morton(data, count)
+            return _decode_f16(data, encoding, count)
         except CorruptFileError as exc:
             raise CorruptFileError(f"section {name}: {exc}") from None
 
@@ -398,9 +446,12 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
     t = decode("t", n)
     attributes = {}
     for attr, shapes in header["attributes"].items():
-        codebooks = [decode(f"svq.{attr}.codebook{j}", k * s).reshape(k, s) for j, (k, s) in enumerate(shapes)]
+        codebooks = [decode(f"svq.{attr}.codebook{j}", k * s, shape=(k, s)).reshape(k, s)
+                     for j, (k, s) in enumerate(shapes)]
         indices = [decode(f"svq.{attr}.index{j}", n, k) for j, (k, _) in enumerate(shapes)]
         attributes[attr] = QuantizedAttribute(codebooks, indices)
-    mlp = {name: decode(f"mlp.{name}", math.prod(shape)).reshape(shape)
+    for attr in header.get("quaternions", []):  # one unit quaternion per Gaussian: an identity lookup
+        attributes[attr] = QuantizedAttribute([decode(f"quat.{attr}", n).reshape(n, 4)], [np.arange(n)])
+    mlp = {name: decode(f"mlp.{name}", math.prod(shape), shape=tuple(shape)).reshape(shape)
            for name, shape in header["mlp"].items()}
-    return CompressedPayload(xyz, t, attributes, mlp, header["meta"])
+    return CompressedPayload(xyz, t, attributes, mlp, header["meta"], tuple(header.get("rotations", [])))

@@ -109,8 +109,8 @@ def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
 def omg4_summary(path: Path, **_) -> tuple[dict, str]:
     """Per-section size breakdown of an ``.omg4`` file and its bits per Gaussian.
 
-    Groups: positions, time centres, each attribute's index streams and codebooks, the
-    MLP weights, and the container header; the groups add up to the file size.
+    Groups: positions, time centres, each attribute's index streams and codebooks (or its unit
+    quaternions), the MLP weights, and the container header; the groups add up to the file size.
     """
     from omg4.codec.container import describe_container
     from omg4.codec.payload import check_sections
@@ -128,6 +128,8 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
         parts = name.split(".")
         if parts[0] == "svq":
             key = f"{parts[1]} {'indices' if parts[2].startswith('index') else 'codebooks'}"
+        elif parts[0] == "quat":
+            key = f"{parts[1]} quaternions"
         else:
             key = {"xyz": "positions", "t": "time centres", "mlp": "MLPs"}.get(parts[0], parts[0])
         groups[key] = groups.get(key, 0) + size

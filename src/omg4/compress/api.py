@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omg4.codec.payload import CompressedPayload, encode_payload
+from omg4.codec.payload import CODECS, CompressedPayload, encode_payload
 from omg4.compress.model import CompressibleModel
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
@@ -40,13 +40,17 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
         attributes={a: q.to_quantized() for a, q in model.quantizers.items()},
         mlp=model.appearance.to_fp16_state(),
         meta=payload_meta,
+        rotations=model.config.schema.quaternion_groups(),
     )
 
 
 def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, out: str | Path, *,
-                     codec: str = "ans", stop_after: str | None = None, scores_path: str | Path | None = None,
-                     progress: bool = True, log=print) -> dict:
+                     codec: str = CODECS[0], stop_after: str | None = None, scores_path: str | Path | None = None,
+                     paper_copy: str | Path | None = None, progress: bool = True, log=print) -> dict:
     """Run OMG4 on ``baseline`` and write ``out``; returns a JSON-ready report.
+
+    ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
+    comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
 
     SD scores are read from ``scores_path`` when given, else computed and saved beside
     ``out`` as ``<out>.scores.npz`` so ablation runs can reuse them.
@@ -64,11 +68,15 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
         sections = {}
     else:
-        sections = encode_payload(build_payload(model, meta), out, codec=codec)
+        payload = build_payload(model, meta)
+        sections = encode_payload(payload, out, codec=codec)
+        if paper_copy is not None:
+            encode_payload(payload, paper_copy, codec="paper")
     return {
         "output": str(out),
         "file_bytes": out.stat().st_size,
         "sections": sections,
+        **({"paper_file_bytes": Path(paper_copy).stat().st_size} if paper_copy and stop_after is None else {}),
         "num_gaussians": model.num_gaussians,
         "baseline_gaussians": baseline.num_gaussians,
         "wall_time_s": time.perf_counter() - t0,

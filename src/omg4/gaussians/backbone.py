@@ -180,6 +180,13 @@ class Backbone:
             widths.append((p, math.prod(shape)))
         return tuple(widths)
 
+    def quaternion_groups(self) -> tuple[str, ...]:
+        """SVQ attributes that are exactly one rotation quaternion (normalized at use; q and −q alike), which
+        the "compact" codec may store as unit quaternions (:mod:`omg4.codec.quaternions`)."""
+        return tuple(g.name for g in self.svq_groups
+                     if len(g.params) == 1 and self.attribute(g.params[0]).activation == "quaternion"
+                     and self.attribute(g.params[0]).shape == (4,))
+
     def explicit_after_compression(self) -> tuple[str, ...]:
         """The per-Gaussian tensors a fully compressed model stores unquantized (fp16 in the file)."""
         quantized = {p for g in self.svq_groups for p in g.params}

@@ -1,0 +1,80 @@
+"""Decode time of ``.omg4`` files of about 3 MB, per codec (the "compact" codec's speed bound).
+
+A well-formed compressed model (``codec.forge.valid_payload``: the M preset's codebook sizes,
+random values) is grown until its file holds at least ``--megabytes`` MB, written with each
+codec, then decoded ``--repeats`` times: ``decode_payload`` (file → arrays) and ``load_omg4``
+(file → renderable model with its visibility index). Reports the median seconds.
+
+Usage: python benchmarks/decode_omg4.py [--megabytes 3] [--repeats 5] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from omg4.atomic import write_text_atomic
+from omg4.codec.decoder import load_omg4
+from omg4.codec.forge import valid_payload
+from omg4.codec.payload import CODECS, decode_payload, encode_payload
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def sized_file(path: Path, codec: str, megabytes: float) -> tuple[int, int]:
+    """Write a payload whose ``codec`` file is at least ``megabytes`` MB; returns (Gaussians, bytes)."""
+    n = 20_000
+    while True:
+        payload = valid_payload(n, seed=0)
+        payload.rotations = ("rotation", "rotation_r")
+        size = sum(encode_payload(payload, path, codec=codec).values())
+        if size >= megabytes * 2**20:
+            return n, size
+        n = int(n * 1.05 * megabytes * 2**20 / size) + 1
+
+
+def median_seconds(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--megabytes", type=float, default=3.0)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "decode_omg4.json")
+    args = p.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for codec in CODECS:
+            path = Path(tmp) / f"{codec}.omg4"
+            n, size = sized_file(path, codec, args.megabytes)
+            load_omg4(path)  # warm up numba and imports
+            rows.append({"codec": codec, "gaussians": n, "bytes": size, "MB": round(size / 2**20, 3),
+                         "decode_payload_s": round(median_seconds(lambda: decode_payload(path), args.repeats), 4),
+                         "load_omg4_s": round(median_seconds(lambda: load_omg4(path), args.repeats), 4)})
+            r = rows[-1]
+            print(f"{codec:<8} {n:>8} G {r['MB']:>7.3f} MB  decode {r['decode_payload_s']:.3f} s  "
+                  f"load {r['load_omg4_s']:.3f} s")
+    result = {"benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
+              "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                          "cpu_count": os.cpu_count()},
+              "results": rows}
+    write_text_atomic(args.json, json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""Rate of one OMG4 pipeline result under each coder, and the quality each file renders at.
+
+Input: the pipeline's ``.omg4`` written with the paper-faithful coder (fp16 values exactly as
+the pipeline produced them; ``omg4 compress --codec paper``, or the ``*_paper_codec.omg4`` copy
+that ``omg4 demo`` and ``omg4 bench`` write). The same payload is re-encoded with the "ans"
+and "compact" codecs; every file is decoded alone and evaluated on the scene's test views
+(PSNR, SSIM and their moving-pixel versions; "ans" holds the paper file's values bit for bit,
+so it is not rendered again). Sizes are split as ``omg4 info`` groups them, and summed into
+the per-Gaussian sections (positions, time centres, index streams, unit quaternions) and the
+fixed part (codebooks, MLP weights, header).
+
+Usage: python benchmarks/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+from pathlib import Path
+
+from omg4.atomic import write_text_atomic
+from omg4.codec.decoder import load_omg4
+from omg4.codec.payload import decode_payload, encode_payload
+from omg4.commands.info import omg4_summary
+from omg4.data import load_scene
+from omg4.evaluate import dynamic_masks, evaluate
+from omg4.gaussians.backbone import BACKBONES
+
+ROOT = Path(__file__).resolve().parents[1]
+PER_GAUSSIAN = ("positions", "time centres", "indices", "quaternions")
+
+
+def split(groups: dict[str, int]) -> tuple[int, int]:
+    """(per-Gaussian bytes, fixed bytes) of an ``omg4 info`` grouping."""
+    per = sum(size for key, size in groups.items() if any(word in key for word in PER_GAUSSIAN))
+    return per, sum(groups.values()) - per
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("paper_file", type=Path)
+    p.add_argument("data", type=Path)
+    p.add_argument("--downscale", type=float, default=1.0)
+    p.add_argument("--name", default="scene")
+    p.add_argument("--json", type=Path)
+    args = p.parse_args()
+    out_json = args.json or ROOT / "benchmarks" / "results" / f"rate_{args.name}.json"
+    payload = decode_payload(args.paper_file)
+    if not payload.rotations:  # files written before the header named them
+        backbone = payload.meta.get("gaussian_config", {}).get("backbone", "rt4dgs")
+        payload.rotations = BACKBONES[backbone].quaternion_groups()
+    scene = load_scene(args.data, downscale=args.downscale, progress=False)
+    masks = dynamic_masks(scene.test_views)
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        files = {"paper": args.paper_file}
+        for codec in ("ans", "compact"):
+            files[codec] = Path(tmp) / f"{codec}.omg4"
+            encode_payload(payload, files[codec], codec=codec)
+        for codec, path in files.items():
+            summary, text = omg4_summary(path)
+            print(text)
+            per, fixed = split(summary["groups"])
+            n = summary["num_gaussians"]
+            row = {"bytes": summary["total_bytes"], "MB": summary["total_bytes"] / 2**20,
+                   "bytes_per_gaussian": summary["total_bytes"] / n, "per_gaussian_bytes": per,
+                   "per_gaussian_B_per_G": per / n, "fixed_bytes": fixed, "groups": summary["groups"],
+                   "num_gaussians": n}
+            if codec != "ans":
+                r = evaluate(load_omg4(path), scene.test_views, storage_bytes=summary["total_bytes"], masks=masks,
+                             lpips_nets=(), progress=False)
+                row.update({k: r[k] for k in ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic")})
+            rows[codec] = row
+    rows["ans"].update({k: rows["paper"][k] for k in ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic")})
+    lines = ["| coder | MB | B/G | per-Gaussian B/G | fixed KB | PSNR | SSIM | PSNR dyn |", "|---|---|---|---|---|---|---|---|"]
+    for codec, r in rows.items():
+        lines.append(f"| {codec} | {r['MB']:.4f} | {r['bytes_per_gaussian']:.1f} | {r['per_gaussian_B_per_G']:.1f} | "
+                     f"{r['fixed_bytes'] / 1000:.1f} | {r['psnr']:.3f} | {r['ssim']:.4f} | {r['psnr_dynamic']:.3f} |")
+    table = "\n".join(lines)
+    print(table)
+    delta = {k: rows["compact"][k] - rows["paper"][k] for k in ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic")}
+    print("compact - paper:", {k: round(v, 4) for k, v in delta.items()},
+          f"size {rows['compact']['bytes'] / rows['paper']['bytes']:.3f}x")
+    result = {"benchmark": "rate", "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
+              "downscale": args.downscale, "num_gaussians": payload.num_gaussians, "rows": rows,
+              "compact_minus_paper": delta, "table": table,
+              "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                          "cpu_count": os.cpu_count()}}
+    write_text_atomic(out_json, json.dumps(result, indent=2) + "\n")
+    write_text_atomic(out_json.with_suffix(".md"), table + "\n")
+    print(f"wrote {out_json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+"""The "compact" codec: codeword coding without the codewords' order, unit quaternions, 8-bit MLP weights,
+the version gate — each against an independent computation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omg4.codec import codewords, quaternions, weights
+from omg4.codec.container import read_container
+from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
+                                encode_payload)
+from omg4.codec.payload import _smallest_f16 as smallest_f16
+from omg4.errors import CorruptFileError
+
+from tests.codec.test_payload import make_payload
+
+
+def _entropy_bits(symbols: np.ndarray) -> float:
+    counts = np.bincount(symbols)
+    p = counts[counts > 0] / symbols.size
+    return float(-(counts[counts > 0] * np.log2(p)).sum())
+
+
+def _decode_slot(cb_enc, cb_bytes, ix_enc, ix_bytes, k, s, n):
+    if cb_enc == "sorted":
+        rows = codewords.decode_sorted_codebook(cb_bytes, k, s)
+    else:
+        from omg4.codec.payload import _decode_f16
+        rows = _decode_f16(cb_bytes, cb_enc, k * s).reshape(k, s)
+    if ix_enc == "first-use":
+        labels = codewords.decode_first_use_indices(ix_bytes, k, n)
+    else:
+        from omg4.codec.entropy import decode_indices
+        labels = decode_indices(ix_bytes, k, n, "ans")
+    return rows, labels
+
+
+def _streams():
+    rng = np.random.default_rng(3)
+    yield "skewed", rng.normal(size=(512, 1)), np.minimum(rng.geometric(0.01, 5000) - 1, 511)
+    yield "one codeword per Gaussian", rng.normal(size=(3000, 2)), rng.permutation(3000)
+    yield "constant", rng.normal(size=(7, 3)), np.full(100, 4)
+    yield "single Gaussian", rng.normal(size=(9, 4)), np.array([8])
+    dup = rng.normal(size=(64, 2))
+    dup[32:] = dup[:32]  # every row twice; half the codebook unused
+    yield "duplicates and unused rows", dup, rng.integers(0, 48, 2000)
+    yield "sub-vectors of 5 (no sorted mode)", rng.normal(size=(40, 5)), rng.integers(0, 40, 900)
+    special = np.array([[0.0], [-0.0], [65504.0], [-65504.0], [6e-8], [-6e-8], [1.0]])
+    yield "extreme fp16 values", special, rng.integers(0, 7, 300)
+
+
+@pytest.mark.parametrize("name, codebook, indices", list(_streams()), ids=[s[0] for s in _streams()])
+def test_codewords_reconstruct_every_value_exactly(name, codebook, indices):
+    cb16 = np.asarray(codebook, np.float16)
+    result = codewords.encode_codewords(cb16, indices, smallest_f16)
+    rows, labels = _decode_slot(*result, cb16.shape[1], indices.size)
+    expected = cb16[indices].view(np.uint16)
+    np.testing.assert_array_equal(rows[labels].view(np.uint16), expected)
+    # no unused and no duplicate codeword survives
+    assert rows.shape[0] == len({r.tobytes() for r in expected}) == result[4]
+    assert np.unique(labels).size == rows.shape[0]
+
+
+def test_first_use_makes_one_codeword_per_gaussian_nearly_free():
+    rng = np.random.default_rng(0)
+    n = 4000
+    cb = rng.normal(size=(n, 2)).astype(np.float16)
+    cb_enc, cb_bytes, ix_enc, ix_bytes, k = codewords.encode_codewords(cb, rng.permutation(n), smallest_f16)
+    assert ix_enc == "first-use" and k == n
+    assert len(ix_bytes) < 32  # every index is "the next new codeword": a constant flag stream
+    assert len(ix_bytes) < 0.01 * n * np.log2(n) / 8
+
+
+def test_sorted_set_saves_the_order_of_a_small_codebook():
+    """K ≪ N: the codebook as a sorted set beats the same rows in first-use order, the ranks stay at entropy."""
+    rng = np.random.default_rng(1)
+    cb = np.sort(rng.normal(size=(512, 1)), axis=0).astype(np.float16)
+    ix = np.minimum(rng.geometric(0.01, 20000) - 1, 511)
+    cb_enc, cb_bytes, ix_enc, ix_bytes, k = codewords.encode_codewords(cb, ix, smallest_f16)
+    assert cb_enc == "sorted" and ix_enc == "ranks"
+    assert len(cb_bytes) < len(smallest_f16(cb[np.unique(ix)])[1])
+    rows, labels = _decode_slot(cb_enc, cb_bytes, ix_enc, ix_bytes, k, 1, ix.size)
+    assert 8 * len(ix_bytes) <= 1.01 * _entropy_bits(labels) + 8 * 600  # within 1 % plus the model table
+
+
+def test_interleave_matches_a_bitwise_reference():
+    rng = np.random.default_rng(2)
+    for s in (1, 2, 3, 4):
+        keys = rng.integers(0, 1 << 16, size=(50, s)).astype(np.uint16)
+        codes = codewords.interleave(keys)
+        for row, code in zip(keys, codes):
+            ref = sum(((int(row[a]) >> b) & 1) << (b * s + a) for b in range(16) for a in range(s))
+            assert int(code) == ref
+        np.testing.assert_array_equal(codewords.deinterleave(codes, s), keys)
+
+
+def test_damaged_codeword_streams_are_corrupt_file_errors():
+    rng = np.random.default_rng(4)
+    cb = rng.normal(size=(100, 2)).astype(np.float16)
+    _, cb_bytes, _, ix_bytes, k = codewords.encode_codewords(cb, rng.permutation(100), smallest_f16)
+    with pytest.raises(CorruptFileError):
+        codewords.decode_first_use_indices(ix_bytes, k + 1, 100)  # more codewords than new flags
+    codes = np.array([5, 5], np.uint64)  # not strictly increasing
+    from omg4.codec.entropy import encode_uints
+    with pytest.raises(CorruptFileError, match="strictly increasing"):
+        codewords.decode_sorted_codebook(encode_uints(np.diff(codes, prepend=np.uint64(0))), 2, 1)
+    with pytest.raises(CorruptFileError, match="out of range"):
+        codewords.decode_sorted_codebook(encode_uints(np.array([1 << 20], np.uint64)), 1, 1)
+    # a repeat that names a codeword before its first use: flags say [new, repeat, new], repeat label 1
+    from omg4.codec.entropy import encode_indices, pack_varints
+    flags = encode_indices(np.array([1, 0, 1]), 2, "ans")
+    forged = pack_varints(np.array([len(flags)])) + flags + encode_indices(np.array([1]), 2, "ans")
+    with pytest.raises(CorruptFileError, match="not yet used"):
+        codewords.decode_first_use_indices(forged, 2, 3)
+
+
+def _rotation_matrix(q: np.ndarray) -> np.ndarray:
+    """3×3 rotation of unit-normalized quaternions (w, x, y, z), float64 (independent textbook formula)."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
+
+
+def test_unit_quaternions_keep_the_rotation_within_the_grid_step():
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(5000, 4)) * rng.uniform(0.1, 3, size=(5000, 1))  # any norm, any sign
+    q[:4] = [[1, 0, 0, 0], [0, 0, 0, -2], [0.5, 0.5, 0.5, 0.5], [1e-3, 0, 0, 0]]
+    decoded = quaternions.decode_quaternions(quaternions.encode_quaternions(q), q.shape[0]).astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(decoded, axis=1), 1.0, atol=2e-3)
+    err = np.abs(_rotation_matrix(decoded) - _rotation_matrix(q)).max()
+    step = np.sqrt(2) / (2 ** quaternions.BITS - 1)
+    assert err < 4 * step  # each of 3 components off by ≤ step/2, fp16 rounding on top
+    same = quaternions.encode_quaternions(-q)  # q and −q are the same rotation: the same bytes
+    assert same == quaternions.encode_quaternions(q)
+
+
+def test_unit_quaternions_cost_about_their_entropy():
+    rng = np.random.default_rng(6)
+    q = np.abs(rng.normal(size=(20000, 4))) * [4, 1, 1, 1]  # concentrated near the identity
+    data = quaternions.encode_quaternions(q)
+    largest, codes = quaternions.quantize_quaternions(q)
+    bound = _entropy_bits(largest) + _entropy_bits(codes.ravel())
+    assert 8 * len(data) <= 1.01 * bound + 8 * 1200  # within 1 % plus the model tables
+    assert 8 * len(data) < 0.6 * 4 * 16 * q.shape[0]  # well under four fp16 numbers per rotation
+
+
+def test_weights_in_eight_bits_match_an_independent_rounding():
+    rng = np.random.default_rng(7)
+    w = (0.2 * rng.normal(size=(64, 37))).astype(np.float16)
+    w[3] = 0.0  # an all-zero row
+    decoded = weights.decode_rows(weights.encode_rows(w), w.shape).astype(np.float64)
+    w64 = w.astype(np.float64)
+    scale = np.abs(w64).max(axis=1, keepdims=True) / 127
+    scale16 = scale.astype(np.float16).astype(np.float64)
+    ref = np.clip(np.rint(np.divide(w64, scale16, out=np.zeros_like(w64), where=scale16 > 0)), -127, 127) * scale16
+    np.testing.assert_allclose(decoded, ref, rtol=1e-3, atol=1e-6)
+    assert (decoded[3] == 0).all()
+    assert np.abs(decoded - w64).max() <= (scale16 / 2 + 1e-3 * np.abs(w64)).max()
+
+
+def test_compact_payload_round_trip(tmp_path):
+    """Every SVQ attribute reconstructs bit-exactly (codebooks relabelled); positions and times exact;
+    rotations on the unit grid; MLP matrices in 8 bits; vectors and empty arrays kept."""
+    p = make_payload(3000)
+    p.rotations = ("rotation",)
+    sizes = encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    assert sum(sizes.values()) == (tmp_path / "m.omg4").stat().st_size
+    d = decode_payload(tmp_path / "m.omg4")
+    ref = p.permuted(canonical_order(p.xyz)).to_fp16()
+    np.testing.assert_array_equal(d.xyz.view(np.uint16), ref.xyz.view(np.uint16))
+    np.testing.assert_array_equal(d.t.view(np.uint16), ref.t.view(np.uint16))
+    assert set(d.attributes) == set(ref.attributes) and d.rotations == ("rotation",)
+    for name in ref.attributes:
+        a, b = d.attributes[name].reconstruct(), ref.attributes[name].reconstruct()
+        if name == "rotation":
+            np.testing.assert_allclose(_rotation_matrix(a.astype(np.float64)), _rotation_matrix(b.astype(np.float64)),
+                                       atol=4 * np.sqrt(2) / 1023)
+        else:
+            np.testing.assert_array_equal(a.view(np.uint16), b.view(np.uint16))
+    for name, w in ref.mlp.items():
+        assert d.mlp[name].shape == w.shape
+        if w.size:
+            step = np.abs(w.astype(np.float64)).max(axis=1, keepdims=True) / 127
+            assert (np.abs(d.mlp[name].astype(np.float64) - w) <= step / 2 + 1e-3 * np.abs(w) + 1e-7).all()
+    header, _ = read_container(tmp_path / "m.omg4")
+    assert header["codec"] == "compact" and header["quaternions"] == ["rotation"]
+
+
+def test_compact_is_smaller_than_ans_and_paper(tmp_path):
+    p = make_payload(5000)
+    p.rotations = ("rotation", "rotation_r")
+    total = {c: sum(encode_payload(p, tmp_path / f"{c}.omg4", codec=c).values()) for c in ("compact", "ans", "paper")}
+    assert total["compact"] < 0.8 * total["ans"] < total["paper"]
+
+
+def test_files_of_the_version_1_layout_still_decode(tmp_path):
+    """The "ans" and "paper" writers keep version 1, byte for byte the layout older builds wrote and read."""
+    p = make_payload(200)
+    for codec in ("ans", "paper"):
+        encode_payload(p, tmp_path / f"{codec}.omg4", codec=codec)
+        data = (tmp_path / f"{codec}.omg4").read_bytes()
+        assert int.from_bytes(data[8:10], "little") == 1
+        header, _ = read_container(data)
+        assert "quaternions" not in header
+        d = decode_payload(data)
+        assert d.num_gaussians == 200
+
+
+def test_a_quaternion_list_on_a_version_1_codec_is_refused(tmp_path):
+    from omg4.codec import forge
+    path = tmp_path / "a.omg4"
+    encode_payload(make_payload(50), path, codec="ans")
+    header, sections = forge._split(path.read_bytes())
+    header["quaternions"] = []
+    with pytest.raises(CorruptFileError, match="quaternion"):
+        decode_payload(forge._assemble(header, sections))
+
+
+def test_rotation_declared_but_not_a_quaternion_stays_lossless(tmp_path):
+    """Only 4-wide attributes can be unit quaternions; a declared 2-wide one keeps its codebooks."""
+    rng = np.random.default_rng(8)
+    attrs = {"rotation": QuantizedAttribute([rng.normal(size=(10, 2))], [rng.integers(0, 10, 30)])}
+    p = CompressedPayload(rng.normal(size=(30, 3)), rng.uniform(size=30), attrs, {}, {}, ("rotation",))
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    d = decode_payload(tmp_path / "m.omg4")
+    ref = p.permuted(canonical_order(p.xyz)).to_fp16()
+    np.testing.assert_array_equal(d.attributes["rotation"].reconstruct(), ref.attributes["rotation"].reconstruct())
