@@ -33,7 +33,6 @@ def sized_file(path: Path, codec: str, megabytes: float) -> tuple[int, int]:
     n = 20_000
     while True:
         payload = valid_payload(n, seed=0)
-        payload.rotations = ("rotation", "rotation_r")
         size = sum(encode_payload(payload, path, codec=codec).values())
         if size >= megabytes * 2**20:
             return n, size

@@ -105,8 +105,10 @@ def test_damaged_codeword_streams_are_corrupt_file_errors():
     from omg4.codec.entropy import encode_uints
     with pytest.raises(CorruptFileError, match="strictly increasing"):
         codewords.decode_sorted_codebook(encode_uints(np.diff(codes, prepend=np.uint64(0))), 2, 1)
-    with pytest.raises(CorruptFileError, match="out of range"):
+    with pytest.raises(CorruptFileError, match="longer than 16 bits"):  # refused before the raw bits are read
         codewords.decode_sorted_codebook(encode_uints(np.array([1 << 20], np.uint64)), 1, 1)
+    with pytest.raises(CorruptFileError, match="out of range"):  # two gaps summing past 16 bits
+        codewords.decode_sorted_codebook(encode_uints(np.array([1 << 15, 1 << 15], np.uint64)), 2, 1)
     # a repeat that names a codeword before its first use: flags say [new, repeat, new], repeat label 1
     from omg4.codec.entropy import encode_indices, pack_varints
     flags = encode_indices(np.array([1, 0, 1]), 2, "ans")
@@ -152,13 +154,92 @@ def test_weights_in_eight_bits_match_an_independent_rounding():
     w = (0.2 * rng.normal(size=(64, 37))).astype(np.float16)
     w[3] = 0.0  # an all-zero row
     decoded = weights.decode_rows(weights.encode_rows(w), w.shape).astype(np.float64)
+    w[5] *= 1e-4  # a row of tiny weights keeps its relative precision (float32 scales)
+    decoded = weights.decode_rows(weights.encode_rows(w), w.shape).astype(np.float64)
     w64 = w.astype(np.float64)
     scale = np.abs(w64).max(axis=1, keepdims=True) / 127
-    scale16 = scale.astype(np.float16).astype(np.float64)
-    ref = np.clip(np.rint(np.divide(w64, scale16, out=np.zeros_like(w64), where=scale16 > 0)), -127, 127) * scale16
-    np.testing.assert_allclose(decoded, ref, rtol=1e-3, atol=1e-6)
+    ref = np.clip(np.rint(np.divide(w64, scale, out=np.zeros_like(w64), where=scale > 0)), -127, 127) * scale
+    ref16 = ref.astype(np.float16).astype(np.float64)  # the payload's weights are fp16
+    np.testing.assert_allclose(decoded, ref16, rtol=1e-3, atol=6e-8)  # 6e-8: fp16's subnormal step
     assert (decoded[3] == 0).all()
-    assert np.abs(decoded - w64).max() <= (scale16 / 2 + 1e-3 * np.abs(w64)).max()
+    assert (np.abs(decoded - w64) <= scale / 2 + 1e-3 * np.abs(w64) + 6e-8).all()
+
+
+def test_weight_scales_beyond_fp16_are_corrupt_file_errors():
+    from omg4.codec.entropy import encode_indices
+    forged = np.array([1e4, 1.0], "<f4").tobytes() + encode_indices(np.full(4, 254), 255, "ans")
+    with pytest.raises(CorruptFileError, match="fp16 range"):
+        weights.decode_rows(forged, (2, 2))  # 1e4 · 127 overflows fp16
+
+
+def test_identity_rotation_is_exact():
+    q = np.array([[1.0, 0, 0, 0], [0, 0, 0, 3.0], [-2.0, 0, 0, 0]])
+    decoded = quaternions.decode_quaternions(quaternions.encode_quaternions(q), 3)
+    np.testing.assert_array_equal(decoded, [[1, 0, 0, 0], [0, 0, 0, 1], [1, 0, 0, 0]])
+
+
+def test_uint_values_longer_than_allowed_are_refused_before_unpacking():
+    from omg4.codec.entropy import decode_uints, encode_uints
+    data = encode_uints(np.array([3, 1 << 40], np.uint64))
+    np.testing.assert_array_equal(decode_uints(data, 2), [3, 1 << 40])
+    with pytest.raises(CorruptFileError, match="longer than 32 bits"):
+        decode_uints(data, 2, max_bits=32)
+
+
+def _forged_compact(tmp_path, edit):
+    """A valid compact file with ``edit(header, sections)`` applied and every checksum recomputed."""
+    from omg4.codec import forge
+    p = make_payload(60)
+    p.rotations = ("rotation",)
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    header, sections = forge._split((tmp_path / "m.omg4").read_bytes())
+    sections = dict(sections)
+    edit(header, sections)
+    return forge._assemble(header, list(sections.items()))
+
+
+@pytest.mark.parametrize("section, encoding, data", [
+    ("quat.rotation", "f16", np.zeros(60, "<f2").tobytes()),  # a float encoding on a quaternion section
+    ("mlp.cont.1", "sorted", b"\x00"),  # a codebook encoding on an MLP weight
+    ("svq.scale.codebook0", "int8-rows", b"\x00" * 8),  # a weight encoding on a codebook
+    ("mlp.empty", "int8-rows", b""),  # not a 2-D matrix with rows
+])
+def test_encodings_outside_their_section_kind_are_refused(tmp_path, section, encoding, data):
+    def edit(header, sections):
+        header["encodings"][section] = encoding
+        sections[section] = data
+    with pytest.raises(CorruptFileError, match=section.replace(".", "\\.")):
+        decode_payload(_forged_compact(tmp_path, edit))
+
+
+def test_a_header_that_inflates_far_beyond_real_ones_is_refused(tmp_path):
+    import zlib
+
+    from omg4.codec.container import max_inflated_json
+
+    def edit(header, sections):
+        header["meta"]["padding"] = [[]] * 200_000  # 600 kB of brackets that deflate to about 1 kB
+    data = _forged_compact(tmp_path, edit)
+    n = int.from_bytes(data[12:16], "little")
+    assert len(zlib.decompress(data[20:20 + n], -15)) > max_inflated_json(n)
+    with pytest.raises(CorruptFileError, match="compressed header"):
+        decode_payload(data)
+
+
+def test_more_rotations_than_a_codebook_holds_are_stored_by_the_compact_codec_only(tmp_path):
+    """A decoded compact file holds one rotation row per Gaussian; beyond 65,536 of them only compact re-encodes it."""
+    rng = np.random.default_rng(9)
+    n = 70_000
+    q = rng.normal(size=(n, 4))
+    p = CompressedPayload(rng.normal(size=(n, 3)), rng.uniform(size=n),
+                          {"rotation": QuantizedAttribute([q], [np.arange(n)])}, {}, {}, ("rotation",))
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    d = decode_payload(tmp_path / "m.omg4")
+    assert d.attributes["rotation"].codebooks[0].shape == (n, 4)
+    encode_payload(d, tmp_path / "again.omg4", codec="compact")  # a decoded file re-encodes
+    from omg4.errors import OMG4Error
+    with pytest.raises(OMG4Error, match="only the compact codec"):
+        encode_payload(d, tmp_path / "ans.omg4", codec="ans")
 
 
 def test_compact_payload_round_trip(tmp_path):

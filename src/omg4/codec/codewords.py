@@ -113,7 +113,7 @@ def decode_sorted_codebook(data: bytes, num_rows: int, sub_len: int) -> np.ndarr
     """The ``[K', s]`` fp16 codebook of the "sorted" mode (strictly increasing codes within 16·s bits)."""
     if not 1 <= sub_len <= MAX_SORTED_SUB_LEN:
         raise CorruptFileError(f"sorted codebook with sub-vectors of {sub_len} values (limit {MAX_SORTED_SUB_LEN})")
-    codes = np.cumsum(decode_uints(data, num_rows), dtype=np.uint64)
+    codes = np.cumsum(decode_uints(data, num_rows, max_bits=16 * sub_len), dtype=np.uint64)
     gaps_ok = num_rows < 2 or bool((codes[1:] > codes[:-1]).all())
     if not gaps_ok or (num_rows and int(codes[-1]) >> (16 * sub_len)):
         raise CorruptFileError("damaged sorted codebook (codes not strictly increasing or out of range)")
@@ -125,6 +125,8 @@ def decode_sorted_codebook(data: bytes, num_rows: int, sub_len: int) -> np.ndarr
 
 def decode_first_use_indices(data: bytes, num_rows: int, count: int) -> np.ndarray:
     """The ``int64 [count]`` indices of the "first-use" mode into a codebook of ``num_rows`` rows."""
+    if num_rows < 1:
+        raise CorruptFileError("first-use indices into an empty codebook")
     (size,), used = unpack_varints(data, 1, "first-use flag size")
     if size > len(data) - used:
         raise CorruptFileError("truncated first-use flags")

@@ -85,7 +85,10 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
     if version == 2:
         packer = zlib.compressobj(9, zlib.DEFLATED, -15)
-        blob = packer.compress(blob) + packer.flush()
+        text, blob = blob, packer.compress(blob) + packer.flush()
+        if len(text) > max_inflated_json(len(blob)):
+            raise OMG4Error(f"container header compresses {len(text)} → {len(blob)} bytes, beyond what a reader "
+                            "accepts; write it with version 1")
     if len(blob) > MAX_JSON_BYTES:
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
     prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
@@ -151,15 +154,22 @@ def _parse_table(label: str, doc: object) -> tuple[dict, list[tuple[str, int, in
     return doc["header"], table
 
 
+def max_inflated_json(compressed: int) -> int:
+    """Most JSON bytes a version-2 header of ``compressed`` bytes may inflate to: real headers shrink 3-4×, so
+    a header far more compressible than that (a bomb of repeated brackets) is refused before it is parsed."""
+    return min(MAX_JSON_BYTES, 65536 + 32 * compressed)
+
+
 def _inflate_json(label: str, blob: bytes) -> bytes:
-    """The JSON text of a version-2 header (at most :data:`MAX_JSON_BYTES`)."""
+    """The JSON text of a version-2 header (at most :func:`max_inflated_json` of its size)."""
+    limit = max_inflated_json(len(blob))
     d = zlib.decompressobj(-15)
     try:
-        text = d.decompress(blob, MAX_JSON_BYTES)
+        text = d.decompress(blob, limit)
     except zlib.error:
         raise CorruptFileError(f"{label}: damaged compressed header") from None
     if not d.eof or d.unconsumed_tail or d.unused_data:
-        raise CorruptFileError(f"{label}: damaged compressed header (wrong length or over {MAX_JSON_BYTES} bytes)")
+        raise CorruptFileError(f"{label}: damaged compressed header (wrong length or over {limit} bytes inflated)")
     return text
 
 

@@ -326,8 +326,8 @@ def encode_uints(values: np.ndarray) -> bytes:
     return pack_varints(np.array([len(stream)])) + stream + _pack_bits(v, nraw)
 
 
-def decode_uints(data: bytes, count: int) -> np.ndarray:
-    """Inverse of :func:`encode_uints`: ``uint64 [count]``."""
+def decode_uints(data: bytes, count: int, max_bits: int = 64) -> np.ndarray:
+    """Inverse of :func:`encode_uints`: ``uint64 [count]``; a value longer than ``max_bits`` bits is damage."""
     data = bytes(data)
     (size,), used = unpack_varints(data, 1, "uint token size")
     if size > len(data) - used:
@@ -336,6 +336,8 @@ def decode_uints(data: bytes, count: int) -> np.ndarray:
     big = tokens >= _SPLIT
     t = tokens - _SPLIT
     length = np.where(big, t // 4 + 5, 0)
+    if length.size and int(length.max()) > max_bits:
+        raise CorruptFileError(f"damaged uint stream (a value longer than {max_bits} bits)")
     nraw = np.where(big, length - 3, 0)
     low = _unpack_bits(data[used + int(size):], nraw)
     head = np.where(big, (4 + (t & 3)).astype(np.uint64), tokens.astype(np.uint64))
@@ -352,19 +354,27 @@ def _pack_bits(values: np.ndarray, nbits: np.ndarray) -> bytes:
     return np.packbits(bits[shift >= 0].astype(np.uint8)).tobytes()
 
 
+_UNPACK_CHUNK = 1 << 16  # values per block: the [block, width] work arrays stay a few MB
+
+
 def _unpack_bits(data: bytes, nbits: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_pack_bits`: ``uint64 [n]``."""
+    """Inverse of :func:`_pack_bits`: ``uint64 [n]`` (in blocks of values, so memory stays bounded)."""
     total = int(nbits.sum())
     if len(data) != (total + 7) // 8:
         raise CorruptFileError("damaged uint stream (raw bits have the wrong length)")
-    width = int(nbits.max()) if nbits.size else 0
     out = np.zeros(nbits.size, np.uint64)
-    if width == 0:
+    if total == 0:
         return out
-    bits = np.unpackbits(np.frombuffer(data, np.uint8))[:total].astype(np.uint64)
-    start = np.cumsum(nbits) - nbits
-    col = np.arange(width)[None, :]
-    valid = col < nbits[:, None]
-    shift = np.where(valid, nbits[:, None] - 1 - col, 0).astype(np.uint64)
-    gathered = np.where(valid, bits[np.where(valid, start[:, None] + col, 0)], 0).astype(np.uint64)
-    return np.bitwise_or.reduce(gathered << shift, axis=1)
+    bits = np.unpackbits(np.frombuffer(data, np.uint8))[:total]
+    starts = np.cumsum(nbits) - nbits
+    for lo in range(0, nbits.size, _UNPACK_CHUNK):
+        nb, start = nbits[lo:lo + _UNPACK_CHUNK], starts[lo:lo + _UNPACK_CHUNK]
+        width = int(nb.max())
+        if width == 0:
+            continue
+        col = np.arange(width)[None, :]
+        valid = col < nb[:, None]
+        shift = np.where(valid, nb[:, None] - 1 - col, 0).astype(np.uint64)
+        gathered = np.where(valid, bits[np.where(valid, start[:, None] + col, 0)], 0).astype(np.uint64)
+        out[lo:lo + _UNPACK_CHUNK] = np.bitwise_or.reduce(gathered << shift, axis=1)
+    return out

@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import json
 import random
+import zlib
 from pathlib import Path
 from typing import Iterator
 
@@ -63,7 +64,8 @@ def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0
             "gaussian_config": GaussianConfig(time_range=(0.0, 1.0)).to_json(),
             "active_sh_degree": 3, "active_sh_degree_t": 2,
             "normalization": {"scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]}}
-    return CompressedPayload(xyz, rng.uniform(0, 1, n), attributes, AppearanceMLP().to_fp16_state(), meta)
+    return CompressedPayload(xyz, rng.uniform(0, 1, n), attributes, AppearanceMLP().to_fp16_state(), meta,
+                             RT4DGS.quaternion_groups())
 
 
 def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: int = 0,
@@ -89,7 +91,11 @@ def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
     for token, raw in _RAW_NUMBERS.items():
         text = text.replace(f'"{token}"', raw)
     blob = text.encode("utf-8", "surrogatepass")
-    prefix = PREFIX.pack(MAGIC, 1, 0, len(blob), crc32(blob))  # version 1: the JSON as text
+    version = 2 if isinstance(header, dict) and header.get("codec") == "compact" else 1
+    if version == 2:  # the compact codec's container deflates the JSON
+        packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+        blob = packer.compress(blob) + packer.flush()
+    prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
     return prefix + blob + b"".join(data for _, data in sections)
 
 

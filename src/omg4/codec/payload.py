@@ -200,7 +200,7 @@ def _encode_xyz_morton(xyz16: np.ndarray) -> bytes:
 
 
 def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
-    gaps = decode_uints(data, count)
+    gaps = decode_uints(data, count, max_bits=48)
     codes = np.cumsum(gaps, dtype=np.uint64)
     if count and (codes[-1] >> np.uint64(48) or (count > 1 and (codes[1:] < codes[:-1]).any())):
         raise CorruptFileError("damaged Morton codes")
@@ -211,8 +211,16 @@ def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ encoding
-def _check_payload(p: CompressedPayload) -> CompressedPayload:
-    """The fp16/int64 form of ``p`` after checking shapes, names, ranges and finiteness (OMG4Error)."""
+def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...]) -> bool:
+    """Whether the compact codec may store attribute ``name`` as unit quaternions (a rotation, 4 wide)."""
+    return name in rotations and sum(int(np.shape(cb)[1]) for cb in q.codebooks) == 4
+
+
+def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
+    """The fp16/int64 form of ``p`` after checking shapes, names, ranges and finiteness (OMG4Error).
+
+    A rotation the compact codec stores as unit quaternions may have codebooks of any length (a decoded
+    compact file holds one row per Gaussian); every other codebook has at most MAX_SYMBOLS rows."""
     n = int(np.asarray(p.xyz).shape[0]) if np.asarray(p.xyz).ndim == 2 else -1
     if n < 1 or np.asarray(p.xyz).shape != (n, 3) or np.asarray(p.t).size != n:
         raise OMG4Error(f"payload needs xyz [N, 3] and t [N] with N >= 1, got {np.shape(p.xyz)} and {np.shape(p.t)}")
@@ -236,8 +244,10 @@ def _check_payload(p: CompressedPayload) -> CompressedPayload:
         if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
             raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            if cb.ndim != 2 or not 1 <= cb.shape[0] <= MAX_SYMBOLS or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
-                raise OMG4Error(f"attribute {attr}: codebook {j} has shape {cb.shape}")
+            max_rows = n if codec == "compact" and _quaternion_stored(qa, attr, q.rotations) else MAX_SYMBOLS
+            if cb.ndim != 2 or not 1 <= cb.shape[0] <= max(max_rows, MAX_SYMBOLS) or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
+                raise OMG4Error(f"attribute {attr}: codebook {j} has shape {cb.shape} (at most {MAX_SYMBOLS} rows of "
+                                f"at most {MAX_SUB_LEN}; more rotations than that only the compact codec stores)")
             if not np.isfinite(cb).all():
                 raise OMG4Error(f"attribute {attr}: codebook {j} has NaN/Inf or values beyond the fp16 range")
             if ix.shape != (n,) or ix.min() < 0 or ix.max() >= cb.shape[0]:
@@ -250,6 +260,10 @@ def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: 
     """Add the sections of one SVQ attribute in the "compact" codec; returns its codebook shapes, or None when
     it was stored as unit quaternions (smaller than its codebooks and indices)."""
     slots, shapes = {}, []
+    if as_quaternion and max(cb.shape[0] for cb in qa.codebooks) > MAX_SYMBOLS:  # only storable as quaternions
+        sections[f"quat.{name}"] = quaternions.encode_quaternions(qa.reconstruct())
+        encodings[f"quat.{name}"] = f"smallest-three-{quaternions.BITS}"
+        return None
     for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
         cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
         slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
@@ -277,7 +291,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     """
     if codec not in CODECS:
         raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODECS)})")
-    q = _check_payload(p)
+    q = _check_payload(p, codec)
     if codec != "paper":
         q = q.permuted(canonical_order(q.xyz))
     sections: dict[str, bytes] = {}
@@ -297,7 +311,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     stored_as_quaternions: list[str] = []
     if codec == "compact":
         for attr, qa in q.attributes.items():
-            as_quaternion = attr in q.rotations and qa.reconstruct().shape[1] == 4
+            as_quaternion = _quaternion_stored(qa, attr, q.rotations)
             attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, sections, encodings)
             if attr_shapes is None:
                 stored_as_quaternions.append(attr)
@@ -421,7 +435,11 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
     index_encodings = ("ranks", "first-use") if codec == "compact" else (codec,)
 
-    def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, int] | None = None) -> np.ndarray:
+    compact = codec == "compact"
+    quaternion_encoding = f"smallest-three-{quaternions.BITS}"
+
+    def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, ...] | None = None) -> np.ndarray:
+        """Decode section ``name``; each encoding is accepted only for the section kind it was made for."""
         try:
             data, encoding = sections[name], enc[name]
             if num_symbols:
@@ -430,12 +448,15 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 if encoding == "first-use":
                     return decode_first_use_indices(data, num_symbols, count)
                 return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else codec)
-            if codec == "compact" and encoding == "sorted" and shape is not None:
-                return decode_sorted_codebook(data, *shape)
-            if codec == "compact" and encoding == "int8-rows" and shape is not None and len(shape) == 2:
-                return weights.decode_rows(data, shape)
-            if codec == "compact" and encoding == f"smallest-three-{quaternions.BITS}" and name.startswith("quat."):
+            kind = name.split(".")[0]
+            if kind == "quat":
+                if encoding != quaternion_encoding:
+                    raise CorruptFileError(f"encoding {encoding!r} is not a quaternion encoding")
                 return quaternions.decode_quaternions(data, count)
+            if compact and encoding == "sorted" and kind == "svq":
+                return decode_sorted_codebook(data, *shape)
+            if compact and encoding == "int8-rows" and kind == "mlp" and len(shape) == 2:
+                return weights.decode_rows(data, shape)
             if encoding == "morton" and name == "xyz" and codec != "paper":
                 return _decode_xyz_morton(data, count)
             return _decode_f16(data, encoding, count)

@@ -5,9 +5,9 @@ Real-Time4DGS's pair of isoclinic quaternions too: negating one negates the 4D r
 the covariance), so a Gaussian's rotation has three degrees of freedom, not the four fp16
 numbers (or two 2-d sub-vector codewords) it is stored as. This coder normalizes, flips the
 sign so the largest-magnitude component is positive, stores which component that is (2 bits,
-ANS-coded) and the other three on a uniform grid of ``2^bits`` steps over [−1/√2, 1/√2]
-(ANS-coded); the decoder recovers the largest as √(1 − Σ others²). At 10 bits the rotation
-moves by at most ~0.1° (component error ≤ 7·10⁻⁴).
+ANS-coded) and the other three on a uniform grid of ``2^bits − 1`` levels over [−1/√2, 1/√2]
+(odd, so 0 is a level and the identity is exact; ANS-coded); the decoder recovers the largest
+as √(1 − Σ others²). At 10 bits the rotation moves by at most ~0.16° (component error ≤ 7·10⁻⁴).
 """
 
 from __future__ import annotations
@@ -21,8 +21,13 @@ BITS = 10
 _LIMIT = 1 / np.sqrt(2)
 
 
+def levels(bits: int) -> int:
+    """Grid levels per component: ``2^bits − 1`` (odd: 0 is a level)."""
+    return (1 << bits) - 1
+
+
 def _step(bits: int) -> float:
-    return 2 * _LIMIT / ((1 << bits) - 1)
+    return 2 * _LIMIT / (levels(bits) - 1)
 
 
 def quantize_quaternions(q: np.ndarray, bits: int = BITS) -> tuple[np.ndarray, np.ndarray]:
@@ -35,7 +40,7 @@ def quantize_quaternions(q: np.ndarray, bits: int = BITS) -> tuple[np.ndarray, n
     rows = np.arange(q.shape[0])
     q = q * np.where(q[rows, largest] < 0, -1.0, 1.0)[:, None]
     others = q[~(np.arange(4)[None, :] == largest[:, None])].reshape(-1, 3)
-    codes = np.clip(np.rint((others + _LIMIT) / _step(bits)), 0, (1 << bits) - 1).astype(np.int64)
+    codes = np.clip(np.rint((others + _LIMIT) / _step(bits)), 0, levels(bits) - 1).astype(np.int64)
     return largest.astype(np.int64), codes
 
 
@@ -54,16 +59,16 @@ def encode_quaternions(q: np.ndarray, bits: int = BITS) -> bytes:
     """Code ``q: [N, 4]`` (N ≥ 1): varint size of the largest-component stream, that stream, the grid codes."""
     largest, codes = quantize_quaternions(q, bits)
     head = encode_indices(largest, 4, "ans")
-    return pack_varints(np.array([len(head)])) + head + encode_indices(codes.ravel(), 1 << bits, "ans")
+    return pack_varints(np.array([len(head)])) + head + encode_indices(codes.ravel(), levels(bits), "ans")
 
 
 def decode_quaternions(data: bytes, count: int, bits: int = BITS) -> np.ndarray:
     """Inverse of :func:`encode_quaternions`: unit quaternions rounded to ``float16 [count, 4]``."""
-    if not 1 <= bits <= 15:
-        raise CorruptFileError(f"quaternion grid of {bits} bits (allowed 1-15)")
+    if not 2 <= bits <= 15:
+        raise CorruptFileError(f"quaternion grid of {bits} bits (allowed 2-15)")
     (size,), used = unpack_varints(data, 1, "quaternion stream size")
     if size > len(data) - used:
         raise CorruptFileError("truncated quaternion stream")
     largest = decode_indices(data[used:used + int(size)], 4, count, "ans")
-    codes = decode_indices(data[used + int(size):], 1 << bits, 3 * count, "ans").reshape(count, 3)
+    codes = decode_indices(data[used + int(size):], levels(bits), 3 * count, "ans").reshape(count, 3)
     return dequantize_quaternions(largest, codes, bits).astype(np.float16)
