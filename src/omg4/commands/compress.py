@@ -39,7 +39,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="override the preset's pruning quantile p, in [0, 1)")
     p.add_argument("--codec", default=CODECS[0], choices=list(CODECS),
                    help="file coder: compact (default: codewords coded without their order, unit quaternions, "
-                        "8-bit MLP weights; about 40%% smaller at the same quality), ans (lossless, fp16 values "
+                        "8-bit MLP weights; 0.54-0.85x the paper coder's file at the same quality, README 'Rate'), ans (lossless, fp16 values "
                         "as the paper), paper (Huffman + LZMA as OMG4)")
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
