@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 
+from environment import machine
 from omg4.atomic import write_text_atomic
 from omg4.data import load_scene
 
@@ -69,8 +68,7 @@ def main() -> int:
               f"{r['read_float32_s']:>8.2f} {r['frames_per_s']:>9.1f} {r['MB_per_s']:>8.1f}")
     result = {"benchmark": "decode", "data": args.data.name, "downscale": args.downscale,
               "cache_MB": round(cache_mb, 1),
-              "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                          "cpu_count": os.cpu_count()},
+              "machine": machine(),
               "results": rows}
     write_text_atomic(args.json, json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.json}")

@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from environment import machine
 from omg4.atomic import write_text_atomic
 from omg4.codec.decoder import load_omg4
 from omg4.codec.forge import valid_payload
@@ -67,8 +66,7 @@ def main() -> int:
             print(f"{codec:<8} {n:>8} G {r['MB']:>7.3f} MB  decode {r['decode_payload_s']:.3f} s  "
                   f"load {r['load_omg4_s']:.3f} s")
     result = {"benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
-              "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                          "cpu_count": os.cpu_count()},
+              "machine": machine(),
               "results": rows}
     write_text_atomic(args.json, json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.json}")

@@ -16,12 +16,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import tempfile
 from pathlib import Path
 
+from environment import machine
 from omg4.atomic import write_text_atomic
 from omg4.codec.decoder import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
@@ -88,8 +87,7 @@ def main() -> int:
     result = {"benchmark": "rate", "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
               "downscale": args.downscale, "num_gaussians": payload.num_gaussians, "rows": rows,
               "compact_minus_paper": delta, "table": table,
-              "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                          "cpu_count": os.cpu_count()}}
+              "machine": machine()}
     write_text_atomic(out_json, json.dumps(result, indent=2) + "\n")
     write_text_atomic(out_json.with_suffix(".md"), table + "\n")
     print(f"wrote {out_json}")

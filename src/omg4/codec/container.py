@@ -60,6 +60,12 @@ def _encode_json(header: dict, table: list[list]) -> bytes:
         raise OMG4Error(f"container header is not JSON-serializable: {exc}") from None
 
 
+def deflate_raw(data: bytes) -> bytes:
+    """Raw DEFLATE (zlib level 9, no zlib header): the version-2 JSON and the ANS model tables."""
+    packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+    return packer.compress(data) + packer.flush()
+
+
 def has_magic(path) -> bool:
     """Whether the file at ``path`` starts with the ``.omg4`` container's magic bytes."""
     with open(path, "rb") as f:
@@ -84,13 +90,10 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
     if len(blob) > MAX_JSON_BYTES:
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
     if version == 2:
-        packer = zlib.compressobj(9, zlib.DEFLATED, -15)
-        text, blob = blob, packer.compress(blob) + packer.flush()
+        text, blob = blob, deflate_raw(blob)
         if len(text) > max_inflated_json(len(blob)):
             raise OMG4Error(f"container header compresses {len(text)} → {len(blob)} bytes, beyond what a reader "
                             "accepts; write it with version 1")
-    if len(blob) > MAX_JSON_BYTES:
-        raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
     prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(prefix)
@@ -210,14 +213,17 @@ def _read_prefix_and_table(src: _Source) -> tuple[int, dict, list[tuple[str, int
     return version, header, table
 
 
-def read_container(source: str | os.PathLike | bytes | bytearray | memoryview,
-                   with_version: bool = False) -> tuple[dict, dict[str, bytes]] | tuple[int, dict, dict[str, bytes]]:
-    """Read and verify a container from a path or from bytes; returns ``(header, sections)``, or
-    ``(version, header, sections)`` with ``with_version``.
+def read_container(source: str | os.PathLike | bytes | bytearray | memoryview) -> tuple[dict, dict[str, bytes]]:
+    """Read and verify a container from a path or from bytes; returns ``(header, sections)``.
 
     Raises :class:`CorruptFileError` (one line) on any damage and :class:`OMG4Error` when
     the file is missing.
     """
+    return _read_versioned(source)[1:]
+
+
+def _read_versioned(source) -> tuple[int, dict, dict[str, bytes]]:
+    """:func:`read_container` plus the file's format version."""
     src = _Source(source)
     try:
         version, header, table = _read_prefix_and_table(src)
@@ -229,7 +235,7 @@ def read_container(source: str | os.PathLike | bytes | bytearray | memoryview,
             sections[name] = data
     finally:
         src.close()
-    return (version, header, sections) if with_version else (header, sections)
+    return version, header, sections
 
 
 def describe_container(source: str | os.PathLike | bytes | bytearray | memoryview) -> dict:
@@ -239,7 +245,7 @@ def describe_container(source: str | os.PathLike | bytes | bytearray | memoryvie
     where ``header_bytes`` counts the fixed prefix plus the JSON, so
     ``header_bytes + sum(sections.values()) == total_bytes``.
     """
-    version, header, sections = read_container(source, with_version=True)
+    version, header, sections = _read_versioned(source)
     sizes = {name: len(data) for name, data in sections.items()}
     total = Path(source).stat().st_size if not isinstance(source, (bytes, bytearray, memoryview)) else len(source)
     return {"version": version, "total_bytes": total, "header_bytes": total - sum(sizes.values()),

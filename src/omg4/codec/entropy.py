@@ -32,6 +32,7 @@ import dahuffman
 import numba
 import numpy as np
 
+from omg4.codec.container import deflate_raw
 from omg4.errors import CorruptFileError
 
 METHODS = ("ans", "paper")
@@ -112,17 +113,12 @@ def _encode_ans(idx: np.ndarray, num_symbols: int) -> bytes:
     log_counts = np.log2(np.maximum(counts, 1))
     for steps in _STEPS_PER_OCTAVE:
         q = np.where(counts > 0, 1 + np.rint(steps * log_counts), 0).astype(np.uint8)
-        table = _deflate(q.tobytes())
+        table = deflate_raw(q.tobytes())
         body = _ans_body(idx, _weights(q, steps))
         candidate = bytes([_MODE_ANS, steps]) + pack_varints(np.array([len(table)])) + table + body
         if best is None or len(candidate) < len(best):
             best = candidate
     return head + best
-
-
-def _deflate(data: bytes) -> bytes:
-    c = zlib.compressobj(9, zlib.DEFLATED, -15)
-    return c.compress(data) + c.flush()
 
 
 def _inflate(data: bytes, size: int, what: str) -> bytes:

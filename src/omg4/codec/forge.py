@@ -18,13 +18,12 @@ from __future__ import annotations
 import functools
 import json
 import random
-import zlib
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from omg4.codec.container import MAGIC, PREFIX, crc32, read_container
+from omg4.codec.container import MAGIC, PREFIX, crc32, deflate_raw, read_container
 from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
 from omg4.gaussians.backbone import RT4DGS
 
@@ -93,8 +92,7 @@ def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
     blob = text.encode("utf-8", "surrogatepass")
     version = 2 if isinstance(header, dict) and header.get("codec") == "compact" else 1
     if version == 2:  # the compact codec's container deflates the JSON
-        packer = zlib.compressobj(9, zlib.DEFLATED, -15)
-        blob = packer.compress(blob) + packer.flush()
+        blob = deflate_raw(blob)
     prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
     return prefix + blob + b"".join(data for _, data in sections)
 

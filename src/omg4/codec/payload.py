@@ -244,8 +244,9 @@ def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
         if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
             raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            max_rows = n if codec == "compact" and _quaternion_stored(qa, attr, q.rotations) else MAX_SYMBOLS
-            if cb.ndim != 2 or not 1 <= cb.shape[0] <= max(max_rows, MAX_SYMBOLS) or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
+            any_length = codec == "compact" and _quaternion_stored(qa, attr, q.rotations)
+            max_rows = max(n, MAX_SYMBOLS) if any_length else MAX_SYMBOLS
+            if cb.ndim != 2 or not 1 <= cb.shape[0] <= max_rows or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
                 raise OMG4Error(f"attribute {attr}: codebook {j} has shape {cb.shape} (at most {MAX_SYMBOLS} rows of "
                                 f"at most {MAX_SUB_LEN}; more rotations than that only the compact codec stores)")
             if not np.isfinite(cb).all():
@@ -258,21 +259,17 @@ def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
 def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool,
                               sections: dict[str, bytes], encodings: dict[str, str]) -> list[list[int]] | None:
     """Add the sections of one SVQ attribute in the "compact" codec; returns its codebook shapes, or None when
-    it was stored as unit quaternions (smaller than its codebooks and indices)."""
+    it was stored as unit quaternions (smaller than its codebooks and indices, or too many rows for them)."""
+    quat = quaternions.encode_quaternions(qa.reconstruct()) if as_quaternion else None
     slots, shapes = {}, []
-    if as_quaternion and max(cb.shape[0] for cb in qa.codebooks) > MAX_SYMBOLS:  # only storable as quaternions
-        sections[f"quat.{name}"] = quaternions.encode_quaternions(qa.reconstruct())
-        encodings[f"quat.{name}"] = f"smallest-three-{quaternions.BITS}"
+    if max(cb.shape[0] for cb in qa.codebooks) <= MAX_SYMBOLS:
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
+            slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
+            shapes.append([k, int(cb.shape[1])])
+    if quat is not None and (not slots or len(quat) < sum(len(b) for _, b in slots.values())):
+        sections[f"quat.{name}"], encodings[f"quat.{name}"] = quat, quaternions.ENCODING
         return None
-    for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-        cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
-        slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
-        shapes.append([k, int(cb.shape[1])])
-    if as_quaternion:
-        data = quaternions.encode_quaternions(qa.reconstruct())
-        if len(data) < sum(len(b) for _, b in slots.values()):
-            sections[f"quat.{name}"], encodings[f"quat.{name}"] = data, f"smallest-three-{quaternions.BITS}"
-            return None
     for section, (enc, data) in slots.items():
         sections[section], encodings[section] = data, enc
     return shapes
@@ -433,10 +430,8 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
 def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayload:
     check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
-    index_encodings = ("ranks", "first-use") if codec == "compact" else (codec,)
-
     compact = codec == "compact"
-    quaternion_encoding = f"smallest-three-{quaternions.BITS}"
+    index_encodings = ("ranks", "first-use") if compact else (codec,)
 
     def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, ...] | None = None) -> np.ndarray:
         """Decode section ``name``; each encoding is accepted only for the section kind it was made for."""
@@ -450,7 +445,7 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else codec)
             kind = name.split(".")[0]
             if kind == "quat":
-                if encoding != quaternion_encoding:
+                if encoding != quaternions.ENCODING:
                     raise CorruptFileError(f"encoding {encoding!r} is not a quaternion encoding")
                 return quaternions.decode_quaternions(data, count)
             if compact and encoding == "sorted" and kind == "svq":

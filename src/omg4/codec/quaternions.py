@@ -18,6 +18,7 @@ from omg4.codec.entropy import decode_indices, encode_indices, pack_varints, unp
 from omg4.errors import CorruptFileError
 
 BITS = 10
+ENCODING = f"smallest-three-{BITS}"  # the name of the section encoding in a file's header
 _LIMIT = 1 / np.sqrt(2)
 
 

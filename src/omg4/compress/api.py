@@ -64,6 +64,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
+    paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written
     if stop_after is not None:
         save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
         sections = {}
@@ -71,12 +72,12 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         payload = build_payload(model, meta)
         sections = encode_payload(payload, out, codec=codec)
         if paper_copy is not None:
-            encode_payload(payload, paper_copy, codec="paper")
+            paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
     return {
         "output": str(out),
         "file_bytes": out.stat().st_size,
         "sections": sections,
-        **({"paper_file_bytes": Path(paper_copy).stat().st_size} if paper_copy and stop_after is None else {}),
+        **paper,
         "num_gaussians": model.num_gaussians,
         "baseline_gaussians": baseline.num_gaussians,
         "wall_time_s": time.perf_counter() - t0,
