@@ -1,13 +1,14 @@
 """Benchmark: one rendered frame of a baseline and of its compressed model (the appearance MLPs only on the Gaussians that pass the cull).
 
 For each model file (a ``.safetensors`` checkpoint or an ``.omg4`` file) on the test views of
-a dataset: median render time per frame (render only, as ``omg4 eval`` measures FPS), the
+a dataset: median render time per frame (render only, as ``omg4 eval`` measures FPS; the models
+take turns frame by frame so that a shared host's slow spells fall on all alike), the
 aten operations one frame dispatches (the CPU proxy for GPU kernel launches), and the mean
 fraction of the model's Gaussians that reach the rasterizer (those passing the temporal
 cull). The paper reports OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
 
     python benchmarks/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
-                                      [--device cpu|cuda] [--frames 30] [--label after] [--name demo]
+                                      [--device cpu|cuda] [--frames 30] [--rounds 3] [--label after] [--name demo]
 
 Results are merged into ``benchmarks/results/render_frame.json`` under ``--label`` / ``--name``.
 """
@@ -31,37 +32,45 @@ from train_step import OpCounter, sync  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results" / "render_frame.json"
 
 
-def measure_model(path: Path, views, device: str, frames: int) -> dict:
+def measure_models(paths: list[Path], views, device: str, frames: int, rounds: int) -> list[dict]:
+    """Per model: median ms per frame over ``rounds`` passes of ``frames`` test views. The models take turns
+    frame by frame, so a slow spell of a shared host falls on all of them alike."""
     from omg4.evaluate import load_model
     from omg4.render.view import render_view
 
-    model = load_model(path, device)
+    models = [load_model(p, device) for p in paths]
     step = max(1, len(views) // frames)
     timed = views[::step][:frames]
-    fractions = []
 
-    def frame(v):
+    def frame(model, v):
         with torch.no_grad():
             _, sl = render_view(model, v.camera, v.timestamp, device=device)
         return sl
 
-    for v in timed[:3]:
-        frame(v)
-    times = []
-    for v in timed:
-        sync(device)
-        t0 = time.perf_counter()
-        sl = frame(v)
-        sync(device)
-        times.append(time.perf_counter() - t0)
-        fractions.append(sl.index.numel() / model.num_gaussians)
-    counter = OpCounter()
-    with counter:
-        frame(timed[len(timed) // 2])
-    ms = 1000 * statistics.median(times)
-    return {"model": str(path), "num_gaussians": int(model.num_gaussians), "ms_per_frame": ms, "fps": 1000 / ms,
-            "aten_ops_per_frame": sum(counter.ops.values()), "visible_fraction": statistics.mean(fractions),
-            "frames": len(timed)}
+    for model in models:
+        for v in timed[:3]:
+            frame(model, v)
+    times = [[] for _ in models]
+    fractions = [[] for _ in models]
+    for _ in range(rounds):
+        for v in timed:
+            for i, model in enumerate(models):
+                sync(device)
+                t0 = time.perf_counter()
+                sl = frame(model, v)
+                sync(device)
+                times[i].append(time.perf_counter() - t0)
+                fractions[i].append(sl.index.numel() / model.num_gaussians)
+    rows = []
+    for path, model, ts, fs in zip(paths, models, times, fractions):
+        counter = OpCounter()
+        with counter:
+            frame(model, timed[len(timed) // 2])
+        ms = 1000 * statistics.median(ts)
+        rows.append({"model": str(path), "num_gaussians": int(model.num_gaussians), "ms_per_frame": ms,
+                     "fps": 1000 / ms, "aten_ops_per_frame": sum(counter.ops.values()),
+                     "visible_fraction": statistics.mean(fs), "frames": len(ts)})
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--rounds", type=int, default=3, help="passes over the frames (models alternate frame by frame)")
     ap.add_argument("--label", default="after")
     ap.add_argument("--name", default=None, help="row name (default: the dataset folder's name)")
     ap.add_argument("--json", type=Path, default=RESULTS)
@@ -82,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
 
         keep_freed_memory()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
-    rows = [measure_model(p, scene.test_views, args.device, args.frames) for p in args.models]
+    rows = measure_models(args.models, scene.test_views, args.device, args.frames, args.rounds)
     base = rows[0]["ms_per_frame"]
     for r in rows:
         r["speedup_vs_first"] = base / r["ms_per_frame"]

@@ -114,6 +114,49 @@ def test_forward_matches_independent_float64_reference():
         np.testing.assert_allclose(g.detach().numpy(), w, rtol=1e-10, atol=1e-12)
 
 
+def test_split_first_layer_matches_the_reference_for_rows_of_several_views():
+    """Cached position term + per-view time term (the render and fine-tuning path) = the network on [x, t]."""
+    mlp = _mlp(5).double()
+    xyz, fs, fv = (a.double() for a in _inputs(40, seed=5))
+    state = {k: v.detach().numpy() for k, v in mlp.state_dict().items()}
+    times = torch.tensor([0.1, 0.65, 0.93], dtype=torch.float64)
+    views = torch.tensor([2, 0, 1, 1, 2, 0, 0] * 5 + [1] * 5)  # row r belongs to view views[r]
+    term = mlp.position_term(xyz, chunk=7)  # several blocks
+    got = mlp.predict_from_position_term(term, times, views, fs, fv)
+    # phases up to 2^15·π: float64 rounding of the phase alone reaches ~1e-11, hence 1e-9
+    for v in range(3):
+        rows = (views == v).nonzero()[:, 0]
+        want = _reference_forward(state, xyz[rows].numpy(), float(times[v]), fs[rows].numpy(), fv[rows].numpy())
+        dc, rest, logit = (g[rows].detach().numpy() for g in got)
+        np.testing.assert_allclose(dc, want[0], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(rest, want[1], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(1 / (1 + np.exp(-logit)), want[2], rtol=1e-9, atol=1e-9)
+
+
+def test_split_first_layer_has_the_gradients_of_the_direct_network():
+    mlp = _mlp(6).double()
+    xyz, fs, fv = (a.double() for a in _inputs(30, seed=6))
+    times = torch.tensor([0.3, 0.8], dtype=torch.float64)
+    views = torch.arange(30) % 2
+    grads = []
+    for split in (False, True):
+        mlp.zero_grad()
+        f_s, f_v = fs.clone().requires_grad_(True), fv.clone().requires_grad_(True)
+        if split:
+            dc, rest, logit = mlp.predict_from_position_term(mlp.position_term(xyz), times, views, f_s, f_v)
+        else:
+            dc, rest, logit = mlp.predict(xyz, times[views], f_s, f_v)
+        (dc.sin().sum() + rest.square().sum() + logit.tanh().sum()).backward()
+        grads.append([f_s.grad, f_v.grad] + [p.grad.clone() for p in mlp.parameters()])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+
+
+def test_position_term_needs_a_time_conditioned_network():
+    with pytest.raises(ValueError):
+        AppearanceMLP(num_inputs=3).position_term(torch.zeros(2, 3))
+
+
 def test_time_conditioning():
     mlp = _mlp()
     xyz, fs, fv = _inputs(64)

@@ -4,7 +4,8 @@ Imports the container, the Real-Time4DGS math and the appearance MLP definition 
 training or compression code (docs/architecture.md §2: a compressed file must be decodable by
 code that does not import them). Sub-vector-quantized attributes are looked up and a per-time-window
 visibility index is built once at load; the MLPs run per frame, as in the paper's FPS
-measurements, but only on the Gaussians that pass the temporal cull.
+measurements, but only on the Gaussians that pass the temporal cull, and the positions' share of
+their first layer is computed at load (it does not change with time).
 """
 
 from __future__ import annotations

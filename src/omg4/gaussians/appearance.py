@@ -128,6 +128,40 @@ class AppearanceMLP(nn.Module):
         else:
             inputs = torch.cat((xyz, torch.full_like(xyz[:, :1], float(t_norm))), dim=1)
         shared = self.shared(frequency_encoding(inputs, self.num_freqs))  # [N, 13]
+        return self._heads(shared, f_static, f_view)
+
+    def position_term(self, xyz_canonical: Tensor, chunk: int = 65536) -> Tensor:
+        """The shared network's first-layer response to the positions alone, ``[N, hidden]``.
+
+        The frequency encoding acts on each input dimension separately, so the first layer splits:
+        ``W1 · Freq([x, t]) = W1_x · Freq(x) + W1_t · Freq(t)``. For a model that no longer trains the
+        position part is fixed; a renderer computes it once at load and a frame then encodes only
+        its time (:meth:`predict_from_position_term`). Real-Time4DGS networks only (``num_inputs = 4``).
+
+        xyz_canonical: [N, 3] canonical means (normalized world); computed in blocks of ``chunk`` rows.
+        """
+        if self.num_inputs != 4:
+            raise ValueError("only a time-conditioned network (4 inputs) has a time-independent position term")
+        weight = self.shared[0].weight[:, :3 * 2 * self.num_freqs]  # [hidden, 3·2F]
+        blocks = [frequency_encoding(contract_to_unisphere(x), self.num_freqs) @ weight.T
+                  for x in xyz_canonical.detach().split(chunk)]
+        return torch.cat(blocks) if blocks else xyz_canonical.new_zeros(0, weight.shape[0])
+
+    def predict_from_position_term(self, position_term: Tensor, t_norm: Tensor, views: Tensor, f_static: Tensor,
+                                   f_view: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`predict` for rows whose :meth:`position_term` is known: equal up to float rounding.
+
+        position_term: [M, hidden] rows of :meth:`position_term`; t_norm: [V] normalized view times;
+        views: [M] view of each row; f_static, f_view: [M, 3]. The time part of the first layer is
+        computed once per view, so a frame evaluates no per-Gaussian encoding and no first layer.
+        """
+        weight = self.shared[0].weight[:, 3 * 2 * self.num_freqs:]  # [hidden, 2F]
+        time_term = frequency_encoding(t_norm.reshape(-1, 1).to(weight), self.num_freqs) @ weight.T  # [V, hidden]
+        hidden = self.shared[1](position_term + time_term.index_select(0, views))
+        return self._heads(self.shared[2](hidden), f_static, f_view)
+
+    def _heads(self, shared: Tensor, f_static: Tensor, f_view: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(dc [N, 1, 3], rest [N, num_rest, 3], opacity logit [N]) from the shared features [N, shared_dim]."""
         static_in = torch.cat((shared, f_static), dim=1)
         dc = self.dc(static_in).unsqueeze(1)  # [N, 1, 3]
         opacity_logit = self.opacity(static_in).squeeze(1)  # [N]

@@ -286,7 +286,7 @@ def _moved_leaf(value: torch.Tensor, device: torch.device | str) -> torch.Tensor
 
 def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_degree: int, sh_degree_t: int,
                  timestamps: torch.Tensor, camera_centers: torch.Tensor, *,
-                 appearance: "AppearanceMLP | None" = None) -> TimeSlice:
+                 appearance: "AppearanceMLP | None" = None, position_term: torch.Tensor | None = None) -> TimeSlice:
     """The 3D Gaussians that raw per-Gaussian ``values`` show to ``V`` views (rt4dgs §1.4 + §2).
 
     Positions, covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for all views
@@ -301,38 +301,58 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
         values: the backbone's geometry attributes and either ``opacity, features_dc,
             features_rest`` or ``f_static, f_view``.
         timestamps: [V] view times; camera_centers: [V, 3] viewer positions.
+        position_term: for a frozen model with time-conditioned MLPs, each row's
+            :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term` (a renderer's cache).
     """
     xyz = values["xyz"]
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
     geom = config.schema.geometry(values, config, times64.to(xyz.dtype))
-    coeffs, logit = _appearance(values, config, geom, times64, appearance)
+    coeffs, coeff_rows, logit = _appearance(values, config, geom, times64, appearance, position_term)
     origin = geom.means if config.sh_direction == "conditioned" else values["xyz"].index_select(0, geom.index)
     dirs = view_directions(origin, centers.index_select(0, geom.views))
-    colors = colors_from_sh(coeffs, dirs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size)
+    colors = colors_from_sh(coeffs, dirs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size,
+                            rows=coeff_rows)
     return TimeSlice(means=geom.means, covars=geom.covars, colors=colors, opacities=torch.sigmoid(logit) * geom.marginal,
                      index=geom.index, num_total=int(xyz.shape[0]), views=geom.views)
 
 
 def _appearance(values: dict[str, torch.Tensor], config: GaussianConfig, geom, times64: torch.Tensor,
-                appearance: "AppearanceMLP | None") -> tuple[torch.Tensor, torch.Tensor]:
-    """(4D SH coefficients [M, K, 3], opacity logits [M]) of the slice's rows ``geom.index``: explicit in
-    ``values``, or predicted by the appearance MLPs (paper §4.4) in one pass for every view."""
+                appearance: "AppearanceMLP | None", position_term: torch.Tensor | None = None
+                ) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor | None, torch.Tensor]:
+    """(4D SH coefficients as (DC [·, 1, 3], the others [·, K − 1, 3]), the coefficient row of each slice row
+    or None, opacity logits [M]) of the slice's rows ``geom.index``: explicit in ``values`` (one
+    coefficient row per Gaussian, gathered by the colour kernel), or predicted by the appearance MLPs
+    (paper §4.4) in one pass for every view (one per slice row); a time-conditioned network's first
+    layer is split into its position part (``position_term`` where a renderer cached it, else
+    computed once per Gaussian) and a per-view time part."""
     idx = geom.index
 
     def rows(name: str) -> torch.Tensor:
         return values[name].index_select(0, idx)
 
     if appearance is None:
-        return torch.cat([rows("features_dc"), rows("features_rest")], dim=1), rows("opacity")[:, 0]
+        return (values["features_dc"], values["features_rest"]), idx, rows("opacity")[:, 0]
     if config.schema.mlp_time_input:  # canonical position and normalized view time (Real-Time4DGS)
         t0, t1 = config.time_range
         t_norm = ((times64 - t0) / (t1 - t0)).to(values["xyz"].dtype)  # normalized in float64, as training did
-        positions, t_rows = rows("xyz"), t_norm.index_select(0, geom.views)
+        if position_term is not None:
+            term = position_term.index_select(0, idx)
+        elif idx.numel() < values["xyz"].shape[0]:  # fewer rows than Gaussians: encode the rows
+            term = appearance.position_term(rows("xyz"))
+        else:  # each Gaussian once, however many views' rows it serves
+            term = appearance.position_term(values["xyz"]).index_select(0, idx)
+        dc, rest, logit = appearance.predict_from_position_term(term, t_norm, geom.views, rows("f_static"),
+                                                                rows("f_view"))
     else:  # the position at the view's time carries the time (FreeTimeGS)
-        positions, t_rows = geom.means, None
-    dc, rest, logit = appearance.predict(positions, t_rows, rows("f_static"), rows("f_view"))
-    return torch.cat([dc, rest], dim=1), logit
+        dc, rest, logit = appearance.predict(geom.means, None, rows("f_static"), rows("f_view"))
+    return (dc, rest), None, logit
+
+
+def _row_coefficients(coeffs: tuple[torch.Tensor, torch.Tensor], coeff_rows: torch.Tensor | None) -> torch.Tensor:
+    """The coefficients [M, K, 3] of each slice row from :func:`_appearance`'s first two results."""
+    joined = torch.cat(coeffs, dim=1)
+    return joined if coeff_rows is None else joined.index_select(0, coeff_rows)
 
 
 @dataclass
@@ -363,8 +383,9 @@ def static_slice(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
     xyz = values["xyz"]
     times64 = torch.tensor([float(timestamp)], dtype=torch.float64, device=xyz.device)
     geom = config.schema.geometry(values, config, times64.to(xyz.dtype))
-    coeffs, logit = _appearance(values, config, geom, times64, appearance)
-    sh = fold_time_sh(coeffs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size)
+    coeffs, coeff_rows, logit = _appearance(values, config, geom, times64, appearance)
+    sh = fold_time_sh(_row_coefficients(coeffs, coeff_rows), geom.dt, config.period, sh_degree, sh_degree_t,
+                      band_size=config.band_size)
     return StaticSlice(means=geom.means, covars=geom.covars, opacities=torch.sigmoid(logit) * geom.marginal, sh=sh,
                        index=geom.index)
 
@@ -381,8 +402,9 @@ def centre_appearance(values: dict[str, torch.Tensor], config: GaussianConfig, s
     rows = torch.arange(xyz.shape[0], device=xyz.device)
     zeros = torch.zeros(xyz.shape[0], dtype=xyz.dtype, device=xyz.device)
     centres = SliceGeometry(index=rows, means=xyz, covars=None, marginal=None, dt=zeros, views=rows)
-    coeffs, logit = _appearance(values, config, centres, values["t"][:, 0].double(), appearance)
-    dc = fold_time_sh(coeffs, zeros, config.period, 0, sh_degree_t, band_size=config.band_size)[:, 0]
+    coeffs, coeff_rows, logit = _appearance(values, config, centres, values["t"][:, 0].double(), appearance)
+    dc = fold_time_sh(_row_coefficients(coeffs, coeff_rows), zeros, config.period, 0, sh_degree_t,
+                      band_size=config.band_size)[:, 0]
     return sh_to_rgb(dc).clamp(0.0, 1.0), torch.sigmoid(logit)
 
 

@@ -20,6 +20,9 @@ import math
 
 import torch
 
+from omg4.gaussians.sh_contraction import contract_coefficients
+from omg4.render.small_matmul import small_matmul
+
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
 C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -102,7 +105,7 @@ def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
         [N, C] (without the +0.5 offset).
     """
     basis = sh_basis(dirs, degree)
-    return (basis.unsqueeze(-1) * coeffs[:, : basis.shape[1]]).sum(1)
+    return small_matmul(basis.unsqueeze(1), coeffs[:, : basis.shape[1]]).squeeze(1)
 
 
 def time_weights(dt: torch.Tensor, period: float, degree_t: int) -> torch.Tensor:
@@ -113,10 +116,11 @@ def time_weights(dt: torch.Tensor, period: float, degree_t: int) -> torch.Tensor
     return torch.cos((2 * math.pi / period) * dt.unsqueeze(-1) * n)
 
 
-def _check_layout(coeffs: torch.Tensor, degree: int, degree_t: int, band_size: int) -> None:
-    if num_sh_coeffs(degree) > band_size or coeffs.shape[1] < band_size * (degree_t + 1):
-        raise ValueError(f"SH coefficients [{coeffs.shape[1]}] do not hold degree {degree} × temporal degree "
-                         f"{degree_t} in bands of {band_size}")
+def _check_layout(coeffs: torch.Tensor, degree: int, degree_t: int, band_size: int, offset: int = 0) -> None:
+    """``coeffs`` [N, K, C] (the coefficients from number ``offset`` on) hold the active bands."""
+    if num_sh_coeffs(degree) > band_size or offset + coeffs.shape[1] < band_size * (degree_t + 1):
+        raise ValueError(f"SH coefficients [{offset + coeffs.shape[1]}] do not hold degree {degree} × temporal "
+                         f"degree {degree_t} in bands of {band_size}")
 
 
 def fold_time_sh(coeffs: torch.Tensor, dt: torch.Tensor, period: float, degree: int, degree_t: int, *,
@@ -134,37 +138,45 @@ def fold_time_sh(coeffs: torch.Tensor, dt: torch.Tensor, period: float, degree: 
     """
     _check_layout(coeffs, degree, degree_t, band_size)
     bands = degree_t + 1
-    c = coeffs[:, : band_size * bands].reshape(coeffs.shape[0], bands, band_size, coeffs.shape[2])
-    return (time_weights(dt, period, degree_t)[:, :, None, None] * c).sum(1)[:, : num_sh_coeffs(degree)]
+    n, channels = coeffs.shape[0], coeffs.shape[2]
+    bands_flat = coeffs[:, : band_size * bands].reshape(n, bands, band_size * channels)
+    folded = small_matmul(time_weights(dt, period, degree_t).unsqueeze(1), bands_flat)  # [N, 1, band_size·C]
+    return folded.reshape(n, band_size, channels)[:, : num_sh_coeffs(degree)]
 
 
-def eval_sh_4d(coeffs: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
-               degree_t: int, *, band_size: int = 16) -> torch.Tensor:
+def eval_sh_4d(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
+               degree_t: int, *, band_size: int = 16, rows: torch.Tensor | None = None) -> torch.Tensor:
     """4D spherindrical harmonics (rt4dgs §2), without the +0.5 offset.
 
     The weight of coefficient ``band_size·n + k`` is ``cos(2π n Δt / T)·Y_k(d)`` (zero for
-    inactive degrees), so the whole sum is one weighted reduction over the active bands.
+    inactive degrees), so the whole sum is one weighted reduction over the active bands
+    (:func:`omg4.gaussians.sh_contraction.contract_coefficients`).
 
     Args:
-        coeffs: [N, K, C] coefficient-major, K ≥ band_size · (degree_t + 1).
-        dirs: [N, 3] unit view directions.
-        dt: [N] μ_t − τ.
+        coeffs: [N, K, C] coefficient-major, K ≥ band_size · (degree_t + 1), one row per
+            direction or with ``rows`` one per Gaussian; or the pair (DC [N, 1, C], the others
+            [N, K − 1, C]), which is never joined.
+        dirs: [M, 3] unit view directions.
+        dt: [M] μ_t − τ.
         period: T = t1 − t0.
         degree, degree_t: active spatial / temporal degrees.
+        rows: [M] int64 Gaussian of each direction (None: ``coeffs`` has a row per direction).
     Returns:
-        [N, C].
+        [M, C].
     """
-    _check_layout(coeffs, degree, degree_t, band_size)
+    dc, rest = (coeffs[:, :1], coeffs[:, 1:]) if torch.is_tensor(coeffs) else coeffs
+    _check_layout(rest, degree, degree_t, band_size, offset=1)
     bands = degree_t + 1
     basis = _basis_16(dirs, degree)[:, :band_size]  # zero beyond the active degree
     weights = (time_weights(dt, period, degree_t).unsqueeze(-1) * basis.unsqueeze(1)).reshape(-1, bands * band_size)
-    return (weights.unsqueeze(-1) * coeffs[:, : bands * band_size]).sum(1)
+    return contract_coefficients(dc, rest, weights, rows)
 
 
-def colors_from_sh(coeffs: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
-                   degree_t: int, *, band_size: int = 16) -> torch.Tensor:
-    """rgb = max(SH4D + 0.5, 0) (rt4dgs §1.5 (4)); arguments as :func:`eval_sh_4d`. Returns [N, C]."""
-    return (eval_sh_4d(coeffs, dirs, dt, period, degree, degree_t, band_size=band_size) + 0.5).clamp_min(0.0)
+def colors_from_sh(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
+                   degree_t: int, *, band_size: int = 16, rows: torch.Tensor | None = None) -> torch.Tensor:
+    """rgb = max(SH4D + 0.5, 0) (rt4dgs §1.5 (4)); arguments as :func:`eval_sh_4d`. Returns [M, C]."""
+    return (eval_sh_4d(coeffs, dirs, dt, period, degree, degree_t, band_size=band_size, rows=rows)
+            + 0.5).clamp_min(0.0)
 
 
 def view_directions(points: torch.Tensor, camera_center: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:

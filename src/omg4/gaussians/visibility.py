@@ -70,7 +70,9 @@ class WindowedModel(ViewSlicer):
     ``f_static``/``f_view`` for a model whose appearance comes from ``appearance`` MLPs,
     paper §4.4), no gradients, and the :class:`VisibilityIndex` built from them at load.
     A frame gathers its window's candidate rows, then conditions, culls and evaluates the
-    appearance for those only (:func:`omg4.gaussians.model.slice_values`).
+    appearance for those only (:func:`omg4.gaussians.model.slice_values`). For time-conditioned
+    MLPs the positions' share of the first layer is computed once here (beyond the paper:
+    :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term`), so a frame encodes only its time.
     """
 
     def __init__(self, values: dict[str, torch.Tensor], config: GaussianConfig, active_sh_degree: int,
@@ -88,6 +90,10 @@ class WindowedModel(ViewSlicer):
             raise CorruptFileError("the model's scales overflow or its temporal variances are not positive "
                                    "(damaged or diverged values)")
         self.visibility = VisibilityIndex.build(v["t"], var_t, config.time_range, config.time_cull, windows)
+        self.position_term = None  # the MLPs' position part, fixed for a model that no longer trains (§4.4)
+        if appearance is not None and config.schema.mlp_time_input:
+            with torch.no_grad():
+                self.position_term = appearance.position_term(v["xyz"])
 
     @property
     def num_gaussians(self) -> int:
@@ -98,9 +104,12 @@ class WindowedModel(ViewSlicer):
         of the whole model."""
         rows = self.visibility.rows_at(timestamps)
         values = self.values if rows is None else {k: v.index_select(0, rows) for k, v in self.values.items()}
+        position_term = self.position_term
+        if rows is not None and position_term is not None:
+            position_term = position_term.index_select(0, rows)
         with torch.no_grad():
             sl = slice_values(values, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
-                              camera_centers, appearance=self.appearance)
+                              camera_centers, appearance=self.appearance, position_term=position_term)
         if rows is not None:
             sl.index = rows.index_select(0, sl.index)
         sl.num_total = self.num_gaussians

@@ -1,0 +1,138 @@
+"""The weighted sum of SH coefficients that gives each rendered row its colour (rt4dgs §2), gather fused.
+
+``out[m] = Σ_k w[m, k] · coeffs[rows[m], k]``: row ``m`` of a time slice takes the coefficients of
+its Gaussian ``rows[m]`` (a Gaussian appears once per view that sees it); the coefficients come as
+the DC block and the others (the model's two parameters, never joined). In torch this is a
+join and gather of ``[M, K, C]`` coefficients, a product and, in the backward pass, an ``[M, K, C]``
+outer product scattered back into ``[N, K, C]`` — about a fifth of a CPU training step at 80k
+Gaussians. On the CPU three numba kernels do it without the ``[M, K, C]`` intermediates: the
+forward sum and ∂/∂w in parallel over rows, ∂/∂coeffs in parallel over ranges of Gaussians (each
+task owns its Gaussians' coefficient rows, so the scatter never races and writes each row whole). Elsewhere (CUDA) the torch
+form runs, with :func:`omg4.render.small_matmul.small_matmul`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from numba import njit, prange
+from torch.autograd.function import once_differentiable
+
+from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
+from omg4.render.small_matmul import small_matmul
+
+_PARTS_PER_THREAD = 4
+"""Gaussian ranges per thread in the ∂/∂coeffs kernel (each task scans every row, keeps its own)."""
+
+
+@njit(cache=True, inline="always")
+def _coefficient(dc, rest, g, k, c):
+    """Coefficient ``k`` (0: the DC block, else ``rest[k − 1]``) of Gaussian ``g``, channel ``c``."""
+    return dc[g, 0, c] if k == 0 else rest[g, k - 1, c]
+
+
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def _forward(dc, rest, weights, rows, out):
+    num_rows, num_k = weights.shape
+    channels = out.shape[1]
+    for m in prange(num_rows):
+        g = rows[m]
+        for c in range(channels):
+            acc = 0.0
+            for k in range(num_k):
+                acc += weights[m, k] * _coefficient(dc, rest, g, k, c)
+            out[m, c] = acc
+
+
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def _grad_weights(dc, rest, rows, grad_out, grad_weights):
+    num_rows, num_k = grad_weights.shape
+    channels = grad_out.shape[1]
+    for m in prange(num_rows):
+        g = rows[m]
+        for k in range(num_k):
+            acc = 0.0
+            for c in range(channels):
+                acc += grad_out[m, c] * _coefficient(dc, rest, g, k, c)
+            grad_weights[m, k] = acc
+
+
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def _grad_coefficients(weights, rows, grad_out, grad_dc, grad_rest, num_parts):
+    num_rows, num_k = weights.shape
+    channels = grad_out.shape[1]
+    n = grad_dc.shape[0]
+    for part in prange(num_parts):  # each part owns a range of Gaussians: no two tasks write one row
+        lo = part * n // num_parts
+        hi = (part + 1) * n // num_parts
+        for m in range(num_rows):
+            g = rows[m]
+            if g < lo or g >= hi or num_k == 0:
+                continue
+            for c in range(channels):
+                grad_dc[g, 0, c] += weights[m, 0] * grad_out[m, c]
+            for k in range(1, num_k):
+                w = weights[m, k]
+                for c in range(channels):
+                    grad_rest[g, k - 1, c] += w * grad_out[m, c]
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+class _GatheredContraction(torch.autograd.Function):
+    """(dc [N, 1, C], rest [N, R, C], weights [M, K], rows [M]) → [M, C] on the CPU (numba kernels)."""
+
+    @staticmethod
+    def forward(ctx, dc, rest, weights, rows):
+        out = np.empty((weights.shape[0], dc.shape[2]), dtype=_numpy(weights).dtype)
+        _forward(_numpy(dc), _numpy(rest), _numpy(weights), _numpy(rows), out)
+        ctx.save_for_backward(dc, rest, weights, rows)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        dc, rest, weights, rows = ctx.saved_tensors
+        g = _numpy(grad_out.to(weights.dtype))
+        grad_dc = grad_rest = grad_weights = None
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            grad_dc = torch.zeros(dc.shape, dtype=dc.dtype)
+            grad_rest = torch.zeros(rest.shape, dtype=rest.dtype)
+            _grad_coefficients(_numpy(weights), _numpy(rows), g, grad_dc.numpy(), grad_rest.numpy(),
+                               _PARTS_PER_THREAD * numba.get_num_threads())
+        if ctx.needs_input_grad[2]:
+            grad_weights = torch.empty(weights.shape, dtype=weights.dtype)
+            _grad_weights(_numpy(dc), _numpy(rest), _numpy(rows), g, grad_weights.numpy())
+        return grad_dc, grad_rest, grad_weights, None
+
+
+def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tensor,
+                          rows: torch.Tensor | None = None) -> torch.Tensor:
+    """``Σ_k weights[m, k] · [dc, rest][rows[m], k, :]`` for every row ``m``; differentiable in every input.
+
+    Args:
+        dc: [N, 1, C] and rest: [N, R, C] the coefficients (the DC one, then the others), R + 1 ≥ K.
+        weights: [M, K] weights of the same dtype and device.
+        rows: [M] int64 indices into the coefficients (None: row ``m`` uses Gaussian ``m``, M = N).
+    Returns:
+        [M, C].
+    """
+    num_rows, num_k = weights.shape
+    if (dc.dim() != 3 or dc.shape[1] != 1 or rest.shape[::2] != dc.shape[::2] or rest.shape[1] + 1 < num_k
+            or not dc.dtype == rest.dtype == weights.dtype):
+        raise ValueError(f"coefficients {dc.dtype} {list(dc.shape)} + {rest.dtype} {list(rest.shape)} do not fit "
+                         f"weights {weights.dtype} {list(weights.shape)}")
+    if rows is None:
+        if dc.shape[0] != num_rows:
+            raise ValueError(f"{num_rows} weight rows for {dc.shape[0]} coefficient rows")
+        rows = torch.arange(num_rows, device=weights.device)
+    if dc.device.type != "cpu":
+        coeffs = torch.cat([dc, rest[:, : num_k - 1]], dim=1).index_select(0, rows)
+        return small_matmul(weights.unsqueeze(1), coeffs).squeeze(1)
+    return _GatheredContraction.apply(dc, rest, weights, rows)
+
+
+__all__ = ["contract_coefficients"]

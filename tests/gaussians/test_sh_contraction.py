@@ -1,0 +1,81 @@
+"""The fused gather + weighted SH sum (numba on the CPU) against independent references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from omg4.gaussians.sh_contraction import contract_coefficients
+
+
+def _case(seed: int, n: int = 30, m: int = 70, rest: int = 47, k: int = 48, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    dc = torch.randn(n, 1, 3, generator=g, dtype=dtype)
+    others = torch.randn(n, rest, 3, generator=g, dtype=dtype)
+    weights = torch.randn(m, k, generator=g, dtype=dtype)
+    rows = torch.randint(n, (m,), generator=g)  # repeats and any order, as rows of several views
+    return dc, others, weights, rows
+
+
+def _numpy_reference(dc, rest, weights, rows):
+    coeffs = np.concatenate([dc.numpy(), rest.numpy()], axis=1)[rows.numpy(), : weights.shape[1]]
+    return np.einsum("mk,mkc->mc", weights.numpy(), coeffs)
+
+
+@pytest.mark.parametrize("k", [48, 16, 1])
+def test_forward_matches_a_numpy_gather_and_sum(k):
+    dc, rest, weights, rows = _case(0, k=k)
+    out = contract_coefficients(dc, rest, weights, rows)
+    np.testing.assert_allclose(out.numpy(), _numpy_reference(dc, rest, weights, rows), rtol=1e-12, atol=1e-12)
+
+
+def test_gradients_match_torch_autograd_of_the_gather_and_sum():
+    dc, rest, weights, rows = _case(1)
+    grads = []
+    for fused in (True, False):
+        leaves = [t.clone().requires_grad_(True) for t in (dc, rest, weights)]
+        if fused:
+            out = contract_coefficients(*leaves, rows)
+        else:
+            coeffs = torch.cat(leaves[:2], dim=1).index_select(0, rows)
+            out = (leaves[2].unsqueeze(-1) * coeffs[:, : weights.shape[1]]).sum(1)
+        (out.sin() * torch.arange(3, dtype=out.dtype)).sum().backward()
+        grads.append([t.grad for t in leaves])
+    for got, want in zip(*grads):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_gradcheck_with_fewer_weights_than_coefficients():
+    dc, rest, weights, rows = _case(2, n=5, m=9, rest=8, k=6)
+    inputs = [t.requires_grad_(True) for t in (dc, rest, weights)]
+    assert torch.autograd.gradcheck(lambda a, b, w: contract_coefficients(a, b, w, rows), inputs)
+
+
+def test_only_the_needed_gradients_and_rows_default_to_identity():
+    dc, rest, weights, _ = _case(3, n=12, m=12)
+    w = weights.clone().requires_grad_(True)
+    contract_coefficients(dc, rest, w).sum().backward()
+    coeffs = torch.cat([dc, rest], dim=1)
+    torch.testing.assert_close(w.grad, coeffs.sum(-1), rtol=1e-12, atol=1e-12)
+
+
+def test_float32_agrees_with_float64():
+    dc, rest, weights, rows = _case(4, n=500, m=2000)
+    want = contract_coefficients(dc, rest, weights, rows)
+    got = contract_coefficients(dc.float(), rest.float(), weights.float(), rows)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("bad", ["too_few", "dtype", "rows"])
+def test_mismatched_inputs_are_refused(bad):
+    dc, rest, weights, rows = _case(5, n=4, m=4, rest=3, k=4)
+    if bad == "too_few":
+        weights = torch.zeros(4, 5, dtype=weights.dtype)
+    elif bad == "dtype":
+        weights = weights.float()
+    else:
+        dc, rest = dc[:3], rest[:3]
+    with pytest.raises(ValueError):
+        contract_coefficients(dc, rest, weights)
