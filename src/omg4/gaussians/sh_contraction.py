@@ -19,6 +19,7 @@ import torch
 from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
+from omg4.render.api import keeping_torch_threads
 from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
 from omg4.render.small_matmul import small_matmul
 
@@ -88,7 +89,8 @@ class _GatheredContraction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, dc, rest, weights, rows):
         out = np.empty((weights.shape[0], dc.shape[2]), dtype=_numpy(weights).dtype)
-        _forward(_numpy(dc), _numpy(rest), _numpy(weights), _numpy(rows), out)
+        with keeping_torch_threads():
+            _forward(_numpy(dc), _numpy(rest), _numpy(weights), _numpy(rows), out)
         ctx.save_for_backward(dc, rest, weights, rows)
         return torch.from_numpy(out)
 
@@ -98,14 +100,15 @@ class _GatheredContraction(torch.autograd.Function):
         dc, rest, weights, rows = ctx.saved_tensors
         g = _numpy(grad_out.to(weights.dtype))
         grad_dc = grad_rest = grad_weights = None
-        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
-            grad_dc = torch.zeros(dc.shape, dtype=dc.dtype)
-            grad_rest = torch.zeros(rest.shape, dtype=rest.dtype)
-            _grad_coefficients(_numpy(weights), _numpy(rows), g, grad_dc.numpy(), grad_rest.numpy(),
-                               _PARTS_PER_THREAD * numba.get_num_threads())
-        if ctx.needs_input_grad[2]:
-            grad_weights = torch.empty(weights.shape, dtype=weights.dtype)
-            _grad_weights(_numpy(dc), _numpy(rest), _numpy(rows), g, grad_weights.numpy())
+        with keeping_torch_threads():
+            if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+                grad_dc = torch.zeros(dc.shape, dtype=dc.dtype)
+                grad_rest = torch.zeros(rest.shape, dtype=rest.dtype)
+                _grad_coefficients(_numpy(weights), _numpy(rows), g, grad_dc.numpy(), grad_rest.numpy(),
+                                   _PARTS_PER_THREAD * numba.get_num_threads())
+            if ctx.needs_input_grad[2]:
+                grad_weights = torch.empty(weights.shape, dtype=weights.dtype)
+                _grad_weights(_numpy(dc), _numpy(rest), _numpy(rows), g, grad_weights.numpy())
         return grad_dc, grad_rest, grad_weights, None
 
 
@@ -130,9 +133,14 @@ def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.T
             raise ValueError(f"{num_rows} weight rows for {dc.shape[0]} coefficient rows")
         rows = torch.arange(num_rows, device=weights.device)
     if dc.device.type != "cpu":
-        coeffs = torch.cat([dc, rest[:, : num_k - 1]], dim=1).index_select(0, rows)
-        return small_matmul(weights.unsqueeze(1), coeffs).squeeze(1)
+        return torch_contraction(dc, rest, weights, rows)
     return _GatheredContraction.apply(dc, rest, weights, rows)
 
 
-__all__ = ["contract_coefficients"]
+def torch_contraction(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """:func:`contract_coefficients` as torch operations (gather, join, product), for devices other than the CPU."""
+    coeffs = torch.cat([dc.index_select(0, rows), rest[:, : weights.shape[1] - 1].index_select(0, rows)], dim=1)
+    return small_matmul(weights.unsqueeze(1), coeffs).squeeze(1)
+
+
+__all__ = ["contract_coefficients", "torch_contraction"]

@@ -192,17 +192,20 @@ def _as_numpy(t: torch.Tensor) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _kernel_launch() -> Iterator[None]:
-    """Run a numba kernel with tiles handed out one at a time (their costs differ widely).
-
-    numba's OpenMP pool shares the OpenMP runtime with torch and resets its thread count on
-    first use; torch's intra-op thread setting is restored afterwards.
-    """
+def keeping_torch_threads() -> Iterator[None]:
+    """Run numba parallel kernels inside: numba's OpenMP pool shares the OpenMP runtime with torch and
+    resets its thread count on first use; torch's intra-op thread setting is restored afterwards."""
     torch_threads = torch.get_num_threads()
-    with numba.parallel_chunksize(1):
-        yield
+    yield
     if torch.get_num_threads() != torch_threads:
         torch.set_num_threads(torch_threads)
+
+
+@contextlib.contextmanager
+def _kernel_launch() -> Iterator[None]:
+    """Run a numba kernel with tiles handed out one at a time (their costs differ widely)."""
+    with keeping_torch_threads(), numba.parallel_chunksize(1):
+        yield
 
 
 class _Composite(torch.autograd.Function):
