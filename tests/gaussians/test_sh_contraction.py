@@ -68,17 +68,20 @@ def test_float32_agrees_with_float64():
     torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("bad", ["too_few", "dtype", "rows"])
+@pytest.mark.parametrize("bad", ["too_few", "dtype", "rows", "row_out_of_range", "negative_row"])
 def test_mismatched_inputs_are_refused(bad):
     dc, rest, weights, rows = _case(5, n=4, m=4, rest=3, k=4)
+    rows = None
     if bad == "too_few":
         weights = torch.zeros(4, 5, dtype=weights.dtype)
     elif bad == "dtype":
         weights = weights.float()
-    else:
+    elif bad == "rows":
         dc, rest = dc[:3], rest[:3]
+    else:
+        rows = torch.tensor([0, 1, 4 if bad == "row_out_of_range" else -1, 2])
     with pytest.raises(ValueError):
-        contract_coefficients(dc, rest, weights)
+        contract_coefficients(dc, rest, weights, rows)
 
 
 def test_the_torch_form_for_other_devices_agrees_with_the_kernels():
