@@ -69,7 +69,7 @@ def measure_models(paths: list[Path], views, device: str, frames: int, rounds: i
         ms = 1000 * statistics.median(ts)
         rows.append({"model": str(path), "num_gaussians": int(model.num_gaussians), "ms_per_frame": ms,
                      "fps": 1000 / ms, "aten_ops_per_frame": sum(counter.ops.values()),
-                     "visible_fraction": statistics.mean(fs), "frames": len(ts)})
+                     "visible_fraction": statistics.mean(fs), "frames": len(timed), "rounds": rounds})
     return rows
 
 

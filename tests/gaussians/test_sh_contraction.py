@@ -95,3 +95,11 @@ def test_the_torch_form_for_other_devices_agrees_with_the_kernels():
         grads.append([out.detach()] + [t.grad for t in leaves])
     for got, want in zip(*grads):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_other_dtypes_take_the_torch_form():
+    dc, rest, weights, rows = _case(11, n=20, m=40, dtype=torch.float64)
+    want = contract_coefficients(dc, rest, weights, rows)
+    got = contract_coefficients(dc.bfloat16(), rest.bfloat16(), weights.bfloat16(), rows)
+    assert got.dtype == torch.bfloat16
+    torch.testing.assert_close(got.double(), want, rtol=0.05, atol=0.3)

@@ -69,3 +69,35 @@ def test_windowed_baseline_renders_the_frames_of_the_plain_model():
         assert a.index.tolist() == b.index.tolist()
         for name in ("means", "covars", "colors", "opacities"):
             torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-6, atol=1e-6)
+
+
+def _mlp_model(monkeypatch=None, limit=None):
+    from omg4.gaussians import GaussianConfig
+    from omg4.gaussians import visibility
+    from omg4.gaussians.appearance import AppearanceMLP
+    from omg4.gaussians.visibility import WindowedModel
+
+    if limit is not None:
+        monkeypatch.setattr(visibility, "MAX_CACHED_TERMS", limit)
+    p = _gaussians(5, n=600)
+    g = torch.Generator().manual_seed(5)
+    values = {"xyz": p["xyz"], "t": p["t"], "scaling": p["scales"][:, :3].log(), "scaling_t": p["scales"][:, 3:].log(),
+              "rotation": p["q_l"], "rotation_r": p["q_r"], "f_static": torch.randn(600, 3, generator=g),
+              "f_view": torch.randn(600, 3, generator=g)}
+    torch.manual_seed(5)
+    return WindowedModel(values, GaussianConfig(time_range=(0.0, 10.0)), 3, 2, appearance=AppearanceMLP().eval(),
+                         windows=16)
+
+
+def test_cached_position_term_renders_the_frames_of_the_uncached_model(monkeypatch):
+    """The MLPs' position part cached at load = computed per frame (and a model above the cache budget has none)."""
+    cached, uncached = _mlp_model(), _mlp_model(monkeypatch, limit=100)
+    assert cached.position_term is not None and cached.position_term.shape == (600, 64)
+    assert uncached.position_term is None
+    centers = torch.tensor([[0.5, -0.2, -4.0], [1.0, 0.3, -3.5]])
+    for times in ([0.31], [6.25, 9.0], [12.0]):  # one view, two views, a time outside the range
+        ts = torch.tensor(times, dtype=torch.float64)
+        a, b = (m.slice_views(ts, centers[: len(times)]) for m in (cached, uncached))
+        assert a.index.tolist() == b.index.tolist() and a.index.numel() > 0
+        torch.testing.assert_close(a.colors, b.colors, rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(a.opacities, b.opacities, rtol=1e-6, atol=1e-6)

@@ -324,8 +324,8 @@ def _appearance(values: dict[str, torch.Tensor], config: GaussianConfig, geom, t
     or None, opacity logits [M]) of the slice's rows ``geom.index``: explicit in ``values`` (one
     coefficient row per Gaussian, gathered by the colour kernel), or predicted by the appearance MLPs
     (paper §4.4) in one pass for every view (one per slice row); a time-conditioned network's first
-    layer is split into its position part (``position_term`` where a renderer cached it, else
-    computed once per Gaussian) and a per-view time part."""
+    layer is split into its position part (``position_term`` where a renderer cached it, else computed
+    on the rows when they are fewer than the Gaussians, or once per Gaussian) and a per-view time part."""
     idx = geom.index
 
     def rows(name: str) -> torch.Tensor:

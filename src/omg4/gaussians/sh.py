@@ -104,7 +104,7 @@ def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
     Returns:
         [N, C] (without the +0.5 offset).
     """
-    basis = sh_basis(dirs, degree)
+    basis = sh_basis(dirs, degree).to(coeffs.dtype)
     return small_matmul(basis.unsqueeze(1), coeffs[:, : basis.shape[1]]).squeeze(1)
 
 
@@ -140,7 +140,7 @@ def fold_time_sh(coeffs: torch.Tensor, dt: torch.Tensor, period: float, degree: 
     bands = degree_t + 1
     n, channels = coeffs.shape[0], coeffs.shape[2]
     bands_flat = coeffs[:, : band_size * bands].reshape(n, bands, band_size * channels)
-    folded = small_matmul(time_weights(dt, period, degree_t).unsqueeze(1), bands_flat)  # [N, 1, band_size·C]
+    folded = small_matmul(time_weights(dt, period, degree_t).to(coeffs.dtype).unsqueeze(1), bands_flat)  # [N, 1, bs·C]
     return folded.reshape(n, band_size, channels)[:, : num_sh_coeffs(degree)]
 
 
@@ -169,7 +169,7 @@ def eval_sh_4d(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: t
     bands = degree_t + 1
     basis = _basis_16(dirs, degree)[:, :band_size]  # zero beyond the active degree
     weights = (time_weights(dt, period, degree_t).unsqueeze(-1) * basis.unsqueeze(1)).reshape(-1, bands * band_size)
-    return contract_coefficients(dc, rest, weights, rows)
+    return contract_coefficients(dc, rest, weights.to(dc.dtype), rows)
 
 
 def colors_from_sh(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,

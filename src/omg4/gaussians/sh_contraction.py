@@ -88,9 +88,10 @@ class _GatheredContraction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, dc, rest, weights, rows):
-        out = np.empty((weights.shape[0], dc.shape[2]), dtype=_numpy(weights).dtype)
+        w = _numpy(weights)
+        out = np.empty((weights.shape[0], dc.shape[2]), dtype=w.dtype)
         with keeping_torch_threads():
-            _forward(_numpy(dc), _numpy(rest), _numpy(weights), _numpy(rows), out)
+            _forward(_numpy(dc), _numpy(rest), w, _numpy(rows), out)
         ctx.save_for_backward(dc, rest, weights, rows)
         return torch.from_numpy(out)
 
@@ -114,7 +115,8 @@ class _GatheredContraction(torch.autograd.Function):
 
 def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tensor,
                           rows: torch.Tensor | None = None) -> torch.Tensor:
-    """``Σ_k weights[m, k] · [dc, rest][rows[m], k, :]`` for every row ``m``; differentiable in every input.
+    """``Σ_k weights[m, k] · [dc, rest][rows[m], k, :]`` for every row ``m``; differentiable (first order, reverse
+    mode) in every input. float32 and float64 run the CPU kernels; other dtypes and devices the torch form.
 
     Args:
         dc: [N, 1, C] and rest: [N, R, C] the coefficients (the DC one, then the others), R + 1 ≥ K.
@@ -132,7 +134,7 @@ def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.T
         if dc.shape[0] != num_rows:
             raise ValueError(f"{num_rows} weight rows for {dc.shape[0]} coefficient rows")
         rows = torch.arange(num_rows, device=weights.device)
-    if dc.device.type != "cpu":
+    if dc.device.type != "cpu" or dc.dtype not in (torch.float32, torch.float64):
         return torch_contraction(dc, rest, weights, rows)
     if rows.shape != (num_rows,) or (num_rows and not 0 <= int(rows.min()) <= int(rows.max()) < dc.shape[0]):
         raise ValueError(f"rows must be {num_rows} indices into {dc.shape[0]} Gaussians")  # the kernels do not check

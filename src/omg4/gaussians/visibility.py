@@ -24,6 +24,9 @@ from omg4.render.view import TimeSlice, ViewSlicer
 DEFAULT_WINDOWS = 32
 """Windows over the model's time range (each a candidate list of Gaussian rows)."""
 
+MAX_CACHED_TERMS = 2**27
+"""Largest cached MLP position part (N × hidden floats, 512 MiB); a bigger model encodes its rows per frame."""
+
 
 @dataclass
 class VisibilityIndex:
@@ -73,6 +76,8 @@ class WindowedModel(ViewSlicer):
     appearance for those only (:func:`omg4.gaussians.model.slice_values`). For time-conditioned
     MLPs the positions' share of the first layer is computed once here (beyond the paper:
     :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term`), so a frame encodes only its time.
+    Both the index and that cache are built from ``values`` and ``appearance`` at load: they must
+    not change afterwards (load the model again instead).
     """
 
     def __init__(self, values: dict[str, torch.Tensor], config: GaussianConfig, active_sh_degree: int,
@@ -91,7 +96,8 @@ class WindowedModel(ViewSlicer):
                                    "(damaged or diverged values)")
         self.visibility = VisibilityIndex.build(v["t"], var_t, config.time_range, config.time_cull, windows)
         self.position_term = None  # the MLPs' position part, fixed for a model that no longer trains (§4.4)
-        if appearance is not None and config.schema.mlp_time_input:
+        if (appearance is not None and config.schema.mlp_time_input
+                and self.num_gaussians * appearance.shared[0].weight.shape[0] <= MAX_CACHED_TERMS):
             with torch.no_grad():
                 self.position_term = appearance.position_term(v["xyz"])
 
@@ -116,4 +122,4 @@ class WindowedModel(ViewSlicer):
         return sl
 
 
-__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "WindowedModel"]
+__all__ = ["DEFAULT_WINDOWS", "MAX_CACHED_TERMS", "VisibilityIndex", "WindowedModel"]

@@ -196,9 +196,11 @@ def keeping_torch_threads() -> Iterator[None]:
     """Run numba parallel kernels inside: numba's OpenMP pool shares the OpenMP runtime with torch and
     resets its thread count on first use; torch's intra-op thread setting is restored afterwards."""
     torch_threads = torch.get_num_threads()
-    yield
-    if torch.get_num_threads() != torch_threads:
-        torch.set_num_threads(torch_threads)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
 
 
 @contextlib.contextmanager
