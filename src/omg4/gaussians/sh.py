@@ -18,9 +18,10 @@ from __future__ import annotations
 import functools
 import math
 
+import numpy as np
 import torch
 
-from omg4.gaussians.sh_contraction import contract_coefficients
+from omg4.gaussians.sh_kernels import basis_from_terms, contract_coefficients
 from omg4.render.small_matmul import small_matmul
 
 C0 = 0.28209479177387814
@@ -72,10 +73,31 @@ def _basis_table(degree: int, dtype: torch.dtype, device: str) -> torch.Tensor:
     return table.to(dtype=dtype, device=device)
 
 
+@functools.lru_cache(maxsize=None)
+def _basis_terms() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The basis polynomials as terms: (basis index [T], indices into p = (1, x, y, z) [T, 3], coefficient [T])."""
+    basis, index, coef = [], [], []
+    for k, poly in enumerate(_BASIS_POLYNOMIALS):
+        for mono, c in poly.items():
+            basis.append(k)
+            index.append([" xyz".index(ch) for ch in mono.rjust(3, " ")])
+            coef.append(c)
+    return np.array(basis, np.int64), np.array(index, np.int64), np.array(coef, np.float64)
+
+
 def _basis_16(dirs: torch.Tensor, degree: int) -> torch.Tensor:
-    """[N, 16] Y_k(d) for k < (degree+1)², zeros after: the cubic monomials of ``d`` times a constant table."""
+    """[N, 16] Y_k(d) for k < (degree+1)², zeros after: numba kernels on CPU float32/float64 tensors
+    (:func:`omg4.gaussians.sh_kernels.basis_from_terms`), else :func:`basis_by_table`."""
     if not 0 <= degree <= MAX_SH_DEGREE:
         raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
+    if dirs.device.type == "cpu" and dirs.dtype in (torch.float32, torch.float64):
+        return basis_from_terms(dirs, num_sh_coeffs(degree), _basis_terms())
+    return basis_by_table(dirs, degree)
+
+
+def basis_by_table(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """:func:`_basis_16` as torch operations — the cubic monomials of ``d`` times a constant table (one
+    product, no operation per basis function): the form devices other than the CPU run."""
     p = torch.cat([torch.ones_like(dirs[:, :1]), dirs], dim=1)  # [N, 4]
     monomials = (p[:, :, None, None] * p[:, None, :, None] * p[:, None, None, :]).reshape(-1, 64)
     return monomials @ _basis_table(degree, dirs.dtype, str(dirs.device))
@@ -84,8 +106,8 @@ def _basis_16(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """The 3DGS real SH basis Y_k(d), k < (degree+1)² (3DGS ``eval_sh`` ordering and signs).
 
-    Computed as one product of the cubic monomials of ``d`` with a constant table (no
-    operation per basis function).
+    Computed by numba kernels from the polynomials' terms on the CPU, as one product of the cubic
+    monomials of ``d`` with a constant table elsewhere (no operation per basis function).
 
     Args:
         dirs: [N, 3] unit directions.
@@ -150,7 +172,7 @@ def eval_sh_4d(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: t
 
     The weight of coefficient ``band_size·n + k`` is ``cos(2π n Δt / T)·Y_k(d)`` (zero for
     inactive degrees), so the whole sum is one weighted reduction over the active bands
-    (:func:`omg4.gaussians.sh_contraction.contract_coefficients`).
+    (:func:`omg4.gaussians.sh_kernels.contract_coefficients`).
 
     Args:
         coeffs: [N, K, C] coefficient-major, K ≥ band_size · (degree_t + 1), one row per
@@ -185,5 +207,5 @@ def view_directions(points: torch.Tensor, camera_center: torch.Tensor, eps: floa
     return d / d.norm(dim=-1, keepdim=True).clamp_min(eps)
 
 
-__all__ = ["C0", "C1", "C2", "C3", "MAX_SH_DEGREE", "num_sh_coeffs", "rgb_to_sh", "sh_to_rgb", "sh_basis", "eval_sh",
+__all__ = ["C0", "C1", "C2", "C3", "MAX_SH_DEGREE", "num_sh_coeffs", "rgb_to_sh", "sh_to_rgb", "sh_basis", "basis_by_table", "eval_sh",
            "time_weights", "fold_time_sh", "eval_sh_4d", "colors_from_sh", "view_directions"]

@@ -1,14 +1,21 @@
-"""The weighted sum of SH coefficients that gives each rendered row its colour (rt4dgs §2), gather fused.
+"""numba kernels of the SH colour on the CPU (rt4dgs §2), forward and backward: the basis and the weighted sum.
 
-``out[m] = Σ_k w[m, k] · coeffs[rows[m], k]``: row ``m`` of a time slice takes the coefficients of
-its Gaussian ``rows[m]`` (a Gaussian appears once per view that sees it); the coefficients come as
-the DC block and the others (the model's two parameters, never joined). In torch this is a
-join and gather of ``[M, K, C]`` coefficients, a product and, in the backward pass, an ``[M, K, C]``
-outer product scattered back into ``[N, K, C]`` — about a fifth of a CPU training step at 80k
-Gaussians. On the CPU three numba kernels do it without the ``[M, K, C]`` intermediates: the
-forward sum and ∂/∂w in parallel over rows, ∂/∂coeffs in parallel over ranges of Gaussians (each
-task owns its Gaussians' coefficient rows, so the scatter never races and writes each row whole). Elsewhere (CUDA) the torch
-form runs, with :func:`omg4.render.small_matmul.small_matmul`.
+**Basis.** ``Y_k(d)`` for k < 16 from the basis polynomials as terms (basis index, three indices
+into ``p = (1, x, y, z)``, coefficient; :func:`omg4.gaussians.sh.sh_basis`), and ∂/∂d from the
+same terms — in torch the cubic monomials ``p ⊗ p ⊗ p`` are an ``[M, 64]`` intermediate whose
+broadcast products and reductions are a large share of a CPU training step at 80k Gaussians.
+
+**Weighted sum.** ``out[m] = Σ_k w[m, k] · coeffs[rows[m], k]``: row ``m`` of a time slice takes the
+coefficients of its Gaussian ``rows[m]`` (a Gaussian appears once per view that sees it); the
+coefficients come as the DC block and the others (the model's two parameters, never joined). In
+torch this is a join and gather of ``[M, K, C]`` coefficients, a product and, in the backward pass,
+an ``[M, K, C]`` outer product scattered back into ``[N, K, C]`` — about a fifth of a CPU training
+step at 80k Gaussians. Here the forward sum and ∂/∂w run in parallel over rows, ∂/∂coeffs in
+parallel over ranges of Gaussians (each task owns its Gaussians' coefficient rows, so the scatter
+never races and writes each row whole).
+
+Elsewhere (CUDA) the torch forms run (:func:`torch_contraction`, with
+:func:`omg4.render.small_matmul.small_matmul`, and the monomial table of :mod:`omg4.gaussians.sh`).
 """
 
 from __future__ import annotations
@@ -25,6 +32,96 @@ from omg4.render.small_matmul import small_matmul
 
 _PARTS_PER_THREAD = 4
 """Gaussian ranges per thread in the ∂/∂coeffs kernel (each task scans every row, keeps its own)."""
+
+
+ROW_CHUNK = 1024
+"""Rows per parallel task of the basis kernels (their scratch arrays are made once per task)."""
+
+NUM_BASIS = 16
+"""Spatial basis functions up to degree 3."""
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def _basis_forward(dirs, active, term_basis, term_index, term_coef, out):
+    num_rows = dirs.shape[0]
+    for chunk in prange((num_rows + ROW_CHUNK - 1) // ROW_CHUNK):
+        p = np.empty(4)
+        y = np.empty(NUM_BASIS)
+        for m in range(chunk * ROW_CHUNK, min(num_rows, (chunk + 1) * ROW_CHUNK)):
+            p[0] = 1.0
+            p[1] = dirs[m, 0]
+            p[2] = dirs[m, 1]
+            p[3] = dirs[m, 2]
+            for k in range(NUM_BASIS):
+                y[k] = 0.0
+            for t in range(term_basis.shape[0]):
+                if term_basis[t] < active:
+                    y[term_basis[t]] += term_coef[t] * p[term_index[t, 0]] * p[term_index[t, 1]] * p[term_index[t, 2]]
+            for k in range(NUM_BASIS):
+                out[m, k] = y[k]
+
+
+@njit(parallel=True, cache=True, fastmath=FAST_MATH)
+def _basis_backward(dirs, active, term_basis, term_index, term_coef, grad_y, grad_dirs):
+    num_rows = dirs.shape[0]
+    for chunk in prange((num_rows + ROW_CHUNK - 1) // ROW_CHUNK):
+        p = np.empty(4)
+        gp = np.empty(4)
+        for m in range(chunk * ROW_CHUNK, min(num_rows, (chunk + 1) * ROW_CHUNK)):
+            p[0] = 1.0
+            p[1] = dirs[m, 0]
+            p[2] = dirs[m, 1]
+            p[3] = dirs[m, 2]
+            for a in range(4):
+                gp[a] = 0.0
+            for t in range(term_basis.shape[0]):
+                if term_basis[t] < active:
+                    w = term_coef[t] * grad_y[m, term_basis[t]]
+                    i, j, k = term_index[t, 0], term_index[t, 1], term_index[t, 2]
+                    gp[i] += w * p[j] * p[k]
+                    gp[j] += w * p[i] * p[k]
+                    gp[k] += w * p[i] * p[j]
+            grad_dirs[m, 0] = gp[1]
+            grad_dirs[m, 1] = gp[2]
+            grad_dirs[m, 2] = gp[3]
+
+
+class _Basis(torch.autograd.Function):
+    """(dirs [M, 3], active, terms) → [M, 16] with zeros from column ``active`` on (numba kernels)."""
+
+    @staticmethod
+    def forward(ctx, dirs, active, terms):
+        d = _numpy(dirs)
+        out = np.empty((d.shape[0], NUM_BASIS), dtype=d.dtype)
+        with keeping_torch_threads():
+            _basis_forward(d, active, *terms, out)
+        ctx.save_for_backward(dirs)
+        ctx.active, ctx.terms = active, terms
+        return torch.from_numpy(out)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_y):
+        (dirs,) = ctx.saved_tensors
+        d = _numpy(dirs)
+        grad_dirs = np.empty_like(d)
+        with keeping_torch_threads():
+            _basis_backward(d, ctx.active, *ctx.terms, _numpy(grad_y.to(dirs.dtype)), grad_dirs)
+        return torch.from_numpy(grad_dirs), None, None
+
+
+def basis_from_terms(dirs: torch.Tensor, active: int, terms: tuple[np.ndarray, np.ndarray, np.ndarray]
+                     ) -> torch.Tensor:
+    """``[M, 16]`` basis values ``Σ_terms coef · p_i p_j p_k`` of the functions ``k < active`` (zeros after) on
+    CPU float32/float64 ``dirs [M, 3]``; differentiable (first order, reverse mode).
+
+    terms: (basis index [T], indices into (1, x, y, z) [T, 3], coefficient [T]).
+    """
+    return _Basis.apply(dirs, active, terms)
 
 
 @njit(cache=True, inline="always")
@@ -77,10 +174,6 @@ def _grad_coefficients(weights, rows, grad_out, grad_dc, grad_rest, num_parts):
                 w = weights[m, k]
                 for c in range(channels):
                     grad_rest[g, k - 1, c] += w * grad_out[m, c]
-
-
-def _numpy(t: torch.Tensor) -> np.ndarray:
-    return t.detach().contiguous().numpy()
 
 
 class _GatheredContraction(torch.autograd.Function):
@@ -147,4 +240,4 @@ def torch_contraction(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tenso
     return small_matmul(weights.unsqueeze(1), coeffs).squeeze(1)
 
 
-__all__ = ["contract_coefficients", "torch_contraction"]
+__all__ = ["basis_from_terms", "contract_coefficients", "torch_contraction"]

@@ -1,4 +1,4 @@
-"""The fused gather + weighted SH sum (numba on the CPU) against independent references."""
+"""The SH colour kernels (numba, CPU): the gather-fused weighted sum and the basis, against independent references."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.gaussians.sh_contraction import contract_coefficients, torch_contraction
+from omg4.gaussians.sh import _basis_16, basis_by_table
+from omg4.gaussians.sh_kernels import contract_coefficients, torch_contraction
 
 
 def _case(seed: int, n: int = 30, m: int = 70, rest: int = 47, k: int = 48, dtype=torch.float64):
@@ -103,3 +104,29 @@ def test_other_dtypes_take_the_torch_form():
     got = contract_coefficients(dc.bfloat16(), rest.bfloat16(), weights.bfloat16(), rows)
     assert got.dtype == torch.bfloat16
     torch.testing.assert_close(got.double(), want, rtol=0.05, atol=0.3)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_basis_kernels_equal_the_monomial_table_values_and_direction_gradients(degree):
+    g = torch.Generator().manual_seed(20 + degree)
+    dirs = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=1)
+    upstream = torch.randn(300, 16, generator=g, dtype=torch.float64)
+    results = []
+    for fn in (_basis_16, basis_by_table):
+        d = dirs.clone().requires_grad_(True)
+        y = fn(d, degree)
+        (y * upstream).sum().backward()
+        results.append((y.detach(), d.grad))
+    (y_kernel, g_kernel), (y_table, g_table) = results
+    torch.testing.assert_close(y_kernel, y_table, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(g_kernel, g_table, rtol=1e-12, atol=1e-12)
+    assert torch.count_nonzero(y_kernel[:, (degree + 1) ** 2:]) == 0  # inactive functions are zero
+    assert torch.count_nonzero(y_kernel[:, : (degree + 1) ** 2]) > 0
+
+
+def test_basis_gradcheck_and_float32():
+    g = torch.Generator().manual_seed(30)
+    dirs = torch.randn(7, 3, generator=g, dtype=torch.float64).requires_grad_(True)  # not unit: any polynomial input
+    assert torch.autograd.gradcheck(lambda d: _basis_16(d, 3), (dirs,))
+    d32 = dirs.detach().float()
+    torch.testing.assert_close(_basis_16(d32, 3).double(), _basis_16(dirs.detach(), 3), rtol=1e-5, atol=1e-5)
