@@ -11,15 +11,13 @@ Usage: python benchmarks/decode.py [--data DIR] [--downscale F] [--cameras N] [-
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 
-from environment import machine
-from omg4.atomic import write_text_atomic
+from environment import save_result
 from omg4.data import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,10 +66,8 @@ def main() -> int:
               f"{r['read_float32_s']:>8.2f} {r['frames_per_s']:>9.1f} {r['MB_per_s']:>8.1f}")
     result = {"benchmark": "decode", "data": args.data.name, "downscale": args.downscale,
               "cache_MB": round(cache_mb, 1),
-              "machine": machine(),
               "results": rows}
-    write_text_atomic(args.json, json.dumps(result, indent=2) + "\n")
-    print(f"wrote {args.json}")
+    save_result(args.json, result)
     return 0
 
 

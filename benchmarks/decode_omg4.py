@@ -11,15 +11,13 @@ Usage: python benchmarks/decode_omg4.py [--megabytes 3] [--repeats 5] [--json FI
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from environment import machine
-from omg4.atomic import write_text_atomic
+from environment import save_result
 from omg4.codec.decoder import load_omg4
 from omg4.codec.forge import valid_payload
 from omg4.codec.payload import CODECS, decode_payload, encode_payload
@@ -65,11 +63,8 @@ def main() -> int:
             r = rows[-1]
             print(f"{codec:<8} {n:>8} G {r['MB']:>7.3f} MB  decode {r['decode_payload_s']:.3f} s  "
                   f"load {r['load_omg4_s']:.3f} s")
-    result = {"benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
-              "machine": machine(),
-              "results": rows}
-    write_text_atomic(args.json, json.dumps(result, indent=2) + "\n")
-    print(f"wrote {args.json}")
+    save_result(args.json, {"benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
+                            "results": rows})
     return 0
 
 

@@ -15,12 +15,11 @@ Usage: python benchmarks/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
 
-from environment import machine
+from environment import save_result
 from omg4.atomic import write_text_atomic
 from omg4.codec.decoder import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
@@ -86,11 +85,9 @@ def main() -> int:
           f"size {rows['compact']['bytes'] / rows['paper']['bytes']:.3f}x")
     result = {"benchmark": "rate", "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
               "downscale": args.downscale, "num_gaussians": payload.num_gaussians, "rows": rows,
-              "compact_minus_paper": delta, "table": table,
-              "machine": machine()}
-    write_text_atomic(out_json, json.dumps(result, indent=2) + "\n")
+              "compact_minus_paper": delta, "table": table}
     write_text_atomic(out_json.with_suffix(".md"), table + "\n")
-    print(f"wrote {out_json}")
+    save_result(out_json, result)
     return 0
 
 

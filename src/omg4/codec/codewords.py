@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omg4.codec.entropy import decode_indices, decode_uints, encode_indices, encode_uints, pack_varints, unpack_varints
+from omg4.codec.entropy import decode_indices, decode_uints, encode_indices, encode_uints, join_streams, split_streams
 from omg4.errors import CorruptFileError
 
 MODES = ("sorted", "first-use")
@@ -87,7 +87,7 @@ def _first_use(rows: np.ndarray, labels: np.ndarray, encode_floats) -> tuple[str
     flags = encode_indices(is_new, 2, "ans")
     repeats = encode_indices(new_labels[is_new == 0], rows.shape[0], "ans")
     encoding, floats = encode_floats(rows[order])
-    return encoding, floats, pack_varints(np.array([len(flags)])) + flags + repeats
+    return encoding, floats, join_streams(flags, repeats)
 
 
 def encode_codewords(codebook: np.ndarray, indices: np.ndarray, encode_floats) -> tuple[str, bytes, str, bytes, int]:
@@ -127,14 +127,12 @@ def decode_first_use_indices(data: bytes, num_rows: int, count: int) -> np.ndarr
     """The ``int64 [count]`` indices of the "first-use" mode into a codebook of ``num_rows`` rows."""
     if num_rows < 1:
         raise CorruptFileError("first-use indices into an empty codebook")
-    (size,), used = unpack_varints(data, 1, "first-use flag size")
-    if size > len(data) - used:
-        raise CorruptFileError("truncated first-use flags")
-    is_new = decode_indices(data[used:used + int(size)], 2, count, "ans").astype(bool)
+    flags, repeat_stream = split_streams(data, "first-use flags")
+    is_new = decode_indices(flags, 2, count, "ans").astype(bool)
     if int(is_new.sum()) != num_rows or (count and not is_new[0]):
         raise CorruptFileError("damaged first-use flags (new codewords do not match the codebook)")
     seen = np.cumsum(is_new)  # codewords introduced up to and including each Gaussian
-    repeats = decode_indices(data[used + int(size):], num_rows, count - num_rows, "ans")
+    repeats = decode_indices(repeat_stream, num_rows, count - num_rows, "ans")
     if (repeats >= seen[~is_new]).any():
         raise CorruptFileError("damaged first-use indices (a repeat refers to a codeword not yet used)")
     labels = np.empty(count, np.int64)

@@ -66,6 +66,13 @@ def deflate_raw(data: bytes) -> bytes:
     return packer.compress(data) + packer.flush()
 
 
+def stored_json(blob: bytes, version: int) -> bytes:
+    """The container's start for the JSON text ``blob``: the prefix, then the JSON as ``version`` stores it
+    (version 2 deflates it)."""
+    stored = deflate_raw(blob) if version == 2 else blob
+    return PREFIX.pack(MAGIC, version, 0, len(stored), crc32(stored)) + stored
+
+
 def has_magic(path) -> bool:
     """Whether the file at ``path`` starts with the ``.omg4`` container's magic bytes."""
     with open(path, "rb") as f:
@@ -89,15 +96,12 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
     blob = _encode_json(header, table)
     if len(blob) > MAX_JSON_BYTES:
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
-    if version == 2:
-        text, blob = blob, deflate_raw(blob)
-        if len(text) > max_inflated_json(len(blob)):
-            raise OMG4Error(f"container header compresses {len(text)} → {len(blob)} bytes, beyond what a reader "
-                            "accepts; write it with version 1")
-    prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
+    head = stored_json(blob, version)
+    if version == 2 and len(blob) > max_inflated_json(len(head) - PREFIX.size):
+        raise OMG4Error(f"container header compresses {len(blob)} → {len(head) - PREFIX.size} bytes, beyond what a "
+                        "reader accepts; write it with version 1")
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(prefix)
-        f.write(blob)
+        f.write(head)
         for data in sections.values():
             f.write(data)
         size = f.tell()

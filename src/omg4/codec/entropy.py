@@ -78,6 +78,19 @@ def unpack_varints(data: bytes, count: int, what: str = "varints") -> tuple[np.n
     return np.bitwise_or.reduceat(parts, starts), used
 
 
+def join_streams(head: bytes, tail: bytes) -> bytes:
+    """Two byte streams as one: the varint length of ``head``, ``head``, then ``tail``."""
+    return pack_varints(np.array([len(head)])) + head + tail
+
+
+def split_streams(data: bytes, what: str) -> tuple[bytes, bytes]:
+    """Inverse of :func:`join_streams`; a length past the end is damage to ``what``."""
+    (size,), used = unpack_varints(data, 1, f"{what} size")
+    if size > len(data) - used:
+        raise CorruptFileError(f"truncated {what}")
+    return data[used:used + int(size)], data[used + int(size):]
+
+
 def _bit_length(v: np.ndarray) -> np.ndarray:
     """Bit length of each ``uint64`` (0 for 0): popcount of the value with all lower bits set."""
     s = v.astype(np.uint64, copy=True)
@@ -319,23 +332,20 @@ def encode_uints(values: np.ndarray) -> bytes:
     top = (v >> np.maximum(nraw, 0).astype(np.uint64)) & np.uint64(3)
     tokens = np.where(big, _SPLIT + (length - 5) * 4 + top.astype(np.int64), v.astype(np.int64))
     stream = encode_indices(tokens, _TOKENS, "ans")
-    return pack_varints(np.array([len(stream)])) + stream + _pack_bits(v, nraw)
+    return join_streams(stream, _pack_bits(v, nraw))
 
 
 def decode_uints(data: bytes, count: int, max_bits: int = 64) -> np.ndarray:
     """Inverse of :func:`encode_uints`: ``uint64 [count]``; a value longer than ``max_bits`` bits is damage."""
-    data = bytes(data)
-    (size,), used = unpack_varints(data, 1, "uint token size")
-    if size > len(data) - used:
-        raise CorruptFileError("truncated uint stream")
-    tokens = decode_indices(data[used:used + int(size)], _TOKENS, count, "ans")
+    token_stream, raw_bits = split_streams(bytes(data), "uint stream")
+    tokens = decode_indices(token_stream, _TOKENS, count, "ans")
     big = tokens >= _SPLIT
     t = tokens - _SPLIT
     length = np.where(big, t // 4 + 5, 0)
     if length.size and int(length.max()) > max_bits:
         raise CorruptFileError(f"damaged uint stream (a value longer than {max_bits} bits)")
     nraw = np.where(big, length - 3, 0)
-    low = _unpack_bits(data[used + int(size):], nraw)
+    low = _unpack_bits(raw_bits, nraw)
     head = np.where(big, (4 + (t & 3)).astype(np.uint64), tokens.astype(np.uint64))
     return (head << nraw.astype(np.uint64)) | low
 

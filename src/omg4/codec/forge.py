@@ -23,8 +23,8 @@ from typing import Iterator
 
 import numpy as np
 
-from omg4.codec.container import MAGIC, PREFIX, crc32, deflate_raw, read_container
-from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
+from omg4.codec.container import crc32, read_container, stored_json
+from omg4.codec.payload import CompressedPayload, QuantizedAttribute, container_version, encode_payload
 from omg4.gaussians.backbone import RT4DGS
 
 #: codebook sizes of the M preset (paper appendix) per Real-Time4DGS SVQ attribute; widths and sub-vector
@@ -89,12 +89,9 @@ def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
     text = json.dumps({"header": header, "sections": table}, separators=(",", ":"), ensure_ascii=False)
     for token, raw in _RAW_NUMBERS.items():
         text = text.replace(f'"{token}"', raw)
-    blob = text.encode("utf-8", "surrogatepass")
-    version = 2 if isinstance(header, dict) and header.get("codec") == "compact" else 1
-    if version == 2:  # the compact codec's container deflates the JSON
-        blob = deflate_raw(blob)
-    prefix = PREFIX.pack(MAGIC, version, 0, len(blob), crc32(blob))
-    return prefix + blob + b"".join(data for _, data in sections)
+    codec = header.get("codec") if isinstance(header, dict) else None
+    head = stored_json(text.encode("utf-8", "surrogatepass"), container_version(codec))
+    return head + b"".join(data for _, data in sections)
 
 
 # ------------------------------------------------------------------------ mutations

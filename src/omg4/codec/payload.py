@@ -211,6 +211,12 @@ def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ encoding
+def container_version(codec: str) -> int:
+    """The container version a codec writes: 2 (deflated JSON) for "compact", 1 otherwise, so files of the
+    older codecs stay readable by builds that predate version 2."""
+    return 2 if codec == "compact" else 1
+
+
 def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...]) -> bool:
     """Whether the compact codec may store attribute ``name`` as unit quaternions (a rotation, 4 wide)."""
     return name in rotations and sum(int(np.shape(cb)[1]) for cb in q.codebooks) == 4
@@ -243,9 +249,9 @@ def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
     for attr, qa in q.attributes.items():
         if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
             raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
+        any_length = codec == "compact" and _quaternion_stored(qa, attr, q.rotations)
+        max_rows = max(n, MAX_SYMBOLS) if any_length else MAX_SYMBOLS
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            any_length = codec == "compact" and _quaternion_stored(qa, attr, q.rotations)
-            max_rows = max(n, MAX_SYMBOLS) if any_length else MAX_SYMBOLS
             if cb.ndim != 2 or not 1 <= cb.shape[0] <= max_rows or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
                 raise OMG4Error(f"attribute {attr}: codebook {j} has shape {cb.shape} (at most {MAX_SYMBOLS} rows of "
                                 f"at most {MAX_SUB_LEN}; more rotations than that only the compact codec stores)")
@@ -342,7 +348,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
-    total = write_container(path, header, sections, version=2 if codec == "compact" else 1)
+    total = write_container(path, header, sections, version=container_version(codec))
     sizes["header"] = total - sum(sizes.values())
     return sizes
 

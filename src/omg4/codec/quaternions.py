@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omg4.codec.entropy import decode_indices, encode_indices, pack_varints, unpack_varints
+from omg4.codec.entropy import decode_indices, encode_indices, join_streams, split_streams
 from omg4.errors import CorruptFileError
 
 BITS = 10
@@ -60,16 +60,14 @@ def encode_quaternions(q: np.ndarray, bits: int = BITS) -> bytes:
     """Code ``q: [N, 4]`` (N ≥ 1): varint size of the largest-component stream, that stream, the grid codes."""
     largest, codes = quantize_quaternions(q, bits)
     head = encode_indices(largest, 4, "ans")
-    return pack_varints(np.array([len(head)])) + head + encode_indices(codes.ravel(), levels(bits), "ans")
+    return join_streams(head, encode_indices(codes.ravel(), levels(bits), "ans"))
 
 
 def decode_quaternions(data: bytes, count: int, bits: int = BITS) -> np.ndarray:
     """Inverse of :func:`encode_quaternions`: unit quaternions rounded to ``float16 [count, 4]``."""
     if not 2 <= bits <= 15:
         raise CorruptFileError(f"quaternion grid of {bits} bits (allowed 2-15)")
-    (size,), used = unpack_varints(data, 1, "quaternion stream size")
-    if size > len(data) - used:
-        raise CorruptFileError("truncated quaternion stream")
-    largest = decode_indices(data[used:used + int(size)], 4, count, "ans")
-    codes = decode_indices(data[used + int(size):], levels(bits), 3 * count, "ans").reshape(count, 3)
+    head, tail = split_streams(data, "quaternion stream")
+    largest = decode_indices(head, 4, count, "ans")
+    codes = decode_indices(tail, levels(bits), 3 * count, "ans").reshape(count, 3)
     return dequantize_quaternions(largest, codes, bits).astype(np.float16)

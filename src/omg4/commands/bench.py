@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.codec.payload import CODECS
-from omg4.commands.common import (add_device_arguments, add_scene_arguments, device_from_args, int_at_least,
-                                  load_scene_from_args)
+from omg4.commands.common import (add_codec_argument, add_device_arguments, add_scene_arguments, device_from_args,
+                                  int_at_least, load_scene_from_args)
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import SCHEDULES
 
@@ -24,10 +23,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="iterations the baseline was trained for (the position learning rate continues its decay)")
     p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "
                    + "; ".join(f"{b}: {', '.join(rows)}" for b, rows in _row_names().items()))
-    p.add_argument("--codec", default=CODECS[0], choices=list(CODECS),
-                   help="file coder: compact (default: codewords coded without their order, unit quaternions, "
-                        "8-bit MLP weights; 0.54-0.85x the paper coder's file at the same quality, README 'Rate'), ans (lossless, fp16 values "
-                        "as the paper), paper (Huffman + LZMA as OMG4)")
+    add_codec_argument(p)
     add_device_arguments(p)
 
 

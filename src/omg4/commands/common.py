@@ -81,6 +81,16 @@ def add_format_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=list(READERS), help="force the dataset reader")
 
 
+def add_codec_argument(p: argparse.ArgumentParser) -> None:
+    """``--codec``: the ``.omg4`` file coder (:data:`omg4.codec.payload.CODECS`, the first is the default)."""
+    from omg4.codec.payload import CODECS
+
+    p.add_argument("--codec", default=CODECS[0], choices=list(CODECS),
+                   help="file coder: compact (default: codewords coded without their order, unit quaternions, "
+                        "8-bit MLP weights; 0.54-0.85x the paper coder's file at the same quality, README 'Rate'), "
+                        "ans (lossless, fp16 values as the paper), paper (Huffman + LZMA as OMG4)")
+
+
 def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True) -> None:
     """``--device`` (where models, images and optimizers live) and, with ``backend``, the rasterizer ``--backend``."""
     from omg4.device import DEVICE_HELP

@@ -6,10 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
-                                  background_from_args, config_from_args, device_from_args, float_in, int_at_least,
-                                  load_scene_from_args)
-from omg4.codec.payload import CODECS
+from omg4.commands.common import (add_background_argument, add_codec_argument, add_device_arguments,
+                                  add_force_argument, add_scene_arguments, background_from_args, config_from_args,
+                                  device_from_args, float_in, int_at_least, load_scene_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.presets import PRESETS_BY_BACKBONE
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
@@ -37,10 +36,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help="override the preset's sampling ratio, in (0, 1]")
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
-    p.add_argument("--codec", default=CODECS[0], choices=list(CODECS),
-                   help="file coder: compact (default: codewords coded without their order, unit quaternions, "
-                        "8-bit MLP weights; 0.54-0.85x the paper coder's file at the same quality, README 'Rate'), ans (lossless, fp16 values "
-                        "as the paper), paper (Huffman + LZMA as OMG4)")
+    add_codec_argument(p)
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
                    help="accumulate the time gradient without zeroing, as the official release does")

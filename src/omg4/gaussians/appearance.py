@@ -145,6 +145,8 @@ class AppearanceMLP(nn.Module):
         weight = self.shared[0].weight[:, :3 * 2 * self.num_freqs]  # [hidden, 3·2F]
         blocks = [frequency_encoding(contract_to_unisphere(x), self.num_freqs) @ weight.T
                   for x in xyz_canonical.detach().split(chunk)]
+        if len(blocks) == 1:  # the usual case: no copy
+            return blocks[0]
         return torch.cat(blocks) if blocks else xyz_canonical.new_zeros(0, weight.shape[0])
 
     def predict_from_position_term(self, position_term: Tensor, t_norm: Tensor, views: Tensor, f_static: Tensor,

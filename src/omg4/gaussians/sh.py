@@ -60,20 +60,6 @@ _BASIS_POLYNOMIALS: tuple[dict[str, float], ...] = (
 
 
 @functools.lru_cache(maxsize=None)
-def _basis_table(degree: int, dtype: torch.dtype, device: str) -> torch.Tensor:
-    """[64, 16] constant B with ``Y(d) = m(d) @ B``, ``m`` the 64 products p_i p_j p_k of p = (1, x, y, z).
-
-    Columns of basis functions above ``degree`` are zero.
-    """
-    table = torch.zeros(64, 16, dtype=torch.float64, device="cpu")
-    for k, poly in enumerate(_BASIS_POLYNOMIALS[: num_sh_coeffs(degree)]):
-        for mono, coef in poly.items():
-            i, j, l = (" xyz".index(c) for c in mono.rjust(3, " "))
-            table[16 * i + 4 * j + l, k] = coef
-    return table.to(dtype=dtype, device=device)
-
-
-@functools.lru_cache(maxsize=None)
 def _basis_terms() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The basis polynomials as terms: (basis index [T], indices into p = (1, x, y, z) [T, 3], coefficient [T])."""
     basis, index, coef = [], [], []
@@ -83,6 +69,19 @@ def _basis_terms() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             index.append([" xyz".index(ch) for ch in mono.rjust(3, " ")])
             coef.append(c)
     return np.array(basis, np.int64), np.array(index, np.int64), np.array(coef, np.float64)
+
+
+@functools.lru_cache(maxsize=None)
+def _basis_table(degree: int, dtype: torch.dtype, device: str) -> torch.Tensor:
+    """[64, 16] constant B with ``Y(d) = m(d) @ B``, ``m`` the 64 products p_i p_j p_k of p = (1, x, y, z).
+
+    Columns of basis functions above ``degree`` are zero.
+    """
+    table = torch.zeros(64, 16, dtype=torch.float64, device="cpu")
+    for k, (i, j, l), coef in zip(*_basis_terms()):
+        if k < num_sh_coeffs(degree):
+            table[16 * i + 4 * j + l, k] = coef
+    return table.to(dtype=dtype, device=device)
 
 
 def _basis_16(dirs: torch.Tensor, degree: int) -> torch.Tensor:
