@@ -53,6 +53,24 @@ def test_gradcheck_with_fewer_weights_than_coefficients():
     assert torch.autograd.gradcheck(lambda a, b, w: contract_coefficients(a, b, w, rows), inputs)
 
 
+@pytest.mark.parametrize("k", [48, 16, 1])
+def test_unused_gaussians_and_coefficients_past_k_get_exact_zeros(k):
+    """The coefficient gradients are written into uninitialized memory: unused rows and columns must be zeroed."""
+    dc, rest, weights, rows = _case(7, n=40, m=25, k=k)
+    rows = rows % 20  # Gaussians 20..39 are in no row
+    for _ in range(3):  # later backward passes reuse the freed (non-zero) buffers of earlier ones
+        a, b = dc.clone().requires_grad_(True), rest.clone().requires_grad_(True)
+        contract_coefficients(a, b, weights, rows).square().sum().backward()
+        want_dc = torch.zeros_like(dc)
+        want_rest = torch.zeros_like(rest)
+        out = torch.from_numpy(_numpy_reference(dc, rest, weights, rows))
+        want_dc.index_add_(0, rows, (2 * out[:, None, :] * weights[:, :1, None]))
+        want_rest[:, : k - 1].index_add_(0, rows, 2 * out[:, None, :] * weights[:, 1:, None])
+        torch.testing.assert_close(a.grad, want_dc, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(b.grad, want_rest, rtol=1e-12, atol=0)
+        assert not b.grad[20:].any() and not b.grad[:, max(k - 1, 0):].any()
+
+
 def test_only_the_needed_gradients_and_rows_default_to_identity():
     dc, rest, weights, _ = _case(3, n=12, m=12)
     w = weights.clone().requires_grad_(True)

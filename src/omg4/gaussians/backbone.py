@@ -24,7 +24,7 @@ from typing import Callable
 
 import torch
 
-from omg4.gaussians.covariance import (SliceGeometry, covariance_4d, scaled_rotation_4d, slice_geometry,
+from omg4.gaussians.covariance import (SliceGeometry, conditioning_terms, scaled_rotation_4d, slice_geometry,
                                       temporal_variance)
 from omg4.gaussians.freetime import covariance_3d, duration_variance, slice_geometry_ftgs
 
@@ -210,10 +210,9 @@ def _rt4dgs_time_variance(values: dict[str, torch.Tensor], config) -> torch.Tens
 
 
 def _rt4dgs_motion(values: dict[str, torch.Tensor], config) -> tuple[torch.Tensor, torch.Tensor]:
-    cov4 = covariance_4d(activated_scales(values), values["rotation"], values["rotation_r"], config.rotation_convention)
-    cov_xt = cov4[:, :3, 3]
-    gain = cov_xt / cov4[:, 3, 3:4]  # Σ12 / Σtt: the velocity of the conditional mean
-    return gain, cov4[:, :3, :3] - gain.unsqueeze(-1) * cov_xt.unsqueeze(-2)
+    gain, cov3, _ = conditioning_terms(activated_scales(values), values["rotation"], values["rotation_r"],
+                                       config.rotation_convention)
+    return gain, cov3  # Σ12 / Σtt is the velocity of the conditional mean
 
 
 def _ftgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Tensor) -> SliceGeometry:

@@ -103,14 +103,36 @@ class SliceGeometry:
     views: torch.Tensor
 
 
+def conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor, convention: str = "flip"
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The time-independent part of the conditioning of every Gaussian (rt4dgs §1.3–1.4).
+
+    ``gain = Σ12 / Σtt`` [N, 3] (the velocity of the conditional mean), ``Σ_3D = Σ11 − Σ12 Σ12ᵀ / Σtt``
+    [N, 3, 3] and ``Σtt`` [N], with ``Σ4 = L Lᵀ``, ``L = R4 diag(s)``. Differentiable (first order)
+    w.r.t. the three inputs. On the CPU (float32/float64) one numba pass per Gaussian
+    (:mod:`omg4.gaussians.covariance_kernels`); elsewhere the torch form below.
+
+    Args: as :func:`covariance_4d`.
+    """
+    if scales.device.type == "cpu" and scales.dtype in (torch.float32, torch.float64) and (
+            scales.dtype == q_l.dtype == q_r.dtype):
+        from omg4.gaussians.covariance_kernels import kernel_conditioning_terms
+
+        return kernel_conditioning_terms(scales, q_l, q_r, convention)
+    cov4 = covariance_4d(scales, q_l, q_r, convention)
+    var_t = cov4[:, 3, 3]
+    gain = cov4[:, :3, 3] / var_t[:, None]
+    return gain, cov4[:, :3, :3] - gain[:, :, None] * cov4[:, None, 3, :3], var_t
+
+
 def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor,
                    timestamps: float | torch.Tensor, *, convention: str = "flip",
                    time_cull: float = 0.05) -> SliceGeometry:
     """Conditioning on each of ``timestamps`` plus the temporal cull p_t ≤ ``time_cull`` (rt4dgs §1.4).
 
-    One pass serves every query time: the 4D rotation and scale (``L = R4 diag(s)``) are built
-    once, the marginals of all (time, Gaussian) pairs are computed together, and the 4D
-    covariance and its Schur complement only for the surviving pairs. Differentiable w.r.t.
+    One pass serves every query time: the time-independent terms (:func:`conditioning_terms`:
+    gain, Σ_3D, Σtt) once per Gaussian, the marginals of all (time, Gaussian) pairs together,
+    and the conditional means and marginals only for the surviving pairs. Differentiable w.r.t.
     all inputs.
 
     Args:
@@ -118,18 +140,17 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
         q_l, q_r: [N, 4] quaternions; timestamps: one query time or [V] of them.
     """
     times = torch.as_tensor(timestamps, dtype=xyz.dtype, device=xyz.device).reshape(-1)
-    L = scaled_rotation_4d(scales, q_l, q_r, convention)  # [N, 4, 4]
-    var_t = temporal_variance(L)
-    p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
-    views, index = (p_t > time_cull).nonzero(as_tuple=True)
+    gain, cov3, var_t = conditioning_terms(scales, q_l, q_r, convention)
+    with torch.no_grad():
+        p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
+        views, index = (p_t > time_cull).nonzero(as_tuple=True)
     # gathers by index_select: its backward is an index_add, far cheaper on the CPU than indexing's
-    cov4 = _outer_rows(L.index_select(0, index))  # [M, 4, 4]
     dt = times.index_select(0, views) - t[:, 0].index_select(0, index)
-    gain = cov4[:, :3, 3] / cov4[:, 3, 3, None]  # Σ12 / Σtt
-    means = xyz.index_select(0, index) + gain * dt[:, None]
-    covars = cov4[:, :3, :3] - gain[:, :, None] * cov4[:, None, 3, :3]
+    means = xyz.index_select(0, index) + gain.index_select(0, index) * dt[:, None]
     marginal = temporal_marginal(dt, var_t.index_select(0, index))
-    return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=-dt, views=views)
+    return SliceGeometry(index=index, means=means, covars=cov3.index_select(0, index), marginal=marginal, dt=-dt,
+                         views=views)
 
 
-__all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "temporal_marginal", "condition_on_time", "SliceGeometry", "slice_geometry"]
+__all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "conditioning_terms", "temporal_marginal",
+           "condition_on_time", "SliceGeometry", "slice_geometry"]
