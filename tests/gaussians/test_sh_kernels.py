@@ -55,7 +55,7 @@ def test_gradcheck_with_fewer_weights_than_coefficients():
 
 @pytest.mark.parametrize("k", [48, 16, 1])
 def test_unused_gaussians_and_coefficients_past_k_get_exact_zeros(k):
-    """The coefficient gradients are written into uninitialized memory: unused rows and columns must be zeroed."""
+    """Gaussians in no row, and coefficients past ``K``, get exact zeros (also when freed buffers are reused)."""
     dc, rest, weights, rows = _case(7, n=40, m=25, k=k)
     rows = rows % 20  # Gaussians 20..39 are in no row
     for _ in range(3):  # later backward passes reuse the freed (non-zero) buffers of earlier ones

@@ -12,8 +12,7 @@ torch this is a join and gather of ``[M, K, C]`` coefficients, a product and, in
 an ``[M, K, C]`` outer product scattered back into ``[N, K, C]`` — about a fifth of a CPU training
 step at 80k Gaussians. Here the forward sum and ∂/∂w run in parallel over rows, ∂/∂coeffs in
 parallel over ranges of Gaussians (each task owns its Gaussians' coefficient rows, so the scatter
-never races and writes each row whole; rows no slice row uses are zeroed there too, so the
-[N, K, C] gradient needs no separate zero-fill).
+never races and writes each row whole).
 
 Elsewhere (CUDA) the torch forms run (:func:`torch_contraction`, with
 :func:`omg4.render.small_matmul.small_matmul`, and the monomial table of :mod:`omg4.gaussians.sh`).
@@ -159,34 +158,22 @@ def _grad_weights(dc, rest, rows, grad_out, grad_weights):
 
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
 def _grad_coefficients(weights, rows, grad_out, grad_dc, grad_rest, num_parts):
-    """Fills the uninitialized ``grad_dc``, ``grad_rest``: a Gaussian's first row assigns, later rows add, and the
-    Gaussians no row uses (and the coefficients past ``K``) are zeroed — no separate zero-fill pass."""
     num_rows, num_k = weights.shape
     channels = grad_out.shape[1]
-    n = grad_rest.shape[0]
+    n = grad_dc.shape[0]
     for part in prange(num_parts):  # each part owns a range of Gaussians: no two tasks write one row
         lo = part * n // num_parts
         hi = (part + 1) * n // num_parts
-        seen = np.zeros(hi - lo, dtype=np.bool_)
         for m in range(num_rows):
             g = rows[m]
-            if g < lo or g >= hi:
+            if g < lo or g >= hi or num_k == 0:
                 continue
-            first = not seen[g - lo]
-            seen[g - lo] = True
             for c in range(channels):
-                w = weights[m, 0] * grad_out[m, c] if num_k > 0 else 0.0
-                grad_dc[g, 0, c] = w if first else grad_dc[g, 0, c] + w
+                grad_dc[g, 0, c] += weights[m, 0] * grad_out[m, c]
             for k in range(1, num_k):
                 w = weights[m, k]
                 for c in range(channels):
-                    grad_rest[g, k - 1, c] = w * grad_out[m, c] if first else grad_rest[g, k - 1, c] + w * grad_out[m, c]
-            if first:
-                grad_rest[g, max(num_k, 1) - 1:] = 0.0
-        for g in range(lo, hi):
-            if not seen[g - lo]:
-                grad_dc[g] = 0.0
-                grad_rest[g] = 0.0
+                    grad_rest[g, k - 1, c] += w * grad_out[m, c]
 
 
 class _GatheredContraction(torch.autograd.Function):
@@ -209,8 +196,8 @@ class _GatheredContraction(torch.autograd.Function):
         grad_dc = grad_rest = grad_weights = None
         with keeping_torch_threads():
             if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
-                grad_dc = torch.empty(dc.shape, dtype=dc.dtype)
-                grad_rest = torch.empty(rest.shape, dtype=rest.dtype)
+                grad_dc = torch.zeros(dc.shape, dtype=dc.dtype)
+                grad_rest = torch.zeros(rest.shape, dtype=rest.dtype)
                 _grad_coefficients(_numpy(weights), _numpy(rows), g, grad_dc.numpy(), grad_rest.numpy(),
                                    _PARTS_PER_THREAD * numba.get_num_threads())
             if ctx.needs_input_grad[2]:
