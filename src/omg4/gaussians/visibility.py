@@ -66,6 +66,10 @@ class VisibilityIndex:
         return torch.cat([self.rows[i] for i in k]).unique()
 
 
+_GATHERED_BY_COLOUR = ("features_dc", "features_rest")
+"""Explicit SH coefficients: the colour kernel reads them by row, so a frame never copies them."""
+
+
 class WindowedModel(ViewSlicer):
     """A render-only 4D model whose frames touch only their time window's Gaussians.
 
@@ -109,13 +113,15 @@ class WindowedModel(ViewSlicer):
         """The Gaussians shown to ``V`` views (``timestamps [V]``, ``camera_centers [V, 3]``); indices are rows
         of the whole model."""
         rows = self.visibility.rows_at(timestamps)
-        values = self.values if rows is None else {k: v.index_select(0, rows) for k, v in self.values.items()}
-        position_term = self.position_term
-        if rows is not None and position_term is not None:
-            position_term = position_term.index_select(0, rows)
+        values, position_term = self.values, self.position_term
+        if rows is not None:  # the window's rows; the SH coefficients stay whole (gathered by the colour kernel)
+            values = {k: v if k in _GATHERED_BY_COLOUR else v.index_select(0, rows) for k, v in values.items()}
+            if position_term is not None:
+                position_term = position_term.index_select(0, rows)
         with torch.no_grad():
             sl = slice_values(values, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
-                              camera_centers, appearance=self.appearance, position_term=position_term)
+                              camera_centers, appearance=self.appearance, position_term=position_term,
+                              coefficient_rows=rows)
         if rows is not None:
             sl.index = rows.index_select(0, sl.index)
         sl.num_total = self.num_gaussians
