@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.gaussians import condition_on_time, covariance_4d, slice_geometry
+from omg4.gaussians import condition_on_time, covariance, covariance_4d, slice_geometry
 from test_rotation4d import oracle_rotation_4d
 
 
@@ -97,8 +97,12 @@ def test_slice_geometry_culls_where_marginal_at_most_threshold():
     np.testing.assert_allclose(geom.dt.numpy(), -dt[[0, 2, 4]])
 
 
+@pytest.mark.parametrize("form", ["kernels", "torch"])
 @pytest.mark.parametrize("convention", ["flip", "legacy"])
-def test_slice_geometry_equals_conditioning_of_survivors(convention):
+def test_slice_geometry_equals_conditioning_of_survivors(convention, form, monkeypatch):
+    """On the CPU the conditioning terms come from the numba kernels; the torch form (what CUDA runs) too."""
+    if form == "torch":
+        monkeypatch.setattr(covariance, "conditioning_terms", covariance.torch_conditioning_terms)
     p = random_gaussians(200, seed=3)
     tau = 4.0
     geom = slice_geometry(T(p["xyz"]), T(p["t"]), T(p["scales"]), T(p["ql"]), T(p["qr"]), tau, convention=convention,

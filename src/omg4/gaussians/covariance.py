@@ -110,7 +110,7 @@ def conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tenso
     ``gain = Σ12 / Σtt`` [N, 3] (the velocity of the conditional mean), ``Σ_3D = Σ11 − Σ12 Σ12ᵀ / Σtt``
     [N, 3, 3] and ``Σtt`` [N], with ``Σ4 = L Lᵀ``, ``L = R4 diag(s)``. Differentiable (first order)
     w.r.t. the three inputs. On the CPU (float32/float64) one numba pass per Gaussian
-    (:mod:`omg4.gaussians.covariance_kernels`); elsewhere the torch form below.
+    (:mod:`omg4.gaussians.covariance_kernels`); elsewhere :func:`torch_conditioning_terms`.
 
     Args: as :func:`covariance_4d`.
     """
@@ -119,6 +119,12 @@ def conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tenso
         from omg4.gaussians.covariance_kernels import kernel_conditioning_terms
 
         return kernel_conditioning_terms(scales, q_l, q_r, convention)
+    return torch_conditioning_terms(scales, q_l, q_r, convention)
+
+
+def torch_conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor, convention: str = "flip"
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`conditioning_terms` as torch operations (Σ4 by :func:`covariance_4d`), for devices other than the CPU."""
     cov4 = covariance_4d(scales, q_l, q_r, convention)
     var_t = cov4[:, 3, 3]
     gain = cov4[:, :3, 3] / var_t[:, None]
@@ -152,5 +158,6 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
                          views=views)
 
 
-__all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "conditioning_terms", "temporal_marginal",
+__all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "conditioning_terms", "torch_conditioning_terms",
+           "temporal_marginal",
            "condition_on_time", "SliceGeometry", "slice_geometry"]
