@@ -18,7 +18,9 @@ from dataclasses import dataclass
 
 import torch
 
+from omg4.gaussians.covariance_kernels import kernel_conditioning_terms
 from omg4.gaussians.rotation import build_rotation_4d
+from omg4.render.api import runs_cpu_kernels
 from omg4.render.small_matmul import small_matmul
 
 
@@ -114,10 +116,7 @@ def conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tenso
 
     Args: as :func:`covariance_4d`.
     """
-    if scales.device.type == "cpu" and scales.dtype in (torch.float32, torch.float64) and (
-            scales.dtype == q_l.dtype == q_r.dtype):
-        from omg4.gaussians.covariance_kernels import kernel_conditioning_terms
-
+    if runs_cpu_kernels(scales, q_l, q_r):
         return kernel_conditioning_terms(scales, q_l, q_r, convention)
     return torch_conditioning_terms(scales, q_l, q_r, convention)
 

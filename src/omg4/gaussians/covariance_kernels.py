@@ -27,7 +27,7 @@ from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
 from omg4.gaussians.rotation import _product_table
-from omg4.render.api import keeping_torch_threads
+from omg4.render.api import as_numpy, keeping_torch_threads
 from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
 
 GAUSSIAN_CHUNK = 1024
@@ -118,16 +118,17 @@ def _terms_backward(scales, q_l, q_r, left, right, signs, grad_gain, grad_cov3, 
             for i in range(3):
                 c[i] = _row_dot(L, i, 3)
             # gain = c / var and Σ_3D = Σ11 − c cᵀ / var, as functions of Σ11, c = Σ12 and var = Σtt
+            inv_var = 1.0 / var
             g_var = grad_var[g]
             for i in range(3):
-                g_var -= grad_gain[g, i] * c[i] / (var * var)
+                g_var -= grad_gain[g, i] * c[i] * inv_var * inv_var
                 for j in range(3):
-                    g_var += grad_cov3[g, i, j] * c[i] * c[j] / (var * var)
-            for i in range(3):
-                g_c = grad_gain[g, i] / var
-                for j in range(3):
-                    g_c -= (grad_cov3[g, i, j] + grad_cov3[g, j, i]) * c[j] / var
+                    g_var += grad_cov3[g, i, j] * c[i] * c[j] * inv_var * inv_var
                     sym[i, j] = grad_cov3[g, i, j] + grad_cov3[g, j, i]
+            for i in range(3):
+                g_c = grad_gain[g, i] * inv_var
+                for j in range(3):
+                    g_c -= sym[i, j] * c[j] * inv_var
                 sym[i, 3] = g_c  # Σ4[i, 3] is used once: G[i, 3] = g_c, G[3, i] = 0
                 sym[3, i] = g_c
             sym[3, 3] = 2.0 * g_var
@@ -163,21 +164,17 @@ def _normalize_backward(unit, grad_unit, norm, grad_q, g):
             grad_q[g, a] = grad_unit[a] / norm
 
 
-def _numpy(t: torch.Tensor) -> np.ndarray:
-    return t.detach().contiguous().numpy()
-
-
 class _ConditioningTerms(torch.autograd.Function):
     """(scales [N, 4], q_l [N, 4], q_r [N, 4], convention) → (gain [N, 3], Σ_3D [N, 3, 3], var_t [N])."""
 
     @staticmethod
     def forward(ctx, scales, q_l, q_r, convention):
         terms = rotation_terms(convention)
-        s = _numpy(scales)
+        s = as_numpy(scales)
         n = s.shape[0]
         gain, cov3, var_t = np.empty((n, 3), s.dtype), np.empty((n, 3, 3), s.dtype), np.empty(n, s.dtype)
         with keeping_torch_threads():
-            _terms_forward(s, _numpy(q_l), _numpy(q_r), *terms, gain, cov3, var_t)
+            _terms_forward(s, as_numpy(q_l), as_numpy(q_r), *terms, gain, cov3, var_t)
         ctx.save_for_backward(scales, q_l, q_r)
         ctx.convention = convention
         return torch.from_numpy(gain), torch.from_numpy(cov3), torch.from_numpy(var_t)
@@ -190,11 +187,11 @@ class _ConditioningTerms(torch.autograd.Function):
         n, dtype = scales.shape[0], scales.dtype
 
         def given(grad, shape):  # an output the loss does not use has no gradient
-            return _numpy(grad.to(dtype)) if grad is not None else torch.zeros(shape, dtype=dtype).numpy()
+            return as_numpy(grad.to(dtype)) if grad is not None else torch.zeros(shape, dtype=dtype).numpy()
 
         grads = [torch.empty((n, 4), dtype=dtype) for _ in range(3)]
         with keeping_torch_threads():
-            _terms_backward(_numpy(scales), _numpy(q_l), _numpy(q_r), *terms, given(grad_gain, (n, 3)),
+            _terms_backward(as_numpy(scales), as_numpy(q_l), as_numpy(q_r), *terms, given(grad_gain, (n, 3)),
                             given(grad_cov3, (n, 3, 3)), given(grad_var, (n,)), *(g.numpy() for g in grads))
         return (*grads, None)
 

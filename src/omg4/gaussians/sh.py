@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from omg4.gaussians.sh_kernels import basis_from_terms, contract_coefficients
+from omg4.render.api import runs_cpu_kernels
 from omg4.render.small_matmul import small_matmul
 
 C0 = 0.28209479177387814
@@ -89,7 +90,7 @@ def _basis_16(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     (:func:`omg4.gaussians.sh_kernels.basis_from_terms`), else :func:`basis_by_table`."""
     if not 0 <= degree <= MAX_SH_DEGREE:
         raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
-    if dirs.device.type == "cpu" and dirs.dtype in (torch.float32, torch.float64):
+    if runs_cpu_kernels(dirs):
         return basis_from_terms(dirs, num_sh_coeffs(degree), _basis_terms())
     return basis_by_table(dirs, degree)
 

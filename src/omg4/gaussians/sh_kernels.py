@@ -26,7 +26,7 @@ import torch
 from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
-from omg4.render.api import keeping_torch_threads
+from omg4.render.api import as_numpy, keeping_torch_threads, runs_cpu_kernels
 from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
 from omg4.render.small_matmul import small_matmul
 
@@ -39,10 +39,6 @@ ROW_CHUNK = 1024
 
 NUM_BASIS = 16
 """Spatial basis functions up to degree 3."""
-
-
-def _numpy(t: torch.Tensor) -> np.ndarray:
-    return t.detach().contiguous().numpy()
 
 
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
@@ -95,7 +91,7 @@ class _Basis(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, dirs, active, terms):
-        d = _numpy(dirs)
+        d = as_numpy(dirs)
         out = np.empty((d.shape[0], NUM_BASIS), dtype=d.dtype)
         with keeping_torch_threads():
             _basis_forward(d, active, *terms, out)
@@ -107,10 +103,10 @@ class _Basis(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_y):
         (dirs,) = ctx.saved_tensors
-        d = _numpy(dirs)
+        d = as_numpy(dirs)
         grad_dirs = np.empty_like(d)
         with keeping_torch_threads():
-            _basis_backward(d, ctx.active, *ctx.terms, _numpy(grad_y.to(dirs.dtype)), grad_dirs)
+            _basis_backward(d, ctx.active, *ctx.terms, as_numpy(grad_y.to(dirs.dtype)), grad_dirs)
         return torch.from_numpy(grad_dirs), None, None
 
 
@@ -181,10 +177,10 @@ class _GatheredContraction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, dc, rest, weights, rows):
-        w = _numpy(weights)
+        w = as_numpy(weights)
         out = np.empty((weights.shape[0], dc.shape[2]), dtype=w.dtype)
         with keeping_torch_threads():
-            _forward(_numpy(dc), _numpy(rest), w, _numpy(rows), out)
+            _forward(as_numpy(dc), as_numpy(rest), w, as_numpy(rows), out)
         ctx.save_for_backward(dc, rest, weights, rows)
         return torch.from_numpy(out)
 
@@ -192,17 +188,17 @@ class _GatheredContraction(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_out):
         dc, rest, weights, rows = ctx.saved_tensors
-        g = _numpy(grad_out.to(weights.dtype))
+        g = as_numpy(grad_out.to(weights.dtype))
         grad_dc = grad_rest = grad_weights = None
         with keeping_torch_threads():
             if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
                 grad_dc = torch.zeros(dc.shape, dtype=dc.dtype)
                 grad_rest = torch.zeros(rest.shape, dtype=rest.dtype)
-                _grad_coefficients(_numpy(weights), _numpy(rows), g, grad_dc.numpy(), grad_rest.numpy(),
+                _grad_coefficients(as_numpy(weights), as_numpy(rows), g, grad_dc.numpy(), grad_rest.numpy(),
                                    _PARTS_PER_THREAD * numba.get_num_threads())
             if ctx.needs_input_grad[2]:
                 grad_weights = torch.empty(weights.shape, dtype=weights.dtype)
-                _grad_weights(_numpy(dc), _numpy(rest), _numpy(rows), g, grad_weights.numpy())
+                _grad_weights(as_numpy(dc), as_numpy(rest), as_numpy(rows), g, grad_weights.numpy())
         return grad_dc, grad_rest, grad_weights, None
 
 
@@ -227,7 +223,7 @@ def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.T
         if dc.shape[0] != num_rows:
             raise ValueError(f"{num_rows} weight rows for {dc.shape[0]} coefficient rows")
         rows = torch.arange(num_rows, device=weights.device)
-    if dc.device.type != "cpu" or dc.dtype not in (torch.float32, torch.float64):
+    if not runs_cpu_kernels(dc, rest, weights):
         return torch_contraction(dc, rest, weights, rows)
     if rows.shape != (num_rows,) or (num_rows and not 0 <= int(rows.min()) <= int(rows.max()) < dc.shape[0]):
         raise ValueError(f"rows must be {num_rows} indices into {dc.shape[0]} Gaussians")  # the kernels do not check

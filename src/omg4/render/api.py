@@ -187,8 +187,17 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
                     radii=max_radius(proj.radii))
 
 
-def _as_numpy(t: torch.Tensor) -> np.ndarray:
+def as_numpy(t: torch.Tensor) -> np.ndarray:
+    """The numpy view of a CPU tensor for a numba kernel (detached; copied only when not contiguous)."""
     return t.detach().contiguous().numpy()
+
+
+def runs_cpu_kernels(*tensors: torch.Tensor) -> bool:
+    """Whether the numba kernels take ``tensors``: all on the CPU, all float32 or all float64 (else the
+    torch forms run)."""
+    dtype = tensors[0].dtype
+    return dtype in (torch.float32, torch.float64) and all(
+        t.device.type == "cpu" and t.dtype == dtype for t in tensors)
 
 
 @contextlib.contextmanager
@@ -217,9 +226,9 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, feats, opacities, cutoff, boxes, bins: TileBins, settings):
         width, height, alpha_max, num_views = settings
         params = torch.cat([means2d, conics, opacities[:, None], cutoff[:, None]], dim=1)
-        gauss = (_as_numpy(params), _as_numpy(feats), _as_numpy(boxes), _as_numpy(bins.gaussian_ids))
+        gauss = (as_numpy(params), as_numpy(feats), as_numpy(boxes), as_numpy(bins.gaussian_ids))
         np_dtype = gauss[0].dtype
-        grid = (_as_numpy(bins.tile_offsets), bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size,
+        grid = (as_numpy(bins.tile_offsets), bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size,
                 np.arange(width, dtype=np_dtype) + 0.5, np.arange(height, dtype=np_dtype) + 0.5,
                 np.array([0.5, alpha_max, ALPHA_THRESHOLD], dtype=np_dtype))
         rows = num_views * height
@@ -239,8 +248,8 @@ class _Composite(torch.autograd.Function):
         g_params = np.zeros((n_isect, 6), dtype=params.dtype)
         g_feats = np.zeros((n_isect, feats.shape[1]), dtype=feats.dtype)
         with _kernel_launch():
-            composite_backward(*ctx.gauss, *ctx.grid, ctx.out_t, ctx.out_last, _as_numpy(grad_feat),
-                               _as_numpy(grad_t[..., 0]), g_params, g_feats)
+            composite_backward(*ctx.gauss, *ctx.grid, ctx.out_t, ctx.out_last, as_numpy(grad_feat),
+                               as_numpy(grad_t[..., 0]), g_params, g_feats)
         n, dtype = params.shape[0], grad_feat.dtype
         per_gauss = torch.zeros(n, 6, dtype=dtype).index_add_(0, ctx.ids, torch.from_numpy(g_params))
         per_feat = torch.zeros(n, feats.shape[1], dtype=dtype).index_add_(0, ctx.ids, torch.from_numpy(g_feats))
