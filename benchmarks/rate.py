@@ -9,7 +9,10 @@ so it is not rendered again). Sizes are split as ``omg4 info`` groups them, and 
 the per-Gaussian sections (positions, time centres, index streams, unit quaternions) and the
 fixed part (codebooks, MLP weights, header).
 
-Usage: python benchmarks/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [--json FILE]
+Extra rows (``--also LABEL=FILE``): other files of the same pipeline run, e.g. one an earlier omg4 build wrote
+(before/after a coder change), split and evaluated the same way.
+
+Usage: python benchmarks/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [--json FILE] [--also LABEL=FILE ...]
 """
 
 from __future__ import annotations
@@ -45,12 +48,15 @@ def main() -> int:
     p.add_argument("--downscale", type=float, default=1.0)
     p.add_argument("--name", default="scene")
     p.add_argument("--json", type=Path)
+    p.add_argument("--also", action="append", default=[], metavar="LABEL=FILE",
+                   help="another file of the same run to report (e.g. written by an earlier build)")
     args = p.parse_args()
+    also = dict(item.split("=", 1) for item in args.also)
     out_json = args.json or ROOT / "benchmarks" / "results" / f"rate_{args.name}.json"
     payload = decode_payload(args.paper_file)
-    if not payload.rotations:  # files written before the header named them
-        backbone = payload.meta.get("gaussian_config", {}).get("backbone", "rt4dgs")
-        payload.rotations = BACKBONES[backbone].quaternion_groups()
+    backbone = BACKBONES[payload.meta.get("gaussian_config", {}).get("backbone", "rt4dgs")]
+    payload.rotations = payload.rotations or backbone.quaternion_groups()  # files before the header named them
+    payload.log_scaled = payload.log_scaled or backbone.log_scaled_groups()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
     masks = dynamic_masks(scene.test_views)
     rows = {}
@@ -59,6 +65,7 @@ def main() -> int:
         for codec in ("ans", "compact"):
             files[codec] = Path(tmp) / f"{codec}.omg4"
             encode_payload(payload, files[codec], codec=codec)
+        files.update({label: Path(path) for label, path in also.items()})
         for codec, path in files.items():
             summary, text = omg4_summary(path)
             print(text)

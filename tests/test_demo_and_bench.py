@@ -5,6 +5,7 @@ from pathlib import Path
 
 import av
 import numpy as np
+import torch
 from PIL import Image
 
 from omg4.bench import run_bench
@@ -30,7 +31,12 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
     from omg4.codec.decoder import load_omg4
 
     a, b = load_omg4(omg4_file), load_omg4(paper_file)  # one model, two coders
-    assert a.num_gaussians == b.num_gaussians and sorted(a.values["xyz"].tolist()) == sorted(b.values["xyz"].tolist())
+    assert a.num_gaussians == b.num_gaussians
+    # the compact coder puts positions on a 15-bit grid over the box (then fp16): each near a paper-file position
+    xa, xb = a.values["xyz"].double(), b.values["xyz"].double()
+    step = float((xb.max(0).values - xb.min(0).values).max()) / (2 ** 15 - 1)
+    nearest = torch.cdist(xa, xb).min(dim=1).values
+    assert (nearest <= step + 2.0 ** -10 * xa.abs().max(dim=1).values).all()
     # the quality gate of the compact coder on a tiny pipeline run: smaller, same images within 0.05 dB / 0.002 SSIM
     paper = saved["paper_codec"]
     assert omg4_file.stat().st_size < paper_file.stat().st_size

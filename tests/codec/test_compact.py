@@ -8,6 +8,7 @@ import pytest
 
 from omg4.codec import codewords, quaternions, weights
 from omg4.codec.container import read_container
+from omg4.codec.grids import position_order
 from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
                                 encode_payload)
 from omg4.codec.payload import _smallest_f16 as smallest_f16
@@ -134,6 +135,7 @@ def test_unit_quaternions_keep_the_rotation_within_the_grid_step():
     np.testing.assert_allclose(np.linalg.norm(decoded, axis=1), 1.0, atol=2e-3)
     err = np.abs(_rotation_matrix(decoded) - _rotation_matrix(q)).max()
     step = np.sqrt(2) / (2 ** quaternions.BITS - 1)
+    assert quaternions.BITS == 9
     assert err < 4 * step  # each of 3 components off by ≤ step/2, fp16 rounding on top
     same = quaternions.encode_quaternions(-q)  # q and −q are the same rotation: the same bytes
     assert same == quaternions.encode_quaternions(q)
@@ -243,22 +245,34 @@ def test_more_rotations_than_a_codebook_holds_are_stored_by_the_compact_codec_on
 
 
 def test_compact_payload_round_trip(tmp_path):
-    """Every SVQ attribute reconstructs bit-exactly (codebooks relabelled); positions and times exact;
-    rotations on the unit grid; MLP matrices in 8 bits; vectors and empty arrays kept."""
+    """Positions and time centres on their grids (at most half a step off, in the grid's Z-order); log-scale
+    codebooks on steps of 1/32; every other SVQ attribute bit-exact (codebooks relabelled); rotations on the unit
+    grid; MLP matrices in 8 bits; vectors and empty arrays kept."""
     p = make_payload(3000)
-    p.rotations = ("rotation",)
+    p.rotations, p.log_scaled = ("rotation",), ("scale",)
     sizes = encode_payload(p, tmp_path / "m.omg4", codec="compact")
     assert sum(sizes.values()) == (tmp_path / "m.omg4").stat().st_size
     d = decode_payload(tmp_path / "m.omg4")
-    ref = p.permuted(canonical_order(p.xyz)).to_fp16()
-    np.testing.assert_array_equal(d.xyz.view(np.uint16), ref.xyz.view(np.uint16))
-    np.testing.assert_array_equal(d.t.view(np.uint16), ref.t.view(np.uint16))
-    assert set(d.attributes) == set(ref.attributes) and d.rotations == ("rotation",)
+    ref = p.to_fp16()
+    xyz = ref.xyz.astype(np.float64)
+    step = (xyz.max(axis=0) - xyz.min(axis=0)).max() / (2 ** 15 - 1)
+    cells = np.rint((xyz - xyz.min(axis=0)) / step).astype(np.int64)
+    z_order = np.argsort([int("".join(f"{c[2]:015b}"[i] + f"{c[1]:015b}"[i] + f"{c[0]:015b}"[i] for i in range(15)), 2)
+                          for c in cells], kind="stable")  # Z-order from bit strings, x in the lowest bit
+    ref = ref.permuted(z_order)
+    fp16_ulp = 2.0 ** -10
+    assert (np.abs(d.xyz - ref.xyz.astype(np.float64)) <= step / 2 + fp16_ulp * np.abs(ref.xyz)).all()
+    t_step = 10.0 / 1024  # the meta's time range [0, 10] in 1024 steps
+    assert (np.abs(d.t - ref.t.astype(np.float64)) <= t_step / 2 + fp16_ulp * np.abs(ref.t)).all()
+    assert set(d.attributes) == set(ref.attributes) and d.rotations == ("rotation",) and d.log_scaled == ("scale",)
     for name in ref.attributes:
         a, b = d.attributes[name].reconstruct(), ref.attributes[name].reconstruct()
         if name == "rotation":
             np.testing.assert_allclose(_rotation_matrix(a.astype(np.float64)), _rotation_matrix(b.astype(np.float64)),
-                                       atol=4 * np.sqrt(2) / 1023)
+                                       atol=4 * np.sqrt(2) / (2 ** 9 - 1))
+        elif name == "scale":
+            assert (np.abs(a - b.astype(np.float64)) <= 1 / 64 + fp16_ulp * np.abs(b)).all()
+            np.testing.assert_array_equal(a * 32, np.rint(a * 32))  # on the 1/32 grid
         else:
             np.testing.assert_array_equal(a.view(np.uint16), b.view(np.uint16))
     for name, w in ref.mlp.items():
@@ -268,6 +282,39 @@ def test_compact_payload_round_trip(tmp_path):
             assert (np.abs(d.mlp[name].astype(np.float64) - w) <= step / 2 + 1e-3 * np.abs(w) + 1e-7).all()
     header, _ = read_container(tmp_path / "m.omg4")
     assert header["codec"] == "compact" and header["quaternions"] == ["rotation"]
+
+
+def test_version_2_compact_files_still_decode(tmp_path):
+    """A file in the version-2 layout — fp16 positions as Morton codes, fp16 time centres, 3 × 10-bit
+    quaternions, codebooks as stored — assembled here from the writer's pieces, decodes to those values."""
+    from omg4.codec.container import write_container
+    from omg4.codec.payload import _encode_xyz_morton, _smallest_f16 as smallest
+    p = make_payload(500).to_fp16()
+    p = p.permuted(canonical_order(p.xyz))
+    rotation = p.attributes.pop("rotation").reconstruct()
+    sections, encodings = {"xyz": _encode_xyz_morton(p.xyz)}, {"xyz": "morton"}
+    encodings["t"], sections["t"] = smallest(p.t)
+    shapes = {}
+    for name, qa in p.attributes.items():
+        shapes[name] = []
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            cb_enc, cb_bytes, ix_enc, ix_bytes, k = codewords.encode_codewords(cb, ix, smallest)
+            sections[f"svq.{name}.codebook{j}"], encodings[f"svq.{name}.codebook{j}"] = cb_bytes, cb_enc
+            sections[f"svq.{name}.index{j}"], encodings[f"svq.{name}.index{j}"] = ix_bytes, ix_enc
+            shapes[name].append([k, cb.shape[1]])
+    sections["quat.rotation"] = quaternions.encode_quaternions(rotation, bits=10)
+    encodings["quat.rotation"] = "smallest-three-10"
+    header = {"kind": "omg4-compressed-model", "codec": "compact", "order": "morton", "num_gaussians": 500,
+              "meta": p.meta, "attributes": shapes, "mlp": {}, "encodings": encodings, "rotations": ["rotation"],
+              "quaternions": ["rotation"]}
+    write_container(tmp_path / "v2.omg4", header, sections, version=2)
+    d = decode_payload(tmp_path / "v2.omg4")
+    np.testing.assert_array_equal(d.xyz.view(np.uint16), p.xyz.view(np.uint16))
+    np.testing.assert_array_equal(d.t.view(np.uint16), p.t.view(np.uint16))
+    for name, qa in p.attributes.items():
+        np.testing.assert_array_equal(d.attributes[name].reconstruct(), qa.reconstruct())
+    np.testing.assert_allclose(_rotation_matrix(d.attributes["rotation"].reconstruct().astype(np.float64)),
+                               _rotation_matrix(rotation.astype(np.float64)), atol=4 * np.sqrt(2) / 1023)
 
 
 def test_compact_is_smaller_than_ans_and_paper(tmp_path):
@@ -307,5 +354,6 @@ def test_rotation_declared_but_not_a_quaternion_stays_lossless(tmp_path):
     p = CompressedPayload(rng.normal(size=(30, 3)), rng.uniform(size=30), attrs, {}, {}, ("rotation",))
     encode_payload(p, tmp_path / "m.omg4", codec="compact")
     d = decode_payload(tmp_path / "m.omg4")
-    ref = p.permuted(canonical_order(p.xyz)).to_fp16()
+    ref = p.to_fp16()
+    ref = ref.permuted(position_order(ref.xyz))
     np.testing.assert_array_equal(d.attributes["rotation"].reconstruct(), ref.attributes["rotation"].reconstruct())

@@ -9,7 +9,7 @@ Layout (all integers little-endian)::
     12      4     JSON length L (uint32, at most MAX_JSON_BYTES)
     16      4     CRC-32 of the JSON bytes
     20      L     JSON object {"header": <caller's dict>, "sections": [[name, size, crc32], ...]}
-                  (version 1: UTF-8 text; version 2: that text raw-DEFLATE-compressed)
+                  (version 1: UTF-8 text; versions 2 and 3: that text raw-DEFLATE-compressed)
     20+L    ...   the sections' bytes, concatenated in table order
 
 The file must end exactly after the last section. The section table lives inside the
@@ -32,10 +32,12 @@ from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAGIC = b"\x89OMG4\r\n\x1a"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 #: versions this build reads: 1 (plain JSON; the "ans" and "paper" codecs still write it, so older omg4
-#: builds read those files) and 2 (deflated JSON; the "compact" codec)
-READABLE_VERSIONS = (1, 2)
+#: builds read those files), 2 (deflated JSON; the first "compact" codec) and 3 (deflated JSON; the "compact"
+#: codec with grid-coded positions and time centres, which builds reading only 1-2 cannot decode)
+READABLE_VERSIONS = (1, 2, 3)
+DEFLATED_VERSIONS = (2, 3)
 MAX_JSON_BYTES = 16 * 1024 * 1024
 MAX_SECTION_NAME = 200
 PREFIX = struct.Struct("<8sHHII")  # magic, version, flags, json length, json crc32
@@ -61,15 +63,15 @@ def _encode_json(header: dict, table: list[list]) -> bytes:
 
 
 def deflate_raw(data: bytes) -> bytes:
-    """Raw DEFLATE (zlib level 9, no zlib header): the version-2 JSON and the ANS model tables."""
+    """Raw DEFLATE (zlib level 9, no zlib header): the deflated JSON and the ANS model tables."""
     packer = zlib.compressobj(9, zlib.DEFLATED, -15)
     return packer.compress(data) + packer.flush()
 
 
 def stored_json(blob: bytes, version: int) -> bytes:
     """The container's start for the JSON text ``blob``: the prefix, then the JSON as ``version`` stores it
-    (version 2 deflates it)."""
-    stored = deflate_raw(blob) if version == 2 else blob
+    (versions 2 and 3 deflate it)."""
+    stored = deflate_raw(blob) if version in DEFLATED_VERSIONS else blob
     return PREFIX.pack(MAGIC, version, 0, len(stored), crc32(stored)) + stored
 
 
@@ -82,7 +84,7 @@ def has_magic(path) -> bool:
 def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes], version: int = 1) -> int:
     """Write ``header`` (a JSON-able dict) and named binary ``sections`` to ``path`` atomically.
 
-    Section order is the dict's order; ``version`` 2 deflates the JSON. Returns the file size in bytes.
+    Section order is the dict's order; versions 2 and 3 deflate the JSON. Returns the file size in bytes.
     """
     if version not in READABLE_VERSIONS:
         raise OMG4Error(f"unknown container version {version}")
@@ -97,7 +99,7 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
     if len(blob) > MAX_JSON_BYTES:
         raise OMG4Error(f"container header is {len(blob)} bytes (limit {MAX_JSON_BYTES})")
     head = stored_json(blob, version)
-    if version == 2 and len(blob) > max_inflated_json(len(head) - PREFIX.size):
+    if version in DEFLATED_VERSIONS and len(blob) > max_inflated_json(len(head) - PREFIX.size):
         raise OMG4Error(f"container header compresses {len(blob)} → {len(head) - PREFIX.size} bytes, beyond what a "
                         "reader accepts; write it with version 1")
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -162,13 +164,13 @@ def _parse_table(label: str, doc: object) -> tuple[dict, list[tuple[str, int, in
 
 
 def max_inflated_json(compressed: int) -> int:
-    """Most JSON bytes a version-2 header of ``compressed`` bytes may inflate to: real headers shrink 3-4×, so
+    """Most JSON bytes a deflated header of ``compressed`` bytes may inflate to: real headers shrink 3-4×, so
     a header far more compressible than that (a bomb of repeated brackets) is refused before it is parsed."""
     return min(MAX_JSON_BYTES, 65536 + 32 * compressed)
 
 
 def _inflate_json(label: str, blob: bytes) -> bytes:
-    """The JSON text of a version-2 header (at most :func:`max_inflated_json` of its size)."""
+    """The JSON text of a deflated header (at most :func:`max_inflated_json` of its size)."""
     limit = max_inflated_json(len(blob))
     d = zlib.decompressobj(-15)
     try:
@@ -203,7 +205,7 @@ def _read_prefix_and_table(src: _Source) -> tuple[int, dict, list[tuple[str, int
     blob = src.read(json_len, "the JSON header")
     if crc32(blob) != json_crc:
         raise CorruptFileError(f"{label}: header checksum mismatch (file is damaged)")
-    if version == 2:
+    if version in DEFLATED_VERSIONS:
         blob = _inflate_json(label, blob)
     try:
         doc = json.loads(blob.decode("utf-8"), parse_constant=_reject_constant)

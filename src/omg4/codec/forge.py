@@ -64,7 +64,7 @@ def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0
             "active_sh_degree": 3, "active_sh_degree_t": 2,
             "normalization": {"scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]}}
     return CompressedPayload(xyz, rng.uniform(0, 1, n), attributes, AppearanceMLP().to_fp16_state(), meta,
-                             RT4DGS.quaternion_groups())
+                             RT4DGS.quaternion_groups(), RT4DGS.log_scaled_groups())
 
 
 def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: int = 0,

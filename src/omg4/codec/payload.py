@@ -8,14 +8,17 @@ range, normalization, ...).
 
 Three codecs:
 
-* ``"compact"`` (default) — beyond OMG4's coder, at the same quality: Morton order, positions
-  and float sections as "ans"; each SVQ slot's codebook and indices coded without paying for
-  the codewords' order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped,
-  the smaller of a sorted codeword set or first-use order); rotation quaternions as unit
-  quaternions in 3 × 10 bits (:mod:`omg4.codec.quaternions`) where that is smaller than their
-  codebooks; MLP weight matrices in 8 bits per weight (:mod:`omg4.codec.weights`); the header
-  deflated (container version 2). Only the last two and the quaternion grid change values,
-  each by a measured, negligible amount (README, rate table).
+* ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 3): positions on a
+  uniform 15-bit grid over the scene's box in Z-order, time centres on a grid of 1/1024 of the clip
+  (:mod:`omg4.codec.grids`); each SVQ slot's codebook and indices coded without paying for the codewords'
+  order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped, the smaller of a sorted
+  codeword set or first-use order), the codebooks of log-scale attributes (``log_scaled``: scales and
+  durations, exp-activated) first rounded to steps of 1/32 in log space (a 3 % size step, so nearby
+  codewords merge); rotation quaternions as unit quaternions in 3 × 9 bits (:mod:`omg4.codec.quaternions`)
+  where that is smaller than their codebooks; MLP weight matrices in 8 bits per weight
+  (:mod:`omg4.codec.weights`); the header deflated. Everything but the codewords' order and the header
+  changes values, each by a measured, small amount (README, Rate). Version-2 compact files (fp16 positions
+  as Morton codes, fp16 time centres, 3 × 10-bit quaternions, codebooks as stored) still decode.
 * ``"paper"`` — OMG4's ``encode``: fp16 positions, time centres, codebooks and MLP weights,
   Huffman-coded indices, everything LZMA-compressed (OMG4 wraps one pickle in xz; here
   each section is LZMA'd on its own — no pickle). Gaussians keep their order.
@@ -39,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from omg4.codec import quaternions, weights
+from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, deinterleave, encode_codewords,
                                   interleave, keys_to_fp16, ordered_keys)
 from omg4.codec.container import read_container, write_container
@@ -70,6 +73,8 @@ VALUES_SLACK = 1 << 20
 _NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
 _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
+#: the "compact" codec's step for log-scale codebooks (module docstring): 2^-5 in log space
+LOG_SCALE_STEP = 2.0 ** -5
 
 
 @dataclass
@@ -106,6 +111,7 @@ class CompressedPayload:
     mlp: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     rotations: tuple[str, ...] = ()
+    log_scaled: tuple[str, ...] = ()
 
     @property
     def num_gaussians(self) -> int:
@@ -115,7 +121,8 @@ class CompressedPayload:
         """The same payload with Gaussians reordered: row i of the result is row ``order[i]``."""
         attrs = {a: QuantizedAttribute(list(q.codebooks), [ix[order] for ix in q.indices])
                  for a, q in self.attributes.items()}
-        return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta), self.rotations)
+        return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta), self.rotations,
+                                 self.log_scaled)
 
     def to_fp16(self) -> "CompressedPayload":
         """What a decoder returns: floats rounded to fp16 (float16 arrays), indices as int64."""
@@ -125,7 +132,7 @@ class CompressedPayload:
         return CompressedPayload(np.asarray(self.xyz, np.float16).reshape(-1, 3),
                                  np.asarray(self.t, np.float16).reshape(-1), attrs,
                                  {k: np.asarray(v, np.float16) for k, v in self.mlp.items()}, dict(self.meta),
-                                 tuple(self.rotations))
+                                 tuple(self.rotations), tuple(self.log_scaled))
 
 
 # ----------------------------------------------------------------------- Morton order
@@ -212,9 +219,9 @@ def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
 
 # ------------------------------------------------------------------------ encoding
 def container_version(codec: str) -> int:
-    """The container version a codec writes: 2 (deflated JSON) for "compact", 1 otherwise, so files of the
-    older codecs stay readable by builds that predate version 2."""
-    return 2 if codec == "compact" else 1
+    """The container version a codec writes: 3 for "compact" (deflated JSON, grid-coded sections), 1 otherwise,
+    so files of the older codecs stay readable by builds that predate versions 2 and 3."""
+    return 3 if codec == "compact" else 1
 
 
 def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...]) -> bool:
@@ -262,7 +269,13 @@ def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
     return q
 
 
-def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool,
+def snap_log_scaled(codebook: np.ndarray) -> np.ndarray:
+    """A log-scale codebook rounded to :data:`LOG_SCALE_STEP` (fp16 holds every such value below 64 exactly;
+    rounding twice changes nothing)."""
+    return (np.rint(np.asarray(codebook, np.float64) / LOG_SCALE_STEP) * LOG_SCALE_STEP).astype(np.float16)
+
+
+def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool, log_scaled: bool,
                               sections: dict[str, bytes], encodings: dict[str, str]) -> list[list[int]] | None:
     """Add the sections of one SVQ attribute in the "compact" codec; returns its codebook shapes, or None when
     it was stored as unit quaternions (smaller than its codebooks and indices, or too many rows for them)."""
@@ -270,11 +283,12 @@ def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: 
     slots, shapes = {}, []
     if max(cb.shape[0] for cb in qa.codebooks) <= MAX_SYMBOLS:
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            cb = snap_log_scaled(cb) if log_scaled else cb
             cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
             slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
             shapes.append([k, int(cb.shape[1])])
     if quat is not None and (not slots or len(quat) < sum(len(b) for _, b in slots.values())):
-        sections[f"quat.{name}"], encodings[f"quat.{name}"] = quat, quaternions.ENCODING
+        sections[f"quat.{name}"], encodings[f"quat.{name}"] = quat, quaternions.encoding()
         return None
     for section, (enc, data) in slots.items():
         sections[section], encodings[section] = data, enc
@@ -286,16 +300,19 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
-    ``p.to_fp16()``. With "compact" the order is the canonical one too and every SVQ
-    attribute reconstructs to the same fp16 values (codebooks relabelled, unused and
-    duplicate codewords dropped), except the quaternion attributes stored on the unit-quaternion
-    grid and the MLP weight matrices stored in 8 bits. Returns the byte size of every section
+    ``p.to_fp16()``. With "compact" the order is :func:`omg4.codec.grids.position_order`,
+    positions and time centres are on their grids, and every SVQ attribute reconstructs to the same fp16
+    values (codebooks relabelled, unused and duplicate codewords dropped), except the log-scale codebooks
+    rounded to :data:`LOG_SCALE_STEP`, the quaternion attributes stored on the unit-quaternion grid and the
+    MLP weight matrices stored in 8 bits. Returns the byte size of every section
     plus ``"header"``; the values sum to the file size.
     """
     if codec not in CODECS:
         raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODECS)})")
     q = _check_payload(p, codec)
-    if codec != "paper":
+    if codec == "compact":
+        q = q.permuted(grids.position_order(q.xyz))
+    elif codec == "ans":
         q = q.permuted(canonical_order(q.xyz))
     sections: dict[str, bytes] = {}
     encodings: dict[str, str] = {}
@@ -307,15 +324,22 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     float_encoding = "f16-lzma" if codec == "paper" else None
     if codec == "paper":
         put_float("xyz", q.xyz, float_encoding)
-    else:
+    elif codec == "ans":
         sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
-    put_float("t", q.t, float_encoding)
+    else:
+        sections["xyz"], encodings["xyz"] = grids.encode_positions(q.xyz), grids.POSITIONS
+    times = grids.encode_times(q.t, grids.time_step(q.t, q.meta.get("time_range"))) if codec == "compact" else None
+    if times is None:
+        put_float("t", q.t, float_encoding)
+    else:
+        sections["t"], encodings["t"] = times, grids.TIMES
     shapes: dict[str, list[list[int]]] = {}
     stored_as_quaternions: list[str] = []
     if codec == "compact":
         for attr, qa in q.attributes.items():
             as_quaternion = _quaternion_stored(qa, attr, q.rotations)
-            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, sections, encodings)
+            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, attr in q.log_scaled, sections,
+                                                    encodings)
             if attr_shapes is None:
                 stored_as_quaternions.append(attr)
             else:
@@ -340,6 +364,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
         "encodings": encodings,
         "rotations": [a for a in q.rotations if a in q.attributes],
+        "log_scaled": [a for a in q.log_scaled if a in q.attributes],
     }
     if codec == "compact":
         header["quaternions"] = stored_as_quaternions
@@ -395,6 +420,10 @@ def _check_header(h: dict, section_bytes: int) -> None:
             raise CorruptFileError(f"invalid codebook shapes for attribute {attr!r}")
         # codebooks, one index per Gaussian and slot, and the reconstructed [N, D] attribute
         values += sum(k * d for k, d in shapes) + n * len(shapes) + n * sum(d for _, d in shapes)
+    logs = h.get("log_scaled", [])
+    if not (isinstance(logs, list) and len(logs) <= MAX_ATTRIBUTES
+            and all(isinstance(a, str) and a in h["attributes"] for a in logs)):
+        raise CorruptFileError("invalid list of log-scale attributes")
     for name, shape in h["mlp"].items():
         ok = (_MLP_NAME.fullmatch(name) and isinstance(shape, list) and len(shape) <= MAX_MLP_DIMS
               and all(_is_int(s, 0, MAX_MLP_ELEMENTS) for s in shape) and math.prod(shape) <= MAX_MLP_ELEMENTS)
@@ -451,20 +480,25 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else codec)
             kind = name.split(".")[0]
             if kind == "quat":
-                if encoding != quaternions.ENCODING:
+                bits = quaternions.bits_of(encoding)
+                if bits is None:
                     raise CorruptFileError(f"encoding {encoding!r} is not a quaternion encoding")
-                return quaternions.decode_quaternions(data, count)
+                return quaternions.decode_quaternions(data, count, bits)
             if compact and encoding == "sorted" and kind == "svq":
                 return decode_sorted_codebook(data, *shape)
             if compact and encoding == "int8-rows" and kind == "mlp" and len(shape) == 2:
                 return weights.decode_rows(data, shape)
             if encoding == "morton" and name == "xyz" and codec != "paper":
                 return _decode_xyz_morton(data, count)
+            if compact and encoding == grids.POSITIONS and name == "xyz":
+                return grids.decode_positions(data, count)
+            if compact and encoding == grids.TIMES and name == "t":
+                return grids.decode_times(data, count)
             return _decode_f16(data, encoding, count)
         except CorruptFileError as exc:
             raise CorruptFileError(f"section {name}: {exc}") from None
 
-    xyz = decode("xyz", n if enc["xyz"] == "morton" else 3 * n).reshape(n, 3)
+    xyz = decode("xyz", n if enc["xyz"] in ("morton", grids.POSITIONS) else 3 * n).reshape(n, 3)
     t = decode("t", n)
     attributes = {}
     for attr, shapes in header["attributes"].items():
@@ -476,4 +510,5 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
         attributes[attr] = QuantizedAttribute([decode(f"quat.{attr}", n).reshape(n, 4)], [np.arange(n)])
     mlp = {name: decode(f"mlp.{name}", math.prod(shape), shape=tuple(shape)).reshape(shape)
            for name, shape in header["mlp"].items()}
-    return CompressedPayload(xyz, t, attributes, mlp, header["meta"], tuple(header.get("rotations", [])))
+    return CompressedPayload(xyz, t, attributes, mlp, header["meta"], tuple(header.get("rotations", [])),
+                             tuple(header.get("log_scaled", [])))

@@ -41,6 +41,7 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
         mlp=model.appearance.to_fp16_state(),
         meta=payload_meta,
         rotations=model.config.schema.quaternion_groups(),
+        log_scaled=model.config.schema.log_scaled_groups(),
     )
 
 

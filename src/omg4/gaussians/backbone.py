@@ -187,6 +187,11 @@ class Backbone:
                      if len(g.params) == 1 and self.attribute(g.params[0]).activation == "quaternion"
                      and self.attribute(g.params[0]).shape == (4,))
 
+    def log_scaled_groups(self) -> tuple[str, ...]:
+        """SVQ attributes stored as logarithms (every parameter exp-activated: scales, durations), whose codebooks
+        the "compact" codec rounds in log space (:data:`omg4.codec.payload.LOG_SCALE_STEP`)."""
+        return tuple(g.name for g in self.svq_groups if all(self.attribute(p).activation == "exp" for p in g.params))
+
     def explicit_after_compression(self) -> tuple[str, ...]:
         """The per-Gaussian tensors a fully compressed model stores unquantized (fp16 in the file)."""
         quantized = {p for g in self.svq_groups for p in g.params}

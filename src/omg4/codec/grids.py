@@ -1,0 +1,115 @@
+"""Positions and time centres on uniform grids: the "compact" codec's per-Gaussian floats (omg4 §8, version 3).
+
+The paper stores ``xyz`` and ``t`` as fp16 (OMG4 §4.4), whose step grows with the magnitude: a
+position at 8 is stored 16 times more coarsely than one at 0.5. A uniform grid spends its bits
+where the scene is instead:
+
+* positions: ``2^bits`` levels per axis over the bounding box's largest side (one step for all
+  axes), Gaussians in Z-order of their grid cells, so the positions become sorted 3·bits-bit
+  Morton codes whose gaps are hybrid-uint coded. At the default 15 bits a position moves by at most
+  half a step, 1/65,534 of the scene's extent.
+* time centres: a step of ``duration · 2^-bits`` (the clip's time range from the payload's meta,
+  else the centres' own range), grid offsets ANS-coded.
+
+A section stores its grid (origin and step as float64, so the decoder needs nothing else) before the
+codes; the decoder checks every field and the decoded values (finite, within fp16) and raises a
+one-line :class:`~omg4.errors.CorruptFileError` otherwise.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from omg4.codec.codewords import deinterleave, interleave
+from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, decode_uints, encode_indices, encode_uints
+from omg4.errors import CorruptFileError
+
+POSITION_BITS = 15
+TIME_BITS = 10
+POSITIONS = "grid-morton"  # section encodings (names in a file's header)
+TIMES = "grid"
+_POSITION_HEAD = struct.Struct("<3ddB")  # origin (x, y, z), step, bits per axis
+_TIME_HEAD = struct.Struct("<ddI")  # origin, step, number of levels
+_FP16_MAX = 65504.0
+
+
+def _cells(xyz: np.ndarray, bits: int) -> tuple[np.ndarray, float, np.ndarray]:
+    """(origin ``[3]``, step, integer cells ``uint16 [N, 3]``) of positions on the ``bits``-bit grid over their box."""
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    origin = xyz.min(axis=0)
+    extent = float((xyz.max(axis=0) - origin).max())
+    step = extent / ((1 << bits) - 1) if extent > 0 else 1.0
+    cells = np.clip(np.rint((xyz - origin) / step), 0, (1 << bits) - 1).astype(np.uint16)
+    return origin, step, cells
+
+
+def position_order(xyz: np.ndarray, bits: int = POSITION_BITS) -> np.ndarray:
+    """The storage order of :func:`encode_positions`: stable Z-order of the grid cells of ``xyz: [N, 3]``."""
+    return np.argsort(interleave(_cells(xyz, bits)[2]), kind="stable")
+
+
+def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS) -> bytes:
+    """Code ``xyz: [N, 3]`` (N ≥ 1, finite), already in :func:`position_order`, on the ``bits``-bit grid."""
+    if not 1 <= bits <= 16:
+        raise ValueError(f"position grid of {bits} bits (allowed 1-16)")
+    origin, step, cells = _cells(xyz, bits)
+    codes = interleave(cells)
+    if (np.diff(codes.astype(np.int64)) < 0).any():
+        raise ValueError("positions must be in position_order")
+    return _POSITION_HEAD.pack(*origin, step, bits) + encode_uints(np.diff(codes, prepend=np.uint64(0)))
+
+
+def _finite_in_fp16(values: np.ndarray, what: str) -> np.ndarray:
+    if not (np.isfinite(values).all() and (np.abs(values) <= _FP16_MAX).all()):
+        raise CorruptFileError(f"{what} beyond the fp16 range")
+    return values.astype(np.float16)
+
+
+def decode_positions(data: bytes, count: int) -> np.ndarray:
+    """Inverse of :func:`encode_positions`: ``float16 [count, 3]``."""
+    if len(data) < _POSITION_HEAD.size:
+        raise CorruptFileError("truncated position grid")
+    *origin, step, bits = _POSITION_HEAD.unpack_from(data)
+    if not (1 <= bits <= 16 and np.isfinite([*origin, step]).all() and 0 < step <= _FP16_MAX):
+        raise CorruptFileError("invalid position grid")
+    codes = np.cumsum(decode_uints(data[_POSITION_HEAD.size:], count, max_bits=3 * bits), dtype=np.uint64)
+    if codes[-1] >> np.uint64(3 * bits) or (np.diff(codes.astype(np.int64)) < 0).any():
+        raise CorruptFileError("damaged Morton codes")
+    cells = deinterleave(codes, 3)
+    return _finite_in_fp16(np.asarray(origin) + cells.astype(np.float64) * step, "positions")
+
+
+def time_step(t: np.ndarray, time_range: object, bits: int = TIME_BITS) -> float:
+    """The grid step of time centres ``t``: ``duration · 2^-bits``, the duration from ``time_range`` (a [lo, hi]
+    pair with hi > lo) when valid, else the centres' own range (1 if they are all equal)."""
+    lo_hi = np.asarray(time_range, np.float64).ravel() if isinstance(time_range, (list, tuple)) else np.empty(0)
+    if lo_hi.size == 2 and np.isfinite(lo_hi).all() and lo_hi[1] > lo_hi[0]:
+        duration = float(lo_hi[1] - lo_hi[0])
+    else:
+        duration = float(np.ptp(np.asarray(t, np.float64))) or 1.0
+    return duration / (1 << bits)
+
+
+def encode_times(t: np.ndarray, step: float) -> bytes | None:
+    """Code time centres ``t: [N]`` (N ≥ 1, finite) on a grid of ``step`` from their minimum; None when the
+    grid would need more than the entropy coder's symbols (the caller keeps fp16)."""
+    t = np.asarray(t, np.float64).ravel()
+    origin = float(t.min())
+    codes = np.rint((t - origin) / step).astype(np.int64)
+    levels = int(codes.max()) + 1
+    if levels > MAX_SYMBOLS:
+        return None
+    return _TIME_HEAD.pack(origin, step, levels) + encode_indices(codes, levels, "ans")
+
+
+def decode_times(data: bytes, count: int) -> np.ndarray:
+    """Inverse of :func:`encode_times`: ``float16 [count]``."""
+    if len(data) < _TIME_HEAD.size:
+        raise CorruptFileError("truncated time grid")
+    origin, step, levels = _TIME_HEAD.unpack_from(data)
+    if not (np.isfinite([origin, step]).all() and 0 < step <= _FP16_MAX and 1 <= levels <= MAX_SYMBOLS):
+        raise CorruptFileError("invalid time grid")
+    codes = decode_indices(data[_TIME_HEAD.size:], levels, count, "ans")
+    return _finite_in_fp16(origin + codes.astype(np.float64) * step, "time centres")
