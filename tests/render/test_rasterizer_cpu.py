@@ -240,3 +240,34 @@ def test_render_view_renders_a_time_slice():
                        sc.viewmat.float(), sc.K.float(), 24, 18, background=sc.background.float())
     assert sl.num_total == 40 and rendered.image.shape == (18, 24, 3)
     assert torch.equal(rendered.image, direct.image) and rendered.alpha.max() > 0.3
+
+
+def test_row_exp_recurrence_matches_exp_and_falls_back_beyond_its_range():
+    """e^{−σ} along a pixel row by the kernels' recurrence equals exp(−σ) per pixel (float64, 256 pixels); rows
+    whose σ leaves ±600 at an end, or conics with a ≤ 0, are refused (the kernels then call exp per pixel)."""
+    import math
+
+    from omg4.render.cpu_kernels import _row_exp
+
+    g = torch.Generator().manual_seed(3)
+    worst = 0.0
+    for _ in range(200):
+        a, c = (10 ** (torch.rand(2, generator=g, dtype=torch.float64) * 4 - 4)).tolist()  # 1e-4 … 1
+        b = float((torch.rand(1, generator=g, dtype=torch.float64) * 2 - 1) * math.sqrt(a * c))  # positive definite
+        dx0, dy = (torch.rand(2, generator=g, dtype=torch.float64) * 120 - 60).tolist()
+        dx1 = dx0 - 255
+        e, ratio, step, ok = _row_exp(a, b, c, dx0, dx1, dy)
+        sigma = [0.5 * (a * (dx0 - i) ** 2 + c * dy * dy) + b * (dx0 - i) * dy for i in range(256)]
+        if max(sigma[0], sigma[-1]) > 600:
+            assert not ok
+            continue
+        assert ok
+        for s in sigma:
+            worst = max(worst, abs(e - math.exp(-s)) / math.exp(-s))
+            e *= ratio
+            ratio *= step
+    assert worst < 1e-11, worst  # error grows with the square of the row length; kernel rows are a tile wide
+    assert not _row_exp(0.0, 0.0, 1.0, 3.0, 0.0, 1.0)[3]  # a = 0
+    assert not _row_exp(-0.5, 0.0, 1.0, 3.0, 0.0, 1.0)[3]  # a < 0
+    assert not _row_exp(1.0, 0.0, 1.0, 40.0, 0.0, 0.0)[3]  # σ = 800 at the first pixel
+    assert _row_exp(1.0, 0.0, 1.0, 30.0, 0.0, 0.0)[3]  # σ = 450
