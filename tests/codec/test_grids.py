@@ -127,3 +127,53 @@ def test_a_hostile_log_scale_list_is_a_corrupt_file_error(tmp_path):
         header["log_scaled"] = bad
         with pytest.raises(CorruptFileError, match="log-scale"):
             decode_payload(forge._assemble(header, sections))
+
+
+@pytest.mark.parametrize("time_range", [[0.0, 1e8], [-1e308, 1e308], [0.0, 1e-320], [0.0, 1e-300], ["a", "b"],
+                                        [[0.0], 1.0], [0.0, 10 ** 400], "12", [0.0, 1e5]])
+def test_odd_time_ranges_still_write_a_file_that_decodes(tmp_path, time_range):
+    """Whatever the meta's time range, the compact writer keeps a grid it can decode or falls back to fp16."""
+    p = make_payload(100)
+    p.meta["time_range"] = time_range
+    p.t[:2] = [65504.0, -65504.0] if time_range == [0.0, 1e5] else p.t[:2]  # a centre at the fp16 limit
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    d = decode_payload(tmp_path / "m.omg4")
+    t = np.sort(np.asarray(p.t, np.float16).astype(np.float64))  # grid rounding is monotone: compare sorted
+    assert np.isfinite(d.t).all() and d.num_gaussians == 100
+    step = grids.time_step(t, time_range)
+    if grids.encode_times(t, step) is None:  # fp16 kept
+        np.testing.assert_array_equal(np.sort(d.t.astype(np.float64)), t)
+    else:
+        assert np.isfinite(step) and step > 0
+        assert (np.abs(np.sort(d.t.astype(np.float64)) - t) <= step / 2 + 2.0 ** -11 * np.abs(t)).all()
+
+
+def test_positions_at_the_fp16_limit_on_a_narrower_axis_decode(tmp_path):
+    """The widest axis spans ±65504; another reaches 65504 and may round half a step up: still a readable file."""
+    p = make_payload(50)
+    p.xyz[:3] = [[-65504.0, 0.0, 0.0], [65504.0, 65504.0, 0.0], [0.0, 65000.0, 1.0]]
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    d = decode_payload(tmp_path / "m.omg4")
+    assert np.isfinite(d.xyz).all() and (np.abs(d.xyz.astype(np.float64)).max(axis=0) >= 65000).any()
+
+
+@pytest.mark.parametrize("name, bits", [("smallest-three-9", 9), ("smallest-three-10", 10), ("smallest-three-15", 15),
+                                        ("smallest-three-2", 2), ("smallest-three-1", None), ("smallest-three-16", None),
+                                        ("smallest-three-09", None), ("smallest-three-²", None),
+                                        ("smallest-three-١٠", None), ("smallest-three-１５", None),
+                                        ("smallest-three-9x", None), ("smallest-three-", None), ("f16", None)])
+def test_quaternion_encoding_names(name, bits):
+    from omg4.codec import quaternions
+    assert quaternions.bits_of(name) == bits
+
+
+def test_a_hostile_quaternion_encoding_name_is_a_corrupt_file_error(tmp_path):
+    from omg4.codec import forge
+    p = make_payload(50)
+    p.rotations = ("rotation",)
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    header, sections = forge._split((tmp_path / "m.omg4").read_bytes())
+    for bad in ("smallest-three-²", "smallest-three-09", "smallest-three-99"):
+        header["encodings"]["quat.rotation"] = bad
+        with pytest.raises(CorruptFileError, match="quaternion encoding"):
+            decode_payload(forge._assemble(header, sections))

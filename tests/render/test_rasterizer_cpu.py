@@ -271,3 +271,12 @@ def test_row_exp_recurrence_matches_exp_and_falls_back_beyond_its_range():
     assert not _row_exp(-0.5, 0.0, 1.0, 3.0, 0.0, 1.0)[3]  # a < 0
     assert not _row_exp(1.0, 0.0, 1.0, 40.0, 0.0, 0.0)[3]  # σ = 800 at the first pixel
     assert _row_exp(1.0, 0.0, 1.0, 30.0, 0.0, 0.0)[3]  # σ = 450
+
+
+def test_row_exp_refuses_conics_that_are_not_positive_definite():
+    """a > 0 with both row ends in range but a·c < b²: σ dips far below zero mid-row, so no recurrence."""
+    from omg4.render.cpu_kernels import _row_exp
+
+    assert not _row_exp(100.0, 0.0, -200.0, 7.5, -7.5, 5.0)[3]
+    assert not _row_exp(1.0, 2.0, 1.0, 1.0, -1.0, 0.5)[3]  # b² > a·c
+    assert _row_exp(1.0, 0.5, 1.0, 1.0, -1.0, 0.5)[3]

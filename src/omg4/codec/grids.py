@@ -9,7 +9,8 @@ where the scene is instead:
   Morton codes whose gaps are hybrid-uint coded. At the default 15 bits a position moves by at most
   half a step, 1/65,534 of the scene's extent.
 * time centres: a step of ``duration · 2^-bits`` (the clip's time range from the payload's meta,
-  else the centres' own range), grid offsets ANS-coded.
+  else the centres' own range), grid offsets ANS-coded; fp16 is kept where such a grid would not fit
+  the coder or fp16.
 
 A section stores its grid (origin and step as float64, so the decoder needs nothing else) before the
 codes; the decoder checks every field and the decoded values (finite, within fp16) and raises a
@@ -32,7 +33,6 @@ POSITIONS = "grid-morton"  # section encodings (names in a file's header)
 TIMES = "grid"
 _POSITION_HEAD = struct.Struct("<3ddB")  # origin (x, y, z), step, bits per axis
 _TIME_HEAD = struct.Struct("<ddI")  # origin, step, number of levels
-_FP16_MAX = 65504.0
 
 
 def _cells(xyz: np.ndarray, bits: int) -> tuple[np.ndarray, float, np.ndarray]:
@@ -61,10 +61,18 @@ def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS) -> bytes:
     return _POSITION_HEAD.pack(*origin, step, bits) + encode_uints(np.diff(codes, prepend=np.uint64(0)))
 
 
+def _fp16(values: np.ndarray) -> np.ndarray | None:
+    """``values`` rounded to fp16, or None when one is not finite there (beyond ±65504 after rounding)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        rounded = values.astype(np.float16)
+    return rounded if np.isfinite(rounded).all() else None
+
+
 def _finite_in_fp16(values: np.ndarray, what: str) -> np.ndarray:
-    if not (np.isfinite(values).all() and (np.abs(values) <= _FP16_MAX).all()):
+    rounded = _fp16(values)
+    if rounded is None:
         raise CorruptFileError(f"{what} beyond the fp16 range")
-    return values.astype(np.float16)
+    return rounded
 
 
 def decode_positions(data: bytes, count: int) -> np.ndarray:
@@ -72,10 +80,10 @@ def decode_positions(data: bytes, count: int) -> np.ndarray:
     if len(data) < _POSITION_HEAD.size:
         raise CorruptFileError("truncated position grid")
     *origin, step, bits = _POSITION_HEAD.unpack_from(data)
-    if not (1 <= bits <= 16 and np.isfinite([*origin, step]).all() and 0 < step <= _FP16_MAX):
+    if not (1 <= bits <= 16 and np.isfinite([*origin, step]).all() and step > 0):
         raise CorruptFileError("invalid position grid")
     codes = np.cumsum(decode_uints(data[_POSITION_HEAD.size:], count, max_bits=3 * bits), dtype=np.uint64)
-    if codes[-1] >> np.uint64(3 * bits) or (np.diff(codes.astype(np.int64)) < 0).any():
+    if count and (codes[-1] >> np.uint64(3 * bits) or (np.diff(codes.astype(np.int64)) < 0).any()):
         raise CorruptFileError("damaged Morton codes")
     cells = deinterleave(codes, 3)
     return _finite_in_fp16(np.asarray(origin) + cells.astype(np.float64) * step, "positions")
@@ -84,23 +92,32 @@ def decode_positions(data: bytes, count: int) -> np.ndarray:
 def time_step(t: np.ndarray, time_range: object, bits: int = TIME_BITS) -> float:
     """The grid step of time centres ``t``: ``duration · 2^-bits``, the duration from ``time_range`` (a [lo, hi]
     pair with hi > lo) when valid, else the centres' own range (1 if they are all equal)."""
-    lo_hi = np.asarray(time_range, np.float64).ravel() if isinstance(time_range, (list, tuple)) else np.empty(0)
-    if lo_hi.size == 2 and np.isfinite(lo_hi).all() and lo_hi[1] > lo_hi[0]:
-        duration = float(lo_hi[1] - lo_hi[0])
-    else:
+    try:
+        lo, hi = (float(v) for v in (time_range if isinstance(time_range, (list, tuple)) else ()))
+    except (TypeError, ValueError, OverflowError):
+        lo = hi = 0.0
+    duration = hi - lo
+    if not (np.isfinite(duration) and duration > 0):
         duration = float(np.ptp(np.asarray(t, np.float64))) or 1.0
     return duration / (1 << bits)
 
 
 def encode_times(t: np.ndarray, step: float) -> bytes | None:
-    """Code time centres ``t: [N]`` (N ≥ 1, finite) on a grid of ``step`` from their minimum; None when the
-    grid would need more than the entropy coder's symbols (the caller keeps fp16)."""
+    """Code time centres ``t: [N]`` (N ≥ 1, finite) on a grid of ``step`` from their minimum; None (the caller
+    keeps fp16) when the step is not a positive finite number, the grid would need more than the entropy coder's
+    symbols, or a value on it would leave the fp16 range."""
     t = np.asarray(t, np.float64).ravel()
     origin = float(t.min())
-    codes = np.rint((t - origin) / step).astype(np.int64)
-    levels = int(codes.max()) + 1
-    if levels > MAX_SYMBOLS:
+    if not (np.isfinite(step) and step > 0):
         return None
+    with np.errstate(over="ignore", invalid="ignore"):
+        scaled = np.rint((t - origin) / step)
+    if not (np.isfinite(scaled).all() and scaled.max() < MAX_SYMBOLS):
+        return None
+    codes = scaled.astype(np.int64)
+    if _fp16(origin + codes * step) is None:
+        return None
+    levels = int(codes.max()) + 1
     return _TIME_HEAD.pack(origin, step, levels) + encode_indices(codes, levels, "ans")
 
 
@@ -109,7 +126,7 @@ def decode_times(data: bytes, count: int) -> np.ndarray:
     if len(data) < _TIME_HEAD.size:
         raise CorruptFileError("truncated time grid")
     origin, step, levels = _TIME_HEAD.unpack_from(data)
-    if not (np.isfinite([origin, step]).all() and 0 < step <= _FP16_MAX and 1 <= levels <= MAX_SYMBOLS):
+    if not (np.isfinite([origin, step]).all() and step > 0 and 1 <= levels <= MAX_SYMBOLS):
         raise CorruptFileError("invalid time grid")
     codes = decode_indices(data[_TIME_HEAD.size:], levels, count, "ans")
     return _finite_in_fp16(origin + codes.astype(np.float64) * step, "time centres")

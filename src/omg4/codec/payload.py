@@ -364,7 +364,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
         "encodings": encodings,
         "rotations": [a for a in q.rotations if a in q.attributes],
-        "log_scaled": [a for a in q.log_scaled if a in q.attributes],
+        "log_scaled": [a for a in q.log_scaled if a in shapes],  # not those stored as unit quaternions
     }
     if codec == "compact":
         header["quaternions"] = stored_as_quaternions

@@ -15,6 +15,8 @@ against 0.035 dB at 8 bits (README, Rate).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from omg4.codec.entropy import decode_indices, encode_indices, join_streams, split_streams
@@ -30,9 +32,10 @@ def encoding(bits: int = BITS) -> str:
 
 
 def bits_of(name: str) -> int | None:
-    """The grid bits an encoding name declares (2-15), or None if it is not a quaternion encoding."""
+    """The grid bits an encoding name declares (2-15, ASCII digits without a leading zero), or None if it is not
+    a quaternion encoding."""
     digits = name[len(_PREFIX):] if name.startswith(_PREFIX) else ""
-    return int(digits) if digits.isdigit() and len(digits) <= 2 and 2 <= int(digits) <= 15 else None
+    return int(digits) if re.fullmatch(r"[1-9][0-9]?", digits) and 2 <= int(digits) <= 15 else None
 
 
 def levels(bits: int) -> int:

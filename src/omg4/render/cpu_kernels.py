@@ -17,8 +17,8 @@ gsplat) for these tests; ``e^{−σ}`` along a row of a Gaussian's box comes fro
 (:func:`_row_exp`): σ is quadratic in the pixel's x, so ``e^{−σ(x+1)} = e^{−σ(x)}·R(x)`` with
 ``R(x+1) = R(x)·e^{−a}`` — three ``exp`` per row and two multiplications per pixel, in float64
 (within 10⁻¹¹ of ``exp`` over a 256-pixel row, the error growing with the square of its length; rows
-are at most a tile wide; a row whose σ at either end is beyond ±600, or a conic with a ≤ 0, takes
-``exp`` per pixel). Transmittance and sums are accumulated in float64, so
+are at most a tile wide; a row whose σ at either end is beyond ±600, or a conic that is not positive
+definite, takes ``exp`` per pixel). Transmittance and sums are accumulated in float64, so
 the backward, which runs the same recurrence, recovers ``T_i = T_{i+1} / (1 − α_i)`` by division
 without drift.
 
@@ -123,12 +123,13 @@ def _gaussian(params, gi):
 def _row_exp(ca, cb, cc, dx0, dx1, dy):
     """(``e^{−σ}`` at the row's first pixel, the ratio to the next pixel's, ``e^{−a}``, whether the recurrence
     applies) for a row of pixel offsets ``dx0`` (first) … ``dx1`` (last), each one less than the one before,
-    at offset ``dy``; float64. σ(dx) = ½(a·dx² + c·dy²) + b·dx·dy, so σ(dx − 1) − σ(dx) = a(½ − dx) − b·dy."""
+    at offset ``dy``; float64. σ(dx) = ½(a·dx² + c·dy²) + b·dx·dy, so σ(dx − 1) − σ(dx) = a(½ − dx) − b·dy.
+    For a positive definite conic σ ≥ 0 and is convex along the row, so bounded ends bound every factor."""
     a, b, c = float(ca), float(cb), float(cc)
     x0, x1, y = float(dx0), float(dx1), float(dy)
     s0 = 0.5 * (a * x0 * x0 + c * y * y) + b * x0 * y
     s1 = 0.5 * (a * x1 * x1 + c * y * y) + b * x1 * y
-    if not (a > 0.0 and -600.0 <= s0 <= 600.0 and -600.0 <= s1 <= 600.0):
+    if not (a > 0.0 and a * c > b * b and -600.0 <= s0 <= 600.0 and -600.0 <= s1 <= 600.0):
         return 0.0, 0.0, 0.0, False
     return math.exp(-s0), math.exp(-(a * (0.5 - x0) - b * y)), math.exp(-a), True
 
