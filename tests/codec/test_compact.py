@@ -94,6 +94,8 @@ def test_interleave_matches_a_bitwise_reference():
             ref = sum(((int(row[a]) >> b) & 1) << (b * s + a) for b in range(16) for a in range(s))
             assert int(code) == ref
         np.testing.assert_array_equal(codewords.deinterleave(codes, s), keys)
+    many = rng.integers(0, 1 << 16, size=(2 * codewords._DEINTERLEAVE_BLOCK + 3, 3)).astype(np.uint16)
+    np.testing.assert_array_equal(codewords.deinterleave(codewords.interleave(many), 3), many)  # across blocks
 
 
 def test_damaged_codeword_streams_are_corrupt_file_errors():

@@ -51,12 +51,19 @@ def interleave(keys: np.ndarray) -> np.ndarray:
     return np.bitwise_or.reduce(bits.reshape(m, 16 * s) << np.arange(16 * s, dtype=np.uint64), axis=1)
 
 
+_DEINTERLEAVE_BLOCK = 1 << 16  # codes per block: the [block, 16·s] bit arrays stay a few tens of MB
+
+
 def deinterleave(codes: np.ndarray, s: int) -> np.ndarray:
-    """Inverse of :func:`interleave`: uint16 [M, s]."""
-    codes = np.asarray(codes, np.uint64)
-    bits = ((codes[:, None] >> np.arange(16 * s, dtype=np.uint64)) & np.uint64(1)).reshape(-1, 16, s)
-    keys = np.bitwise_or.reduce(bits << np.arange(16, dtype=np.uint64)[None, :, None], axis=1)
-    return keys.astype(np.uint16)
+    """Inverse of :func:`interleave`: uint16 [M, s] (in blocks, so a decoder's memory stays bounded whatever M)."""
+    codes = np.asarray(codes, np.uint64).reshape(-1)
+    keys = np.empty((codes.size, s), np.uint16)
+    shifts, weights = np.arange(16 * s, dtype=np.uint64), np.arange(16, dtype=np.uint64)[None, :, None]
+    for start in range(0, codes.size, _DEINTERLEAVE_BLOCK):
+        block = codes[start:start + _DEINTERLEAVE_BLOCK]
+        bits = ((block[:, None] >> shifts) & np.uint64(1)).reshape(-1, 16, s)
+        keys[start:start + block.size] = np.bitwise_or.reduce(bits << weights, axis=1)
+    return keys
 
 
 def _distinct_used(codebook: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
