@@ -242,41 +242,52 @@ def test_render_view_renders_a_time_slice():
     assert torch.equal(rendered.image, direct.image) and rendered.alpha.max() > 0.3
 
 
-def test_row_exp_recurrence_matches_exp_and_falls_back_beyond_its_range():
-    """e^{−σ} along a pixel row by the kernels' recurrence equals exp(−σ) per pixel (float64, 256 pixels); rows
-    whose σ leaves ±600 at an end, or conics with a ≤ 0, are refused (the kernels then call exp per pixel)."""
+def _box_values(start):
+    """Walk the kernels' recurrence from :func:`_box_exp`'s start values over a 64×64 box (rows of pixels)."""
+    e_row, s_row, s_step, r_row, r_step, step, _ = start
+    out = []
+    for _ in range(64):
+        e, r = e_row, r_row
+        e_row, s_row, r_row = e_row * s_row, s_row * s_step, r_row * r_step
+        row = []
+        for _ in range(64):
+            row.append(e)
+            e, r = e * r, r * step
+        out.append(row)
+    return out
+
+
+def test_box_exp_recurrence_matches_exp_and_falls_back_beyond_its_range():
+    """e^{−σ} over a pixel box by the kernels' recurrence equals exp(−σ) per pixel (float64, 64×64 boxes); boxes
+    whose σ exceeds 600 at a corner, or conics that are not positive definite, are refused (the kernels then
+    call exp per pixel)."""
     import math
 
-    from omg4.render.cpu_kernels import _row_exp
+    from omg4.render.cpu_kernels import _box_exp
 
     g = torch.Generator().manual_seed(3)
-    worst = 0.0
-    for _ in range(200):
+    worst, used = 0.0, 0
+    for _ in range(120):
         a, c = (10 ** (torch.rand(2, generator=g, dtype=torch.float64) * 4 - 4)).tolist()  # 1e-4 … 1
         b = float((torch.rand(1, generator=g, dtype=torch.float64) * 2 - 1) * math.sqrt(a * c))  # positive definite
-        dx0, dy = (torch.rand(2, generator=g, dtype=torch.float64) * 120 - 60).tolist()
-        dx1 = dx0 - 255
-        e, ratio, step, ok = _row_exp(a, b, c, dx0, dx1, dy)
-        sigma = [0.5 * (a * (dx0 - i) ** 2 + c * dy * dy) + b * (dx0 - i) * dy for i in range(256)]
-        if max(sigma[0], sigma[-1]) > 600:
-            assert not ok
+        dx0, dy0 = (torch.rand(2, generator=g, dtype=torch.float64) * 80 - 40).tolist()
+        start = _box_exp(a, b, c, dx0, dx0 - 63, dy0, dy0 - 63)
+
+        def sigma(i, j):
+            x, y = dx0 - i, dy0 - j
+            return 0.5 * (a * x * x + c * y * y) + b * x * y
+        if max(sigma(i, j) for i in (0, 63) for j in (0, 63)) > 600:
+            assert not start[-1]
             continue
-        assert ok
-        for s in sigma:
-            worst = max(worst, abs(e - math.exp(-s)) / math.exp(-s))
-            e *= ratio
-            ratio *= step
-    assert worst < 1e-11, worst  # error grows with the square of the row length; kernel rows are a tile wide
-    assert not _row_exp(0.0, 0.0, 1.0, 3.0, 0.0, 1.0)[3]  # a = 0
-    assert not _row_exp(-0.5, 0.0, 1.0, 3.0, 0.0, 1.0)[3]  # a < 0
-    assert not _row_exp(1.0, 0.0, 1.0, 40.0, 0.0, 0.0)[3]  # σ = 800 at the first pixel
-    assert _row_exp(1.0, 0.0, 1.0, 30.0, 0.0, 0.0)[3]  # σ = 450
-
-
-def test_row_exp_refuses_conics_that_are_not_positive_definite():
-    """a > 0 with both row ends in range but a·c < b²: σ dips far below zero mid-row, so no recurrence."""
-    from omg4.render.cpu_kernels import _row_exp
-
-    assert not _row_exp(100.0, 0.0, -200.0, 7.5, -7.5, 5.0)[3]
-    assert not _row_exp(1.0, 2.0, 1.0, 1.0, -1.0, 0.5)[3]  # b² > a·c
-    assert _row_exp(1.0, 0.5, 1.0, 1.0, -1.0, 0.5)[3]
+        assert start[-1]
+        used += 1
+        for j, row in enumerate(_box_values(start)):
+            for i, e in enumerate(row):
+                worst = max(worst, abs(e - math.exp(-sigma(i, j))) / math.exp(-sigma(i, j)))
+    assert used > 30 and worst < 1e-11, (used, worst)  # the error grows with the square of the box side
+    assert not _box_exp(0.0, 0.0, 1.0, 3.0, 0.0, 1.0, 0.0)[-1]  # a = 0
+    assert not _box_exp(-0.5, 0.0, 1.0, 3.0, 0.0, 1.0, 0.0)[-1]  # a < 0
+    assert not _box_exp(100.0, 0.0, -200.0, 7.5, -7.5, 5.0, 5.0)[-1]  # a > 0, c < 0
+    assert not _box_exp(1.0, 2.0, 1.0, 1.0, -1.0, 0.5, -0.5)[-1]  # b² > a·c
+    assert not _box_exp(1.0, 0.0, 1.0, 40.0, 0.0, 0.0, 0.0)[-1]  # σ = 800 at a corner
+    assert _box_exp(1.0, 0.0, 1.0, 30.0, 0.0, 0.0, 0.0)[-1]  # σ ≤ 450

@@ -13,12 +13,13 @@ Per-pixel rules are gsplat 1.5.3's (``RasterizeToPixels3DGSFwd.cu``/``Bwd.cu``):
 ``T·(1 − α) ≤ 1e-4``; the backward passes no gradient to σ and o where the clamp is
 active (``o·e^{−σ} > α_max``). A pixel is skipped when ``σ`` exceeds the per-Gaussian
 :func:`omg4.render.binning.sigma_cutoff` (exact). σ is computed in the input precision (as
-gsplat) for these tests; ``e^{−σ}`` along a row of a Gaussian's box comes from a recurrence
-(:func:`_row_exp`): σ is quadratic in the pixel's x, so ``e^{−σ(x+1)} = e^{−σ(x)}·R(x)`` with
-``R(x+1) = R(x)·e^{−a}`` — three ``exp`` per row and two multiplications per pixel, in float64
-(within 10⁻¹¹ of ``exp`` over a 256-pixel row, the error growing with the square of its length; rows
-are at most a tile wide; a row whose σ at either end is beyond ±600, or a conic that is not positive
-definite, takes ``exp`` per pixel). Transmittance and sums are accumulated in float64, so
+gsplat) for these tests; ``e^{−σ}`` over a Gaussian's pixel box comes from a recurrence
+(:func:`_box_exp`): σ is quadratic in the pixel's x and y, so ``e^{−σ(x+1)} = e^{−σ(x)}·R(x)`` with
+``R(x+1) = R(x)·e^{−a}`` along a row, and each row's first value and ratio follow from the previous
+row's the same way — six ``exp`` per (Gaussian, tile) and two multiplications per pixel, in float64
+(within 10⁻¹¹ of ``exp`` over a 64×64 box, the error growing with the square of the box side; boxes are
+clipped to a tile; a box whose σ at a corner exceeds 600, or a conic that is not positive definite,
+takes ``exp`` per pixel). Transmittance and sums are accumulated in float64, so
 the backward, which runs the same recurrence, recovers ``T_i = T_{i+1} / (1 − α_i)`` by division
 without drift.
 
@@ -120,18 +121,25 @@ def _gaussian(params, gi):
 
 
 @njit(cache=True, inline="always")
-def _row_exp(ca, cb, cc, dx0, dx1, dy):
-    """(``e^{−σ}`` at the row's first pixel, the ratio to the next pixel's, ``e^{−a}``, whether the recurrence
-    applies) for a row of pixel offsets ``dx0`` (first) … ``dx1`` (last), each one less than the one before,
-    at offset ``dy``; float64. σ(dx) = ½(a·dx² + c·dy²) + b·dx·dy, so σ(dx − 1) − σ(dx) = a(½ − dx) − b·dy.
-    For a positive definite conic σ ≥ 0 and is convex along the row, so bounded ends bound every factor."""
+def _box_exp(ca, cb, cc, dx0, dx1, dy0, dy1):
+    """Start values of the ``e^{−σ}`` recurrence over a Gaussian's pixel box, float64: ``(E, S, S_step, R, R_step,
+    Q, applies)``. The box's pixel offsets run from ``dx0`` to ``dx1`` along a row and ``dy0`` to ``dy1`` down the
+    rows, each one less than the one before. σ(dx, dy) = ½(a·dx² + c·dy²) + b·dx·dy, so along a row
+    σ(dx − 1) − σ(dx) = a(½ − dx) − b·dy (next pixel: ``e ← e·R``, ``R ← R·Q``, Q = e^{−a}) and down the first
+    column σ(dy − 1) − σ(dy) = c(½ − dy) − b·dx0 (next row: ``E ← E·S``, ``S ← S·S_step``, S_step = e^{−c};
+    ``R ← R·R_step``, R_step = e^{−b}). E is ``e^{−σ}`` at the box's first pixel and R the ratio to the next
+    pixel of that row. Applies to positive definite conics whose σ stays within 600 at the box's corners (σ is
+    then convex and non-negative, so every factor inside the box stays finite)."""
     a, b, c = float(ca), float(cb), float(cc)
-    x0, x1, y = float(dx0), float(dx1), float(dy)
-    s0 = 0.5 * (a * x0 * x0 + c * y * y) + b * x0 * y
-    s1 = 0.5 * (a * x1 * x1 + c * y * y) + b * x1 * y
-    if not (a > 0.0 and a * c > b * b and -600.0 <= s0 <= 600.0 and -600.0 <= s1 <= 600.0):
-        return 0.0, 0.0, 0.0, False
-    return math.exp(-s0), math.exp(-(a * (0.5 - x0) - b * y)), math.exp(-a), True
+    x0, x1, y0, y1 = float(dx0), float(dx1), float(dy0), float(dy1)
+    corner = 0.0
+    for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1)):
+        corner = max(corner, 0.5 * (a * x * x + c * y * y) + b * x * y)
+    if not (a > 0.0 and a * c > b * b and corner <= 600.0):
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
+    s0 = 0.5 * (a * x0 * x0 + c * y0 * y0) + b * x0 * y0
+    return (math.exp(-s0), math.exp(-(c * (0.5 - y0) - b * x0)), math.exp(-c), math.exp(-(a * (0.5 - x0) - b * y0)),
+            math.exp(-b), math.exp(-a), True)
 
 
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
@@ -167,12 +175,17 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_pe
             if bx0 >= bx1 or by0 >= by1:
                 continue
             mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
+            e_row, s_row, s_step, r_row, r_step, step, recur = _box_exp(
+                ca, cb, cc, mx - pix_x[bx0], mx - pix_x[bx1 - 1], my - pix_y[by0], my - pix_y[by1 - 1])
             for py in range(by0, by1):
+                e_next, ratio = e_row, r_row  # this row's first pixel
+                e_row *= s_row
+                s_row *= s_step
+                r_row *= r_step
                 if row_left[py - y0] == 0:
                     continue
                 dy = my - pix_y[py]
                 row = (py - y0) * tw - x0
-                e_next, ratio, step, recur = _row_exp(ca, cb, cc, mx - pix_x[bx0], mx - pix_x[bx1 - 1], dy)
                 for px in range(bx0, bx1):
                     e_sigma = e_next  # e^{−σ} of this pixel when recur
                     e_next *= ratio
@@ -261,12 +274,17 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_p
             v_o = 0.0
             for d in range(n_feat):
                 v_feat[d] = 0.0
+            e_row, s_row, s_step, r_row, r_step, step, recur = _box_exp(
+                ca, cb, cc, mx - pix_x[bx0], mx - pix_x[bx1 - 1], my - pix_y[by0], my - pix_y[by1 - 1])
             for py in range(by0, by1):
+                e_next, ratio = e_row, r_row  # this row's first pixel, as in the forward
+                e_row *= s_row
+                s_row *= s_step
+                r_row *= r_step
                 if k >= row_end[py - y0]:
                     continue
                 dy = my - pix_y[py]
                 row = (py - y0) * tw - x0
-                e_next, ratio, step, recur = _row_exp(ca, cb, cc, mx - pix_x[bx0], mx - pix_x[bx1 - 1], dy)
                 for px in range(bx0, bx1):
                     e_sigma = e_next  # the forward's e^{−σ} of this pixel when recur
                     e_next *= ratio
