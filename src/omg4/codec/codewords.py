@@ -51,6 +51,22 @@ def interleave(keys: np.ndarray) -> np.ndarray:
     return np.bitwise_or.reduce(bits.reshape(m, 16 * s) << np.arange(16 * s, dtype=np.uint64), axis=1)
 
 
+def encode_sorted_codes(codes: np.ndarray) -> bytes:
+    """Non-decreasing ``uint64`` codes as their gaps (the first from 0), hybrid-uint coded: sorted Morton codes
+    of positions and the "sorted" codebooks."""
+    return encode_uints(np.diff(np.asarray(codes, np.uint64), prepend=np.uint64(0)))
+
+
+def decode_sorted_codes(data: bytes, count: int, bits: int, strict: bool, damaged: str) -> np.ndarray:
+    """Inverse of :func:`encode_sorted_codes`: ``uint64 [count]`` codes below ``2^bits``, non-decreasing (strictly
+    increasing with ``strict``); otherwise a :class:`CorruptFileError` "damaged ``damaged``"."""
+    codes = np.cumsum(decode_uints(data, count, max_bits=bits), dtype=np.uint64)
+    later, earlier = codes[1:], codes[:-1]  # a sum that wrapped past 2^64 shows as a decrease
+    if count and (int(codes[-1]) >> bits or (later <= earlier if strict else later < earlier).any()):
+        raise CorruptFileError(f"damaged {damaged}")
+    return codes
+
+
 _DEINTERLEAVE_BLOCK = 1 << 16  # codes per block: the [block, 16·s] bit arrays stay a few tens of MB
 
 
@@ -78,7 +94,7 @@ def _sorted(rows: np.ndarray, labels: np.ndarray) -> tuple[bytes, bytes]:
     order = np.argsort(codes, kind="stable")
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
-    codebook = encode_uints(np.diff(codes[order], prepend=np.uint64(0)))
+    codebook = encode_sorted_codes(codes[order])
     return codebook, encode_indices(rank[labels], rows.shape[0], "ans")
 
 
@@ -120,10 +136,8 @@ def decode_sorted_codebook(data: bytes, num_rows: int, sub_len: int) -> np.ndarr
     """The ``[K', s]`` fp16 codebook of the "sorted" mode (strictly increasing codes within 16·s bits)."""
     if not 1 <= sub_len <= MAX_SORTED_SUB_LEN:
         raise CorruptFileError(f"sorted codebook with sub-vectors of {sub_len} values (limit {MAX_SORTED_SUB_LEN})")
-    codes = np.cumsum(decode_uints(data, num_rows, max_bits=16 * sub_len), dtype=np.uint64)
-    gaps_ok = num_rows < 2 or bool((codes[1:] > codes[:-1]).all())
-    if not gaps_ok or (num_rows and int(codes[-1]) >> (16 * sub_len)):
-        raise CorruptFileError("damaged sorted codebook (codes not strictly increasing or out of range)")
+    codes = decode_sorted_codes(data, num_rows, 16 * sub_len, strict=True,
+                                damaged="sorted codebook (codes not strictly increasing or out of range)")
     rows = keys_to_fp16(deinterleave(codes, sub_len))
     if not np.isfinite(rows).all():
         raise CorruptFileError("non-finite codebook values")

@@ -23,8 +23,8 @@ import struct
 
 import numpy as np
 
-from omg4.codec.codewords import deinterleave, interleave
-from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, decode_uints, encode_indices, encode_uints
+from omg4.codec.codewords import decode_sorted_codes, deinterleave, encode_sorted_codes, interleave
+from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices
 from omg4.errors import CorruptFileError
 
 POSITION_BITS = 15
@@ -58,7 +58,7 @@ def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS) -> bytes:
     codes = interleave(cells)
     if (np.diff(codes.astype(np.int64)) < 0).any():
         raise ValueError("positions must be in position_order")
-    return _POSITION_HEAD.pack(*origin, step, bits) + encode_uints(np.diff(codes, prepend=np.uint64(0)))
+    return _POSITION_HEAD.pack(*origin, step, bits) + encode_sorted_codes(codes)
 
 
 def _fp16(values: np.ndarray) -> np.ndarray | None:
@@ -82,9 +82,7 @@ def decode_positions(data: bytes, count: int) -> np.ndarray:
     *origin, step, bits = _POSITION_HEAD.unpack_from(data)
     if not (1 <= bits <= 16 and np.isfinite([*origin, step]).all() and step > 0):
         raise CorruptFileError("invalid position grid")
-    codes = np.cumsum(decode_uints(data[_POSITION_HEAD.size:], count, max_bits=3 * bits), dtype=np.uint64)
-    if count and (codes[-1] >> np.uint64(3 * bits) or (np.diff(codes.astype(np.int64)) < 0).any()):
-        raise CorruptFileError("damaged Morton codes")
+    codes = decode_sorted_codes(data[_POSITION_HEAD.size:], count, 3 * bits, strict=False, damaged="Morton codes")
     cells = deinterleave(codes, 3)
     return _finite_in_fp16(np.asarray(origin) + cells.astype(np.float64) * step, "positions")
 

@@ -43,11 +43,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omg4.codec import grids, quaternions, weights
-from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, deinterleave, encode_codewords,
-                                  interleave, keys_to_fp16, ordered_keys)
+from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, decode_sorted_codes, deinterleave,
+                                  encode_codewords, encode_sorted_codes, interleave, keys_to_fp16, ordered_keys)
 from omg4.codec.container import read_container, write_container
-from omg4.codec.entropy import (MAX_SYMBOLS, decode_indices, decode_uints, encode_indices, encode_uints, pack_varints,
-                                unpack_varints)
+from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices, pack_varints, unpack_varints
 from omg4.errors import CorruptFileError, OMG4Error
 
 KIND = "omg4-compressed-model"
@@ -202,15 +201,11 @@ def _smallest_f16(values: np.ndarray) -> tuple[str, bytes]:
 
 
 def _encode_xyz_morton(xyz16: np.ndarray) -> bytes:
-    codes = morton_codes(xyz16)
-    return encode_uints(np.diff(codes, prepend=np.uint64(0)))
+    return encode_sorted_codes(morton_codes(xyz16))
 
 
 def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
-    gaps = decode_uints(data, count, max_bits=48)
-    codes = np.cumsum(gaps, dtype=np.uint64)
-    if count and (codes[-1] >> np.uint64(48) or (count > 1 and (codes[1:] < codes[:-1]).any())):
-        raise CorruptFileError("damaged Morton codes")
+    codes = decode_sorted_codes(data, count, 48, strict=False, damaged="Morton codes")
     xyz = morton_to_xyz(codes)
     if not np.isfinite(xyz).all():
         raise CorruptFileError("non-finite positions")

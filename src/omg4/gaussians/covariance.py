@@ -158,5 +158,4 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
 
 
 __all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "conditioning_terms", "torch_conditioning_terms",
-           "temporal_marginal",
-           "condition_on_time", "SliceGeometry", "slice_geometry"]
+           "temporal_marginal", "condition_on_time", "SliceGeometry", "slice_geometry"]
