@@ -73,6 +73,10 @@ def test_fine_tuning_defaults_are_the_library_defaults(command):
     assert actions["--batch-size"].default == CompressConfig.batch_size
     assert actions["--baseline-iterations"].default == CompressConfig.baseline_iterations
     assert actions["--codec"].default == CODECS[0]
+    if command == "compress":  # the paper's k-means unless asked
+        assert actions["--rate-weight"].default == CompressConfig.rate_weight == 0.0
+    else:
+        assert actions["--rate-weights"].default == (CompressConfig.rate_weight,)
 
 
 def test_compress_stages_default_is_the_full_pipeline():

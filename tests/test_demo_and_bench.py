@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from omg4.bench import run_bench
+from omg4.bench import rate_distortion_curves, run_bench
 from omg4.demo import QUICK, run_demo
 from omg4.train import Trainer, make_config
 
@@ -57,15 +57,26 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
                       backend="cpu")
     base = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
     results = run_bench(tiny_scene, base.model, base.model_path, tmp_path / "bench", schedule="tiny", batch_size=1,
-                        baseline_iterations=20, rows=["GS+AC", "(GS+GP)+GM+AC"], backend="cpu", log=lambda *_: None)
-    assert list(results) == ["Real-Time4DGS", "GS+AC", "(GS+GP)+GM+AC"]
+                        baseline_iterations=20, rows=["GS+AC", "OMG4-T"], backend="cpu", rate_weights=(0.0, 30.0),
+                        log=lambda *_: None)
+    assert list(results) == ["Real-Time4DGS", "GS+AC", "GS+AC, β=30", "OMG4-T", "OMG4-T, β=30"]
     n = base.model.num_gaussians
     assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
-    assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
+    assert results["OMG4-T"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
     table = (tmp_path / "bench" / "bench.md").read_text()
-    assert "B/Gaussian" in table and "GS+AC" in table and "MB, paper coder" in table
+    assert "B/Gaussian" in table and "| GS+AC, β=30 |" in table and "PSNR, paper coder" in table
     saved = json.loads((tmp_path / "bench" / "bench.json").read_text())
-    for row in ("GS+AC", "(GS+GP)+GM+AC"):  # both coders' sizes, the paper's from its own file
+    for row in ("GS+AC", "OMG4-T, β=30"):  # both coders' sizes, the paper's from its own file
         paper_file = Path(saved[row]["file"]).with_name(Path(saved[row]["file"]).stem + "_paper_codec.omg4")
         assert saved[row]["paper_codec_mb"] == paper_file.stat().st_size / 2**20 > saved[row]["storage_mb"]
+        # and its images: the paper coder's copy evaluated on the same views (within the coders' gate)
+        assert abs(saved[row]["paper_codec_psnr"] - saved[row]["psnr"]) <= 0.05
+        assert abs(saved[row]["paper_codec_ssim"] - saved[row]["ssim"]) <= 0.002
+    assert saved["OMG4-T, β=30"]["rate_weight"] == 30.0 and saved["OMG4-T"]["rate_weight"] == 0.0
     assert saved["GS+AC"]["bytes_per_gaussian"] > 0 and (tmp_path / "bench" / "rate_distortion.png").exists()
+    points, curves = rate_distortion_curves(results, "compact")
+    assert set(points) == {"Real-Time4DGS", "GS+AC", "GS+AC, β=30"}  # the baseline and the ablation rows
+    assert curves == {"compact coder": {"T": (results["OMG4-T"]["storage_mb"], results["OMG4-T"]["psnr"])},
+                      "compact coder, β=30": {"T": (results["OMG4-T, β=30"]["storage_mb"],
+                                                    results["OMG4-T, β=30"]["psnr"])},
+                      "paper coder": {"T": (results["OMG4-T"]["paper_codec_mb"], results["OMG4-T"]["paper_codec_psnr"])}}

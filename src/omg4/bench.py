@@ -5,8 +5,12 @@ Rows of a Real-Time4DGS baseline (paper Tab. 4 and Tab. 1): GS+AC; GS+GP+AC; GS+
 FreeTimeGS baseline (paper Tab. 3): attribute compression only, and OMG4 at its L and S
 presets. Every row reports PSNR, SSIM,
 LPIPS-alex, PSNR and SSIM over the moving pixels, FPS, #Gaussians, MB, bytes per Gaussian
-and the compression wall time. The SD scores of the baseline and the dynamic-region masks
-are computed once and shared by every row.
+and the compression wall time, and the same pipeline result written with the paper's coder
+(its MB, PSNR and SSIM: the comparison point of the "compact" codec). With rate weights β > 0
+(beyond the paper: entropy-constrained codebooks, :class:`omg4.compress.pipeline.CompressConfig`)
+every row runs once per β ("OMG4-M, β=30"), so the figure shows each coder's rate–distortion
+front. The SD scores of the baseline and the dynamic-region masks are computed once and shared
+by every row.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from pathlib import Path
 import torch
 
 from omg4.atomic import write_text_atomic
-from omg4.report import format_table, rate_distortion_plot
+from omg4.report import Curves, format_table, rate_distortion_plot
 
 AC = ("appearance", "svq3d", "svq4d")
 FULL = ("sample", "prune", "merge", *AC)
@@ -37,25 +41,31 @@ ROWS_BY_BACKBONE: dict[str, dict[str, tuple[str, tuple[str, ...]]]] = {
 
 
 def bench_table(rows: dict[str, dict]) -> str:
-    """The paper's columns plus bytes per Gaussian, the same model's size with the paper's coder, and
-    compression time."""
+    """The paper's columns plus bytes per Gaussian, the same model's size and quality with the paper's coder,
+    and compression time."""
     base = format_table(rows).splitlines()
-    head = base[0] + " B/Gaussian | MB, paper coder | compress s |"
-    sep = base[1] + "---|---|---|"
+    head = base[0] + " B/Gaussian | MB, paper coder | PSNR, paper coder | SSIM, paper coder | compress s |"
+    sep = base[1] + "---|---|---|---|---|"
     lines = [head, sep]
     for line, r in zip(base[2:], rows.values()):
-        bpg = f"{r['bytes_per_gaussian']:.1f}" if r.get("bytes_per_gaussian") else "-"
-        paper = f"{r['paper_codec_mb']:.3f}" if r.get("paper_codec_mb") else "-"
-        secs = f"{r['compress_s']:.0f}" if r.get("compress_s") else "-"
-        lines.append(f"{line} {bpg} | {paper} | {secs} |")
+        cells = [f"{r[key]:{fmt}}" if r.get(key) else "-" for key, fmt in
+                 (("bytes_per_gaussian", ".1f"), ("paper_codec_mb", ".3f"), ("paper_codec_psnr", ".2f"),
+                  ("paper_codec_ssim", ".4f"), ("compress_s", ".0f"))]
+        lines.append(f"{line} " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def row_label(name: str, rate_weight: float) -> str:
+    """A bench row's name at rate weight β: the table's name for the paper's k-means (β = 0), else with ", β=…"."""
+    return name if rate_weight == 0 else f"{name}, β={rate_weight:g}"
 
 
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
               baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
-              backend: str = "auto", device: torch.device | str = "cpu", log=print) -> dict:
-    """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and evaluate everything on
-    the test views, computing on ``device``."""
+              backend: str = "auto", device: torch.device | str = "cpu", rate_weights: tuple[float, ...] = (0.0,),
+              log=print) -> dict:
+    """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and rate weight, and evaluate
+    everything on the test views, computing on ``device``."""
     from omg4.codec.decoder import load_omg4
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
@@ -74,34 +84,58 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     table_rows = ROWS_BY_BACKBONE[baseline.config.backbone]
     results[base_name] = evaluate(baseline, scene.test_views, storage_bytes=baseline_path.stat().st_size,
                                         backend=backend, device=device, masks=masks)
-    for name in rows or list(table_rows):
+    for name, beta in ((n, b) for n in rows or list(table_rows) for b in rate_weights):
         preset, stages = table_rows[name]
-        log(f"row {name}: preset {preset}, stages {','.join(stages)}")
-        path = out / (name.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-") + ".omg4")
+        label = row_label(name, beta)
+        log(f"row {label}: preset {preset}, stages {','.join(stages)}")
+        path = out / (label.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-")
+                      .replace(",", "").replace("β=", "beta") + ".omg4")
         cfg = CompressConfig(preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
-                             baseline_iterations=baseline_iterations, backend=backend, device=str(device))
+                             baseline_iterations=baseline_iterations, backend=backend, device=str(device),
+                             rate_weight=beta)
         paper_copy = path.with_name(path.stem + "_paper_codec.omg4")
         report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path,
                                   paper_copy=paper_copy, log=log)
         r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size, backend=backend,
                      device=device, masks=masks)
+        paper_r = evaluate(load_omg4(paper_copy, device), scene.test_views, lpips_nets=(), backend=backend,
+                           device=device, masks=masks, fps_views=1, progress=False)
         r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=report["file_bytes"] / r["num_gaussians"],
-                 paper_codec_mb=report["paper_file_bytes"] / 2**20,
+                 paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper_r["psnr"],
+                 paper_codec_ssim=paper_r["ssim"], rate_weight=beta, preset=preset, full_pipeline=stages == FULL,
                  stages=report["stages"], file=str(path))
-        results[name] = r
+        results[label] = r
         write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
     base = results[base_name]
     base["bytes_per_gaussian"] = baseline_path.stat().st_size / base["num_gaussians"]
     table = bench_table(results)
     write_text_atomic(out / "bench.md", table + "\n")
     write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
-    rate_distortion_plot(out / "rate_distortion.png", results, f"{scene.name}: rate-distortion")
+    points, curves = rate_distortion_curves(results, codec)
+    rate_distortion_plot(out / "rate_distortion.png", points, f"{scene.name}: rate-distortion", curves)
     print(table)
     return results
+
+
+def rate_distortion_curves(results: dict[str, dict], codec: str) -> tuple[dict[str, dict], Curves]:
+    """The bench figure's content: stand-alone rows (the baseline, the ablations) and one curve per coder and
+    rate weight through the full-pipeline rows, their points labelled by preset — ``codec``'s files at every β, and the
+    paper coder's copies of the β = 0 runs (the comparison point)."""
+    points = {name: r for name, r in results.items() if not r.get("full_pipeline")}
+    curves: Curves = {}
+    for r in results.values():
+        if not r.get("full_pipeline"):
+            continue
+        beta = r["rate_weight"]
+        name = f"{codec} coder" + (f", β={beta:g}" if beta else "")
+        curves.setdefault(name, {})[r["preset"]] = (r["storage_mb"], r["psnr"])
+        if not beta and codec != "paper":
+            curves.setdefault("paper coder", {})[r["preset"]] = (r["paper_codec_mb"], r["paper_codec_psnr"])
+    return points, curves
 
 
 def _strip(results: dict[str, dict]) -> dict:
     return {k: {kk: vv for kk, vv in v.items() if kk != "per_view"} for k, v in results.items()}
 
 
-__all__ = ["ROWS", "ROWS_BY_BACKBONE", "bench_table", "run_bench"]
+__all__ = ["ROWS", "ROWS_BY_BACKBONE", "bench_table", "rate_distortion_curves", "row_label", "run_bench"]

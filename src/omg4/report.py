@@ -36,20 +36,32 @@ def format_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def _panel(ax, points: dict[str, tuple[float, float]], title: str) -> None:
-    baseline = [n for n in points if not n.startswith("OMG4")]
-    ours = [n for n in points if n.startswith("OMG4")]
-    for names, marker, colour in ((baseline, "s", "tab:gray"), (ours, "o", "tab:red")):
-        if names:
-            ax.scatter([points[n][0] for n in names], [points[n][1] for n in names], marker=marker, s=36,
-                       color=colour, zorder=3)
-    if len(ours) > 1:
-        line = sorted(points[n] for n in ours)
-        ax.plot([p[0] for p in line], [p[1] for p in line], color="tab:red", alpha=0.5, zorder=2)
-    for i, (name, (mb, db)) in enumerate(sorted(points.items(), key=lambda item: item[1][0])):
+Curves = dict[str, dict[str, tuple[float, float]]]
+"""Named rate–distortion curves: curve name → {point label → (storage MB, PSNR dB)}."""
+
+
+def _panel(ax, points: dict[str, tuple[float, float]], title: str, curves: Curves | None = None) -> None:
+    """Stand-alone ``points`` (grey squares) and ``curves`` (one colour and legend entry each); None: the points
+    whose name starts with "OMG4" form one curve, as in the paper's figure."""
+    if curves is None:
+        curves = {"OMG4": {n: p for n, p in points.items() if n.startswith("OMG4")}}
+        points = {n: p for n, p in points.items() if not n.startswith("OMG4")}
+    curves = {name: members for name, members in curves.items() if members}
+    if points:
+        ax.scatter([p[0] for p in points.values()], [p[1] for p in points.values()], marker="s", s=36,
+                   color="tab:gray", zorder=3)
+    colours = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
+    for (name, members), colour in zip(curves.items(), colours * (1 + len(curves) // len(colours))):
+        line = sorted(members.values())
+        ax.plot([p[0] for p in line], [p[1] for p in line], color=colour, alpha=0.6, marker="o", markersize=5,
+                zorder=2, label=name if len(curves) > 1 else None)
+    labelled = [*points.items(), *(item for members in curves.values() for item in members.items())]
+    for i, (name, (mb, db)) in enumerate(sorted(labelled, key=lambda item: item[1][0])):
         # alternate above/below so points at similar sizes keep readable labels
         ax.annotate(name, (mb, db), textcoords="offset points", xytext=(5, 5 if i % 2 == 0 else -11), fontsize=7)
-    sizes = [mb for mb, _ in points.values()]
+    if len(curves) > 1:
+        ax.legend(fontsize=6, loc="lower right")
+    sizes = [mb for _, (mb, _) in labelled]
     ax.set_xlim(min(sizes) / 2.5, max(sizes) * 8)
     ax.margins(y=0.15)
     ax.set_xscale("log")
@@ -59,11 +71,12 @@ def _panel(ax, points: dict[str, tuple[float, float]], title: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
 
 
-def rate_distortion_plot(path: Path, rows: dict[str, dict], title: str) -> None:
+def rate_distortion_plot(path: Path, rows: dict[str, dict], title: str, curves: Curves | None = None) -> None:
     """PSNR against MB for every row of a run, beside the paper's N3DV points; written as PNG.
 
-    Rows whose name starts with "OMG4" are drawn as the compressed curve, the others
-    (baselines, ablations) as separate points.
+    Without ``curves``, rows whose name starts with "OMG4" are drawn as the compressed curve and the
+    others (baselines, ablations) as separate points; with them, ``rows`` are the separate points and
+    each curve gets its colour and a legend entry.
     """
     import matplotlib
 
@@ -73,7 +86,7 @@ def rate_distortion_plot(path: Path, rows: dict[str, dict], title: str) -> None:
     from omg4.atomic import atomic_path
 
     fig, (ours, paper) = plt.subplots(1, 2, figsize=(9, 3.6), dpi=120)
-    _panel(ours, {name: (r["storage_mb"], r["psnr"]) for name, r in rows.items()}, title)
+    _panel(ours, {name: (r["storage_mb"], r["psnr"]) for name, r in rows.items()}, title, curves)
     _panel(paper, PAPER_N3DV_POINTS, "paper Tab. 1, N3DV 1352×1014 (different data, for orientation)")
     fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -81,4 +94,4 @@ def rate_distortion_plot(path: Path, rows: dict[str, dict], title: str) -> None:
     plt.close(fig)
 
 
-__all__ = ["TABLE_COLUMNS", "PAPER_N3DV_POINTS", "format_table", "rate_distortion_plot"]
+__all__ = ["TABLE_COLUMNS", "PAPER_N3DV_POINTS", "Curves", "format_table", "rate_distortion_plot"]

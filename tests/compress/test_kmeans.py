@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.compress.kmeans import inertia, kmeans, nearest_centroid
+from omg4.compress.kmeans import entropy_constrained, inertia, kmeans, nearest_centroid, penalized_nearest
 
 
 def _lloyd_reference(x: np.ndarray, k: int, seed: int, iters: int = 100) -> float:
@@ -138,5 +138,85 @@ def test_invalid_inputs():
         kmeans(torch.zeros(5), 3)
     with pytest.raises(ValueError):
         kmeans(torch.tensor([[0.0], [float("nan")]]), 1)
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            kmeans(torch.zeros(5, 1), 3, rate_weight=bad)
+
+
+# ----------------------------------------------------------- entropy-constrained k-means (rate term)
+
+def _rd_cost(x: np.ndarray, c: np.ndarray, labels: np.ndarray, lam: float) -> tuple[float, float, float]:
+    """(Σ‖x − c_l‖², Σ log2(n / n_l), their λ-weighted sum), computed directly in float64 numpy."""
+    counts = np.bincount(labels, minlength=len(c)).astype(np.float64)
+    distortion = float(((x - c[labels]) ** 2).sum())
+    rate = float(np.log2(len(x) / counts[labels]).sum())
+    return distortion, rate, distortion + lam * rate
+
+
+def _entropy(labels: np.ndarray) -> float:
+    p = np.bincount(labels) / len(labels)
+    p = p[p > 0]
+    return float(-(p * np.log2(p)).sum())
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_penalized_nearest_matches_brute_force(d):
+    gen = torch.Generator().manual_seed(20 + d)
+    x, c = torch.randn(2000, d, generator=gen), torch.randn(100, d, generator=gen)
+    penalty = torch.rand(100, generator=gen, dtype=torch.float64) * 2
+    brute = ((x.double()[:, None, :] - c.double()[None]) ** 2).sum(-1) + penalty[None]
+    for chunk in (1, 777, 1 << 23):
+        labels = penalized_nearest(x, c, penalty, chunk=chunk)
+        torch.testing.assert_close(brute.gather(1, labels[:, None]).squeeze(1), brute.min(1).values,
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_entropy_constrained_cost_never_rises():
+    """Each iteration minimizes J = D + λR exactly in one block of variables, so J after i + 1 iterations
+    is at most J after i (J recomputed from the returned codebook and labels)."""
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.normal(size=(1500, 2)), rng.normal(size=(300, 2)) * 0.2 + 3])
+    xt = torch.from_numpy(x)
+    c0, l0 = kmeans(xt, 64, seed=0)
+    lam = 3 * inertia(xt, c0, l0) / len(x)
+    w = torch.ones(len(x), dtype=torch.float64)
+    costs = [_rd_cost(x, c0.numpy(), l0.numpy(), lam)[2]]
+    for iters in (1, 2, 3, 5, 8, 13, 40):
+        c, labels = entropy_constrained(xt, w, c0, l0, lam, iters=iters, tol=0.0)
+        assert torch.bincount(labels).min() > 0 and labels.max() < len(c)
+        costs.append(_rd_cost(x, c.numpy(), labels.numpy(), lam)[2])
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(costs, costs[1:]))
+    assert costs[-1] < 0.9 * costs[0]
+
+
+def test_rate_weight_trades_distortion_for_index_entropy():
+    """A larger β gives fewer codewords in use, a lower index entropy and a higher distortion; the
+    rate-distortion cost at each β is below that of the plain k-means solution it started from."""
+    rng = np.random.default_rng(6)
+    x = torch.from_numpy(rng.normal(size=(4000, 2)) * np.array([1.0, 0.3]))
+    c0, l0 = kmeans(x, 256, seed=1)
+    base_d = inertia(x, c0, l0) / len(x)
+    entropies, distortions, sizes = [_entropy(l0.numpy())], [base_d], [len(c0)]
+    for beta in (1.0, 10.0, 100.0):
+        c, labels = kmeans(x, 256, seed=1, rate_weight=beta)
+        assert torch.bincount(labels).min() > 0
+        lam = beta * base_d
+        assert _rd_cost(x.numpy(), c.numpy(), labels.numpy(), lam)[2] < _rd_cost(
+            x.numpy(), c0.numpy(), l0.numpy(), lam)[2]
+        entropies.append(_entropy(labels.numpy()))
+        distortions.append(inertia(x, c, labels) / len(x))
+        sizes.append(len(c))
+    assert all(b < a for a, b in zip(entropies, entropies[1:]))
+    assert all(b > a for a, b in zip(distortions, distortions[1:]))
+    assert sizes[-1] < sizes[0] // 4 and entropies[-1] < entropies[0] - 2
+
+
+def test_rate_weight_keeps_exact_fits_and_the_plain_path():
+    x = torch.randn(50, 2, generator=torch.Generator().manual_seed(0))
+    c, labels = kmeans(x, 64, rate_weight=10.0)  # no more points than clusters: exact, nothing to trade
+    torch.testing.assert_close(c[labels], x, rtol=0, atol=0)
+    y = torch.randn(3000, 2, generator=torch.Generator().manual_seed(1))
+    a, b = kmeans(y, 100, seed=3), kmeans(y, 100, seed=3, rate_weight=0.0)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
     with pytest.raises(ValueError):
         kmeans(torch.zeros(5, 1), 0)

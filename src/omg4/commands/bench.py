@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from omg4.commands.common import (add_codec_argument, add_device_arguments, add_scene_arguments, device_from_args,
-                                  int_at_least, load_scene_from_args)
+                                  int_at_least, load_scene_from_args, rate_weight_list)
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import SCHEDULES
 
@@ -24,6 +24,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "
                    + "; ".join(f"{b}: {', '.join(rows)}" for b, rows in _row_names().items()))
     add_codec_argument(p)
+    p.add_argument("--rate-weights", type=rate_weight_list, default=(0.0,), metavar="BETA[,BETA...]",
+                   help="beyond the paper: run every row once per rate weight of entropy-constrained codebooks "
+                        "(see omg4 compress --help, --rate-weight), e.g. 0,30; the figure then shows each coder's "
+                        "rate-distortion front (default 0: the paper's k-means)")
     add_device_arguments(p)
 
 
@@ -52,5 +56,5 @@ def run(args) -> int:
     scene = load_scene_from_args(args)
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
               baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
-              device=device)
+              device=device, rate_weights=args.rate_weights)
     return 0

@@ -87,8 +87,29 @@ def add_codec_argument(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--codec", default=CODECS[0], choices=list(CODECS),
                    help="file coder: compact (default: codewords coded without their order, unit quaternions, "
-                        "8-bit MLP weights; 0.54-0.85x the paper coder's file at the same quality, README 'Rate'), "
+                        "8-bit MLP weights; 0.49-0.78x the paper coder's file at the same quality, README 'Rate'), "
                         "ans (lossless, fp16 values as the paper), paper (Huffman + LZMA as OMG4)")
+
+
+rate_weight = float_in(0.0, math.inf, low_open=False, high_open=True)
+"""An argparse type: a rate weight β, finite and ≥ 0."""
+
+
+def rate_weight_list(text: str) -> tuple[float, ...]:
+    """An argparse type: comma-separated distinct rate weights (each finite and ≥ 0), in the order given."""
+    values = tuple(rate_weight(part.strip()) for part in text.split(","))
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"rate weights must be distinct, got {text}")
+    return values
+
+
+def add_rate_weight_argument(p: argparse.ArgumentParser) -> None:
+    """``--rate-weight``: β of entropy-constrained SVQ codebooks (:class:`omg4.compress.pipeline.CompressConfig`)."""
+    p.add_argument("--rate-weight", type=rate_weight, default=0.0,
+                   metavar="BETA",
+                   help="beyond the paper: fit the codebooks by entropy-constrained k-means, an index bit costing "
+                        "BETA times the mean k-means distortion, so the indices code to fewer bits at some quality "
+                        "(README 'Rate'); 0 (default) is the paper's k-means")
 
 
 def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True) -> None:

@@ -7,8 +7,9 @@ import json
 from pathlib import Path
 
 from omg4.commands.common import (add_background_argument, add_codec_argument, add_device_arguments,
-                                  add_force_argument, add_scene_arguments, background_from_args, config_from_args,
-                                  device_from_args, float_in, int_at_least, load_scene_from_args)
+                                  add_force_argument, add_rate_weight_argument, add_scene_arguments,
+                                  background_from_args, config_from_args, device_from_args, float_in, int_at_least,
+                                  load_scene_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.presets import PRESETS_BY_BACKBONE
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
@@ -37,6 +38,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
     add_codec_argument(p)
+    add_rate_weight_argument(p)
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
                    help="accumulate the time gradient without zeroing, as the official release does")

@@ -65,6 +65,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
+    if cfg.rate_weight:  # provenance of entropy-constrained codebooks; paper-faithful files stay as they were
+        meta["rate_weight"] = cfg.rate_weight
     paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written
     if stop_after is not None:
         save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
@@ -86,5 +88,6 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "config": {"preset": pipeline.size.name, "backbone": baseline.config.backbone, "stages": list(cfg.stages),
                    "schedule": cfg.schedule, "codec": codec,
                    "tau_gs": pipeline.size.tau_gs, "prune_quantile": pipeline.size.prune_quantile,
+                   "rate_weight": cfg.rate_weight,
                    "device": str(pipeline.device)},
     }

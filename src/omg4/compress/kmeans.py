@@ -13,7 +13,13 @@ initialization. This is the CPU equivalent, vectorized throughout:
 * nearest-centroid search is exact: a binary search between sorted centroids in 1-D, a
   KD-tree (scipy) for low dimension — the SVQ sub-vectors have length 1 or 2 — and chunked
   ``‖x‖² − 2x·c + ‖c‖²`` matrix products otherwise, never materializing more than
-  ``chunk`` distances at once.
+  ``chunk`` distances at once;
+* beyond the paper, an optional rate term (``rate_weight`` > 0): entropy-constrained VQ (Chou,
+  Lookabaugh & Gray 1989) continues from the k-means solution, assigning each point to the centroid
+  of least ``‖x − c‖² + λ·log2(1/p_c)`` (p_c the cluster's share of the points) and re-estimating
+  centroids and shares until that cost stops falling. Index usage becomes skewed and unused
+  codewords disappear, so the indices entropy-code to fewer bits (omg4 §8, "compact" codec) at
+  some distortion; ``rate_weight = 0`` is the paper's plain k-means.
 """
 
 from __future__ import annotations
@@ -94,21 +100,29 @@ def _update(x: torch.Tensor, w: torch.Tensor, labels: torch.Tensor, d2: torch.Te
 
 
 def kmeans(x: torch.Tensor, k: int, iters: int = 100, seed: int = 0, chunk: int = 1 << 23,
-           tol: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
+           tol: float = 1e-4, rate_weight: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Cluster ``x: [n, d]`` into at most ``k`` centroids.
 
     Args:
-        x: points [n, d] (finite). k: number of clusters. iters: most Lloyd iterations.
+        x: points [n, d] (finite). k: number of clusters. iters: most Lloyd iterations (and, with a rate
+            term, most entropy-constrained iterations after them).
         seed: RNG seed of the initialization. chunk: most distances in memory at once.
-        tol: stop when the inertia falls by less than this fraction in one iteration.
+        tol: stop when the inertia (or the rate-constrained cost) falls by less than this fraction in one
+            iteration.
+        rate_weight: β ≥ 0; with β > 0 the k-means solution is refined by :func:`entropy_constrained` with
+            λ = β × its mean squared distance per bit (a bit of index is worth β times the mean distortion).
     Returns:
         (centroids [k', d] (float64 for float64 input, else float32), labels [n] int64) with k' = min(k, #distinct
-        points); every label is the nearest centroid (float64 distances, before the cast).
+        points) — fewer with a rate term, which drops the codewords nobody uses; every label is the nearest
+        centroid (float64 distances, before the cast); with a rate term the labels are the last assignment of
+        least penalized distance and the centroids their clusters' means.
     """
     if x.ndim != 2 or x.shape[0] == 0:
         raise ValueError(f"kmeans needs a non-empty [n, d] tensor, got shape {tuple(x.shape)}")
     if k < 1:
         raise ValueError(f"kmeans needs k >= 1, got {k}")
+    if not (math.isfinite(rate_weight) and rate_weight >= 0):
+        raise ValueError(f"kmeans needs a finite rate_weight >= 0, got {rate_weight}")
     if not torch.isfinite(x).all():
         raise ValueError("kmeans input contains NaN or Inf")
     x = x.detach().cpu()
@@ -128,8 +142,61 @@ def kmeans(x: torch.Tensor, k: int, iters: int = 100, seed: int = 0, chunk: int 
             break
         previous = current
         centroids = _update(pts, w, labels, d2, centroids)
-    _, labels = nearest_centroid(pts, centroids, chunk)
+    d2, labels = nearest_centroid(pts, centroids, chunk)
+    if rate_weight > 0:
+        lam = rate_weight * float((w * d2).sum() / w.sum())
+        centroids, labels = entropy_constrained(pts, w, centroids, labels, lam, iters, chunk, tol)
     return centroids.to(x.dtype), labels[inverse]
+
+
+def penalized_nearest(x: torch.Tensor, c: torch.Tensor, penalty: torch.Tensor, chunk: int = 1 << 23) -> torch.Tensor:
+    """Labels [n] int64 minimizing ``‖x − c_j‖² + penalty_j`` (float64; x [n, d], c [k, d], penalty [k])."""
+    xd, cd = x.double(), c.double()
+    offset = (cd * cd).sum(1) + penalty.double()
+    rows = max(1, chunk // max(1, c.shape[0]))
+    labels = torch.empty(x.shape[0], dtype=torch.int64)
+    for start in range(0, x.shape[0], rows):
+        labels[start:start + rows] = torch.addmm(offset[None, :], xd[start:start + rows], cd.T, alpha=-2.0).argmin(1)
+    return labels
+
+
+def entropy_constrained(x: torch.Tensor, w: torch.Tensor, centroids: torch.Tensor, labels: torch.Tensor, lam: float,
+                        iters: int = 100, chunk: int = 1 << 23, tol: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entropy-constrained VQ (Chou, Lookabaugh & Gray 1989) from a starting codebook.
+
+    Minimizes ``J = Σ_i w_i (‖x_i − c_{l_i}‖² + λ·log2(W / W_{l_i}))`` (W_l the weight of cluster l, W the
+    total) by alternating its three exact minimizations — labels for fixed codewords and code lengths,
+    codewords as the weighted means of their points, code lengths as the shares' self-information —
+    so J never rises; clusters left empty are dropped. Stops when J falls by less than ``tol·J``.
+
+    Args:
+        x: points [n, d] float64; w: weights [n]; centroids: [k, d]; labels: [n] a starting assignment;
+        lam: λ > 0, squared distance per bit.
+    Returns:
+        (centroids [k', d] float64 of the clusters in use, labels [n] into them).
+    """
+    total, previous = float(w.sum()), math.inf
+    for _ in range(iters):
+        centroids, labels, mass = _means_of_used(x, w, labels, centroids.shape[0])
+        bits = torch.log2(total / mass)
+        cost = float((w * ((x - centroids[labels]).square().sum(1) + lam * bits[labels])).sum())
+        if math.isfinite(previous) and previous - cost <= tol * previous:
+            return centroids, labels
+        previous = cost
+        labels = penalized_nearest(x, centroids, lam * bits, chunk)
+    centroids, labels, _ = _means_of_used(x, w, labels, centroids.shape[0])
+    return centroids, labels
+
+
+def _means_of_used(x: torch.Tensor, w: torch.Tensor, labels: torch.Tensor, k: int
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(weighted means [k', d], labels renumbered [n], weights [k']) of the k' non-empty clusters of ``labels`` < k."""
+    mass = torch.zeros(k, dtype=torch.float64).index_add_(0, labels, w)
+    used = mass > 0
+    labels = (torch.cumsum(used.long(), 0) - 1)[labels]
+    mass = mass[used]
+    sums = torch.zeros(mass.shape[0], x.shape[1], dtype=torch.float64).index_add_(0, labels, x * w[:, None])
+    return sums / mass[:, None], labels, mass
 
 
 def inertia(x: torch.Tensor, centroids: torch.Tensor, labels: torch.Tensor) -> float:

@@ -44,7 +44,12 @@ FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
 @dataclass
 class CompressConfig:
     """Everything that decides an OMG4 run; ``preset`` sets τ_GS, p and the codebook sizes (None: the
-    backbone's default, M for Real-Time4DGS and L for FreeTimeGS)."""
+    backbone's default, M for Real-Time4DGS and L for FreeTimeGS).
+
+    ``rate_weight`` β > 0 (beyond the paper) fits the SVQ codebooks by entropy-constrained k-means
+    (:func:`omg4.compress.kmeans.kmeans`: an index bit costs β times the mean k-means distortion), so index
+    usage becomes skewed and the entropy-coded indices shrink; 0 keeps the paper's k-means.
+    """
 
     preset: str | None = None
     stages: tuple[str, ...] = FULL_STAGES
@@ -64,6 +69,7 @@ class CompressConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     tau_gs: float | None = None  # overrides of the preset
     prune_quantile: float | None = None
+    rate_weight: float = 0.0  # β of entropy-constrained codebooks (beyond the paper; 0 = its plain k-means)
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset or DEFAULT_PRESET[backbone], backbone)
@@ -211,7 +217,8 @@ class CompressionPipeline:
                 raise OMG4Error(f"SVQ of '{attr}' needs {names}: run the appearance stage first")
             values = torch.cat([self.model.params[n].detach().reshape(self.model.num_gaussians, -1) for n in names], 1)
             sub_len, k = self.size.codebook(attr)
-            self.model.quantizers[attr] = SubVectorQuantizer.fit(values, sub_len, k, seed=self.cfg.seed)
+            self.model.quantizers[attr] = SubVectorQuantizer.fit(values, sub_len, k, seed=self.cfg.seed,
+                                                                 rate_weight=self.cfg.rate_weight)
             for n in names:
                 self.model.params.pop(n)
         self._rebuild_main_optimizer()

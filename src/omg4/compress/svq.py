@@ -40,17 +40,19 @@ class SubVectorQuantizer(nn.Module):
 
     @classmethod
     def fit(cls, values: torch.Tensor, sub_len: int, codebook_size: int, seed: int = 0,
-            iters: int = 100) -> "SubVectorQuantizer":
+            iters: int = 100, rate_weight: float = 0.0) -> "SubVectorQuantizer":
         """k-means codebooks for ``values: [N, D]`` split into ``D / sub_len`` slots (omg4 §7).
 
-        A slot's codebook has ``min(codebook_size, #distinct sub-vectors)`` rows. k-means runs on
-        the CPU; the quantizer is returned on ``values``' device.
+        A slot's codebook has ``min(codebook_size, #distinct sub-vectors)`` rows — fewer with a rate term
+        (``rate_weight`` > 0, beyond the paper: entropy-constrained k-means, :func:`omg4.compress.kmeans.kmeans`).
+        k-means runs on the CPU; the quantizer is returned on ``values``' device.
         """
         if values.ndim != 2 or values.shape[1] % sub_len:
             raise ValueError(f"values [N, D] with D divisible by sub_len={sub_len}, got {tuple(values.shape)}")
         x = values.detach().float().cpu()
         with torch.device("cpu"):  # k-means runs on the CPU whatever the default device
-            fits = [kmeans(x[:, j * sub_len:(j + 1) * sub_len], codebook_size, iters=iters, seed=seed + j)
+            fits = [kmeans(x[:, j * sub_len:(j + 1) * sub_len], codebook_size, iters=iters, seed=seed + j,
+                           rate_weight=rate_weight)
                     for j in range(x.shape[1] // sub_len)]
         codebooks, labels = zip(*fits)
         return cls(list(codebooks), torch.stack(labels, dim=1)).to(values.device)
