@@ -6,9 +6,10 @@ from pathlib import Path
 import av
 import numpy as np
 import torch
+import pytest
 from PIL import Image
 
-from omg4.bench import rate_distortion_curves, run_bench
+from omg4.bench import rate_distortion_curves, row_file, run_bench
 from omg4.demo import QUICK, run_demo
 from omg4.train import Trainer, make_config
 
@@ -57,12 +58,16 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
                       backend="cpu")
     base = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
     results = run_bench(tiny_scene, base.model, base.model_path, tmp_path / "bench", schedule="tiny", batch_size=1,
-                        baseline_iterations=20, rows=["GS+AC", "OMG4-T"], backend="cpu", rate_weights=(0.0, 30.0),
-                        log=lambda *_: None)
-    assert list(results) == ["Real-Time4DGS", "GS+AC", "GS+AC, β=30", "OMG4-T", "OMG4-T, β=30"]
+                        baseline_iterations=20, rows=["GS+AC", "(GS+GP)+GM+AC", "OMG4-T"], backend="cpu",
+                        rate_weights=(0.0, 30.0), log=lambda *_: None)
+    assert list(results) == ["Real-Time4DGS", "GS+AC", "GS+AC, β=30", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30", "OMG4-T",
+                             "OMG4-T, β=30"]
     n = base.model.num_gaussians
     assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
+    assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
     assert results["OMG4-T"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
+    files = {Path(r["file"]).name for name, r in results.items() if name != "Real-Time4DGS"}
+    assert len(files) == 6 and "OMG4-T_beta30.omg4" in files
     table = (tmp_path / "bench" / "bench.md").read_text()
     assert "B/Gaussian" in table and "| GS+AC, β=30 |" in table and "PSNR, paper coder" in table
     saved = json.loads((tmp_path / "bench" / "bench.json").read_text())
@@ -75,8 +80,23 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
     assert saved["OMG4-T, β=30"]["rate_weight"] == 30.0 and saved["OMG4-T"]["rate_weight"] == 0.0
     assert saved["GS+AC"]["bytes_per_gaussian"] > 0 and (tmp_path / "bench" / "rate_distortion.png").exists()
     points, curves = rate_distortion_curves(results, "compact")
-    assert set(points) == {"Real-Time4DGS", "GS+AC", "GS+AC, β=30"}  # the baseline and the ablation rows
+    assert set(points) == {"Real-Time4DGS", "GS+AC", "GS+AC, β=30", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30"}
     assert curves == {"compact coder": {"T": (results["OMG4-T"]["storage_mb"], results["OMG4-T"]["psnr"])},
                       "compact coder, β=30": {"T": (results["OMG4-T, β=30"]["storage_mb"],
                                                     results["OMG4-T, β=30"]["psnr"])},
                       "paper coder": {"T": (results["OMG4-T"]["paper_codec_mb"], results["OMG4-T"]["paper_codec_psnr"])}}
+
+
+def test_bench_refuses_rate_weights_that_would_share_rows_or_files(tiny_scene, tmp_path):
+    from types import SimpleNamespace
+
+    from omg4.errors import OMG4Error
+
+    baseline = SimpleNamespace(config=SimpleNamespace(backbone="rt4dgs"))  # refused before the model is used
+    for rows, weights in ((["OMG4-T"], (0.1234561, 0.1234562)), (["OMG4-T", "OMG4-T"], (0.0,))):
+        with pytest.raises(OMG4Error, match="share names or files"):
+            run_bench(tiny_scene, baseline, tmp_path / "m.safetensors", tmp_path / "bench", rows=rows,
+                      rate_weights=weights, log=lambda *_: None)
+    # exponents keep their sign in file names: 1e6 and 1e-6 are two files
+    assert row_file(tmp_path, "OMG4-T", 1e6) != row_file(tmp_path, "OMG4-T", 1e-6)
+    assert not (tmp_path / "bench").exists()  # refused before anything was written

@@ -60,6 +60,12 @@ def row_label(name: str, rate_weight: float) -> str:
     return name if rate_weight == 0 else f"{name}, β={rate_weight:g}"
 
 
+def row_file(out: Path, name: str, rate_weight: float) -> Path:
+    """The ``.omg4`` file of a bench row at rate weight β in ``out`` (its paper-coder copy adds ``_paper_codec``)."""
+    stem = name.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-")
+    return out / (stem + ("" if rate_weight == 0 else f"_beta{rate_weight:g}".replace("+", "")) + ".omg4")
+
+
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
               baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
               backend: str = "auto", device: torch.device | str = "cpu", rate_weights: tuple[float, ...] = (0.0,),
@@ -70,8 +76,14 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.compress.score import compute_sd_scores
+    from omg4.errors import OMG4Error
     from omg4.evaluate import dynamic_masks, evaluate
 
+    table_rows = ROWS_BY_BACKBONE[baseline.config.backbone]
+    runs = [(n, b) for n in rows or list(table_rows) for b in rate_weights]
+    if len({row_label(n, b) for n, b in runs}) < len(runs) or len({row_file(out, n, b) for n, b in runs}) < len(runs):
+        raise OMG4Error(f"bench rows {rows or list(table_rows)} at rate weights {list(rate_weights)} would share names "
+                        "or files: give distinct rows and rate weights that differ in their first 6 digits")
     out.mkdir(parents=True, exist_ok=True)
     baseline = baseline.to(device)
     scores_path = out / "sd_scores.npz"
@@ -81,15 +93,12 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     masks = dynamic_masks(scene.test_views)  # one dynamic region for every row
     log("evaluating the baseline")
     base_name = baseline.config.schema.title
-    table_rows = ROWS_BY_BACKBONE[baseline.config.backbone]
     results[base_name] = evaluate(baseline, scene.test_views, storage_bytes=baseline_path.stat().st_size,
                                         backend=backend, device=device, masks=masks)
-    for name, beta in ((n, b) for n in rows or list(table_rows) for b in rate_weights):
+    for name, beta in runs:
         preset, stages = table_rows[name]
-        label = row_label(name, beta)
+        label, path = row_label(name, beta), row_file(out, name, beta)
         log(f"row {label}: preset {preset}, stages {','.join(stages)}")
-        path = out / (label.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-")
-                      .replace(",", "").replace("β=", "beta") + ".omg4")
         cfg = CompressConfig(preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
                              baseline_iterations=baseline_iterations, backend=backend, device=str(device),
                              rate_weight=beta)
@@ -98,8 +107,9 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
                                   paper_copy=paper_copy, log=log)
         r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size, backend=backend,
                      device=device, masks=masks)
-        paper_r = evaluate(load_omg4(paper_copy, device), scene.test_views, lpips_nets=(), backend=backend,
-                           device=device, masks=masks, fps_views=1, progress=False)
+        paper_r = r if codec == "paper" else evaluate(load_omg4(paper_copy, device), scene.test_views, lpips_nets=(),
+                                                      backend=backend, device=device, masks=masks, fps_views=1,
+                                                      progress=False)
         r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=report["file_bytes"] / r["num_gaussians"],
                  paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper_r["psnr"],
                  paper_codec_ssim=paper_r["ssim"], rate_weight=beta, preset=preset, full_pipeline=stages == FULL,
@@ -138,4 +148,4 @@ def _strip(results: dict[str, dict]) -> dict:
     return {k: {kk: vv for kk, vv in v.items() if kk != "per_view"} for k, v in results.items()}
 
 
-__all__ = ["ROWS", "ROWS_BY_BACKBONE", "bench_table", "rate_distortion_curves", "row_label", "run_bench"]
+__all__ = ["ROWS", "ROWS_BY_BACKBONE", "bench_table", "rate_distortion_curves", "row_file", "row_label", "run_bench"]

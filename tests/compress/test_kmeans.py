@@ -138,6 +138,8 @@ def test_invalid_inputs():
         kmeans(torch.zeros(5), 3)
     with pytest.raises(ValueError):
         kmeans(torch.tensor([[0.0], [float("nan")]]), 1)
+    with pytest.raises(ValueError):
+        kmeans(torch.zeros(5, 1), 0)
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError):
             kmeans(torch.zeros(5, 1), 3, rate_weight=bad)
@@ -218,5 +220,3 @@ def test_rate_weight_keeps_exact_fits_and_the_plain_path():
     y = torch.randn(3000, 2, generator=torch.Generator().manual_seed(1))
     a, b = kmeans(y, 100, seed=3), kmeans(y, 100, seed=3, rate_weight=0.0)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
-    with pytest.raises(ValueError):
-        kmeans(torch.zeros(5, 1), 0)

@@ -316,3 +316,12 @@ def test_rate_weight_fits_entropy_constrained_codebooks(baseline, tiny_scene, tm
                                                         constrained.attributes[attr].indices):
             assert len(cb_plain) == 16 and len(cb_rate) < 16
             assert entropy(ix_rate) < entropy(ix_plain) - 0.3, attr
+
+
+def test_invalid_rate_weight_is_refused_before_any_work(baseline, tiny_scene):
+    from omg4.compress.pipeline import CompressionPipeline
+    from omg4.errors import OMG4Error
+
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(OMG4Error, match="rate weight"):
+            CompressionPipeline(baseline.model, tiny_scene, _config(rate_weight=bad), progress=False)

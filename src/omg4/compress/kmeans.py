@@ -113,9 +113,10 @@ def kmeans(x: torch.Tensor, k: int, iters: int = 100, seed: int = 0, chunk: int 
             λ = β × its mean squared distance per bit (a bit of index is worth β times the mean distortion).
     Returns:
         (centroids [k', d] (float64 for float64 input, else float32), labels [n] int64) with k' = min(k, #distinct
-        points) — fewer with a rate term, which drops the codewords nobody uses; every label is the nearest
-        centroid (float64 distances, before the cast); with a rate term the labels are the last assignment of
-        least penalized distance and the centroids their clusters' means.
+        points) — possibly fewer with a rate term, which drops the codewords nobody uses (it acts only where k-means
+        had to share codewords: with at most ``k`` distinct points the fit is exact and returned as is); every label
+        is the nearest centroid (float64 distances, before the cast); with a rate term the labels are the last
+        assignment of least penalized distance and the centroids their clusters' means.
     """
     if x.ndim != 2 or x.shape[0] == 0:
         raise ValueError(f"kmeans needs a non-empty [n, d] tensor, got shape {tuple(x.shape)}")

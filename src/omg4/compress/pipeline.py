@@ -13,6 +13,7 @@ trainer uses (:mod:`omg4.train.step`, :mod:`omg4.train.optim`).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -105,6 +106,8 @@ class CompressionPipeline:
                  progress: bool = True, log=print):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
+        if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
+            raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.scene, self.cfg, self.progress, self.log = scene, cfg, progress, log
         self.schema: Backbone = baseline.config.schema
         self.size = cfg.size(baseline.config.backbone)
