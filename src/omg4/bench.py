@@ -80,10 +80,11 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.evaluate import dynamic_masks, evaluate
 
     table_rows = ROWS_BY_BACKBONE[baseline.config.backbone]
-    runs = [(n, b) for n in rows or list(table_rows) for b in rate_weights]
+    names = rows or list(table_rows)
+    runs = [(n, b) for n in names for b in rate_weights]
     if len({row_label(n, b) for n, b in runs}) < len(runs) or len({row_file(out, n, b) for n, b in runs}) < len(runs):
-        raise OMG4Error(f"bench rows {rows or list(table_rows)} at rate weights {list(rate_weights)} would share names "
-                        "or files: give distinct rows and rate weights that differ in their first 6 digits")
+        raise OMG4Error(f"bench rows {names} at rate weights {list(rate_weights)} would share names or files: give "
+                        "distinct rows and rate weights that differ in their first 6 digits")
     out.mkdir(parents=True, exist_ok=True)
     baseline = baseline.to(device)
     scores_path = out / "sd_scores.npz"
@@ -137,8 +138,7 @@ def rate_distortion_curves(results: dict[str, dict], codec: str) -> tuple[dict[s
         if not r.get("full_pipeline"):
             continue
         beta = r["rate_weight"]
-        name = f"{codec} coder" + (f", β={beta:g}" if beta else "")
-        curves.setdefault(name, {})[r["preset"]] = (r["storage_mb"], r["psnr"])
+        curves.setdefault(row_label(f"{codec} coder", beta), {})[r["preset"]] = (r["storage_mb"], r["psnr"])
         if not beta and codec != "paper":
             curves.setdefault("paper coder", {})[r["preset"]] = (r["paper_codec_mb"], r["paper_codec_psnr"])
     return points, curves

@@ -9,6 +9,7 @@ shown only for orientation.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 TABLE_COLUMNS = (("PSNR", "psnr", "{:.2f}"), ("SSIM", "ssim", "{:.4f}"), ("LPIPS", "lpips_alex", "{:.4f}"),
@@ -50,8 +51,8 @@ def _panel(ax, points: dict[str, tuple[float, float]], title: str, curves: Curve
     if points:
         ax.scatter([p[0] for p in points.values()], [p[1] for p in points.values()], marker="s", s=36,
                    color="tab:gray", zorder=3)
-    colours = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
-    for (name, members), colour in zip(curves.items(), colours * (1 + len(curves) // len(colours))):
+    colours = itertools.cycle(("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown"))
+    for (name, members), colour in zip(curves.items(), colours):
         line = sorted(members.values())
         ax.plot([p[0] for p in line], [p[1] for p in line], color=colour, alpha=0.6, marker="o", markersize=5,
                 zorder=2, label=name if len(curves) > 1 else None)

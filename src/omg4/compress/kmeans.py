@@ -50,14 +50,26 @@ def nearest_centroid(x: torch.Tensor, c: torch.Tensor, chunk: int = 1 << 23) -> 
         dist, labels = cKDTree(c.double().numpy()).query(x.double().numpy(), k=1, workers=torch.get_num_threads())
         return torch.from_numpy(np.square(dist)), torch.from_numpy(labels.astype(np.int64))
     cf = c.float()
-    c_sq = (cf * cf).sum(1)
-    rows = max(1, chunk // max(1, c.shape[0]))
-    labels = torch.empty(n, dtype=torch.int64)
-    for start in range(0, n, rows):
-        xb = x[start:start + rows].float()
-        labels[start:start + rows] = torch.addmm(c_sq[None, :], xb, cf.T, alpha=-2.0).argmin(1)
+    labels = _argmin_by_products(x.float(), cf, (cf * cf).sum(1), chunk)
     sq = (x.double() - c.double()[labels]).square().sum(1)
     return sq, labels
+
+
+def _argmin_by_products(x: torch.Tensor, c: torch.Tensor, offset: torch.Tensor, chunk: int) -> torch.Tensor:
+    """Labels [n] minimizing ``offset_j − 2 x·c_j`` (``offset = ‖c‖²`` plus any per-centroid penalty; ‖x‖² is the
+    same for every j), from chunked matrix products holding at most ``chunk`` values, in ``x``'s dtype."""
+    rows = max(1, chunk // max(1, c.shape[0]))
+    labels = torch.empty(x.shape[0], dtype=torch.int64)
+    for start in range(0, x.shape[0], rows):
+        labels[start:start + rows] = torch.addmm(offset[None, :], x[start:start + rows], c.T, alpha=-2.0).argmin(1)
+    return labels
+
+
+def _cluster_sums(x: torch.Tensor, w: torch.Tensor, labels: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(weight [k], weighted sum of the points [k, d]) of each of ``k`` clusters, float64."""
+    mass = torch.zeros(k, dtype=torch.float64).index_add_(0, labels, w)
+    sums = torch.zeros(k, x.shape[1], dtype=torch.float64).index_add_(0, labels, x * w[:, None])
+    return mass, sums
 
 
 def _distinct_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -88,9 +100,7 @@ def _init_centres(x: torch.Tensor, w: torch.Tensor, k: int, gen: torch.Generator
 def _update(x: torch.Tensor, w: torch.Tensor, labels: torch.Tensor, d2: torch.Tensor,
             centroids: torch.Tensor) -> torch.Tensor:
     """Weighted means of the clusters; empty clusters re-seeded at the farthest points. [k, d] float64."""
-    k = centroids.shape[0]
-    mass = torch.zeros(k, dtype=torch.float64).index_add_(0, labels, w)
-    sums = torch.zeros_like(centroids).index_add_(0, labels, x * w[:, None])
+    mass, sums = _cluster_sums(x, w, labels, centroids.shape[0])
     new = torch.where(mass[:, None] > 0, sums / mass.clamp_min(1e-300)[:, None], centroids)
     empty = torch.nonzero(mass == 0).squeeze(1)
     if empty.numel():
@@ -152,13 +162,8 @@ def kmeans(x: torch.Tensor, k: int, iters: int = 100, seed: int = 0, chunk: int 
 
 def penalized_nearest(x: torch.Tensor, c: torch.Tensor, penalty: torch.Tensor, chunk: int = 1 << 23) -> torch.Tensor:
     """Labels [n] int64 minimizing ``‖x − c_j‖² + penalty_j`` (float64; x [n, d], c [k, d], penalty [k])."""
-    xd, cd = x.double(), c.double()
-    offset = (cd * cd).sum(1) + penalty.double()
-    rows = max(1, chunk // max(1, c.shape[0]))
-    labels = torch.empty(x.shape[0], dtype=torch.int64)
-    for start in range(0, x.shape[0], rows):
-        labels[start:start + rows] = torch.addmm(offset[None, :], xd[start:start + rows], cd.T, alpha=-2.0).argmin(1)
-    return labels
+    cd = c.double()
+    return _argmin_by_products(x.double(), cd, (cd * cd).sum(1) + penalty.double(), chunk)
 
 
 def entropy_constrained(x: torch.Tensor, w: torch.Tensor, centroids: torch.Tensor, labels: torch.Tensor, lam: float,
@@ -192,12 +197,9 @@ def entropy_constrained(x: torch.Tensor, w: torch.Tensor, centroids: torch.Tenso
 def _means_of_used(x: torch.Tensor, w: torch.Tensor, labels: torch.Tensor, k: int
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(weighted means [k', d], labels renumbered [n], weights [k']) of the k' non-empty clusters of ``labels`` < k."""
-    mass = torch.zeros(k, dtype=torch.float64).index_add_(0, labels, w)
+    mass, sums = _cluster_sums(x, w, labels, k)
     used = mass > 0
-    labels = (torch.cumsum(used.long(), 0) - 1)[labels]
-    mass = mass[used]
-    sums = torch.zeros(mass.shape[0], x.shape[1], dtype=torch.float64).index_add_(0, labels, x * w[:, None])
-    return sums / mass[:, None], labels, mass
+    return sums[used] / mass[used][:, None], (torch.cumsum(used.long(), 0) - 1)[labels], mass[used]
 
 
 def inertia(x: torch.Tensor, centroids: torch.Tensor, labels: torch.Tensor) -> float:
