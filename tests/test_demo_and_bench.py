@@ -1,6 +1,7 @@
 """The main job and the benchmark run end to end at tiny sizes and write what they promise."""
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import av
@@ -10,8 +11,12 @@ import pytest
 from PIL import Image
 
 from omg4.bench import rate_distortion_curves, row_file, run_bench
+from omg4.codec.container import read_container
+from omg4.codec.payload import CompactGrids
 from omg4.demo import QUICK, run_demo
 from omg4.train import Trainer, make_config
+
+COARSE = CompactGrids(positions=12, rotations=7, times=7)
 
 
 def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
@@ -59,15 +64,23 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
     base = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
     results = run_bench(tiny_scene, base.model, base.model_path, tmp_path / "bench", schedule="tiny", batch_size=1,
                         baseline_iterations=20, rows=["GS+AC", "(GS+GP)+GM+AC", "OMG4-T"], backend="cpu",
-                        rate_weights=(0.0, 30.0), log=lambda *_: None)
-    assert list(results) == ["Real-Time4DGS", "GS+AC", "GS+AC, β=30", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30", "OMG4-T",
-                             "OMG4-T, β=30"]
+                        rate_weights=(0.0, 30.0), grids=(CompactGrids(), COARSE), log=lambda *_: None)
+    assert list(results) == ["Real-Time4DGS", "GS+AC", "GS+AC, grids 12/7/7", "GS+AC, β=30", "GS+AC, β=30, grids 12/7/7",
+                             "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, grids 12/7/7", "(GS+GP)+GM+AC, β=30",
+                             "(GS+GP)+GM+AC, β=30, grids 12/7/7", "OMG4-T", "OMG4-T, grids 12/7/7", "OMG4-T, β=30",
+                             "OMG4-T, β=30, grids 12/7/7"]
     n = base.model.num_gaussians
     assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
     assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
     assert results["OMG4-T"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
     files = {Path(r["file"]).name for name, r in results.items() if name != "Real-Time4DGS"}
-    assert len(files) == 6 and "OMG4-T_beta30.omg4" in files
+    assert len(files) == 12 and {"OMG4-T_beta30.omg4", "OMG4-T_beta30_grids12-7-7.omg4"} <= files
+    for row in ("GS+AC", "OMG4-T, β=30"):  # the coarse file: the same pipeline result on the coarser grids
+        fine, coarse = results[row], results[row + ", grids 12/7/7"]
+        assert coarse["num_gaussians"] == fine["num_gaussians"] and coarse["storage_mb"] < fine["storage_mb"]
+        assert coarse["paper_codec_mb"] == fine["paper_codec_mb"] and coarse["grids"] == asdict(COARSE)
+        header = read_container(coarse["file"])[0]
+        assert header["encodings"]["quat.rotation"] == "smallest-three-7"
     table = (tmp_path / "bench" / "bench.md").read_text()
     assert "B/Gaussian" in table and "| GS+AC, β=30 |" in table and "PSNR, paper coder" in table
     saved = json.loads((tmp_path / "bench" / "bench.json").read_text())
@@ -80,10 +93,14 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
     assert saved["OMG4-T, β=30"]["rate_weight"] == 30.0 and saved["OMG4-T"]["rate_weight"] == 0.0
     assert saved["GS+AC"]["bytes_per_gaussian"] > 0 and (tmp_path / "bench" / "rate_distortion.png").exists()
     points, curves = rate_distortion_curves(results, "compact")
-    assert set(points) == {"Real-Time4DGS", "GS+AC", "GS+AC, β=30", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30"}
-    assert curves == {"compact coder": {"T": (results["OMG4-T"]["storage_mb"], results["OMG4-T"]["psnr"])},
-                      "compact coder, β=30": {"T": (results["OMG4-T, β=30"]["storage_mb"],
-                                                    results["OMG4-T, β=30"]["psnr"])},
+    assert set(points) == {name for name in results if not name.startswith("OMG4-T")}
+
+    def point(row):
+        return {"T": (results[row]["storage_mb"], results[row]["psnr"])}
+
+    assert curves == {"compact coder": point("OMG4-T"), "compact coder, grids 12/7/7": point("OMG4-T, grids 12/7/7"),
+                      "compact coder, β=30": point("OMG4-T, β=30"),
+                      "compact coder, β=30, grids 12/7/7": point("OMG4-T, β=30, grids 12/7/7"),
                       "paper coder": {"T": (results["OMG4-T"]["paper_codec_mb"], results["OMG4-T"]["paper_codec_psnr"])}}
 
 
@@ -97,6 +114,12 @@ def test_bench_refuses_rate_weights_that_would_share_rows_or_files(tiny_scene, t
         with pytest.raises(OMG4Error, match="share names or files"):
             run_bench(tiny_scene, baseline, tmp_path / "m.safetensors", tmp_path / "bench", rows=rows,
                       rate_weights=weights, log=lambda *_: None)
+    with pytest.raises(OMG4Error, match="share names or files"):  # one grid given twice
+        run_bench(tiny_scene, baseline, tmp_path / "m.safetensors", tmp_path / "bench", rows=["OMG4-T"],
+                  grids=(COARSE, CompactGrids(12, 7, 7)), log=lambda *_: None)
+    with pytest.raises(OMG4Error, match="compact codec only"):  # grids with the paper coder
+        run_bench(tiny_scene, baseline, tmp_path / "m.safetensors", tmp_path / "bench", rows=["OMG4-T"],
+                  codec="paper", grids=(COARSE,), log=lambda *_: None)
     # exponents keep their sign in file names: 1e6 and 1e-6 are two files
     assert row_file(tmp_path, "OMG4-T", 1e6) != row_file(tmp_path, "OMG4-T", 1e-6)
     assert not (tmp_path / "bench").exists()  # refused before anything was written

@@ -9,18 +9,22 @@ and the compression wall time, and the same pipeline result written with the pap
 (its MB, PSNR and SSIM: the comparison point of the "compact" codec). With rate weights β > 0
 (beyond the paper: entropy-constrained codebooks, :class:`omg4.compress.pipeline.CompressConfig`)
 every row runs once per β ("OMG4-M, β=30"), so the figure shows each coder's rate–distortion
-front. The SD scores of the baseline and the dynamic-region masks are computed once and shared
-by every row.
+front. With several compact-codec grids (beyond the paper: :class:`omg4.codec.payload.CompactGrids`) each
+row's model is also written at every further grid, a re-encoding of the same pipeline result ("OMG4-M,
+grids 12/7/7"), one more curve per grid. The SD scores of the baseline and the dynamic-region masks are
+computed once and shared by every row.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
 from omg4.atomic import write_text_atomic
+from omg4.codec.payload import CompactGrids
 from omg4.report import Curves, format_table, rate_distortion_plot
 
 AC = ("appearance", "svq3d", "svq4d")
@@ -55,24 +59,31 @@ def bench_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def row_label(name: str, rate_weight: float) -> str:
-    """A bench row's name at rate weight β: the table's name for the paper's k-means (β = 0), else with ", β=…"."""
-    return name if rate_weight == 0 else f"{name}, β={rate_weight:g}"
+def row_label(name: str, rate_weight: float, grids: CompactGrids = CompactGrids()) -> str:
+    """A bench row's name at rate weight β and compact grids: ``name``, ", β=30" unless β = 0, ", grids 12/7/7"
+    unless the default grids."""
+    return (name + ("" if rate_weight == 0 else f", β={rate_weight:g}")
+            + ("" if grids == CompactGrids() else f", grids {grids.label}"))
 
 
-def row_file(out: Path, name: str, rate_weight: float) -> Path:
-    """The ``.omg4`` file of a bench row at rate weight β in ``out`` (its paper-coder copy adds ``_paper_codec``)."""
+def row_file(out: Path, name: str, rate_weight: float, grids: CompactGrids = CompactGrids()) -> Path:
+    """The ``.omg4`` file of a bench row at rate weight β and compact grids in ``out`` (its paper-coder copy adds
+    ``_paper_codec``)."""
     stem = name.replace(" ", "_").replace("(", "").replace(")", "").replace("+", "-")
-    return out / (stem + ("" if rate_weight == 0 else f"_beta{rate_weight:g}".replace("+", "")) + ".omg4")
+    beta = "" if rate_weight == 0 else f"_beta{rate_weight:g}".replace("+", "")
+    grid = "" if grids == CompactGrids() else "_grids" + grids.label.replace("/", "-")
+    return out / (stem + beta + grid + ".omg4")
 
 
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
               baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
               backend: str = "auto", device: torch.device | str = "cpu", rate_weights: tuple[float, ...] = (0.0,),
-              log=print) -> dict:
-    """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and rate weight, and evaluate
-    everything on the test views, computing on ``device``."""
+              grids: tuple[CompactGrids, ...] = (CompactGrids(),), log=print) -> dict:
+    """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and rate weight, write each result
+    at every compact grid of ``grids`` (the first by the pipeline run, the others re-encoded from its paper-coder
+    copy), and evaluate everything on the test views, computing on ``device``."""
     from omg4.codec.decoder import load_omg4
+    from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.compress.score import compute_sd_scores
@@ -81,10 +92,15 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
 
     table_rows = ROWS_BY_BACKBONE[baseline.config.backbone]
     names = rows or list(table_rows)
+    for g in grids:
+        check_codec(codec, g)
     runs = [(n, b) for n in names for b in rate_weights]
-    if len({row_label(n, b) for n, b in runs}) < len(runs) or len({row_file(out, n, b) for n, b in runs}) < len(runs):
-        raise OMG4Error(f"bench rows {names} at rate weights {list(rate_weights)} would share names or files: give "
-                        "distinct rows and rate weights that differ in their first 6 digits")
+    outputs = [(n, b, g) for n, b in runs for g in grids]
+    if (len({row_label(*o) for o in outputs}) < len(outputs)
+            or len({row_file(out, *o) for o in outputs}) < len(outputs)):
+        raise OMG4Error(f"bench rows {names} at rate weights {list(rate_weights)} and grids "
+                        f"{[g.label for g in grids]} would share names or files: give distinct rows, grids and rate "
+                        "weights that differ in their first 6 digits")
     out.mkdir(parents=True, exist_ok=True)
     baseline = baseline.to(device)
     scores_path = out / "sd_scores.npz"
@@ -98,25 +114,30 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
                                         backend=backend, device=device, masks=masks)
     for name, beta in runs:
         preset, stages = table_rows[name]
-        label, path = row_label(name, beta), row_file(out, name, beta)
-        log(f"row {label}: preset {preset}, stages {','.join(stages)}")
+        path = row_file(out, name, beta, grids[0])
+        log(f"row {row_label(name, beta)}: preset {preset}, stages {','.join(stages)}")
         cfg = CompressConfig(preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
                              baseline_iterations=baseline_iterations, backend=backend, device=str(device),
                              rate_weight=beta)
         paper_copy = path.with_name(path.stem + "_paper_codec.omg4")
         report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path,
-                                  paper_copy=paper_copy, log=log)
-        r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size, backend=backend,
-                     device=device, masks=masks)
-        paper_r = r if codec == "paper" else evaluate(load_omg4(paper_copy, device), scene.test_views, lpips_nets=(),
-                                                      backend=backend, device=device, masks=masks, fps_views=1,
-                                                      progress=False)
-        r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=report["file_bytes"] / r["num_gaussians"],
-                 paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper_r["psnr"],
-                 paper_codec_ssim=paper_r["ssim"], rate_weight=beta, preset=preset, full_pipeline=stages == FULL,
-                 stages=report["stages"], file=str(path))
-        results[label] = r
-        write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
+                                  paper_copy=paper_copy, precision=grids[0], log=log)
+        paper_r = None if codec == "paper" else evaluate(load_omg4(paper_copy, device), scene.test_views,
+                                                         lpips_nets=(), backend=backend, device=device, masks=masks,
+                                                         fps_views=1, progress=False)
+        for g in grids:
+            if g != grids[0]:
+                path = row_file(out, name, beta, g)
+                encode_payload(decode_payload(paper_copy), path, codec=codec, precision=g)
+            r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size,
+                         backend=backend, device=device, masks=masks)
+            paper = paper_r or r
+            r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=path.stat().st_size / r["num_gaussians"],
+                     paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper["psnr"],
+                     paper_codec_ssim=paper["ssim"], rate_weight=beta, grids=asdict(g), preset=preset,
+                     full_pipeline=stages == FULL, stages=report["stages"], file=str(path))
+            results[row_label(name, beta, g)] = r
+            write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
     base = results[base_name]
     base["bytes_per_gaussian"] = baseline_path.stat().st_size / base["num_gaussians"]
     table = bench_table(results)
@@ -129,16 +150,16 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
 
 
 def rate_distortion_curves(results: dict[str, dict], codec: str) -> tuple[dict[str, dict], Curves]:
-    """The bench figure's content: stand-alone rows (the baseline, the ablations) and one curve per coder and
-    rate weight through the full-pipeline rows, their points labelled by preset — ``codec``'s files at every β, and the
-    paper coder's copies of the β = 0 runs (the comparison point)."""
+    """The bench figure's content: stand-alone rows (the baseline, the ablations) and one curve per coder, rate
+    weight and grid through the full-pipeline rows, their points labelled by preset — ``codec``'s files at every β
+    and grid, and the paper coder's copies of the β = 0 runs (the comparison point)."""
     points = {name: r for name, r in results.items() if not r.get("full_pipeline")}
     curves: Curves = {}
     for r in results.values():
         if not r.get("full_pipeline"):
             continue
-        beta = r["rate_weight"]
-        curves.setdefault(row_label(f"{codec} coder", beta), {})[r["preset"]] = (r["storage_mb"], r["psnr"])
+        beta, grids = r["rate_weight"], CompactGrids(**r.get("grids", {}))
+        curves.setdefault(row_label(f"{codec} coder", beta, grids), {})[r["preset"]] = (r["storage_mb"], r["psnr"])
         if not beta and codec != "paper":
             curves.setdefault("paper coder", {})[r["preset"]] = (r["paper_codec_mb"], r["paper_codec_psnr"])
     return points, curves

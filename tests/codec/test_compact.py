@@ -9,10 +9,10 @@ import pytest
 from omg4.codec import codewords, quaternions, weights
 from omg4.codec.container import read_container
 from omg4.codec.grids import position_order
-from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
+from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
                                 encode_payload)
 from omg4.codec.payload import _smallest_f16 as smallest_f16
-from omg4.errors import CorruptFileError
+from omg4.errors import CorruptFileError, OMG4Error
 
 from tests.codec.test_payload import make_payload
 
@@ -246,6 +246,16 @@ def test_more_rotations_than_a_codebook_holds_are_stored_by_the_compact_codec_on
         encode_payload(d, tmp_path / "ans.omg4", codec="ans")
 
 
+def _z_order(xyz: np.ndarray, bits: int) -> np.ndarray:
+    """Stable Z-order of the ``bits``-bit grid cells of ``xyz`` over its box, from bit strings (x in the lowest
+    bit): the compact codec's storage order, computed independently."""
+    step = (xyz.max(axis=0) - xyz.min(axis=0)).max() / (2 ** bits - 1)
+    cells = np.rint((xyz - xyz.min(axis=0)) / step).astype(np.int64)
+    keys = [int("".join(f"{c[2]:0{bits}b}"[i] + f"{c[1]:0{bits}b}"[i] + f"{c[0]:0{bits}b}"[i] for i in range(bits)), 2)
+            for c in cells]
+    return np.argsort(keys, kind="stable")
+
+
 def test_compact_payload_round_trip(tmp_path):
     """Positions and time centres on their grids (at most half a step off, in the grid's Z-order); log-scale
     codebooks on steps of 1/32; every other SVQ attribute bit-exact (codebooks relabelled); rotations on the unit
@@ -258,10 +268,7 @@ def test_compact_payload_round_trip(tmp_path):
     ref = p.to_fp16()
     xyz = ref.xyz.astype(np.float64)
     step = (xyz.max(axis=0) - xyz.min(axis=0)).max() / (2 ** 15 - 1)
-    cells = np.rint((xyz - xyz.min(axis=0)) / step).astype(np.int64)
-    z_order = np.argsort([int("".join(f"{c[2]:015b}"[i] + f"{c[1]:015b}"[i] + f"{c[0]:015b}"[i] for i in range(15)), 2)
-                          for c in cells], kind="stable")  # Z-order from bit strings, x in the lowest bit
-    ref = ref.permuted(z_order)
+    ref = ref.permuted(_z_order(xyz, 15))
     fp16_ulp = 2.0 ** -10
     assert (np.abs(d.xyz - ref.xyz.astype(np.float64)) <= step / 2 + fp16_ulp * np.abs(ref.xyz)).all()
     t_step = 10.0 / 1024  # the meta's time range [0, 10] in 1024 steps
@@ -284,6 +291,106 @@ def test_compact_payload_round_trip(tmp_path):
             assert (np.abs(d.mlp[name].astype(np.float64) - w) <= step / 2 + 1e-3 * np.abs(w) + 1e-7).all()
     header, _ = read_container(tmp_path / "m.omg4")
     assert header["codec"] == "compact" and header["quaternions"] == ["rotation"]
+
+
+@pytest.mark.parametrize("positions, rotations, times, weights, log_scales",
+                         [(12, 7, 7, 8, 5), (16, 12, 12, 16, 10), (1, 2, 1, 8, 1), (0, 13, 0, 16, 14)])
+def test_compact_grids_hold_each_value_within_half_their_step(tmp_path, positions, rotations, times, weights,
+                                                              log_scales):
+    """Other grids (``--grid-bits``): every position within half a step of the ``positions``-bit grid over the box,
+    every time centre within half of duration · 2^-times (0: both in fp16, exactly as the paper stores them), every
+    rotation within the ``rotations``-bit quaternion grid,
+    log-scale codebooks on steps of 2^-log_scales, MLP weights in fp16 exactly at 16 bits; the sections name their
+    grids, so the decoder needs no setting; coarser grids take fewer bytes."""
+    p = make_payload(3000)
+    p.rotations, p.log_scaled = ("rotation",), ("scale",)
+    grids = CompactGrids(positions, rotations, times, weights, log_scales)
+    sizes = encode_payload(p, tmp_path / "g.omg4", codec="compact", precision=grids)
+    default = encode_payload(p, tmp_path / "d.omg4", codec="compact")
+    ref, d = p.to_fp16(), decode_payload(tmp_path / "g.omg4")
+    fp16_ulp = 2.0 ** -10
+    if positions == 0:  # fp16 as the paper, Gaussians in the Morton order of those values
+        ref = ref.permuted(canonical_order(ref.xyz))
+        np.testing.assert_array_equal(d.xyz.view(np.uint16), ref.xyz.view(np.uint16))
+    else:
+        ref = ref.permuted(_z_order(ref.xyz.astype(np.float64), positions))
+        xyz = ref.xyz.astype(np.float64)
+        step = (xyz.max(axis=0) - xyz.min(axis=0)).max() / (2 ** positions - 1)
+        assert (np.abs(d.xyz - xyz) <= step / 2 + fp16_ulp * np.abs(xyz)).all()
+    t = ref.t.astype(np.float64)
+    if times == 0:
+        np.testing.assert_array_equal(d.t.view(np.uint16), ref.t.view(np.uint16))
+    else:
+        assert (np.abs(d.t - t) <= 10.0 / 2 ** times / 2 + fp16_ulp * np.abs(t)).all()
+    q_step = np.sqrt(2) / (2 ** rotations - 2)  # 2^bits − 1 levels over [−1/√2, 1/√2]
+    np.testing.assert_allclose(_rotation_matrix(d.attributes["rotation"].reconstruct().astype(np.float64)),
+                               _rotation_matrix(ref.attributes["rotation"].reconstruct().astype(np.float64)),
+                               atol=4 * q_step + 4 * 2.0 ** -11)  # the decoded quaternions are rounded to fp16
+    scale, scale_ref = d.attributes["scale"].reconstruct(), ref.attributes["scale"].reconstruct().astype(np.float64)
+    assert (np.abs(scale - scale_ref) <= 2.0 ** -log_scales / 2 + fp16_ulp * np.abs(scale_ref)).all()
+    for name, w in ref.mlp.items():
+        if weights == 16:  # the paper's fp16 weights, bit for bit
+            np.testing.assert_array_equal(d.mlp[name].view(np.uint16), w.view(np.uint16))
+        elif w.size:
+            assert not np.array_equal(d.mlp[name].view(np.uint16), w.view(np.uint16))
+    header, _ = read_container(tmp_path / "g.omg4")
+    assert header["encodings"]["quat.rotation"] == f"smallest-three-{rotations}"
+    finer = {"xyz": positions > 15, "t": times > 10 or times == 0, "quat.rotation": rotations > 9}
+    for section in ("xyz", "t", "quat.rotation") if positions else ("t", "quat.rotation"):  # fp16: depends on the box
+        assert (sizes[section] > default[section]) if finer[section] else (sizes[section] < default[section])
+    assert header["encodings"]["xyz"] == ("morton" if positions == 0 else "grid-morton")
+
+
+def test_lossless_grids_store_the_paper_coders_values_exactly_and_smaller(tmp_path):
+    """``--grid-bits 0,16,0,16,0``: fp16 positions and time centres, the rotation codebooks, fp16 MLP weights and
+    unrounded log-scale codebooks — the payload's values bit for bit (Gaussians in Morton order, as "ans"), in fewer
+    bytes than both lossless coders; a rotation codebook longer than an index alphabet is then refused."""
+    p = make_payload(3000)
+    p.rotations, p.log_scaled = ("rotation",), ("scale",)
+    lossless = CompactGrids(0, 16, 0, 16, 0)
+    size = sum(encode_payload(p, tmp_path / "c.omg4", precision=lossless).values())
+    d, ref = decode_payload(tmp_path / "c.omg4"), p.permuted(canonical_order(p.xyz)).to_fp16()
+    for a, b in [(d.xyz, ref.xyz), (d.t, ref.t), *((d.mlp[k], ref.mlp[k]) for k in ref.mlp),
+                 *((d.attributes[k].reconstruct(), ref.attributes[k].reconstruct()) for k in ref.attributes)]:
+        np.testing.assert_array_equal(np.asarray(a, np.float16).view(np.uint16), np.asarray(b, np.float16).view(np.uint16))
+    assert set(d.attributes) == set(ref.attributes) and d.meta == ref.meta
+    assert size < sum(encode_payload(p, tmp_path / "a.omg4", codec="ans").values())
+    big = make_payload(70000)
+    big.rotations = ("rotation",)
+    big.attributes["rotation"] = QuantizedAttribute([np.random.default_rng(1).normal(size=(70000, 4))],
+                                                    [np.arange(70000)])
+    encode_payload(big, tmp_path / "q.omg4")  # as unit quaternions: any number of rows
+    with pytest.raises(OMG4Error, match="at most 65536 rows"):
+        encode_payload(big, tmp_path / "b.omg4", precision=lossless)
+
+
+def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
+    for bad in ((17, 9, 10), (15, 1, 10), (15, 9, -1), (15.0, 9, 10), (True, 9, 10), (15, 9, 10, 12, 5),
+                (15, 9, 10, 8, 15)):
+        with pytest.raises(OMG4Error, match="bits must be an integer|weights take 8 or 16"):
+            CompactGrids(*bad)
+    for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1"):
+        with pytest.raises(OMG4Error, match="three integers"):
+            CompactGrids.parse(text)
+    assert CompactGrids.parse(" 12, 7,7") == CompactGrids(12, 7, 7) and CompactGrids().label == "15/9/10"
+    assert CompactGrids.parse("15,9,10,8,5") == CompactGrids() and CompactGrids.parse("16,12,12,16,10").label == \
+        "16/12/12/16/10"
+    for codec in ("ans", "paper"):
+        with pytest.raises(OMG4Error, match="compact codec only"):
+            encode_payload(make_payload(10), tmp_path / "x.omg4", codec=codec, precision=CompactGrids(12, 7, 7))
+    assert not (tmp_path / "x.omg4").exists()
+
+
+def test_a_compact_file_re_encoded_from_its_paper_copy_is_the_same_file(tmp_path):
+    """``omg4 bench --grid-bits`` and ``benchmarks/rate_front.py`` write their further grids from the paper coder's
+    copy: that holds the payload's fp16 values exactly, so the compact file is byte for byte the direct one."""
+    p = make_payload(2000)
+    p.rotations, p.log_scaled = ("rotation",), ("scale",)
+    encode_payload(p, tmp_path / "paper.omg4", codec="paper")
+    for grids in (CompactGrids(), CompactGrids(12, 7, 7)):
+        encode_payload(p, tmp_path / "direct.omg4", precision=grids)
+        encode_payload(decode_payload(tmp_path / "paper.omg4"), tmp_path / "again.omg4", precision=grids)
+        assert (tmp_path / "direct.omg4").read_bytes() == (tmp_path / "again.omg4").read_bytes()
 
 
 def test_version_2_compact_files_still_decode(tmp_path):

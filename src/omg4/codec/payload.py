@@ -72,8 +72,57 @@ VALUES_SLACK = 1 << 20
 _NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
 _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
-#: the "compact" codec's step for log-scale codebooks (module docstring): 2^-5 in log space
-LOG_SCALE_STEP = 2.0 ** -5
+#: allowed bits of each :class:`CompactGrids` field (what the decoder accepts for each grid)
+GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (8, 16),
+                     "log_scales": (0, 14)}
+
+
+@dataclass(frozen=True)
+class CompactGrids:
+    """The grids of the "compact" codec's lossy values (beyond the paper; README, Rate), a rate–distortion knob the
+    decoder needs no setting for (each section records its grid, or holds fp16 values).
+
+    positions: bits per axis over the scene box's largest side (:func:`omg4.codec.grids.encode_positions`), or 0:
+    the fp16 positions as the paper, losslessly (sorted Morton codes, as the "ans" codec);
+    rotations: bits per "smallest three" quaternion component (:mod:`omg4.codec.quaternions`), or 16: the rotation
+    codebooks and indices as the pipeline made them, losslessly;
+    times: time centres on steps of the clip's duration · 2^-times (:func:`omg4.codec.grids.time_step`), or 0: fp16
+    as the paper;
+    weights: MLP weight matrices in 8 bits per weight (:mod:`omg4.codec.weights`) or 16 (fp16, as the paper);
+    log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are.
+    ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
+    """
+
+    positions: int = grids.POSITION_BITS
+    rotations: int = quaternions.BITS
+    times: int = grids.TIME_BITS
+    weights: int = 8
+    log_scales: int = 5
+
+    def __post_init__(self):
+        for name, (lo, hi) in GRID_BITS_ALLOWED.items():
+            bits = getattr(self, name)
+            if isinstance(bits, bool) or not isinstance(bits, int) or not lo <= bits <= hi:
+                raise OMG4Error(f"compact grid: {name} bits must be an integer in [{lo}, {hi}], got {bits!r}")
+        if self.weights not in (8, 16):
+            raise OMG4Error(f"compact grid: weights take 8 or 16 bits, got {self.weights}")
+
+    @classmethod
+    def parse(cls, text: str) -> "CompactGrids":
+        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES]"`` bits, e.g. ``"15,9,10"`` or ``"16,12,12,16,10"``."""
+        parts = [p.strip() for p in text.split(",")]
+        if len(parts) not in (3, 5) or not all(re.fullmatch(r"[0-9]{1,2}", p) for p in parts):
+            raise OMG4Error(f"compact grid {text!r}: give three integers POSITIONS,ROTATIONS,TIMES such as 15,9,10, "
+                            "or five with WEIGHTS,LOG_SCALES such as 16,12,12,16,10")
+        return cls(*(int(p) for p in parts))
+
+    @property
+    def label(self) -> str:
+        """``"15/9/10"`` (positions/rotations/times bits), with ``/weights/log_scales`` when those are not the
+        defaults."""
+        tail = (self.weights, self.log_scales)
+        default = (CompactGrids.weights, CompactGrids.log_scales)
+        return "/".join(str(b) for b in (self.positions, self.rotations, self.times, *(() if tail == default else tail)))
 
 
 @dataclass
@@ -224,11 +273,12 @@ def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, .
     return name in rotations and sum(int(np.shape(cb)[1]) for cb in q.codebooks) == 4
 
 
-def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
+def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) -> CompressedPayload:
     """The fp16/int64 form of ``p`` after checking shapes, names, ranges and finiteness (OMG4Error).
 
-    A rotation the compact codec stores as unit quaternions may have codebooks of any length (a decoded
-    compact file holds one row per Gaussian); every other codebook has at most MAX_SYMBOLS rows."""
+    A rotation the compact codec stores as unit quaternions (``precision.rotations`` < 16) may have codebooks of
+    any length (a decoded compact file holds one row per Gaussian); every other codebook has at most MAX_SYMBOLS
+    rows."""
     n = int(np.asarray(p.xyz).shape[0]) if np.asarray(p.xyz).ndim == 2 else -1
     if n < 1 or np.asarray(p.xyz).shape != (n, 3) or np.asarray(p.t).size != n:
         raise OMG4Error(f"payload needs xyz [N, 3] and t [N] with N >= 1, got {np.shape(p.xyz)} and {np.shape(p.t)}")
@@ -251,12 +301,13 @@ def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
     for attr, qa in q.attributes.items():
         if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
             raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
-        any_length = codec == "compact" and _quaternion_stored(qa, attr, q.rotations)
+        any_length = codec == "compact" and precision.rotations < 16 and _quaternion_stored(qa, attr, q.rotations)
         max_rows = max(n, MAX_SYMBOLS) if any_length else MAX_SYMBOLS
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
             if cb.ndim != 2 or not 1 <= cb.shape[0] <= max_rows or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
                 raise OMG4Error(f"attribute {attr}: codebook {j} has shape {cb.shape} (at most {MAX_SYMBOLS} rows of "
-                                f"at most {MAX_SUB_LEN}; more rotations than that only the compact codec stores)")
+                                f"at most {MAX_SUB_LEN}; more rotations than that only the compact codec stores, as unit "
+                                "quaternions)")
             if not np.isfinite(cb).all():
                 raise OMG4Error(f"attribute {attr}: codebook {j} has NaN/Inf or values beyond the fp16 range")
             if ix.shape != (n,) or ix.min() < 0 or ix.max() >= cb.shape[0]:
@@ -264,50 +315,64 @@ def _check_payload(p: CompressedPayload, codec: str) -> CompressedPayload:
     return q
 
 
-def snap_log_scaled(codebook: np.ndarray) -> np.ndarray:
-    """A log-scale codebook rounded to :data:`LOG_SCALE_STEP` (fp16 holds every such value below 64 exactly;
-    rounding twice changes nothing)."""
-    return (np.rint(np.asarray(codebook, np.float64) / LOG_SCALE_STEP) * LOG_SCALE_STEP).astype(np.float16)
+def snap_log_scaled(codebook: np.ndarray, bits: int = CompactGrids.log_scales) -> np.ndarray:
+    """A log-scale codebook rounded to steps of 2^-bits, then to fp16 (at the default 5 bits fp16 holds every such
+    value below 64 exactly, so rounding twice changes nothing)."""
+    step = 2.0 ** -bits
+    return (np.rint(np.asarray(codebook, np.float64) / step) * step).astype(np.float16)
 
 
 def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool, log_scaled: bool,
-                              sections: dict[str, bytes], encodings: dict[str, str]) -> list[list[int]] | None:
-    """Add the sections of one SVQ attribute in the "compact" codec; returns its codebook shapes, or None when
-    it was stored as unit quaternions (smaller than its codebooks and indices, or too many rows for them)."""
-    quat = quaternions.encode_quaternions(qa.reconstruct()) if as_quaternion else None
+                              precision: CompactGrids, sections: dict[str, bytes], encodings: dict[str, str]
+                              ) -> list[list[int]] | None:
+    """Add the sections of one SVQ attribute in the "compact" codec at ``precision``; returns its codebook shapes, or
+    None when it was stored as unit quaternions (smaller than its codebooks and indices, or too many rows for
+    them)."""
+    quat = quaternions.encode_quaternions(qa.reconstruct(), precision.rotations) if as_quaternion else None
     slots, shapes = {}, []
     if max(cb.shape[0] for cb in qa.codebooks) <= MAX_SYMBOLS:
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            cb = snap_log_scaled(cb) if log_scaled else cb
+            cb = snap_log_scaled(cb, precision.log_scales) if log_scaled and precision.log_scales else cb
             cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
             slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
             shapes.append([k, int(cb.shape[1])])
     if quat is not None and (not slots or len(quat) < sum(len(b) for _, b in slots.values())):
-        sections[f"quat.{name}"], encodings[f"quat.{name}"] = quat, quaternions.encoding()
+        sections[f"quat.{name}"], encodings[f"quat.{name}"] = quat, quaternions.encoding(precision.rotations)
         return None
     for section, (enc, data) in slots.items():
         sections[section], encodings[section] = data, enc
     return shapes
 
 
-def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = CODECS[0]) -> dict[str, int]:
-    """Write ``p`` to ``path`` (atomically) with ``codec`` from :data:`CODECS`.
+def check_codec(codec: str, precision: CompactGrids = CompactGrids()) -> None:
+    """Raise :class:`~omg4.errors.OMG4Error` unless ``codec`` is one of :data:`CODECS` and ``precision`` is the
+    default or ``codec`` is "compact" (the only codec with grids)."""
+    if codec not in CODECS:
+        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODECS)})")
+    if codec != "compact" and precision != CompactGrids():
+        raise OMG4Error(f"grids {precision.label} apply to the compact codec only, not {codec!r}")
+
+
+def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = CODECS[0],
+                   precision: CompactGrids = CompactGrids()) -> dict[str, int]:
+    """Write ``p`` to ``path`` (atomically) with ``codec`` from :data:`CODECS`; ``precision``: the "compact" codec's
+    grids (any other is refused with another codec).
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
     ``p.to_fp16()``. With "compact" the order is :func:`omg4.codec.grids.position_order`,
     positions and time centres are on their grids, and every SVQ attribute reconstructs to the same fp16
     values (codebooks relabelled, unused and duplicate codewords dropped), except the log-scale codebooks
-    rounded to :data:`LOG_SCALE_STEP`, the quaternion attributes stored on the unit-quaternion grid and the
-    MLP weight matrices stored in 8 bits. Returns the byte size of every section
+    rounded to steps of 2^-5 in log space, the quaternion attributes stored on the unit-quaternion grid and the
+    MLP weight matrices stored in 8 bits (other grids: ``precision``). Returns the byte size of every section
     plus ``"header"``; the values sum to the file size.
     """
-    if codec not in CODECS:
-        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODECS)})")
-    q = _check_payload(p, codec)
-    if codec == "compact":
-        q = q.permuted(grids.position_order(q.xyz))
-    elif codec == "ans":
+    check_codec(codec, precision)
+    q = _check_payload(p, codec, precision)
+    fp16_positions = codec == "ans" or (codec == "compact" and not precision.positions)
+    if codec == "compact" and not fp16_positions:
+        q = q.permuted(grids.position_order(q.xyz, precision.positions))
+    elif fp16_positions:
         q = q.permuted(canonical_order(q.xyz))
     sections: dict[str, bytes] = {}
     encodings: dict[str, str] = {}
@@ -319,11 +384,12 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     float_encoding = "f16-lzma" if codec == "paper" else None
     if codec == "paper":
         put_float("xyz", q.xyz, float_encoding)
-    elif codec == "ans":
+    elif fp16_positions:
         sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
     else:
-        sections["xyz"], encodings["xyz"] = grids.encode_positions(q.xyz), grids.POSITIONS
-    times = grids.encode_times(q.t, grids.time_step(q.t, q.meta.get("time_range"))) if codec == "compact" else None
+        sections["xyz"], encodings["xyz"] = grids.encode_positions(q.xyz, precision.positions), grids.POSITIONS
+    times = (grids.encode_times(q.t, grids.time_step(q.t, q.meta.get("time_range"), precision.times))
+             if codec == "compact" and precision.times else None)
     if times is None:
         put_float("t", q.t, float_encoding)
     else:
@@ -332,9 +398,9 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     stored_as_quaternions: list[str] = []
     if codec == "compact":
         for attr, qa in q.attributes.items():
-            as_quaternion = _quaternion_stored(qa, attr, q.rotations)
-            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, attr in q.log_scaled, sections,
-                                                    encodings)
+            as_quaternion = precision.rotations < 16 and _quaternion_stored(qa, attr, q.rotations)
+            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, attr in q.log_scaled, precision,
+                                                    sections, encodings)
             if attr_shapes is None:
                 stored_as_quaternions.append(attr)
             else:
@@ -348,7 +414,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
                 sections[name], encodings[name] = encode_indices(ix, cb.shape[0], codec), codec
             shapes[attr] = [list(cb.shape) for cb in qa.codebooks]
     for name, w in q.mlp.items():
-        if codec == "compact" and w.ndim == 2 and w.size:
+        if codec == "compact" and w.ndim == 2 and w.size and precision.weights == 8:
             sections[f"mlp.{name}"], encodings[f"mlp.{name}"] = weights.encode_rows(w), "int8-rows"
         else:
             put_float(f"mlp.{name}", w, float_encoding)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import (add_codec_argument, add_device_arguments, add_scene_arguments, device_from_args,
-                                  int_at_least, load_scene_from_args, rate_weight_list)
+from omg4.commands.common import (GRID_BITS_HELP, add_codec_argument, add_device_arguments, add_scene_arguments,
+                                  compact_grids, device_from_args, int_at_least, load_scene_from_args,
+                                  rate_weight_list)
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import SCHEDULES
 
@@ -28,6 +29,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="beyond the paper: run every row once per rate weight of entropy-constrained codebooks "
                         "(see omg4 compress --help, --rate-weight), e.g. 0,30; the figure then shows each coder's "
                         "rate-distortion front (default 0: the paper's k-means)")
+    p.add_argument("--grid-bits", type=compact_grids, nargs="+", metavar="POS,ROT,TIME[,W,LS]",
+                   help=GRID_BITS_HELP.replace("the compact codec's grids", "write every row at each of these compact "
+                                               "codec grids (the first by the pipeline run, the others re-encoded; one "
+                                               "curve each)"))
     add_device_arguments(p)
 
 
@@ -44,6 +49,11 @@ def run(args) -> int:
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
 
+    from omg4.codec.payload import CompactGrids, check_codec
+
+    grids = tuple(args.grid_bits or (CompactGrids(),))
+    for g in grids:
+        check_codec(args.codec, g)
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     device = device_from_args(args)
     baseline, _ = load_gaussians(args.model, device)
@@ -56,5 +66,5 @@ def run(args) -> int:
     scene = load_scene_from_args(args)
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
               baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
-              device=device, rate_weights=args.rate_weights)
+              device=device, rate_weights=args.rate_weights, grids=grids)
     return 0

@@ -6,10 +6,10 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_background_argument, add_codec_argument, add_device_arguments,
-                                  add_force_argument, add_rate_weight_argument, add_scene_arguments,
-                                  background_from_args, config_from_args, device_from_args, float_in, int_at_least,
-                                  load_scene_from_args)
+from omg4.commands.common import (GRID_BITS_HELP, add_background_argument, add_codec_argument,
+                                  add_device_arguments, add_force_argument, add_rate_weight_argument,
+                                  add_scene_arguments, background_from_args, compact_grids, config_from_args,
+                                  device_from_args, float_in, int_at_least, load_scene_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.presets import PRESETS_BY_BACKBONE
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
@@ -38,6 +38,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
     add_codec_argument(p)
+    p.add_argument("--grid-bits", type=compact_grids, metavar="POS,ROT,TIME[,W,LS]", help=GRID_BITS_HELP)
     add_rate_weight_argument(p)
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
@@ -53,11 +54,14 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
+    from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.api import compress_to_file
     from omg4.compress.schedule import default_schedule
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
 
+    precision = args.grid_bits or CompactGrids()
+    check_codec(args.codec, precision)
     stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
     computes_scores = args.scores is None and any(s in stages for s in ("sample", "prune", "sample+prune"))
     scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
@@ -69,7 +73,7 @@ def run(args) -> int:
     cfg = config_from_args(CompressConfig, args, stages=stages, schedule=args.schedule or default_schedule(device),
                            device=str(device), background=background_from_args(args))
     report = compress_to_file(baseline, scene, cfg, args.out, codec=args.codec, stop_after=args.stop_after,
-                              scores_path=args.scores)
+                              scores_path=args.scores, precision=precision)
     for r in report["stages"]:
         print(f"  {r['stage']:<13} at iteration {r['iteration']:>6}: {r['num_gaussians']:>8} Gaussians")
     print(f"wrote {args.out} ({report['file_bytes'] / 2**20:.3f} MB, {report['num_gaussians']} Gaussians, "

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omg4.codec.payload import CODECS, CompressedPayload, encode_payload
+from omg4.codec.payload import CODECS, CompactGrids, CompressedPayload, check_codec, encode_payload
 from omg4.compress.model import CompressibleModel
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
@@ -47,8 +47,10 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
 
 def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, out: str | Path, *,
                      codec: str = CODECS[0], stop_after: str | None = None, scores_path: str | Path | None = None,
-                     paper_copy: str | Path | None = None, progress: bool = True, log=print) -> dict:
-    """Run OMG4 on ``baseline`` and write ``out``; returns a JSON-ready report.
+                     paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
+                     progress: bool = True, log=print) -> dict:
+    """Run OMG4 on ``baseline`` and write ``out`` (``precision``: the compact codec's grids); returns a JSON-ready
+    report.
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
     comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
@@ -57,6 +59,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     ``out`` as ``<out>.scores.npz`` so ablation runs can reuse them.
     """
     out = Path(out)
+    check_codec(codec, precision)  # before the pipeline's minutes, not after
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log)
@@ -73,7 +76,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         sections = {}
     else:
         payload = build_payload(model, meta)
-        sections = encode_payload(payload, out, codec=codec)
+        sections = encode_payload(payload, out, codec=codec, precision=precision)
         if paper_copy is not None:
             paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
     return {
@@ -86,7 +89,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "wall_time_s": time.perf_counter() - t0,
         "stages": [asdict(r) for r in pipeline.records],
         "config": {"preset": pipeline.size.name, "backbone": baseline.config.backbone, "stages": list(cfg.stages),
-                   "schedule": cfg.schedule, "codec": codec,
+                   "schedule": cfg.schedule, "codec": codec, "grids": asdict(precision),
                    "tau_gs": pipeline.size.tau_gs, "prune_quantile": pipeline.size.prune_quantile,
                    "rate_weight": cfg.rate_weight,
                    "device": str(pipeline.device)},

@@ -1,0 +1,121 @@
+"""Rate–distortion fronts of the compact codec's grids against the paper coder, from an ``omg4 bench`` folder.
+
+Every full-pipeline row's paper-coder copy in the folder (``*_paper_codec.omg4``: the pipeline's fp16 result,
+OMG4's own coder) is re-encoded with the "compact" codec at each ``--grid-bits`` setting
+(:class:`omg4.codec.payload.CompactGrids`) — what ``omg4 bench --grid-bits`` writes, without running the
+pipelines again — and every file is decoded alone and evaluated on the test views. The table lists size, bytes
+per Gaussian (all, and the per-Gaussian sections as ``benchmarks/rate.py`` splits them), PSNR and SSIM per
+preset, rate weight β and grid; the figure draws one curve per coder, β and grid (``omg4 bench``'s figure).
+Per preset, ``dominates`` says whether some compact file is smaller than the paper coder's file of the β = 0
+run and renders at least as well (PSNR and SSIM, float-order noise aside): the issue's "front strictly better
+than the paper coder's" (``--grid-bits 0,16,0,16,0`` holds the paper coder's values exactly).
+
+Usage: python benchmarks/rate_front.py BENCH_DIR DATA [--downscale F] --grid-bits 15,9,10 12,7,7 ... [--name NAME]
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict
+import sys
+import tempfile
+from pathlib import Path
+
+from environment import save_result
+from rate import split
+from omg4.atomic import write_text_atomic
+from omg4.bench import FULL, rate_distortion_curves, row_label
+from omg4.codec.decoder import load_omg4
+from omg4.codec.payload import CompactGrids, decode_payload, encode_payload
+from omg4.commands.common import compact_grids
+from omg4.commands.info import omg4_summary
+from omg4.data import load_scene
+from omg4.evaluate import dynamic_masks, evaluate
+from omg4.report import rate_distortion_plot
+
+ROOT = Path(__file__).resolve().parents[1]
+QUALITY = ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic")
+
+
+def measure(path: Path, scene, masks) -> dict:
+    """Size split and quality of one ``.omg4`` file."""
+    summary, _ = omg4_summary(path)
+    per, fixed = split(summary["groups"])
+    n = summary["num_gaussians"]
+    r = evaluate(load_omg4(path), scene.test_views, masks=masks, lpips_nets=(), fps_views=1, progress=False)
+    return {"storage_mb": summary["total_bytes"] / 2**20, "bytes": summary["total_bytes"], "num_gaussians": n,
+            "bytes_per_gaussian": summary["total_bytes"] / n, "per_gaussian_B_per_G": per / n, "fixed_bytes": fixed,
+            **{k: r[k] for k in QUALITY}}
+
+
+SAME_PSNR, SAME_SSIM = 1e-4, 1e-6
+"""Differences below these count as equal: the same values stored in another Gaussian order render within 2.4e-5 dB
+and 1e-7 SSIM of each other (float sums in another order; the lossless grids 0,16,0,16,0 on the demo's presets)."""
+
+
+def dominated(results: dict[str, dict]) -> dict[str, bool]:
+    """Per preset: whether a compact file is smaller than the paper coder's β = 0 file and renders at least as well
+    (PSNR and SSIM, up to :data:`SAME_PSNR` / :data:`SAME_SSIM`)."""
+    out = {}
+    for r in results.values():
+        if r["rate_weight"] == 0:
+            mb, psnr, ssim = r["paper_codec_mb"], r["paper_codec_psnr"], r["paper_codec_ssim"]
+            out[r["preset"]] = any(c["preset"] == r["preset"] and c["storage_mb"] < mb and c["psnr"] >= psnr - SAME_PSNR
+                                   and c["ssim"] >= ssim - SAME_SSIM for c in results.values())
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("bench_dir", type=Path)
+    p.add_argument("data", type=Path)
+    p.add_argument("--downscale", type=float, default=1.0)
+    p.add_argument("--grid-bits", type=compact_grids, nargs="+", default=[CompactGrids()])
+    p.add_argument("--name", default="scene")
+    args = p.parse_args()
+    out_json = ROOT / "benchmarks" / "results" / f"rate_front_{args.name}.json"
+    scene = load_scene(args.data, downscale=args.downscale, progress=False)
+    masks = dynamic_masks(scene.test_views)
+    results: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for paper_file in sorted(args.bench_dir.glob("*_paper_codec.omg4")):
+            payload = decode_payload(paper_file)
+            meta = payload.meta
+            if tuple(meta.get("stages", ())) != FULL:
+                continue
+            preset, beta = meta["preset"], float(meta.get("rate_weight", 0.0))
+            paper = measure(paper_file, scene, masks)
+            print(f"OMG4-{preset} β={beta:g}: paper coder {paper['storage_mb']:.4f} MB {paper['psnr']:.3f} dB")
+            for g in args.grid_bits:
+                path = Path(tmp) / "compact.omg4"
+                encode_payload(payload, path, codec="compact", precision=g)
+                r = measure(path, scene, masks)
+                r.update(paper_codec_mb=paper["storage_mb"], paper_codec_psnr=paper["psnr"],
+                         paper_codec_ssim=paper["ssim"], paper_codec_B_per_G=paper["bytes_per_gaussian"],
+                         rate_weight=beta, grids=asdict(g),
+                         preset=preset, full_pipeline=True, source=str(paper_file))
+                results[row_label(f"OMG4-{preset}", beta, g)] = r
+                print(f"  grids {g.label}: {r['storage_mb']:.4f} MB, per-Gaussian {r['per_gaussian_B_per_G']:.1f} B/G, "
+                      f"{r['psnr']:.3f} dB, SSIM {r['ssim']:.4f}", flush=True)
+    lines = ["| row | MB | B/G | per-Gaussian B/G | fixed KB | PSNR | SSIM | PSNR dyn | paper coder MB | paper PSNR |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        lines.append(f"| {name} | {r['storage_mb']:.4f} | {r['bytes_per_gaussian']:.1f} | {r['per_gaussian_B_per_G']:.1f} | "
+                     f"{r['fixed_bytes'] / 1000:.1f} | {r['psnr']:.3f} | {r['ssim']:.4f} | {r['psnr_dynamic']:.3f} | "
+                     f"{r['paper_codec_mb']:.4f} | {r['paper_codec_psnr']:.3f} |")
+    table = "\n".join(lines)
+    fronts = dominated(results)
+    print(table)
+    print("compact front strictly better than the paper coder's, per preset:", fronts)
+    _, curves = rate_distortion_curves(results, "compact")
+    rate_distortion_plot(out_json.with_suffix(".png"), {}, f"{args.name}: compact grids vs paper coder", curves)
+    write_text_atomic(out_json.with_suffix(".md"), table + "\n")
+    save_result(out_json, {"benchmark": "rate_front", "name": args.name, "bench_dir": str(args.bench_dir),
+                           "data": str(args.data), "downscale": args.downscale,
+                           "grids": [g.label for g in args.grid_bits], "rows": results, "dominates": fronts,
+                           "table": table})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
