@@ -153,6 +153,8 @@ def test_train_force_starts_afresh_in_an_existing_run_folder(tiny_scene_dir, tmp
     (["compress", "DATA", "--model", "M", "--out", "x.omg4", "--grid-bits", "12,7,7", "--codec", "paper"],
      "compact codec only"),
     (["bench", "DATA", "--model", "M", "--grid-bits", "15,9"], "--grid-bits"),
+    (["compress", "DATA", "--model", "M", "--out", "x.safetensors", "--stop-after", "merge", "--grid-bits", "12,7,7"],
+     "--stop-after writes a checkpoint"),
     (["bench", "DATA", "--model", "M", "--grid-bits", "15,9,10", "12,7,7", "--codec", "ans"], "compact codec only"),
     (["eval", "DATA", "--model", "M", "--max-views", "0"], "--max-views"),
     (["import-rt4dgs", "C", "--out", "x", "--time-range", "0", "inf"], "--time-range"),

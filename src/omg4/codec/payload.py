@@ -72,7 +72,7 @@ VALUES_SLACK = 1 << 20
 _NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
 _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
-#: allowed bits of each :class:`CompactGrids` field (what the decoder accepts for each grid)
+#: allowed bits of each :class:`CompactGrids` field (what the writer accepts)
 GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (8, 16),
                      "log_scales": (0, 14)}
 
@@ -360,7 +360,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
-    ``p.to_fp16()``. With "compact" the order is :func:`omg4.codec.grids.position_order`,
+    ``p.to_fp16()``. With "compact" the order is :func:`omg4.codec.grids.position_order` (:func:`canonical_order`
+    with ``precision.positions`` 0),
     positions and time centres are on their grids, and every SVQ attribute reconstructs to the same fp16
     values (codebooks relabelled, unused and duplicate codewords dropped), except the log-scale codebooks
     rounded to steps of 2^-5 in log space, the quaternion attributes stored on the unit-quaternion grid and the

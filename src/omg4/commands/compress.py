@@ -55,6 +55,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CompactGrids, check_codec
+    from omg4.errors import OMG4Error
     from omg4.compress.api import compress_to_file
     from omg4.compress.schedule import default_schedule
     from omg4.gaussians.checkpoint import load_gaussians
@@ -62,6 +63,8 @@ def run(args) -> int:
 
     precision = args.grid_bits or CompactGrids()
     check_codec(args.codec, precision)
+    if args.stop_after and args.grid_bits:
+        raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
     stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
     computes_scores = args.scores is None and any(s in stages for s in ("sample", "prune", "sample+prune"))
     scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
