@@ -9,7 +9,8 @@ memory (Linux ``VmHWM``, reset before each case through ``/proc/self/clear_refs`
 size class's valid file is measured the same way; the target is every failure a
 ``CorruptFileError``, no case over 2 s, none over 4× its class's valid peak memory.
 
-    python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--label after]
+    python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--label after] [--codecs compact,ans,paper]
+                                   [--grid-bits 15,9,10]  # the compact files' grids (version 4 with weights < 8 bits)
 
 Results are merged into ``benchmarks/results/fuzz_omg4.json`` under ``--label``.
 """
@@ -77,11 +78,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--label", default="after")
     ap.add_argument("--codecs", default=",".join(CODECS), help="comma-separated codecs to fuzz")
+    ap.add_argument("--grid-bits", default="15,9,10", help="the compact codec's grids (omg4 compress --grid-bits)")
     args = ap.parse_args()
 
     import torch
 
     from omg4.codec.forge import forged_files, valid_file
+    from omg4.codec.payload import CompactGrids
+
+    grids = CompactGrids.parse(args.grid_bits)
 
     torch.set_num_threads(1)
     signal.signal(signal.SIGALRM, _alarm)
@@ -95,7 +100,8 @@ def main() -> None:
         for name, (n, scale) in CLASSES.items():
             for codec in codecs:
                 base_path = Path(tmp) / f"{name}_{codec}.omg4"
-                base = valid_file(base_path, n, codec=codec, seed=1, codebook_scale=scale)
+                base = valid_file(base_path, n, codec=codec, seed=1, codebook_scale=scale,
+                                  precision=grids if codec == "compact" else CompactGrids())
                 valid_outcome, valid_s, valid_mb = run_case(base_path)
                 assert valid_outcome == "ok", valid_outcome
                 worst_s, worst_mb, slowest = 0.0, 0.0, None
@@ -117,7 +123,8 @@ def main() -> None:
                 rows.append(row)
                 print(f"{name:<7} {codec:<6} {len(base):>9} B  {dict(counts)}  slowest {worst_s:.3f} s ({slowest}),"
                       f" peak {worst_mb:.0f} MB = {worst_mb / valid_mb:.2f}x valid ({valid_mb:.0f} MB)")
-    result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "cases": sum(r["cases"] for r in rows),
+    result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "grids": grids.label,
+              "cases": sum(r["cases"] for r in rows),
               "outcomes": dict(outcomes), "escapes": {f"{k} {o}": c for (k, o), c in escapes.items()},
               "slowest_s": max(r["slowest_s"] for r in rows), "max_peak_ratio": max(r["peak_ratio"] for r in rows),
               "rows": rows}

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from omg4.codec import codewords, quaternions, weights
-from omg4.codec.container import read_container
+from omg4.codec.container import describe_container, read_container
 from omg4.codec.grids import position_order
 from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
                                 encode_payload)
@@ -153,20 +153,47 @@ def test_unit_quaternions_cost_about_their_entropy():
     assert 8 * len(data) < 0.6 * 4 * 16 * q.shape[0]  # well under four fp16 numbers per rotation
 
 
-def test_weights_in_eight_bits_match_an_independent_rounding():
+@pytest.mark.parametrize("bits", [8, 6, 4, 2])
+def test_weights_in_few_bits_match_an_independent_rounding(bits):
     rng = np.random.default_rng(7)
     w = (0.2 * rng.normal(size=(64, 37))).astype(np.float16)
     w[3] = 0.0  # an all-zero row
-    decoded = weights.decode_rows(weights.encode_rows(w), w.shape).astype(np.float64)
     w[5] *= 1e-4  # a row of tiny weights keeps its relative precision (float32 scales)
-    decoded = weights.decode_rows(weights.encode_rows(w), w.shape).astype(np.float64)
+    data = weights.encode_rows(w, bits)
+    decoded = weights.decode_rows(data, w.shape, bits).astype(np.float64)
+    top = 2 ** (bits - 1) - 1  # 127 at 8 bits
     w64 = w.astype(np.float64)
-    scale = np.abs(w64).max(axis=1, keepdims=True) / 127
-    ref = np.clip(np.rint(np.divide(w64, scale, out=np.zeros_like(w64), where=scale > 0)), -127, 127) * scale
+    scale = np.abs(w64).max(axis=1, keepdims=True) / top
+    ref = np.clip(np.rint(np.divide(w64, scale, out=np.zeros_like(w64), where=scale > 0)), -top, top) * scale
     ref16 = ref.astype(np.float16).astype(np.float64)  # the payload's weights are fp16
     np.testing.assert_allclose(decoded, ref16, rtol=1e-3, atol=6e-8)  # 6e-8: fp16's subnormal step
     assert (decoded[3] == 0).all()
     assert (np.abs(decoded - w64) <= scale / 2 + 1e-3 * np.abs(w64) + 6e-8).all()
+    assert len(np.unique(decoded[0])) <= 2 * top + 1
+    assert weights.bits_of(weights.encoding(bits)) == bits and weights.encoding(8) == "int8-rows"
+    for name in ("int1-rows", "int9-rows", "int08-rows", "int8-rowsx", "smallest-three-8"):
+        assert weights.bits_of(name) is None
+
+
+def test_files_with_weights_below_eight_bits_are_version_4_and_decode(tmp_path):
+    """Weights in 6 bits: a new encoding, so the file is version 4 (older builds refuse it by its version); the
+    default and the other grids keep version 3."""
+    p = make_payload(500)
+    encode_payload(p, tmp_path / "w6.omg4", precision=CompactGrids(weights=6))
+    encode_payload(p, tmp_path / "w8.omg4", precision=CompactGrids(12, 7, 7))
+    assert describe_container(tmp_path / "w6.omg4")["version"] == 4
+    assert describe_container(tmp_path / "w8.omg4")["version"] == 3
+    header, _ = read_container(tmp_path / "w6.omg4")
+    assert header["encodings"]["mlp.cont.0"] == "int6-rows"
+    d, ref = decode_payload(tmp_path / "w6.omg4"), p.to_fp16()
+    for name, w in ref.mlp.items():
+        if w.size:
+            assert len(np.unique(d.mlp[name][0])) <= 63
+            step = np.abs(w.astype(np.float64)).max(axis=1, keepdims=True) / 31
+            assert (np.abs(d.mlp[name].astype(np.float64) - w) <= step / 2 + 1e-3 * np.abs(w) + 1e-7).all()
+    sizes = {bits: sum(encode_payload(p, tmp_path / "x.omg4", precision=CompactGrids(weights=bits)).values())
+             for bits in (8, 6, 4)}
+    assert sizes[8] > sizes[6] > sizes[4]
 
 
 def test_weight_scales_beyond_fp16_are_corrupt_file_errors():
@@ -207,6 +234,9 @@ def _forged_compact(tmp_path, edit):
     ("mlp.cont.1", "sorted", b"\x00"),  # a codebook encoding on an MLP weight
     ("svq.scale.codebook0", "int8-rows", b"\x00" * 8),  # a weight encoding on a codebook
     ("mlp.empty", "int8-rows", b""),  # not a 2-D matrix with rows
+    ("svq.scale.codebook0", "int5-rows", b"\x00" * 8),  # a few-bit weight encoding on a codebook
+    ("mlp.cont.1", "int9-rows", b"\x00" * 60),  # no such weight encoding
+    ("mlp.cont.1", "int5-rows", b"\x00" * 52 + b"\x07"),  # scales, then a damaged code stream
 ])
 def test_encodings_outside_their_section_kind_are_refused(tmp_path, section, encoding, data):
     def edit(header, sections):
@@ -376,7 +406,7 @@ def test_lossless_grids_store_the_paper_coders_values_exactly_and_smaller(tmp_pa
 def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
     for bad in ((17, 9, 10), (15, 1, 10), (15, 9, -1), (15.0, 9, 10), (True, 9, 10), (15, 9, 10, 12, 5),
                 (15, 9, 10, 8, 15)):
-        with pytest.raises(OMG4Error, match="bits must be an integer|weights take 8 or 16"):
+        with pytest.raises(OMG4Error, match="bits must be an integer|weights take 2-8 bits"):
             CompactGrids(*bad)
     for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1"):
         with pytest.raises(OMG4Error, match="three integers"):

@@ -24,7 +24,8 @@ from typing import Iterator
 import numpy as np
 
 from omg4.codec.container import crc32, read_container, stored_json
-from omg4.codec.payload import CompressedPayload, QuantizedAttribute, container_version, encode_payload
+from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttribute, container_version,
+                                encode_payload)
 from omg4.gaussians.backbone import RT4DGS
 
 #: codebook sizes of the M preset (paper appendix) per Real-Time4DGS SVQ attribute; widths and sub-vector
@@ -68,9 +69,10 @@ def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0
 
 
 def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: int = 0,
-               codebook_scale: float = 1.0) -> bytes:
-    """Write :func:`valid_payload` to ``path`` with ``codec``; returns the file's bytes."""
-    encode_payload(valid_payload(num_gaussians, seed, codebook_scale), path, codec=codec)
+               codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids()) -> bytes:
+    """Write :func:`valid_payload` to ``path`` with ``codec`` (at ``precision``, the compact codec's grids); returns
+    the file's bytes."""
+    encode_payload(valid_payload(num_gaussians, seed, codebook_scale), path, codec=codec, precision=precision)
     return Path(path).read_bytes()
 
 

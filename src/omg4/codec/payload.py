@@ -73,7 +73,7 @@ _NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
 _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
 #: allowed bits of each :class:`CompactGrids` field (what the writer accepts)
-GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (8, 16),
+GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (2, 16),
                      "log_scales": (0, 14)}
 
 
@@ -88,7 +88,8 @@ class CompactGrids:
     codebooks and indices as the pipeline made them, losslessly;
     times: time centres on steps of the clip's duration · 2^-times (:func:`omg4.codec.grids.time_step`), or 0: fp16
     as the paper;
-    weights: MLP weight matrices in 8 bits per weight (:mod:`omg4.codec.weights`) or 16 (fp16, as the paper);
+    weights: MLP weight matrices in 2-8 bits per weight (:mod:`omg4.codec.weights`; below 8 the file needs
+    container version 4) or 16 (fp16, as the paper);
     log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are.
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
     """
@@ -104,8 +105,8 @@ class CompactGrids:
             bits = getattr(self, name)
             if isinstance(bits, bool) or not isinstance(bits, int) or not lo <= bits <= hi:
                 raise OMG4Error(f"compact grid: {name} bits must be an integer in [{lo}, {hi}], got {bits!r}")
-        if self.weights not in (8, 16):
-            raise OMG4Error(f"compact grid: weights take 8 or 16 bits, got {self.weights}")
+        if 8 < self.weights < 16:
+            raise OMG4Error(f"compact grid: weights take 2-8 bits, or 16 (fp16), got {self.weights}")
 
     @classmethod
     def parse(cls, text: str) -> "CompactGrids":
@@ -262,10 +263,13 @@ def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ encoding
-def container_version(codec: str) -> int:
-    """The container version a codec writes: 3 for "compact" (deflated JSON, grid-coded sections), 1 otherwise,
-    so files of the older codecs stay readable by builds that predate versions 2 and 3."""
-    return 3 if codec == "compact" else 1
+def container_version(codec: str, precision: CompactGrids = CompactGrids()) -> int:
+    """The container version a codec writes: 3 for "compact" (deflated JSON, grid-coded sections), 4 for "compact"
+    with MLP weights in fewer than 8 bits (an encoding builds reading 1-3 do not know), 1 otherwise, so files of
+    the older codecs stay readable by builds that predate versions 2 to 4."""
+    if codec != "compact":
+        return 1
+    return 4 if precision.weights < weights.BITS else 3
 
 
 def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...]) -> bool:
@@ -415,8 +419,9 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
                 sections[name], encodings[name] = encode_indices(ix, cb.shape[0], codec), codec
             shapes[attr] = [list(cb.shape) for cb in qa.codebooks]
     for name, w in q.mlp.items():
-        if codec == "compact" and w.ndim == 2 and w.size and precision.weights == 8:
-            sections[f"mlp.{name}"], encodings[f"mlp.{name}"] = weights.encode_rows(w), "int8-rows"
+        if codec == "compact" and w.ndim == 2 and w.size and precision.weights <= weights.BITS:
+            sections[f"mlp.{name}"] = weights.encode_rows(w, precision.weights)
+            encodings[f"mlp.{name}"] = weights.encoding(precision.weights)
         else:
             put_float(f"mlp.{name}", w, float_encoding)
     header = {
@@ -435,7 +440,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
-    total = write_container(path, header, sections, version=container_version(codec))
+    total = write_container(path, header, sections, version=container_version(codec, precision))
     sizes["header"] = total - sum(sizes.values())
     return sizes
 
@@ -548,8 +553,8 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return quaternions.decode_quaternions(data, count, bits)
             if compact and encoding == "sorted" and kind == "svq":
                 return decode_sorted_codebook(data, *shape)
-            if compact and encoding == "int8-rows" and kind == "mlp" and len(shape) == 2:
-                return weights.decode_rows(data, shape)
+            if compact and weights.bits_of(encoding) and kind == "mlp" and len(shape) == 2:
+                return weights.decode_rows(data, shape, weights.bits_of(encoding))
             if encoding == "morton" and name == "xyz" and codec != "paper":
                 return _decode_xyz_morton(data, count)
             if compact and encoding == grids.POSITIONS and name == "xyz":
