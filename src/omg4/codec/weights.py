@@ -64,7 +64,8 @@ def decode_rows(data: bytes, shape: tuple[int, int], bits: int = BITS) -> np.nda
     top = levels(bits)
     if len(data) < 4 * rows:
         raise CorruptFileError("truncated weight scales")
-    scale = np.frombuffer(data[:4 * rows], "<f4").astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a forged signalling NaN is refused below, not warned about
+        scale = np.frombuffer(data[:4 * rows], "<f4").astype(np.float64)
     if not (np.isfinite(scale).all() and (scale >= 0).all() and (scale * top <= F16_MAX).all()):
         raise CorruptFileError("invalid weight scales (negative, non-finite or beyond the fp16 range)")
     codes = decode_indices(data[4 * rows:], 2 * top + 1, rows * cols, "ans").reshape(rows, cols) - top
