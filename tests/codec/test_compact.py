@@ -203,6 +203,37 @@ def test_weight_scales_beyond_fp16_are_corrupt_file_errors():
         weights.decode_rows(forged, (2, 2))  # 1e4 · 127 overflows fp16
 
 
+def test_weight_scales_are_checked_against_their_own_bits():
+    """The fp16 limit applies to scale × L of the section's bits: a 4-bit row reaching 10,000 is valid (7 · scale =
+    10,000), one whose scale × 7 overflows fp16 is refused."""
+    from omg4.codec.entropy import encode_indices
+    w = np.zeros((2, 3), np.float16)
+    w[0] = [10000.0, -5000.0, 2.0]
+    decoded = weights.decode_rows(weights.encode_rows(w, 4), w.shape, 4)
+    np.testing.assert_allclose(decoded[0], [10000.0, -10000.0 * 4 / 7, 0.0], rtol=1e-3)
+    forged = np.array([1e4, 1.0], "<f4").tobytes() + encode_indices(np.full(4, 14), 15, "ans")
+    with pytest.raises(CorruptFileError, match="fp16 range"):
+        weights.decode_rows(forged, (2, 2), 4)  # 1e4 · 7 overflows fp16
+
+
+def test_a_valid_weight_stream_on_a_codebook_section_is_refused(tmp_path):
+    """A well-formed ``int5-rows`` stream of the codebook's own shape: refused for its section kind, not its bytes."""
+    def edit(header, sections):
+        k, s = header["attributes"]["scale"][0]
+        header["encodings"]["svq.scale.codebook0"] = "int5-rows"
+        sections["svq.scale.codebook0"] = weights.encode_rows(np.ones((k, s)), 5)
+    with pytest.raises(CorruptFileError, match="svq\\.scale\\.codebook0"):
+        decode_payload(_forged_compact(tmp_path, edit))
+
+
+def test_forged_files_keep_the_version_their_encodings_need(tmp_path):
+    from omg4.codec import forge
+    encode_payload(make_payload(60), tmp_path / "w6.omg4", precision=CompactGrids(weights=6))
+    assert describe_container(forge._assemble(*forge._split((tmp_path / "w6.omg4").read_bytes())))["version"] == 4
+    encode_payload(make_payload(60), tmp_path / "w8.omg4")
+    assert describe_container(forge._assemble(*forge._split((tmp_path / "w8.omg4").read_bytes())))["version"] == 3
+
+
 def test_identity_rotation_is_exact():
     q = np.array([[1.0, 0, 0, 0], [0, 0, 0, 3.0], [-2.0, 0, 0, 0]])
     decoded = quaternions.decode_quaternions(quaternions.encode_quaternions(q), 3)

@@ -6,7 +6,7 @@ integers ``round(w / s)`` in [−L, L], ANS-coded; the decoded weights are fp16.
 names the bits (``int8-rows`` by default; ``int2-rows`` … ``int7-rows`` under coarser grids,
 :class:`omg4.codec.payload.CompactGrids`, which need container version 4). The appearance MLPs of paper
 §4.4 tolerate 8 bits: on the demo's OMG4-M it moves PSNR by −0.002 dB and halves the MLPs' share of the
-file; 6 bits cost 0.02-0.04 dB more, 4 bits about 0.3 dB (README, Rate).
+file; on the demo's presets 6 bits cost 0.01-0.05 dB more, 4 bits 0.3-0.7 dB (README, Rate).
 """
 
 from __future__ import annotations
