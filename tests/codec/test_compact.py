@@ -194,6 +194,11 @@ def test_files_with_weights_below_eight_bits_are_version_4_and_decode(tmp_path):
     sizes = {bits: sum(encode_payload(p, tmp_path / "x.omg4", precision=CompactGrids(weights=bits)).values())
              for bits in (8, 6, 4)}
     assert sizes[8] > sizes[6] > sizes[4]
+    from omg4.commands.info import omg4_summary
+    summary, text = omg4_summary(tmp_path / "w6.omg4")  # omg4 info names the version and the encodings
+    assert summary["version"] == 4 and "(container version 4)" in text.splitlines()[0]
+    assert summary["encodings"]["mlp.cont.0"] == "int6-rows" and sum(summary["groups"].values()) == \
+        (tmp_path / "w6.omg4").stat().st_size
 
 
 def test_weight_scales_beyond_fp16_are_corrupt_file_errors():
@@ -443,6 +448,8 @@ def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
         with pytest.raises(OMG4Error, match="three integers"):
             CompactGrids.parse(text)
     assert CompactGrids.parse(" 12, 7,7") == CompactGrids(12, 7, 7) and CompactGrids().label == "15/9/10"
+    assert CompactGrids.parse("lossless") == CompactGrids(0, 16, 0, 16, 0) and CompactGrids.parse("default") == \
+        CompactGrids()
     assert CompactGrids.parse("15,9,10,8,5") == CompactGrids() and CompactGrids.parse("16,12,12,16,10").label == \
         "16/12/12/16/10"
     for codec in ("ans", "paper"):

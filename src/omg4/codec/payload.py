@@ -110,11 +110,15 @@ class CompactGrids:
 
     @classmethod
     def parse(cls, text: str) -> "CompactGrids":
-        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES]"`` bits, e.g. ``"15,9,10"`` or ``"16,12,12,16,10"``."""
+        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES]"`` bits, e.g. ``"15,9,10"`` or ``"16,12,12,16,10"``,
+        or a name: ``"default"`` (15,9,10,8,5) or ``"lossless"`` (0,16,0,16,0: the paper coder's values)."""
+        named = {"default": cls(), "lossless": cls(0, 16, 0, 16, 0)}
+        if text.strip().lower() in named:
+            return named[text.strip().lower()]
         parts = [p.strip() for p in text.split(",")]
         if len(parts) not in (3, 5) or not all(re.fullmatch(r"[0-9]{1,2}", p) for p in parts):
             raise OMG4Error(f"compact grid {text!r}: give three integers POSITIONS,ROTATIONS,TIMES such as 15,9,10, "
-                            "or five with WEIGHTS,LOG_SCALES such as 16,12,12,16,10")
+                            "five with WEIGHTS,LOG_SCALES such as 16,12,12,16,10, or default or lossless")
         return cls(*(int(p) for p in parts))
 
     @property

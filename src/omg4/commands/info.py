@@ -110,7 +110,8 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
     """Per-section size breakdown of an ``.omg4`` file and its bits per Gaussian.
 
     Groups: positions, time centres, each attribute's index streams and codebooks (or its unit
-    quaternions), the MLP weights, and the container header; the groups add up to the file size.
+    quaternions), the MLP weights, and the container header; the groups add up to the file size. The JSON also
+    carries the container version and each section's encoding (which names the compact codec's grids).
     """
     from omg4.codec.container import describe_container
     from omg4.codec.payload import check_sections
@@ -138,12 +139,13 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
     meta = header.get("meta", {})
     config = meta.get("gaussian_config") if isinstance(meta, dict) else None
     backbone = config.get("backbone", "rt4dgs") if isinstance(config, dict) else "rt4dgs"
-    summary = {"kind": "omg4", "path": str(path), "codec": header.get("codec"), "backbone": backbone,
-               "num_gaussians": n,
+    summary = {"kind": "omg4", "path": str(path), "codec": header.get("codec"), "version": d["version"],
+               "backbone": backbone, "num_gaussians": n, "encodings": header.get("encodings"),
                "total_bytes": total, "storage_mb": total / 2**20,
                "bits_per_gaussian": 8 * total / n if n else None, "groups": groups, "sections": d["sections"],
                "meta": meta}
-    lines = [f"{printable(path)}: OMG4 file ({printable(str(backbone))} backbone), codec {summary['codec']}, "
+    lines = [f"{printable(path)}: OMG4 file ({printable(str(backbone))} backbone), codec {summary['codec']} "
+             f"(container version {summary['version']}), "
              f"{n} Gaussians, {total} bytes "
              f"({summary['storage_mb']:.4f} MB), {summary['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
     for key, size in groups.items():
