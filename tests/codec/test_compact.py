@@ -439,12 +439,35 @@ def test_lossless_grids_store_the_paper_coders_values_exactly_and_smaller(tmp_pa
         encode_payload(big, tmp_path / "b.omg4", precision=lossless)
 
 
+def test_codebook_grid_rounds_the_other_codebooks_and_merges_their_codewords(tmp_path):
+    """``codebooks`` 6: the appearance codebooks on steps of 1/64 (their duplicates merged, so fewer codewords), the
+    log-scale ones on their own 1/32 steps, rotation codebooks (stored as such with rotations 16) untouched."""
+    p = make_payload(3000)
+    p.rotations, p.log_scaled = ("rotation", "rotation_r"), ("scale", "scale_t")
+    p.attributes["app"] = QuantizedAttribute([np.round(cb * 20) / 20 + 1e-3 * np.random.default_rng(j).normal(size=cb.shape)
+                                              for j, cb in enumerate(p.attributes["app"].codebooks)],
+                                             p.attributes["app"].indices)  # codewords 0.001 apart around a 0.05 grid
+    grids = CompactGrids(15, 16, 10, 8, 5, 6)
+    encode_payload(p, tmp_path / "c.omg4", precision=grids)
+    encode_payload(p, tmp_path / "d.omg4", precision=CompactGrids(15, 16, 10))
+    d, plain, ref = decode_payload(tmp_path / "c.omg4"), decode_payload(tmp_path / "d.omg4"), p.to_fp16()
+    app, app_ref = d.attributes["app"].reconstruct(), ref.attributes["app"].reconstruct().astype(np.float64)
+    np.testing.assert_array_equal(app * 64, np.rint(app * 64))
+    np.testing.assert_array_equal(np.sort(app, axis=0),  # the same Gaussians, in another order: compare as sets
+                                  np.sort(np.rint(app_ref * 64) / 64, axis=0).astype(np.float16))
+    header, plain_header = read_container(tmp_path / "c.omg4")[0], read_container(tmp_path / "d.omg4")[0]
+    assert all(k < k0 for (k, _), (k0, _) in zip(header["attributes"]["app"], plain_header["attributes"]["app"]))
+    np.testing.assert_array_equal(d.attributes["rotation"].reconstruct(), plain.attributes["rotation"].reconstruct())
+    np.testing.assert_array_equal(d.attributes["scale"].reconstruct(), plain.attributes["scale"].reconstruct())
+    np.testing.assert_array_equal(d.attributes["scale_t"].reconstruct(), plain.attributes["scale_t"].reconstruct())
+
+
 def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
     for bad in ((17, 9, 10), (15, 1, 10), (15, 9, -1), (15.0, 9, 10), (True, 9, 10), (15, 9, 10, 12, 5),
-                (15, 9, 10, 8, 15)):
+                (15, 9, 10, 8, 15), (15, 9, 10, 8, 5, 15)):
         with pytest.raises(OMG4Error, match="bits must be an integer|weights take 2-8 bits"):
             CompactGrids(*bad)
-    for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1"):
+    for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1,1"):
         with pytest.raises(OMG4Error, match="three integers"):
             CompactGrids.parse(text)
     assert CompactGrids.parse(" 12, 7,7") == CompactGrids(12, 7, 7) and CompactGrids().label == "15/9/10"
@@ -452,6 +475,8 @@ def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
         CompactGrids()
     assert CompactGrids.parse("15,9,10,8,5") == CompactGrids() and CompactGrids.parse("16,12,12,16,10").label == \
         "16/12/12/16/10"
+    assert CompactGrids.parse("15,9,10,8,5,6") == CompactGrids(codebooks=6) and CompactGrids(codebooks=6).label == \
+        "15/9/10/8/5/6"
     for codec in ("ans", "paper"):
         with pytest.raises(OMG4Error, match="compact codec only"):
             encode_payload(make_payload(10), tmp_path / "x.omg4", codec=codec, precision=CompactGrids(12, 7, 7))

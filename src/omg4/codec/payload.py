@@ -74,7 +74,7 @@ _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
 #: allowed bits of each :class:`CompactGrids` field (what the writer accepts)
 GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (2, 16),
-                     "log_scales": (0, 14)}
+                     "log_scales": (0, 14), "codebooks": (0, 14)}
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,9 @@ class CompactGrids:
     as the paper;
     weights: MLP weight matrices in 2-8 bits per weight (:mod:`omg4.codec.weights`; below 8 the file needs
     container version 4) or 16 (fp16, as the paper);
-    log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are.
+    log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are;
+    codebooks: the other codebooks (appearance features; not rotations) rounded to steps of 2^-codebooks, or 0 (the
+    default): as they are — near-equal codewords then merge, so indices shrink too.
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
     """
 
@@ -99,6 +101,7 @@ class CompactGrids:
     times: int = grids.TIME_BITS
     weights: int = 8
     log_scales: int = 5
+    codebooks: int = 0
 
     def __post_init__(self):
         for name, (lo, hi) in GRID_BITS_ALLOWED.items():
@@ -110,24 +113,29 @@ class CompactGrids:
 
     @classmethod
     def parse(cls, text: str) -> "CompactGrids":
-        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES]"`` bits, e.g. ``"15,9,10"`` or ``"16,12,12,16,10"``,
-        or a name: ``"default"`` (15,9,10,8,5) or ``"lossless"`` (0,16,0,16,0: the paper coder's values)."""
+        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS]]"`` bits, e.g. ``"15,9,10"``,
+        ``"16,12,12,16,10"`` or ``"15,8,8,8,5,6"``, or a name: ``"default"`` (15,9,10,8,5,0) or ``"lossless"``
+        (0,16,0,16,0,0: the paper coder's values)."""
         named = {"default": cls(), "lossless": cls(0, 16, 0, 16, 0)}
         if text.strip().lower() in named:
             return named[text.strip().lower()]
         parts = [p.strip() for p in text.split(",")]
-        if len(parts) not in (3, 5) or not all(re.fullmatch(r"[0-9]{1,2}", p) for p in parts):
+        if len(parts) not in (3, 5, 6) or not all(re.fullmatch(r"[0-9]{1,2}", p) for p in parts):
             raise OMG4Error(f"compact grid {text!r}: give three integers POSITIONS,ROTATIONS,TIMES such as 15,9,10, "
-                            "five with WEIGHTS,LOG_SCALES such as 16,12,12,16,10, or default or lossless")
+                            "five or six with WEIGHTS,LOG_SCALES[,CODEBOOKS] such as 16,12,12,16,10 or 15,8,8,8,5,6, "
+                            "or default or lossless")
         return cls(*(int(p) for p in parts))
 
     @property
     def label(self) -> str:
-        """``"15/9/10"`` (positions/rotations/times bits), with ``/weights/log_scales`` when those are not the
-        defaults."""
-        tail = (self.weights, self.log_scales)
-        default = (CompactGrids.weights, CompactGrids.log_scales)
-        return "/".join(str(b) for b in (self.positions, self.rotations, self.times, *(() if tail == default else tail)))
+        """``"15/9/10"`` (positions/rotations/times bits), with ``/weights/log_scales`` when those or the codebooks
+        are not the defaults, and ``/codebooks`` when that is not."""
+        bits = (self.positions, self.rotations, self.times, self.weights, self.log_scales, self.codebooks)
+        if self.codebooks != CompactGrids.codebooks:
+            return "/".join(map(str, bits))
+        if (self.weights, self.log_scales) != (CompactGrids.weights, CompactGrids.log_scales):
+            return "/".join(map(str, bits[:5]))
+        return "/".join(map(str, bits[:3]))
 
 
 @dataclass
@@ -323,24 +331,24 @@ def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) ->
     return q
 
 
-def snap_log_scaled(codebook: np.ndarray, bits: int = CompactGrids.log_scales) -> np.ndarray:
-    """A log-scale codebook rounded to steps of 2^-bits, then to fp16 (at the default 5 bits fp16 holds every such
-    value below 64 exactly, so rounding twice changes nothing)."""
+def round_codebook(codebook: np.ndarray, bits: int) -> np.ndarray:
+    """A codebook rounded to steps of 2^-bits, then to fp16 (for the log-scale codebooks at the default 5 bits fp16
+    holds every such value below 64 exactly, so rounding twice changes nothing)."""
     step = 2.0 ** -bits
     return (np.rint(np.asarray(codebook, np.float64) / step) * step).astype(np.float16)
 
 
-def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool, log_scaled: bool,
+def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool, round_bits: int,
                               precision: CompactGrids, sections: dict[str, bytes], encodings: dict[str, str]
                               ) -> list[list[int]] | None:
-    """Add the sections of one SVQ attribute in the "compact" codec at ``precision``; returns its codebook shapes, or
-    None when it was stored as unit quaternions (smaller than its codebooks and indices, or too many rows for
-    them)."""
+    """Add the sections of one SVQ attribute in the "compact" codec at ``precision``, its codebooks rounded to steps of
+    2^-round_bits (0: as they are); returns its codebook shapes, or None when it was stored as unit quaternions
+    (smaller than its codebooks and indices, or too many rows for them)."""
     quat = quaternions.encode_quaternions(qa.reconstruct(), precision.rotations) if as_quaternion else None
     slots, shapes = {}, []
     if max(cb.shape[0] for cb in qa.codebooks) <= MAX_SYMBOLS:
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            cb = snap_log_scaled(cb, precision.log_scales) if log_scaled and precision.log_scales else cb
+            cb = round_codebook(cb, round_bits) if round_bits else cb
             cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
             slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
             shapes.append([k, int(cb.shape[1])])
@@ -408,8 +416,10 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     if codec == "compact":
         for attr, qa in q.attributes.items():
             as_quaternion = precision.rotations < 16 and _quaternion_stored(qa, attr, q.rotations)
-            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, attr in q.log_scaled, precision,
-                                                    sections, encodings)
+            round_bits = (precision.log_scales if attr in q.log_scaled
+                          else 0 if attr in q.rotations else precision.codebooks)
+            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, round_bits, precision, sections,
+                                                    encodings)
             if attr_shapes is None:
                 stored_as_quaternions.append(attr)
             else:

@@ -29,7 +29,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="beyond the paper: run every row once per rate weight of entropy-constrained codebooks "
                         "(see omg4 compress --help, --rate-weight), e.g. 0,30; the figure then shows each coder's "
                         "rate-distortion front (default 0: the paper's k-means)")
-    p.add_argument("--grid-bits", type=compact_grids, nargs="+", metavar="POS,ROT,TIME[,W,LS]",
+    p.add_argument("--grid-bits", type=compact_grids, nargs="+", metavar="POS,ROT,TIME[,W,LS[,CB]]",
                    help=GRID_BITS_HELP.replace("the compact codec's grids", "write every row at each of these compact "
                                                "codec grids (the first by the pipeline run, the others re-encoded; one "
                                                "curve each)"))
