@@ -91,7 +91,8 @@ class CompactGrids:
     weights: MLP weight matrices in 2-8 bits per weight (:mod:`omg4.codec.weights`; below 8 the file needs
     container version 4) or 16 (fp16, as the paper);
     log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are;
-    codebooks: the other codebooks (appearance features; not rotations) rounded to steps of 2^-codebooks, or 0 (the
+    codebooks: the other codebooks (appearance features, FreeTimeGS velocities; not rotations) rounded to steps of
+    2^-codebooks, or 0 (the
     default): as they are — near-equal codewords then merge, so indices shrink too.
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
     """
