@@ -17,35 +17,28 @@ Usage: python benchmarks/rate_front.py BENCH_DIR DATA [--downscale F] --grid-bit
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict
 import sys
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
 from environment import save_result
-from rate import split
+from rate import measure
 from omg4.atomic import write_text_atomic
 from omg4.bench import FULL, row_label
-from omg4.codec.decoder import load_omg4
 from omg4.codec.payload import CompactGrids, decode_payload, encode_payload
 from omg4.commands.common import compact_grids
-from omg4.commands.info import omg4_summary
 from omg4.data import load_scene
-from omg4.evaluate import dynamic_masks, evaluate
+from omg4.evaluate import dynamic_masks
 
 ROOT = Path(__file__).resolve().parents[1]
-QUALITY = ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic")
 
 
-def measure(path: Path, scene, masks) -> dict:
-    """Size split and quality of one ``.omg4`` file."""
-    summary, _ = omg4_summary(path)
-    per, fixed = split(summary["groups"])
-    n = summary["num_gaussians"]
-    r = evaluate(load_omg4(path), scene.test_views, masks=masks, lpips_nets=(), fps_views=1, progress=False)
-    return {"storage_mb": summary["total_bytes"] / 2**20, "bytes": summary["total_bytes"], "num_gaussians": n,
-            "bytes_per_gaussian": summary["total_bytes"] / n, "per_gaussian_B_per_G": per / n, "fixed_bytes": fixed,
-            **{k: r[k] for k in QUALITY}}
+def measure_front(path: Path, scene, masks) -> dict:
+    """:func:`rate.measure` of one file, its size in MB as ``storage_mb`` (the bench's name, which the curves use)."""
+    row = measure(path, scene, masks, show=False)
+    row["storage_mb"] = row.pop("MB")
+    return row
 
 
 SAME_PSNR, SAME_SSIM = 1e-4, 1e-6
@@ -93,7 +86,7 @@ def front_plot(path: Path, results: dict[str, dict], name: str) -> None:
         ax.scatter(*zip(*compact), s=10, color="tab:blue", alpha=0.35, label="compact files")
         ax.plot(*zip(*pareto(compact)), color="tab:blue", marker="o", markersize=4, label="compact front")
         for r in rows:
-            if tuple(r["grids"].values()) == tuple(asdict(CompactGrids()).values()):  # one paper copy per run
+            if CompactGrids(**r["grids"]) == CompactGrids():  # one paper copy per run
                 ax.scatter(r["paper_codec_mb"], r["paper_codec_psnr"], marker="s", color="tab:red",
                            s=60 if r["rate_weight"] == 0 else 20, zorder=3,
                            label="paper coder" if r["rate_weight"] == 0 else None)
@@ -129,12 +122,12 @@ def main() -> int:
             if tuple(meta.get("stages", ())) != FULL:
                 continue
             preset, beta = meta["preset"], float(meta.get("rate_weight", 0.0))
-            paper = measure(paper_file, scene, masks)
+            paper = measure_front(paper_file, scene, masks)
             print(f"OMG4-{preset} β={beta:g}: paper coder {paper['storage_mb']:.4f} MB {paper['psnr']:.3f} dB")
             for g in args.grid_bits:
                 path = Path(tmp) / "compact.omg4"
                 encode_payload(payload, path, codec="compact", precision=g)
-                r = measure(path, scene, masks)
+                r = measure_front(path, scene, masks)
                 r.update(paper_codec_mb=paper["storage_mb"], paper_codec_psnr=paper["psnr"],
                          paper_codec_ssim=paper["ssim"], paper_codec_B_per_G=paper["bytes_per_gaussian"],
                          rate_weight=beta, grids=asdict(g),

@@ -125,10 +125,11 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
         paper_r = None if codec == "paper" else evaluate(load_omg4(paper_copy, device), scene.test_views,
                                                          lpips_nets=(), backend=backend, device=device, masks=masks,
                                                          fps_views=1, progress=False)
+        payload = decode_payload(paper_copy) if len(grids) > 1 else None  # the pipeline's values, for re-encoding
         for g in grids:
             if g != grids[0]:
                 path = row_file(out, name, beta, g)
-                encode_payload(decode_payload(paper_copy), path, codec=codec, precision=g)
+                encode_payload(payload, path, codec=codec, precision=g)
             r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size,
                          backend=backend, device=device, masks=masks)
             paper = paper_r or r

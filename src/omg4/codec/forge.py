@@ -23,7 +23,6 @@ from typing import Iterator
 
 import numpy as np
 
-from omg4.codec import weights
 from omg4.codec.container import crc32, read_container, stored_json
 from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttribute, container_version,
                                 encode_payload)
@@ -87,17 +86,14 @@ def _split(data: bytes) -> tuple[dict, list[tuple[str, bytes]]]:
 def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
     """A container with correct checksums (JSON and sections) around any JSON ``header`` and any section names
     (what :func:`~omg4.codec.container.write_container` would refuse); the :data:`_RAW_NUMBERS` tokens become
-    numbers JSON cannot hold. The version is the one the writer gives the codec, and 4 where an encoding names
-    MLP weights in fewer than 8 bits (as :func:`~omg4.codec.payload.container_version`)."""
+    numbers JSON cannot hold. The version is the one the writer gives such a codec and encodings
+    (:func:`~omg4.codec.payload.container_version`)."""
     table = [[name, len(data), crc32(data)] for name, data in sections]
     text = json.dumps({"header": header, "sections": table}, separators=(",", ":"), ensure_ascii=False)
     for token, raw in _RAW_NUMBERS.items():
         text = text.replace(f'"{token}"', raw)
-    codec = header.get("codec") if isinstance(header, dict) else None
-    encodings = header.get("encodings") if isinstance(header, dict) else None
-    few_bits = isinstance(encodings, dict) and any(
-        isinstance(e, str) and (weights.bits_of(e) or weights.BITS) < weights.BITS for e in encodings.values())
-    version = container_version(codec, CompactGrids(weights=2)) if few_bits else container_version(codec)
+    fields = header if isinstance(header, dict) else {}
+    version = container_version(fields.get("codec"), fields.get("encodings"))
     head = stored_json(text.encode("utf-8", "surrogatepass"), version)
     return head + b"".join(data for _, data in sections)
 

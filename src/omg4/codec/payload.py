@@ -276,18 +276,22 @@ def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ encoding
-def container_version(codec: str, precision: CompactGrids = CompactGrids()) -> int:
-    """The container version a codec writes: 3 for "compact" (deflated JSON, grid-coded sections), 4 for "compact"
-    with MLP weights in fewer than 8 bits (an encoding builds reading 1-3 do not know), 1 otherwise, so files of
-    the older codecs stay readable by builds that predate versions 2 to 4."""
+def container_version(codec: object, encodings: object = None) -> int:
+    """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``): 3 for
+    "compact" (deflated JSON, grid-coded sections), 4 for "compact" with an MLP weight in fewer than 8 bits (an
+    encoding builds reading 1-3 do not know), 1 otherwise, so files of the older codecs stay readable by builds
+    that predate versions 2 to 4. Any ``encodings`` value is accepted (a forged header's too)."""
     if codec != "compact":
         return 1
-    return 4 if precision.weights < weights.BITS else 3
+    names = encodings.values() if isinstance(encodings, dict) else ()
+    return 4 if any(isinstance(e, str) and (weights.bits_of(e) or weights.BITS) < weights.BITS for e in names) else 3
 
 
-def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...]) -> bool:
-    """Whether the compact codec may store attribute ``name`` as unit quaternions (a rotation, 4 wide)."""
-    return name in rotations and sum(int(np.shape(cb)[1]) for cb in q.codebooks) == 4
+def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...], precision: CompactGrids) -> bool:
+    """Whether the compact codec may store attribute ``name`` as unit quaternions (a rotation, 4 wide, unless the
+    grids keep rotation codebooks: ``precision.rotations`` 16)."""
+    return (precision.rotations < 16 and name in rotations
+            and sum(int(np.shape(cb)[1]) for cb in q.codebooks) == 4)
 
 
 def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) -> CompressedPayload:
@@ -318,7 +322,7 @@ def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) ->
     for attr, qa in q.attributes.items():
         if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
             raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
-        any_length = codec == "compact" and precision.rotations < 16 and _quaternion_stored(qa, attr, q.rotations)
+        any_length = codec == "compact" and _quaternion_stored(qa, attr, q.rotations, precision)
         max_rows = max(n, MAX_SYMBOLS) if any_length else MAX_SYMBOLS
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
             if cb.ndim != 2 or not 1 <= cb.shape[0] <= max_rows or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
@@ -416,7 +420,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     stored_as_quaternions: list[str] = []
     if codec == "compact":
         for attr, qa in q.attributes.items():
-            as_quaternion = precision.rotations < 16 and _quaternion_stored(qa, attr, q.rotations)
+            as_quaternion = _quaternion_stored(qa, attr, q.rotations, precision)
             round_bits = (precision.log_scales if attr in q.log_scaled
                           else 0 if attr in q.rotations else precision.codebooks)
             attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, round_bits, precision, sections,
@@ -455,7 +459,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
-    total = write_container(path, header, sections, version=container_version(codec, precision))
+    total = write_container(path, header, sections, version=container_version(codec, encodings))
     sizes["header"] = total - sum(sizes.values())
     return sizes
 
@@ -568,8 +572,8 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return quaternions.decode_quaternions(data, count, bits)
             if compact and encoding == "sorted" and kind == "svq":
                 return decode_sorted_codebook(data, *shape)
-            if compact and weights.bits_of(encoding) and kind == "mlp" and len(shape) == 2:
-                return weights.decode_rows(data, shape, weights.bits_of(encoding))
+            if compact and (bits := weights.bits_of(encoding)) and kind == "mlp" and len(shape) == 2:
+                return weights.decode_rows(data, shape, bits)
             if encoding == "morton" and name == "xyz" and codec != "paper":
                 return _decode_xyz_morton(data, count)
             if compact and encoding == grids.POSITIONS and name == "xyz":

@@ -30,9 +30,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "(see omg4 compress --help, --rate-weight), e.g. 0,30; the figure then shows each coder's "
                         "rate-distortion front (default 0: the paper's k-means)")
     p.add_argument("--grid-bits", type=compact_grids, nargs="+", metavar="POS,ROT,TIME[,W,LS[,CB]]",
-                   help=GRID_BITS_HELP.replace("the compact codec's grids", "write every row at each of these compact "
-                                               "codec grids (the first by the pipeline run, the others re-encoded; one "
-                                               "curve each)"))
+                   help="write every row at each of these grids (the first by the pipeline run, the others "
+                        "re-encoded from its paper-coder copy; one curve each). " + GRID_BITS_HELP)
     add_device_arguments(p)
 
 
@@ -44,12 +43,11 @@ def _row_names() -> dict[str, list[str]]:
 
 def run(args) -> int:
     from omg4.bench import ROWS_BY_BACKBONE, run_bench
+    from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
-
-    from omg4.codec.payload import CompactGrids, check_codec
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
     for g in grids:

@@ -55,9 +55,9 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CompactGrids, check_codec
-    from omg4.errors import OMG4Error
     from omg4.compress.api import compress_to_file
     from omg4.compress.schedule import default_schedule
+    from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
 
