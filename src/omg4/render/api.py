@@ -20,9 +20,10 @@ import torch
 
 from omg4.errors import OMG4Error
 from omg4.render.rendered import BACKENDS, Rendered
-from omg4.render.binning import TileBins, bin_tiles, pixel_boxes, sigma_cutoff
+from omg4.render.binning import TileBins, bin_tiles, pixel_boxes, sigma_cutoff, tile_grid
 from omg4.render.cpu_kernels import composite_backward, composite_forward
-from omg4.render.projection import ALPHA_THRESHOLD, max_radius, project_gaussians
+from omg4.render.forward_kernels import group_by_tile, project_forward
+from omg4.render.projection import ALPHA_THRESHOLD, Projected, max_radius, project_gaussians
 
 def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
               viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
@@ -156,25 +157,31 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
                   far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
     """CPU backend of :func:`rasterize_views` (same arguments).
 
-    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU.
+    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. When no
+    input needs a gradient, projection and binning run as numba kernels (:func:`project_and_bin`) instead
+    of the differentiable torch path; both give the same tile lists and images.
     """
     if means.device.type != "cpu":
         raise ValueError(f"the cpu rasterizer backend needs CPU tensors, got {means.device}")
     dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
-    means = means.to(dtype)
-    colors = colors.to(dtype)
-    opacities = opacities.to(dtype)
+    means, covars, colors, opacities = (t.to(dtype) for t in (means, covars, colors, opacities))
     num_views = viewmats.shape[0]
-    viewmat, K = (viewmats[0], Ks[0]) if num_views == 1 else (viewmats[views], Ks[views])
-    proj = project_gaussians(means, covars.to(dtype), viewmat.to(dtype), K.to(dtype), width, height,
-                             opacities=opacities, near=near, far=far, eps2d=eps2d)
-    means2d = proj.means2d
-    if means2d.requires_grad:
-        means2d.retain_grad()
-    bins = bin_tiles(means2d, proj.radii, proj.depths, width, height, tile_size,
-                     views=views if num_views > 1 else None, num_views=num_views)
-    cutoff = sigma_cutoff(opacities)
-    boxes = pixel_boxes(means2d, proj.cov2d_diag, cutoff, width, height)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities)):
+        viewmat, K = (viewmats[0], Ks[0]) if num_views == 1 else (viewmats[views], Ks[views])
+        proj = project_gaussians(means, covars, viewmat.to(dtype), K.to(dtype), width, height,
+                                 opacities=opacities, near=near, far=far, eps2d=eps2d)
+        means2d = proj.means2d
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        bins = bin_tiles(means2d, proj.radii, proj.depths, width, height, tile_size,
+                         views=views if num_views > 1 else None, num_views=num_views)
+        cutoff = sigma_cutoff(opacities)
+        boxes = pixel_boxes(means2d, proj.cov2d_diag, cutoff, width, height)
+    else:
+        proj, bins, cutoff, boxes = project_and_bin(means, covars, opacities, views if num_views > 1 else None,
+                                                    viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d,
+                                                    tile_size=tile_size)
+        means2d = proj.means2d
     n_colors = colors.shape[1]
     feats = torch.cat([colors, proj.depths[:, None]], dim=1)
     acc, trans = _Composite.apply(means2d, proj.conics, feats, opacities, cutoff.to(dtype), boxes, bins,
@@ -185,6 +192,39 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
     image = acc[..., :n_colors] + trans * bg
     return Rendered(image=image, alpha=1.0 - trans, depth=acc[..., n_colors:], means2d=means2d,
                     radii=max_radius(proj.radii))
+
+
+def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, views: torch.Tensor | None,
+                    viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *, near: float, far: float,
+                    eps2d: float, tile_size: int) -> tuple[Projected, TileBins, torch.Tensor, torch.Tensor]:
+    """``(projected, bins, σ cutoff [N] float64, pixel boxes [N, 4] int32)``: what ``project_gaussians`` (with
+    opacities), ``bin_tiles``, ``sigma_cutoff`` and ``pixel_boxes`` give, from the numba kernels of
+    :mod:`omg4.render.forward_kernels`, for a render that needs no gradient. ``means``, ``covars`` and
+    ``opacities`` are float32 or float64 CPU tensors of one dtype; ``views`` as :func:`rasterize_views`
+    (None: one view)."""
+    n, dtype = means.shape[0], means.dtype
+    np_dtype = np.float64 if dtype == torch.float64 else np.float32
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    view_of = np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
+    means2d, conics = np.empty((n, 2), np_dtype), np.empty((n, 3), np_dtype)
+    depths, cov_diag = np.empty(n, np_dtype), np.empty((n, 2), np_dtype)
+    radii, boxes = np.empty((n, 2), np.int32), np.empty((n, 4), np.int32)
+    cutoff, tiles = np.empty(n, np.float64), np.empty((n, 4), np.int64)
+    with keeping_torch_threads():
+        project_forward(as_numpy(means), as_numpy(covars), as_numpy(opacities), view_of, as_numpy(viewmats.to(dtype)),
+                        as_numpy(Ks.to(dtype)), width, height, float(near), float(far), float(eps2d),
+                        float(torch.finfo(dtype).max), tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag,
+                        radii, cutoff, boxes, tiles)
+    depth_bits = depths.astype(np.float32).view(np.uint32).astype(np.int64)
+    ids, offsets = group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y,
+                                 tiles_x * tiles_y * viewmats.shape[0])
+    radii_t = torch.from_numpy(radii)
+    projected = Projected(means2d=torch.from_numpy(means2d), conics=torch.from_numpy(conics),
+                          depths=torch.from_numpy(depths), cov2d_diag=torch.from_numpy(cov_diag), radii=radii_t,
+                          visible=(radii_t > 0).any(dim=-1))
+    bins = TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
+                    tiles_y=tiles_y, tile_size=tile_size)
+    return projected, bins, torch.from_numpy(cutoff), torch.from_numpy(boxes)
 
 
 def as_numpy(t: torch.Tensor) -> np.ndarray:

@@ -81,7 +81,9 @@ def resolve_cache_dir(environ: Mapping[str, str], package_dir: str | os.PathLike
     return str(Path.home() / ".cache" / "omg4" / "numba")
 
 
-def _configure_cache() -> None:
+def configure_numba_cache() -> None:
+    """Point numba's on-disk cache where it can write (see the module docstring). Runs when this module is
+    imported, before its kernels are defined; another module's kernels need it to have run before theirs."""
     folder = resolve_cache_dir(os.environ, Path(__file__).parent, lambda p: os.access(p, os.W_OK))
     if folder is not None:
         os.makedirs(folder, exist_ok=True)
@@ -89,7 +91,7 @@ def _configure_cache() -> None:
         numba.config.CACHE_DIR = folder
 
 
-_configure_cache()
+configure_numba_cache()
 
 
 @njit(cache=True, inline="always")

@@ -10,10 +10,11 @@ rt4dgs §1.5):
   widened by 30 % (limits computed from ``K`` and the image size);
 * ``cov2d = J Σ_c Jᵀ + eps2d·I``, conic = ``cov2d⁻¹`` stored as (inv00, inv01, inv11);
 * means in pixels ``(fx·x/z + cx, fy·y/z + cy)``: pixel centres sit at +0.5;
-* an axis-aligned box of half-widths ``ceil(extend·sqrt(cov2d_ii))`` with ``extend = 3.33``,
+* an axis-aligned box of half-widths ``ceil(extend·sqrt(cov2d_ii))`` (at most :data:`RADIUS_MAX`) with ``extend = 3.33``,
   shrunk by opacity to ``sqrt(2 ln(255·o))`` when opacities are given (gsplat's
   opacity-aware bound); Gaussians with opacity < 1/255, a non-positive determinant or a box
-  outside the image get radius 0.
+  outside the image get radius 0, and so do those whose 2D covariance overflows the input precision
+  (a determinant that is not finite; beyond gsplat, so that every CPU path culls them alike).
 """
 
 from __future__ import annotations
@@ -29,6 +30,10 @@ ALPHA_THRESHOLD = 1.0 / 255.0
 
 BOX_EXTEND = 3.33
 """Box half-width in standard deviations when opacity does not shrink it (gsplat)."""
+
+RADIUS_MAX = 2**31 - 128
+"""Largest box half-width in pixels (beyond gsplat): the largest float32 below 2³¹, so radii stay int32. A wider
+box already spans any image whose centre lies within ~2·10⁹ pixels of the Gaussian's."""
 
 
 @dataclass
@@ -101,7 +106,7 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
     c11 = cov2d[:, 1, 1] + eps2d
     c01 = cov2d[:, 0, 1]
     det = c00 * c11 - c01 * c01
-    visible = in_range & (det > 0) & (c00 > 0) & (c11 > 0)
+    visible = in_range & (det > 0) & (c00 > 0) & (c11 > 0) & torch.isfinite(det)
     det = torch.where(visible, det, torch.ones_like(det))
     conics = torch.stack([c11 / det, -c01 / det, c00 / det], dim=-1)
     conics = torch.where(visible[:, None], conics, torch.zeros_like(conics))
@@ -114,7 +119,7 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
             o = opacities.detach().to(z.dtype)
             visible = visible & (o >= ALPHA_THRESHOLD)
             extend = torch.minimum(extend, torch.sqrt(2.0 * torch.log(o.clamp(min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD)))
-        radius = torch.ceil(extend[:, None] * torch.sqrt(cov_diag))  # [N, 2]
+        radius = torch.ceil(extend[:, None] * torch.sqrt(cov_diag)).clamp(max=RADIUS_MAX)  # [N, 2]
         visible = visible & (radius > 0).any(dim=-1)
         m = means2d.detach()
         visible = visible & ((m[:, 0] + radius[:, 0] > 0) & (m[:, 0] - radius[:, 0] < width)

@@ -1,0 +1,143 @@
+"""The gradient-free render path (numba projection, binning and pixel boxes) against the differentiable torch path.
+
+A render that needs no gradient projects and bins in :mod:`omg4.render.forward_kernels`; it must give
+what :func:`project_gaussians`, :func:`bin_tiles`, :func:`sigma_cutoff` and :func:`pixel_boxes` give —
+the same visible set, radii, tile lists and boxes, values within the input precision — and the same
+images, for one view and several, on scenes that exercise the near/far cull, the Jacobian clamp, tiny
+opacities and off-screen Gaussians.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from dense_reference import dense_rasterize, random_scene
+
+from omg4.render import rasterize
+from omg4.render.api import project_and_bin, rasterize_views
+from omg4.render.binning import bin_tiles, pixel_boxes, sigma_cutoff
+from omg4.render.projection import project_gaussians
+
+WIDTH, HEIGHT = 48, 36
+
+
+def _scene(seed: int, n: int = 500):
+    """Gaussians spread to 3× the field of view, some behind the camera or before the near plane, some with
+    opacities below 1/255 (culled) or just above it (boxes shrink), some covariances huge."""
+    sc = random_scene(seed, n, WIDTH, HEIGHT, scale=0.3)
+    g = torch.Generator().manual_seed(seed + 100)
+    R, t = sc.viewmat[:3, :3], sc.viewmat[:3, 3]
+    pc = sc.means @ R.T + t
+    spread = torch.rand(n, 2, generator=g, dtype=torch.float64) * 3 - 1
+    pc[:, 0] = (spread[:, 0] * WIDTH - sc.K[0, 2]) / sc.K[0, 0] * pc[:, 2]
+    pc[:, 1] = (spread[:, 1] * HEIGHT - sc.K[1, 2]) / sc.K[1, 1] * pc[:, 2]
+    pc[:20, 2] = torch.linspace(-1.0, 0.19, 20, dtype=torch.float64)
+    sc.means = (pc - t) @ R
+    sc.opacities[20:40] = torch.linspace(1e-3, 6e-3, 20, dtype=torch.float64)
+    sc.covars[40:50] *= 50.0
+    return sc
+
+
+def _reference(means, covars, opacities, views, viewmats, Ks, num_views, tile_size):
+    viewmat, K = (viewmats[0], Ks[0]) if views is None else (viewmats[views], Ks[views])
+    p = project_gaussians(means, covars, viewmat, K, WIDTH, HEIGHT, opacities=opacities)
+    bins = bin_tiles(p.means2d, p.radii, p.depths, WIDTH, HEIGHT, tile_size, views=views, num_views=num_views)
+    cutoff = sigma_cutoff(opacities)
+    return p, bins, cutoff, pixel_boxes(p.means2d, p.cov2d_diag, cutoff, WIDTH, HEIGHT)
+
+
+def _views(num_views: int, dtype):
+    """Rows of ``num_views`` random scenes stacked, with their cameras (``views`` None for one view)."""
+    scenes = [_scene(seed) for seed in range(num_views)]
+    cat = lambda name: torch.cat([getattr(s, name) for s in scenes]).to(dtype)  # noqa: E731
+    views = None if num_views == 1 else torch.cat([torch.full((500,), v) for v in range(num_views)])
+    viewmats = torch.stack([s.viewmat for s in scenes]).to(dtype)
+    Ks = torch.stack([s.K for s in scenes]).to(dtype)
+    return scenes, cat("means"), cat("covars"), cat("colors"), cat("opacities"), views, viewmats, Ks
+
+
+@pytest.mark.parametrize("num_views", [1, 3])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("tile_size", [16, 5])
+def test_forward_kernels_give_the_differentiable_paths_projection_bins_and_boxes(num_views, dtype, tile_size):
+    _, means, covars, _, opacities, views, viewmats, Ks = _views(num_views, dtype)
+    p, bins, cutoff, boxes = project_and_bin(means, covars, opacities, views, viewmats, Ks, WIDTH, HEIGHT,
+                                             near=0.2, far=1e10, eps2d=0.3, tile_size=tile_size)
+    q, ref_bins, ref_cutoff, ref_boxes = _reference(means, covars, opacities, views, viewmats, Ks, num_views,
+                                                    tile_size)
+    vis = q.visible
+    assert 100 < int(vis.sum()) < len(vis) - 60  # culled by depth, opacity and the image border alike
+    assert torch.equal(p.visible, vis) and torch.equal(p.radii, q.radii)
+    tol = dict(rtol=1e-12, atol=1e-9) if dtype == torch.float64 else dict(rtol=2e-6, atol=1e-4)
+    for name in ("means2d", "depths", "cov2d_diag"):
+        torch.testing.assert_close(getattr(p, name), getattr(q, name), **tol)
+    torch.testing.assert_close(p.conics[vis], q.conics[vis], rtol=tol["rtol"] * 10, atol=tol["rtol"])
+    assert torch.all(p.means2d[~vis] == 0)
+    assert p.means2d.dtype == dtype and p.radii.dtype == torch.int32
+    assert torch.equal(bins.tile_offsets, ref_bins.tile_offsets) and torch.equal(bins.gaussian_ids, ref_bins.gaussian_ids)
+    assert bins.num_intersections > 2 * int(vis.sum())  # Gaussians span several tiles
+    torch.testing.assert_close(cutoff, ref_cutoff, rtol=0, atol=0)
+    assert torch.equal(boxes[vis], ref_boxes[vis])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_render_without_gradients_equals_the_differentiable_render(dtype):
+    scenes, means, covars, colors, opacities, views, viewmats, Ks = _views(3, dtype)
+    background = torch.tensor([0.2, 0.4, 0.1], dtype=dtype)
+    leaves = [t.clone().requires_grad_() for t in (means, covars, colors, opacities)]
+    with_grad = rasterize_views(*leaves, views, viewmats, Ks, WIDTH, HEIGHT, background=background, backend="cpu")
+    with torch.no_grad():
+        no_grad = rasterize_views(*leaves, views, viewmats, Ks, WIDTH, HEIGHT, background=background, backend="cpu")
+    plain = rasterize_views(means, covars, colors, opacities, views, viewmats, Ks, WIDTH, HEIGHT,
+                            background=background, backend="cpu")
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+    assert float(with_grad.alpha.detach().max()) > 0.5
+    for fast in (no_grad, plain):
+        assert not fast.image.requires_grad
+        for name in ("image", "alpha", "depth", "means2d"):
+            torch.testing.assert_close(getattr(fast, name), getattr(with_grad, name).detach(), rtol=tol, atol=tol)
+        assert torch.equal(fast.radii, with_grad.radii)
+    one = scenes[1]
+    single = rasterize(*(getattr(one, k).to(dtype) for k in ("means", "covars", "colors", "opacities")),
+                       one.viewmat.to(dtype), one.K.to(dtype), WIDTH, HEIGHT, background=background, backend="cpu")
+    torch.testing.assert_close(single.image, no_grad.image[1], rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_render_without_gradients_matches_the_dense_reference(seed):
+    sc = random_scene(seed, 200, 37, 29, opacity=(0.3, 0.99), scale=0.12)
+    r = rasterize(**sc.tensors(torch.float64, requires_grad=False), tile_size=8, backend="cpu")
+    ref = dense_rasterize(**sc.tensors(torch.float64, requires_grad=False))
+    assert float(ref.alpha.max()) > 0.5
+    for name in ("image", "alpha", "depth"):
+        torch.testing.assert_close(getattr(r, name), getattr(ref, name), rtol=1e-11, atol=1e-11)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_covariances_that_overflow_the_input_precision_are_culled_on_both_paths(dtype):
+    """Finite covariances 1e17 and 1e20 times too large: the 2D determinant of the latter overflows float32 (not
+    float64). Both paths cull exactly those, and render the rest alike."""
+    sc = random_scene(3, 60, WIDTH, HEIGHT, opacity=(0.3, 0.9))
+    sc.covars[:5] *= 1e17
+    sc.covars[5:10] *= 1e20
+    inputs = [getattr(sc, k).to(dtype) for k in ("means", "covars", "colors", "opacities")]
+    cameras = (sc.viewmat.to(dtype)[None], sc.K.to(dtype)[None])
+    fast = rasterize_views(*inputs, None, *cameras, WIDTH, HEIGHT, backend="cpu")
+    slow = rasterize_views(*(t.clone().requires_grad_() for t in inputs), None, *cameras, WIDTH, HEIGHT, backend="cpu")
+    exact = slow.radii < 2**24  # larger radii are float32 values that the paths round differently
+    assert torch.equal(fast.radii[exact], slow.radii[exact])
+    torch.testing.assert_close(fast.radii[~exact].double(), slow.radii[~exact].double(), rtol=1e-6, atol=0)
+    assert bool((fast.radii[:5] > 2**24).all())  # boxes far wider than the image, within int32
+    assert bool((fast.radii[5:10] > 0).all()) == (dtype == torch.float64)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5  # float32 conics of ~1e-20 differ in their last bits
+    torch.testing.assert_close(fast.image, slow.image.detach(), rtol=tol, atol=tol)
+
+
+def test_an_empty_render_without_gradients_shows_the_background():
+    sc = random_scene(0, 10, WIDTH, HEIGHT)
+    empty = {k: v[:0] if k in ("means", "covars", "colors", "opacities") else v
+             for k, v in sc.tensors(torch.float32, requires_grad=False).items()}
+    r = rasterize(**empty, backend="cpu")
+    assert r.means2d.shape == (0, 2) and r.radii.shape == (0,)
+    torch.testing.assert_close(r.image, sc.background.float().expand(HEIGHT, WIDTH, 3))
+    assert float(r.alpha.abs().max()) == 0.0
