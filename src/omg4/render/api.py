@@ -22,8 +22,9 @@ from omg4.errors import OMG4Error
 from omg4.render.rendered import BACKENDS, Rendered
 from omg4.render.binning import TileBins, bin_tiles, pixel_boxes, sigma_cutoff, tile_grid
 from omg4.render.cpu_kernels import composite_backward, composite_forward
-from omg4.render.forward_kernels import group_by_tile, project_forward
-from omg4.render.projection import ALPHA_THRESHOLD, Projected, max_radius, project_gaussians
+from omg4.render.forward_kernels import CONSTS, group_by_tile, project_forward
+from omg4.render.projection import (ALPHA_THRESHOLD, RADIUS_MAX, Projected, max_radius, opacity_extend,
+                                    project_gaussians)
 
 def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
               viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
@@ -166,7 +167,7 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
     dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
     means, covars, colors, opacities = (t.to(dtype) for t in (means, covars, colors, opacities))
     num_views = viewmats.shape[0]
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities)):
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities, viewmats, Ks)):
         viewmat, K = (viewmats[0], Ks[0]) if num_views == 1 else (viewmats[views], Ks[views])
         proj = project_gaussians(means, covars, viewmat.to(dtype), K.to(dtype), width, height,
                                  opacities=opacities, near=near, far=far, eps2d=eps2d)
@@ -206,15 +207,17 @@ def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.
     np_dtype = np.float64 if dtype == torch.float64 else np.float32
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
     view_of = np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
+    settings = dict(near=near, far=far, eps2d=eps2d, one=1.0, fov_margin=0.3, half_width=0.5 * width,
+                    half_height=0.5 * height, width=width, height=height, radius_max=RADIUS_MAX)
+    consts = np.array([settings[name] for name in CONSTS], dtype=np_dtype)
+    cutoff = sigma_cutoff(opacities)
     means2d, conics = np.empty((n, 2), np_dtype), np.empty((n, 3), np_dtype)
     depths, cov_diag = np.empty(n, np_dtype), np.empty((n, 2), np_dtype)
-    radii, boxes = np.empty((n, 2), np.int32), np.empty((n, 4), np.int32)
-    cutoff, tiles = np.empty(n, np.float64), np.empty((n, 4), np.int64)
+    radii, boxes, tiles = np.empty((n, 2), np.int32), np.empty((n, 4), np.int32), np.empty((n, 4), np.int64)
     with keeping_torch_threads():
-        project_forward(as_numpy(means), as_numpy(covars), as_numpy(opacities), view_of, as_numpy(viewmats.to(dtype)),
-                        as_numpy(Ks.to(dtype)), width, height, float(near), float(far), float(eps2d),
-                        float(torch.finfo(dtype).max), tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag,
-                        radii, cutoff, boxes, tiles)
+        project_forward(as_numpy(means), as_numpy(covars), as_numpy(opacity_extend(opacities)), as_numpy(cutoff),
+                        view_of, as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), consts, width, height,
+                        tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles)
     depth_bits = depths.astype(np.float32).view(np.uint32).astype(np.int64)
     ids, offsets = group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y,
                                  tiles_x * tiles_y * viewmats.shape[0])
@@ -224,7 +227,7 @@ def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.
                           visible=(radii_t > 0).any(dim=-1))
     bins = TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
                     tiles_y=tiles_y, tile_size=tile_size)
-    return projected, bins, torch.from_numpy(cutoff), torch.from_numpy(boxes)
+    return projected, bins, cutoff, torch.from_numpy(boxes)
 
 
 def as_numpy(t: torch.Tensor) -> np.ndarray:

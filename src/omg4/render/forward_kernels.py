@@ -1,14 +1,16 @@
 """Projection, tile binning and pixel boxes of a render that needs no gradient, as numba kernels.
 
 The differentiable CPU path (:func:`omg4.render.projection.project_gaussians`,
-:func:`omg4.render.binning.bin_tiles`, :func:`~omg4.render.binning.pixel_boxes`) is a few dozen torch
-operations over all Gaussians; when nothing asks for a gradient (evaluation, videos, the viewer) the
-same rules run here (rt4dgs §1.5; docs/paper-map.md "Rasterizer backends"): one parallel pass per
-Gaussian (projection, opacity-aware radius, σ cutoff, pixel box, tile rectangle), a radix sort of the
-Gaussians by depth and a counting pass that lists each tile's intersections in that order. Projections are
-computed in float64 and stored in the input precision; tile ranges and sort keys use the stored float32
-values as gsplat's ``isect_tiles`` does, so each tile's list is front to back with ties in Gaussian order,
-the order of :func:`~omg4.render.binning.bin_tiles`' stable sort.
+:func:`omg4.render.binning.bin_tiles`, :func:`~omg4.render.binning.pixel_boxes`) is some 250 small torch
+operations per frame; when nothing asks for a gradient (evaluation, videos, the viewer) the same rules run
+here (rt4dgs §1.5; docs/paper-map.md "Rasterizer backends"): one parallel pass per Gaussian (projection,
+radius, pixel box, tile rectangle), a radix sort of the Gaussians by depth and a counting pass that lists
+each tile's intersections in that order. The projection repeats the torch path's arithmetic operation by
+operation in the input precision, so float32 rounding falls alike (it decides, e.g., whether a needle-thin
+Gaussian's 2D determinant is positive); tile ranges and sort keys use the stored float32 values as gsplat's
+``isect_tiles`` does, so each tile's list is front to back with ties in Gaussian order, the order of
+:func:`~omg4.render.binning.bin_tiles`' stable sort. The opacity-dependent box width and σ cutoff come in
+from :func:`~omg4.render.projection.opacity_extend` and :func:`~omg4.render.binning.sigma_cutoff`.
 """
 
 from __future__ import annotations
@@ -18,119 +20,110 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from omg4.render.binning import SIGMA_MARGIN
 from omg4.render.cpu_kernels import configure_numba_cache
-from omg4.render.projection import ALPHA_THRESHOLD, BOX_EXTEND, RADIUS_MAX
 
 configure_numba_cache()
 
 
-@njit(parallel=True, cache=True)
-def project_forward(means, covars, opacities, views, viewmats, Ks, width, height, near, far, eps2d, largest,
-                    tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, cutoff, boxes, tiles):
-    """Project every Gaussian through its view's camera (the rules of ``project_gaussians`` with opacities)
-    and derive its sort depth, σ cutoff, pixel box and tile rectangle.
+CONSTS = ("near", "far", "eps2d", "one", "fov_margin", "half_width", "half_height", "width", "height", "radius_max")
+"""The entries of :func:`project_forward`'s ``consts`` array, in the input dtype (so that the arithmetic stays in it)."""
 
-    Inputs: ``means [N, 3]``, ``covars [N, 3, 3]``, ``opacities [N]``, ``views [N]`` int64, ``viewmats [V, 4, 4]``,
-    ``Ks [V, 3, 3]``; ``largest``, the input precision's largest finite value (a Gaussian whose 2D covariance
-    exceeds it is culled, as the torch path culls a determinant that overflows). Outputs (written): ``means2d [N, 2]``, ``conics [N, 3]``, ``depths [N]``, ``cov_diag [N, 2]``
-    (input precision), ``radii [N, 2]`` int32, ``cutoff [N]`` float64, ``boxes [N, 4]`` int32 and ``tiles [N, 4]``
-    int64 (first tile x, first tile y, tiles across, tiles down; zero spans where not rendered).
+
+@njit(parallel=True, cache=True)
+def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, width, height, tile_size, tiles_x,
+                    tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles):
+    """Project every Gaussian through its view's camera and derive its pixel box and tile rectangle.
+
+    The projection is ``project_gaussians``' with opacities, operation by operation in the input precision (the
+    ``consts`` of :data:`CONSTS` carry every constant in it; sums run first term first, as torch's small matrix
+    products do), so that float32 rounding — which decides, e.g., whether an elongated Gaussian's 2D determinant
+    is positive — falls alike. Inputs: ``means [N, 3]``, ``covars [N, 3, 3]``, ``extend [N]`` box half-widths in
+    standard deviations (:func:`omg4.render.projection.opacity_extend`), ``cutoff [N]`` float64 σ cutoffs
+    (:func:`omg4.render.binning.sigma_cutoff`), ``views [N]`` int64, ``viewmats [V, 4, 4]``, ``Ks [V, 3, 3]``.
+    Outputs (written): ``means2d [N, 2]``, ``conics [N, 3]``, ``depths [N]``, ``cov_diag [N, 2]`` (input precision),
+    ``radii [N, 2]`` int32, ``boxes [N, 4]`` int32 (``pixel_boxes``) and ``tiles [N, 4]`` int64 (first tile x,
+    first tile y, tiles across, tiles down; zero spans where not rendered).
     """
-    n = means.shape[0]
+    near, far, eps2d, one, fov_margin = consts[0], consts[1], consts[2], consts[3], consts[4]
+    half_width, half_height, width_f, height_f, radius_max = consts[5], consts[6], consts[7], consts[8], consts[9]
+    zero = one - one
     ts32 = np.float32(tile_size)
-    for i in prange(n):
+    for i in prange(means.shape[0]):
         v = views[i]
-        px = float(means[i, 0])
-        py = float(means[i, 1])
-        pz = float(means[i, 2])
+        m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
         r = viewmats[v]
-        x = r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + r[0, 3]
-        y = r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + r[1, 3]
-        z = r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + r[2, 3]
+        x = m0 * r[0, 0] + m1 * r[0, 1] + m2 * r[0, 2] + r[0, 3]
+        y = m0 * r[1, 0] + m1 * r[1, 1] + m2 * r[1, 2] + r[1, 3]
+        z = m0 * r[2, 0] + m1 * r[2, 1] + m2 * r[2, 2] + r[2, 3]
         depths[i] = z
-        in_range = near <= z <= far
+        in_range = z >= near and z <= far
         if not in_range:
-            z = 1.0
+            z = one
         k = Ks[v]
-        fx, fy, cx, cy = float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
-        tan_fovx = 0.5 * width / fx
-        tan_fovy = 0.5 * height / fy
-        rz = 1.0 / z
-        tx = z * min(max(x * rz, -(cx / fx + 0.3 * tan_fovx)), (width - cx) / fx + 0.3 * tan_fovx)
-        ty = z * min(max(y * rz, -(cy / fy + 0.3 * tan_fovy)), (height - cy) / fy + 0.3 * tan_fovy)
+        fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+        tan_fovx = half_width / fx
+        tan_fovy = half_height / fy
+        rz = one / z
+        tx = z * min(max(x * rz, -(cx / fx + fov_margin * tan_fovx)), (width_f - cx) / fx + fov_margin * tan_fovx)
+        ty = z * min(max(y * rz, -(cy / fy + fov_margin * tan_fovy)), (height_f - cy) / fy + fov_margin * tan_fovy)
         # J R (2 × 3) with J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]]
-        j02 = -fx * tx * rz * rz
-        j12 = -fy * ty * rz * rz
-        a0 = fx * rz * r[0, 0] + j02 * r[2, 0]
-        a1 = fx * rz * r[0, 1] + j02 * r[2, 1]
-        a2 = fx * rz * r[0, 2] + j02 * r[2, 2]
-        b0 = fy * rz * r[1, 0] + j12 * r[2, 0]
-        b1 = fy * rz * r[1, 1] + j12 * r[2, 1]
-        b2 = fy * rz * r[1, 2] + j12 * r[2, 2]
+        j00, j02 = fx * rz, -fx * tx * rz * rz
+        j11, j12 = fy * rz, -fy * ty * rz * rz
+        a0 = j00 * r[0, 0] + zero * r[1, 0] + j02 * r[2, 0]
+        a1 = j00 * r[0, 1] + zero * r[1, 1] + j02 * r[2, 1]
+        a2 = j00 * r[0, 2] + zero * r[1, 2] + j02 * r[2, 2]
+        b0 = zero * r[0, 0] + j11 * r[1, 0] + j12 * r[2, 0]
+        b1 = zero * r[0, 1] + j11 * r[1, 1] + j12 * r[2, 1]
+        b2 = zero * r[0, 2] + j11 * r[1, 2] + j12 * r[2, 2]
         c = covars[i]
-        s00, s11, s22 = float(c[0, 0]), float(c[1, 1]), float(c[2, 2])
-        s01 = 0.5 * (float(c[0, 1]) + float(c[1, 0]))
-        s02 = 0.5 * (float(c[0, 2]) + float(c[2, 0]))
-        s12 = 0.5 * (float(c[1, 2]) + float(c[2, 1]))
-        sa0 = s00 * a0 + s01 * a1 + s02 * a2
-        sa1 = s01 * a0 + s11 * a1 + s12 * a2
-        sa2 = s02 * a0 + s12 * a1 + s22 * a2
-        sb0 = s00 * b0 + s01 * b1 + s02 * b2
-        sb1 = s01 * b0 + s11 * b1 + s12 * b2
-        sb2 = s02 * b0 + s12 * b1 + s22 * b2
-        c00 = a0 * sa0 + a1 * sa1 + a2 * sa2 + eps2d
-        c11 = b0 * sb0 + b1 * sb1 + b2 * sb2 + eps2d
-        c01 = a0 * sb0 + a1 * sb1 + a2 * sb2
+        half = one / (one + one)
+        s00, s11, s22 = half * (c[0, 0] + c[0, 0]), half * (c[1, 1] + c[1, 1]), half * (c[2, 2] + c[2, 2])
+        s01, s02, s12 = half * (c[0, 1] + c[1, 0]), half * (c[0, 2] + c[2, 0]), half * (c[1, 2] + c[2, 1])
+        # (J R) S, then ((J R) S)(J R)ᵀ
+        p0 = a0 * s00 + a1 * s01 + a2 * s02
+        p1 = a0 * s01 + a1 * s11 + a2 * s12
+        p2 = a0 * s02 + a1 * s12 + a2 * s22
+        q0 = b0 * s00 + b1 * s01 + b2 * s02
+        q1 = b0 * s01 + b1 * s11 + b2 * s12
+        q2 = b0 * s02 + b1 * s12 + b2 * s22
+        c00 = (p0 * a0 + p1 * a1 + p2 * a2) + eps2d
+        c11 = (q0 * b0 + q1 * b1 + q2 * b2) + eps2d
+        c01 = p0 * b0 + p1 * b1 + p2 * b2
         det = c00 * c11 - c01 * c01
-        # the torch path's determinant is finite in the input precision exactly when these are
-        visible = (in_range and det > 0 and c00 > 0 and c11 > 0 and c00 * c11 <= largest and c01 * c01 <= largest
-                   and c00 <= largest and c11 <= largest)
+        visible = in_range and det > 0 and c00 > 0 and c11 > 0 and math.isfinite(det)
         if visible:
             conics[i, 0] = c11 / det
             conics[i, 1] = -c01 / det
             conics[i, 2] = c00 / det
         else:
-            conics[i, 0] = 0.0
-            conics[i, 1] = 0.0
-            conics[i, 2] = 0.0
-        d0, d1 = max(c00, 0.0), max(c11, 0.0)
+            conics[i, 0] = zero
+            conics[i, 1] = zero
+            conics[i, 2] = zero
+        d0, d1 = max(c00, zero), max(c11, zero)
         cov_diag[i, 0] = d0
         cov_diag[i, 1] = d1
-        o = float(opacities[i])
-        log_ratio = math.log(max(o, 1e-30) / ALPHA_THRESHOLD)  # ln(255·o): 0 at the alpha threshold
-        visible = visible and o >= ALPHA_THRESHOLD
-        extend = min(BOX_EXTEND, math.sqrt(2.0 * max(log_ratio, 0.0)))
-        rx = math.ceil(min(extend * math.sqrt(d0), RADIUS_MAX))
-        ry = math.ceil(min(extend * math.sqrt(d1), RADIUS_MAX))
+        radius_x = min(math.ceil(extend[i] * math.sqrt(d0)), radius_max)  # NaN (0·∞) stays NaN: not > 0 below
+        radius_y = min(math.ceil(extend[i] * math.sqrt(d1)), radius_max)
         mx = fx * x * rz + cx
         my = fy * y * rz + cy
-        visible = (visible and (rx > 0 or ry > 0) and mx + rx > 0 and mx - rx < width
-                   and my + ry > 0 and my - ry < height)
-        cut = log_ratio + SIGMA_MARGIN
-        cutoff[i] = cut
-        if not visible:
-            means2d[i, 0] = 0.0
-            means2d[i, 1] = 0.0
-            radii[i, 0] = 0
-            radii[i, 1] = 0
-            for q in range(4):
-                tiles[i, q] = 0
-        else:
-            means2d[i, 0] = mx
-            means2d[i, 1] = my
-            radii[i, 0] = rx
-            radii[i, 1] = ry
-            tiles[i, 0], tiles[i, 2] = _tile_span(means2d[i, 0], rx, ts32, tiles_x, ry > 0 and rx > 0)
-            tiles[i, 1], tiles[i, 3] = _tile_span(means2d[i, 1], ry, ts32, tiles_y, ry > 0 and rx > 0)
-        # pixel boxes from the stored precision (binning.pixel_boxes)
-        m0, m1 = float(means2d[i, 0]), float(means2d[i, 1])
-        half_x = math.sqrt(2.0 * max(cut, 0.0) * float(cov_diag[i, 0])) * (1 + 1e-3) + 1e-3
-        half_y = math.sqrt(2.0 * max(cut, 0.0) * float(cov_diag[i, 1])) * (1 + 1e-3) + 1e-3
-        boxes[i, 0] = min(max(math.ceil(m0 - half_x - 0.5), 0), width)
-        boxes[i, 1] = min(max(math.floor(m0 + half_x - 0.5) + 1, 0), width)
-        boxes[i, 2] = min(max(math.ceil(m1 - half_y - 0.5), 0), height)
-        boxes[i, 3] = min(max(math.floor(m1 + half_y - 0.5) + 1, 0), height)
+        visible = (visible and (radius_x > 0 or radius_y > 0) and mx + radius_x > 0 and mx - radius_x < width_f
+                   and my + radius_y > 0 and my - radius_y < height_f)
+        rx, ry = (int(radius_x), int(radius_y)) if visible else (0, 0)
+        radii[i, 0] = rx
+        radii[i, 1] = ry
+        means2d[i, 0] = mx if visible else zero
+        means2d[i, 1] = my if visible else zero
+        tiles[i, 0], tiles[i, 2] = _tile_span(means2d[i, 0], rx, ts32, tiles_x, rx > 0 and ry > 0)
+        tiles[i, 1], tiles[i, 3] = _tile_span(means2d[i, 1], ry, ts32, tiles_y, rx > 0 and ry > 0)
+        # pixel boxes in float64 (binning.pixel_boxes)
+        cut = max(cutoff[i], 0.0)
+        px, py = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
+        half_x = math.sqrt(2.0 * cut * np.float64(d0)) * (1 + 1e-3) + 1e-3
+        half_y = math.sqrt(2.0 * cut * np.float64(d1)) * (1 + 1e-3) + 1e-3
+        boxes[i, 0] = min(max(math.ceil(px - half_x - 0.5), 0), width)
+        boxes[i, 1] = min(max(math.floor(px + half_x - 0.5) + 1, 0), width)
+        boxes[i, 2] = min(max(math.ceil(py - half_y - 0.5), 0), height)
+        boxes[i, 3] = min(max(math.floor(py + half_y - 0.5) + 1, 0), height)
 
 
 @njit(cache=True, inline="always")

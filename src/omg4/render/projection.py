@@ -118,7 +118,7 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
         if opacities is not None:
             o = opacities.detach().to(z.dtype)
             visible = visible & (o >= ALPHA_THRESHOLD)
-            extend = torch.minimum(extend, torch.sqrt(2.0 * torch.log(o.clamp(min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD)))
+            extend = opacity_extend(o)
         radius = torch.ceil(extend[:, None] * torch.sqrt(cov_diag)).clamp(max=RADIUS_MAX)  # [N, 2]
         visible = visible & (radius > 0).any(dim=-1)
         m = means2d.detach()
@@ -128,6 +128,13 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
     means2d = torch.where(visible[:, None], means2d, torch.zeros_like(means2d))
     return Projected(means2d=means2d, conics=conics, depths=means_c[:, 2], cov2d_diag=cov_diag, radii=radii,
                      visible=visible)
+
+
+def opacity_extend(opacities: torch.Tensor) -> torch.Tensor:
+    """[N] box half-width in standard deviations for ``opacities [N]``: 3.33 shrunk to ``sqrt(2 ln(255·o))``, where
+    ``o·e^{−σ}`` falls to 1/255 (gsplat's opacity-aware bound; 0 at or below 1/255), in the opacities' dtype."""
+    ratio = opacities.clamp(min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD
+    return torch.sqrt(2.0 * torch.log(ratio)).clamp(max=BOX_EXTEND)
 
 
 def max_radius(radii: torch.Tensor) -> torch.Tensor:
