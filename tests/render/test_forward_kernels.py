@@ -16,7 +16,7 @@ from dense_reference import dense_rasterize, random_scene
 from omg4.render import rasterize
 from omg4.render.api import project_and_bin, rasterize_views
 from omg4.render.binning import bin_tiles, pixel_boxes, sigma_cutoff
-from omg4.render.projection import project_gaussians
+from omg4.render.projection import RADIUS_MAX, fov_clamp_limits, project_gaussians
 
 WIDTH, HEIGHT = 48, 36
 
@@ -116,10 +116,13 @@ def test_a_render_without_gradients_matches_the_dense_reference(seed):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_covariances_that_overflow_the_input_precision_are_culled_on_both_paths(dtype):
     """Finite covariances 1e17 and 1e20 times too large: the 2D determinant of the latter overflows float32 (not
-    float64). Both paths cull exactly those, and render the rest alike."""
+    float64). Both paths cull exactly those, and render the rest alike; in float64 five more, 1e40 times too
+    large, have boxes far beyond 2⁶³ pixels (capped, not overflowed)."""
     sc = random_scene(3, 60, WIDTH, HEIGHT, opacity=(0.3, 0.9))
     sc.covars[:5] *= 1e17
     sc.covars[5:10] *= 1e20
+    if dtype == torch.float64:
+        sc.covars[10:15] *= 1e40
     inputs = [getattr(sc, k).to(dtype) for k in ("means", "covars", "colors", "opacities")]
     cameras = (sc.viewmat.to(dtype)[None], sc.K.to(dtype)[None])
     fast = rasterize_views(*inputs, None, *cameras, WIDTH, HEIGHT, backend="cpu")
@@ -127,6 +130,8 @@ def test_covariances_that_overflow_the_input_precision_are_culled_on_both_paths(
     assert torch.equal(fast.radii, slow.radii)
     assert bool((fast.radii[:5] > 2**24).all())  # boxes far wider than the image, within int32
     assert bool((fast.radii[5:10] > 0).all()) == (dtype == torch.float64)
+    if dtype == torch.float64:
+        assert bool((fast.radii[10:15] == RADIUS_MAX).all())
     tol = 1e-12 if dtype == torch.float64 else 2e-6
     torch.testing.assert_close(fast.image, slow.image.detach(), rtol=tol, atol=tol)
 
@@ -175,8 +180,7 @@ def test_equal_depths_keep_gaussian_order_in_every_tile():
 
 def test_float32_boundaries_fall_as_on_the_torch_path():
     """Opacities exactly float32(1/255) (box half-width 0: culled), depths exactly float32(near) (kept) and one
-    step below it (culled), and needles 300 long and 10⁻³ thick, whose float32 2D determinant is rounding noise:
-    the fast path rounds as the torch path does, so each decision is the same."""
+    step below it (culled): decided in float32 as on the torch path."""
     sc = random_scene(6, 400, WIDTH, HEIGHT)
     means = (sc.means @ sc.viewmat[:3, :3].T + sc.viewmat[:3, 3]).float()  # camera coordinates: an identity camera
     viewmat = torch.eye(4)
@@ -185,18 +189,47 @@ def test_float32_boundaries_fall_as_on_the_torch_path():
     means[75:100, 2] = torch.nextafter(near, torch.tensor(0.0))
     opacities = sc.opacities.float()
     opacities[:50] = torch.tensor(1 / 255, dtype=torch.float32)
-    g = torch.Generator().manual_seed(6)
-    axes = torch.linalg.qr(torch.randn(100, 3, 3, generator=g, dtype=torch.float64)).Q
-    covars = sc.covars.clone()
-    covars[100:200] = axes @ torch.diag(torch.tensor([300.0, 1e-3, 1e-3], dtype=torch.float64)) ** 2 @ axes.mT
-    covars = covars.float()
-    visible = _assert_same_projection_and_bins(means, covars, opacities, viewmat, sc.K.float(), near=0.7)
-    p, _, _, _ = project_and_bin(means, covars, opacities, None, viewmat[None], sc.K.float()[None], WIDTH, HEIGHT,
-                                 near=0.7, far=1e10, eps2d=0.3, tile_size=8)
+    visible = _assert_same_projection_and_bins(means, sc.covars.float(), opacities, viewmat, sc.K.float(), near=0.7)
+    p, _, _, _ = project_and_bin(means, sc.covars.float(), opacities, None, viewmat[None], sc.K.float()[None], WIDTH,
+                                 HEIGHT, near=0.7, far=1e10, eps2d=0.3, tile_size=8)
     assert not bool(p.visible[:50].any()) and not bool(p.visible[75:100].any()) and visible > 150
     assert int(p.visible[50:75].sum()) >= 5  # at the near plane (those still inside the image)
-    needles = p.visible[100:200]
-    assert 10 < int(needles.sum()) < 95  # some needles kept, some culled by the float32 determinant
+
+
+@pytest.mark.parametrize("fx", [281.82, 691.04])  # focal lengths whose clamp limits round differently
+# when the kernel divides instead of multiplying by the reciprocal as torch does
+def test_needles_are_kept_or_culled_as_on_the_torch_path(fx):
+    """Needle-thin Gaussians (300 × 10⁻³) in and far beside the field of view of a rotated 320×180 camera (the
+    Jacobian clamp active for many): their float32 2D determinant is rounding noise, and the fast path rounds
+    every step as the torch path does — the same conics and 2D variances bit for bit, so the same decisions."""
+    width, height, n = 320, 180, 3000
+    g = torch.Generator().manual_seed(int(fx))
+    sc = random_scene(int(fx), n, width, height)
+    K = torch.tensor([[fx, 0, 161.3], [0, fx * 1.01, 88.9], [0, 0, 1]], dtype=torch.float64)
+    depth = 2 + 3 * torch.rand(n, generator=g, dtype=torch.float64)
+    pixels = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 3 - 1) * torch.tensor([width, height])
+    pc = torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0] * depth, (pixels[:, 1] - K[1, 2]) / K[1, 1] * depth, depth], 1)
+    R, t = sc.viewmat[:3, :3], sc.viewmat[:3, 3]
+    means = ((pc - t) @ R).float()
+    axes = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64)).Q
+    covars = (axes @ torch.diag(torch.tensor([300.0, 1e-3, 1e-3], dtype=torch.float64)) ** 2 @ axes.mT).float()
+    opacities = torch.full((n,), 0.8)
+    viewmat, Kf = sc.viewmat.float(), K.float()
+    p, bins, _, boxes = project_and_bin(means, covars, opacities, None, viewmat[None], Kf[None], width, height,
+                                        near=0.2, far=1e10, eps2d=0.3, tile_size=16)
+    q = project_gaussians(means, covars, viewmat, Kf, width, height, opacities=opacities)
+    ref_bins = bin_tiles(q.means2d, q.radii, q.depths, width, height, 16)
+    assert torch.equal(p.visible, q.visible) and torch.equal(p.radii, q.radii)
+    assert torch.equal(p.conics, q.conics) and torch.equal(p.cov2d_diag, q.cov2d_diag)
+    assert torch.equal(p.means2d, q.means2d) and torch.equal(p.depths, q.depths)
+    assert torch.equal(bins.gaussian_ids, ref_bins.gaussian_ids) and torch.equal(bins.tile_offsets, ref_bins.tile_offsets)
+    in_view = (pixels[:, 0] > 0) & (pixels[:, 0] < width) & (pixels[:, 1] > 0) & (pixels[:, 1] < height)
+    kept = float(p.visible[in_view].float().mean())
+    assert 0.05 < kept < 0.95  # many decisions really hang on the float32 determinant
+    lim_xn, lim_xp, _, _ = (float(v) for v in fov_clamp_limits(Kf, width, height))
+    slope = pc[:, 0] / pc[:, 2]
+    clamped = (slope < -lim_xn) | (slope > lim_xp)
+    assert int((clamped & q.visible).sum()) > 20  # the clamp matters for kept needles
 
 
 def test_a_camera_that_needs_gradients_takes_the_differentiable_path():

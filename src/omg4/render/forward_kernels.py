@@ -5,12 +5,16 @@ The differentiable CPU path (:func:`omg4.render.projection.project_gaussians`,
 operations per frame; when nothing asks for a gradient (evaluation, videos, the viewer) the same rules run
 here (rt4dgs §1.5; docs/paper-map.md "Rasterizer backends"): one parallel pass per Gaussian (projection,
 radius, pixel box, tile rectangle), a radix sort of the Gaussians by depth and a counting pass that lists
-each tile's intersections in that order. The projection repeats the torch path's arithmetic operation by
-operation in the input precision, so float32 rounding falls alike (it decides, e.g., whether a needle-thin
-Gaussian's 2D determinant is positive); tile ranges and sort keys use the stored float32 values as gsplat's
-``isect_tiles`` does, so each tile's list is front to back with ties in Gaussian order, the order of
-:func:`~omg4.render.binning.bin_tiles`' stable sort. The opacity-dependent box width and σ cutoff come in
-from :func:`~omg4.render.projection.opacity_extend` and :func:`~omg4.render.binning.sigma_cutoff`.
+each tile's intersections in that order.
+
+The projection repeats the torch path's arithmetic operation by operation in the input precision, so
+float32 rounding falls alike — it decides, e.g., whether a needle-thin Gaussian's 2D determinant is
+positive. That holds bit for bit with torch's CPU kernels, whose tiny matrix products sum first term first
+(a BLAS that fused multiply-adds there could round differently). Tile ranges and sort keys use the stored
+float32 values as gsplat's ``isect_tiles`` does, so each tile's list is front to back with ties in Gaussian
+order, the order of :func:`~omg4.render.binning.bin_tiles`' stable sort. The opacity-dependent box width and
+σ cutoff come in from :func:`~omg4.render.projection.opacity_extend` and
+:func:`~omg4.render.binning.sigma_cutoff`.
 """
 
 from __future__ import annotations
@@ -61,8 +65,8 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
             z = one
         k = Ks[v]
         fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
-        tan_fovx = half_width / fx
-        tan_fovy = half_height / fy
+        tan_fovx = (one / fx) * half_width  # torch's scalar / tensor: the reciprocal times the scalar
+        tan_fovy = (one / fy) * half_height
         rz = one / z
         tx = z * min(max(x * rz, -(cx / fx + fov_margin * tan_fovx)), (width_f - cx) / fx + fov_margin * tan_fovx)
         ty = z * min(max(y * rz, -(cy / fy + fov_margin * tan_fovy)), (height_f - cy) / fy + fov_margin * tan_fovy)
@@ -102,8 +106,8 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
         d0, d1 = max(c00, zero), max(c11, zero)
         cov_diag[i, 0] = d0
         cov_diag[i, 1] = d1
-        radius_x = min(math.ceil(extend[i] * math.sqrt(d0)), radius_max)  # NaN (0·∞) stays NaN: not > 0 below
-        radius_y = min(math.ceil(extend[i] * math.sqrt(d1)), radius_max)
+        radius_x = np.ceil(min(extend[i] * math.sqrt(d0), radius_max))  # capped before any integer conversion
+        radius_y = np.ceil(min(extend[i] * math.sqrt(d1), radius_max))
         mx = fx * x * rz + cx
         my = fy * y * rz + cy
         visible = (visible and (radius_x > 0 or radius_y > 0) and mx + radius_x > 0 and mx - radius_x < width_f
@@ -120,10 +124,18 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
         px, py = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
         half_x = math.sqrt(2.0 * cut * np.float64(d0)) * (1 + 1e-3) + 1e-3
         half_y = math.sqrt(2.0 * cut * np.float64(d1)) * (1 + 1e-3) + 1e-3
-        boxes[i, 0] = min(max(math.ceil(px - half_x - 0.5), 0), width)
-        boxes[i, 1] = min(max(math.floor(px + half_x - 0.5) + 1, 0), width)
-        boxes[i, 2] = min(max(math.ceil(py - half_y - 0.5), 0), height)
-        boxes[i, 3] = min(max(math.floor(py + half_y - 0.5) + 1, 0), height)
+        boxes[i, 0], boxes[i, 1] = _pixel_range(px, half_x, width)
+        boxes[i, 2], boxes[i, 3] = _pixel_range(py, half_y, height)
+
+
+@njit(cache=True, inline="always")
+def _pixel_range(centre, half, limit):
+    """``[lo, hi)``: the pixels whose centres lie within ``half`` of ``centre``, clamped to ``[0, limit]``
+    (``binning.pixel_boxes``); the bounds are clamped to ``[−1, limit]`` before rounding, so that a huge box never
+    overflows the integers."""
+    lo = math.ceil(min(max(centre - half - 0.5, -1.0), float(limit)))
+    hi = math.floor(min(max(centre + half - 0.5, -1.0), float(limit))) + 1
+    return min(max(lo, 0), limit), min(max(hi, 0), limit)
 
 
 @njit(cache=True, inline="always")

@@ -119,7 +119,8 @@ def project_gaussians(means: torch.Tensor, covars: torch.Tensor, viewmat: torch.
             o = opacities.detach().to(z.dtype)
             visible = visible & (o >= ALPHA_THRESHOLD)
             extend = opacity_extend(o)
-        radius = torch.ceil(extend[:, None] * torch.sqrt(cov_diag)).clamp(max=RADIUS_MAX)  # [N, 2]
+        # a correctly rounded square root (torch's own may be one ulp off for float32), as the numba path's
+        radius = torch.ceil(extend[:, None] * torch.sqrt(cov_diag.double()).to(z.dtype)).clamp(max=RADIUS_MAX)
         visible = visible & (radius > 0).any(dim=-1)
         m = means2d.detach()
         visible = visible & ((m[:, 0] + radius[:, 0] > 0) & (m[:, 0] - radius[:, 0] < width)
