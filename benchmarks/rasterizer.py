@@ -38,7 +38,8 @@ import torch
 
 from omg4.atomic import write_text_atomic
 from omg4.render import rasterize
-from omg4.render.binning import bin_tiles, pixel_boxes, sigma_cutoff
+from omg4.render.api import bin_gaussians
+from omg4.render.binning import sigma_cutoff
 from omg4.render.projection import project_gaussians
 
 RESULTS = Path(__file__).resolve().parent / "results" / "rasterizer.json"
@@ -69,8 +70,8 @@ def scene_stats(scene: dict) -> dict:
     s = {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in scene.items()}
     w, h = s["width"], s["height"]
     p = project_gaussians(s["means"], s["covars"], s["viewmat"], s["K"], w, h, opacities=s["opacities"])
-    bins = bin_tiles(p.means2d, p.radii, p.depths, w, h)
-    boxes = pixel_boxes(p.means2d, p.cov2d_diag, sigma_cutoff(s["opacities"]), w, h).long()
+    bins, boxes = bin_gaussians(p, sigma_cutoff(s["opacities"]), None, 1, w, h)
+    boxes = boxes.long()
     area = ((boxes[:, 1] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 2]))[p.visible]
     return {"visible": int(p.visible.sum()), "isect_per_gaussian": bins.num_intersections / len(p.visible),
             "gaussians_per_pixel": float(area.sum()) / (w * h), "work_pairs": int(area.sum())}

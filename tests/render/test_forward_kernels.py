@@ -1,8 +1,9 @@
 """The gradient-free render path (numba projection, binning and pixel boxes) against the differentiable torch path.
 
-A render that needs no gradient projects and bins in :mod:`omg4.render.forward_kernels`; it must give
-what :func:`project_gaussians`, :func:`bin_tiles`, :func:`sigma_cutoff` and :func:`pixel_boxes` give —
-the same visible set, radii, tile lists and boxes, values within the input precision — and the same
+A render that needs no gradient projects in :mod:`omg4.render.forward_kernels` instead of with
+:func:`project_gaussians`; it must give the same projection — visible set, radii, values within the input
+precision (bit for bit in float32 where rounding decides) — hence the same tile lists and boxes from
+:func:`bin_gaussians` (tested against gsplat's reference in ``test_rasterizer_binning.py``) and the same
 images, for one view and several, on scenes that exercise the near/far cull, the Jacobian clamp, tiny
 opacities and off-screen Gaussians.
 """
@@ -14,8 +15,8 @@ import torch
 from dense_reference import dense_rasterize, random_scene
 
 from omg4.render import rasterize
-from omg4.render.api import project_and_bin, rasterize_views
-from omg4.render.binning import bin_tiles, pixel_boxes, sigma_cutoff
+from omg4.render.api import bin_gaussians, project_and_bin, rasterize_views
+from omg4.render.binning import sigma_cutoff
 from omg4.render.projection import RADIUS_MAX, fov_clamp_limits, project_gaussians
 
 WIDTH, HEIGHT = 48, 36
@@ -41,9 +42,9 @@ def _scene(seed: int, n: int = 500):
 def _reference(means, covars, opacities, views, viewmats, Ks, num_views, tile_size):
     viewmat, K = (viewmats[0], Ks[0]) if views is None else (viewmats[views], Ks[views])
     p = project_gaussians(means, covars, viewmat, K, WIDTH, HEIGHT, opacities=opacities)
-    bins = bin_tiles(p.means2d, p.radii, p.depths, WIDTH, HEIGHT, tile_size, views=views, num_views=num_views)
     cutoff = sigma_cutoff(opacities)
-    return p, bins, cutoff, pixel_boxes(p.means2d, p.cov2d_diag, cutoff, WIDTH, HEIGHT)
+    bins, boxes = bin_gaussians(p, cutoff, views, num_views, WIDTH, HEIGHT, tile_size)
+    return p, bins, cutoff, boxes
 
 
 def _views(num_views: int, dtype):
@@ -153,8 +154,7 @@ def _assert_same_projection_and_bins(means, covars, opacities, viewmat, K, *, ne
     p, bins, cutoff, boxes = project_and_bin(means, covars, opacities, None, *cameras, WIDTH, HEIGHT, near=near,
                                              far=1e10, eps2d=0.3, tile_size=tile_size)
     q = project_gaussians(means, covars, viewmat, K, WIDTH, HEIGHT, opacities=opacities, near=near)
-    ref_bins = bin_tiles(q.means2d, q.radii, q.depths, WIDTH, HEIGHT, tile_size)
-    ref_boxes = pixel_boxes(q.means2d, q.cov2d_diag, sigma_cutoff(opacities), WIDTH, HEIGHT)
+    ref_bins, ref_boxes = bin_gaussians(q, sigma_cutoff(opacities), None, 1, WIDTH, HEIGHT, tile_size)
     assert torch.equal(p.visible, q.visible) and torch.equal(p.radii, q.radii)
     assert torch.equal(bins.gaussian_ids, ref_bins.gaussian_ids) and torch.equal(bins.tile_offsets, ref_bins.tile_offsets)
     assert torch.equal(boxes[q.visible], ref_boxes[q.visible])
@@ -218,7 +218,7 @@ def test_needles_are_kept_or_culled_as_on_the_torch_path(fx):
     p, bins, _, boxes = project_and_bin(means, covars, opacities, None, viewmat[None], Kf[None], width, height,
                                         near=0.2, far=1e10, eps2d=0.3, tile_size=16)
     q = project_gaussians(means, covars, viewmat, Kf, width, height, opacities=opacities)
-    ref_bins = bin_tiles(q.means2d, q.radii, q.depths, width, height, 16)
+    ref_bins, _ = bin_gaussians(q, sigma_cutoff(opacities), None, 1, width, height, 16)
     assert torch.equal(p.visible, q.visible) and torch.equal(p.radii, q.radii)
     assert torch.equal(p.conics, q.conics) and torch.equal(p.cov2d_diag, q.cov2d_diag)
     assert torch.equal(p.means2d, q.means2d) and torch.equal(p.depths, q.depths)

@@ -1,4 +1,5 @@
-"""Tile binning vs gsplat's pure-torch ``_isect_tiles``/``_isect_offset_encode``; pixel boxes by brute force."""
+"""Tile binning (numba, ``render.api.bin_gaussians``) vs gsplat's pure-torch ``_isect_tiles``/``_isect_offset_encode``;
+pixel boxes by brute force."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import pytest
 import torch
 from dense_reference import random_scene
 
-from omg4.render.binning import bin_tiles, pixel_boxes, sigma_cutoff, tile_grid
-from omg4.render.projection import project_gaussians
+from omg4.render.api import bin_gaussians
+from omg4.render.binning import sigma_cutoff, tile_grid
+from omg4.render.projection import Projected, project_gaussians
 
 gsplat_torch = pytest.importorskip("gsplat.cuda._torch_impl")
 
@@ -22,8 +24,8 @@ def _projected(seed, n, width, height, **kw):
 @pytest.mark.parametrize("tile_size,size", [(16, (45, 37)), (8, (40, 24)), (5, (23, 31))])
 def test_bins_match_gsplat(tile_size, size):
     width, height = size
-    _, p = _projected(11, 150, width, height, scale=0.15)
-    bins = bin_tiles(p.means2d, p.radii, p.depths, width, height, tile_size)
+    sc, p = _projected(11, 150, width, height, scale=0.15)
+    bins, _ = bin_gaussians(p, sigma_cutoff(sc.opacities.float()), None, 1, width, height, tile_size)
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
     _, isect_ids, flatten_ids = gsplat_torch._isect_tiles(p.means2d.detach()[None], p.radii[None],
                                                           p.depths.detach()[None], tile_size, tiles_x, tiles_y)
@@ -36,15 +38,17 @@ def test_bins_match_gsplat(tile_size, size):
 
 def test_empty_bins():
     z = torch.zeros(0)
-    bins = bin_tiles(torch.zeros(0, 2), torch.zeros(0, 2, dtype=torch.int32), z, 20, 10, 16)
-    assert bins.num_intersections == 0 and bins.tile_offsets.tolist() == [0, 0, 0]
+    empty = Projected(means2d=torch.zeros(0, 2), conics=torch.zeros(0, 3), depths=z, cov2d_diag=torch.zeros(0, 2),
+                      radii=torch.zeros(0, 2, dtype=torch.int32), visible=torch.zeros(0, dtype=torch.bool))
+    bins, boxes = bin_gaussians(empty, z.double(), None, 1, 20, 10, 16)
+    assert bins.num_intersections == 0 and bins.tile_offsets.tolist() == [0, 0, 0] and boxes.shape == (0, 4)
 
 
 def test_pixel_boxes_hold_every_pixel_above_threshold():
     width, height = 40, 30
     sc, p = _projected(12, 300, width, height, scale=0.2, opacity=(0.0, 1.0))
     cut = sigma_cutoff(sc.opacities.float())
-    boxes = pixel_boxes(p.means2d, p.cov2d_diag, cut, width, height).long()
+    boxes = bin_gaussians(p, cut, None, 1, width, height)[1].long()
     ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
     d = p.means2d.detach().double()[:, None, None, :] - torch.stack([xs, ys], -1).double()  # [N, H, W, 2]
     a, b, c = p.conics.detach().double().unbind(-1)

@@ -20,9 +20,9 @@ import torch
 
 from omg4.errors import OMG4Error
 from omg4.render.rendered import BACKENDS, Rendered
-from omg4.render.binning import TileBins, bin_tiles, pixel_boxes, sigma_cutoff, tile_grid
+from omg4.render.binning import TileBins, sigma_cutoff, tile_grid
 from omg4.render.cpu_kernels import composite_backward, composite_forward
-from omg4.render.forward_kernels import CONSTS, group_by_tile, project_forward
+from omg4.render.forward_kernels import CONSTS, bin_projected, group_by_tile, project_forward
 from omg4.render.projection import (ALPHA_THRESHOLD, RADIUS_MAX, Projected, max_radius, opacity_extend,
                                     project_gaussians)
 
@@ -158,31 +158,28 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
                   far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
     """CPU backend of :func:`rasterize_views` (same arguments).
 
-    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. When no
-    input needs a gradient, projection and binning run as numba kernels (:func:`project_and_bin`) instead
-    of the differentiable torch path; both give the same tile lists and images.
+    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. Tile binning
+    runs in numba (:func:`bin_gaussians`); so does the projection when no input needs a gradient
+    (:func:`project_and_bin`, the same values as the differentiable torch projection).
     """
     if means.device.type != "cpu":
         raise ValueError(f"the cpu rasterizer backend needs CPU tensors, got {means.device}")
     dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
     means, covars, colors, opacities = (t.to(dtype) for t in (means, covars, colors, opacities))
     num_views = viewmats.shape[0]
+    row_views = None if num_views == 1 else views
     if torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities, viewmats, Ks)):
         viewmat, K = (viewmats[0], Ks[0]) if num_views == 1 else (viewmats[views], Ks[views])
         proj = project_gaussians(means, covars, viewmat.to(dtype), K.to(dtype), width, height,
                                  opacities=opacities, near=near, far=far, eps2d=eps2d)
-        means2d = proj.means2d
-        if means2d.requires_grad:
-            means2d.retain_grad()
-        bins = bin_tiles(means2d, proj.radii, proj.depths, width, height, tile_size,
-                         views=views if num_views > 1 else None, num_views=num_views)
+        if proj.means2d.requires_grad:
+            proj.means2d.retain_grad()
         cutoff = sigma_cutoff(opacities)
-        boxes = pixel_boxes(means2d, proj.cov2d_diag, cutoff, width, height)
+        bins, boxes = bin_gaussians(proj, cutoff, row_views, num_views, width, height, tile_size)
     else:
-        proj, bins, cutoff, boxes = project_and_bin(means, covars, opacities, views if num_views > 1 else None,
-                                                    viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d,
-                                                    tile_size=tile_size)
-        means2d = proj.means2d
+        proj, bins, cutoff, boxes = project_and_bin(means, covars, opacities, row_views, viewmats, Ks, width, height,
+                                                    near=near, far=far, eps2d=eps2d, tile_size=tile_size)
+    means2d = proj.means2d
     n_colors = colors.shape[1]
     feats = torch.cat([colors, proj.depths[:, None]], dim=1)
     acc, trans = _Composite.apply(means2d, proj.conics, feats, opacities, cutoff.to(dtype), boxes, bins,
@@ -198,15 +195,14 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
 def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.Tensor, views: torch.Tensor | None,
                     viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *, near: float, far: float,
                     eps2d: float, tile_size: int) -> tuple[Projected, TileBins, torch.Tensor, torch.Tensor]:
-    """``(projected, bins, σ cutoff [N] float64, pixel boxes [N, 4] int32)``: what ``project_gaussians`` (with
-    opacities), ``bin_tiles``, ``sigma_cutoff`` and ``pixel_boxes`` give, from the numba kernels of
-    :mod:`omg4.render.forward_kernels`, for a render that needs no gradient. ``means``, ``covars`` and
-    ``opacities`` are float32 or float64 CPU tensors of one dtype; ``views`` as :func:`rasterize_views`
-    (None: one view)."""
+    """``(projected, bins, σ cutoff [N] float64, pixel boxes [N, 4] int32)`` for a render that needs no gradient:
+    what ``project_gaussians`` (with opacities), ``sigma_cutoff`` and :func:`bin_gaussians` give, with the projection
+    from the numba kernel :func:`omg4.render.forward_kernels.project_forward`. ``means``, ``covars`` and
+    ``opacities`` are float32 or float64 CPU tensors of one dtype; ``views`` as :func:`rasterize_views` (None: one
+    view)."""
     n, dtype = means.shape[0], means.dtype
     np_dtype = np.float64 if dtype == torch.float64 else np.float32
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    view_of = np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
     settings = dict(near=near, far=far, eps2d=eps2d, one=1.0, fov_margin=0.3, half_width=0.5 * width,
                     half_height=0.5 * height, width=width, height=height, radius_max=RADIUS_MAX)
     consts = np.array([settings[name] for name in CONSTS], dtype=np_dtype)
@@ -216,18 +212,54 @@ def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.
     radii, boxes, tiles = np.empty((n, 2), np.int32), np.empty((n, 4), np.int32), np.empty((n, 4), np.int64)
     with keeping_torch_threads():
         project_forward(as_numpy(means), as_numpy(covars), as_numpy(opacity_extend(opacities)), as_numpy(cutoff),
-                        view_of, as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), consts, width, height,
-                        tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles)
-    depth_bits = depths.astype(np.float32).view(np.uint32).astype(np.int64)
-    ids, offsets = group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y,
-                                 tiles_x * tiles_y * viewmats.shape[0])
+                        _row_views(views, n), as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), consts, width,
+                        height, tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles)
     radii_t = torch.from_numpy(radii)
     projected = Projected(means2d=torch.from_numpy(means2d), conics=torch.from_numpy(conics),
                           depths=torch.from_numpy(depths), cov2d_diag=torch.from_numpy(cov_diag), radii=radii_t,
                           visible=(radii_t > 0).any(dim=-1))
-    bins = TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
-                    tiles_y=tiles_y, tile_size=tile_size)
+    bins = _tile_lists(tiles, depths, views, viewmats.shape[0], width, height, tile_size)
     return projected, bins, cutoff, torch.from_numpy(boxes)
+
+
+def bin_gaussians(projected: Projected, cutoff: torch.Tensor, views: torch.Tensor | None, num_views: int, width: int,
+                  height: int, tile_size: int = 16) -> tuple[TileBins, torch.Tensor]:
+    """Intersect projected Gaussians with the tile grid, each tile's list front to back, and give each its pixel box:
+    ``(bins, boxes [N, 4] int32)`` (numba kernels of :mod:`omg4.render.forward_kernels`; gsplat 1.5.3's
+    ``isect_tiles``/``isect_offset_encode`` rules).
+
+    A Gaussian with box half-widths ``(rx, ry)`` around ``(mx, my)`` covers tiles ``floor(m/ts − r/ts) …
+    ceil(m/ts + r/ts) − 1`` (clamped to the grid, none unless both are positive); intersections are sorted by
+    tile, then by the float32 bit pattern of the depth (front to back), ties in Gaussian order. With ``views [N]``
+    (each row's view) the rows of ``num_views`` views are binned at once, view ``v``'s tiles numbered after those
+    of views ``0 … v − 1``. The box ``[x0, x1) × [y0, y1)`` holds every pixel whose σ is within ``cutoff [N]``
+    (:func:`~omg4.render.binning.sigma_cutoff`), so the compositing kernels visit only pixels where the Gaussian
+    can pass gsplat's ``alpha ≥ 1/255`` test.
+    """
+    n = projected.radii.shape[0]
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    boxes, tiles = np.empty((n, 4), np.int32), np.empty((n, 4), np.int64)
+    with keeping_torch_threads():
+        bin_projected(as_numpy(projected.means2d), as_numpy(projected.radii), as_numpy(projected.cov2d_diag),
+                      as_numpy(cutoff), width, height, tile_size, tiles_x, tiles_y, boxes, tiles)
+    bins = _tile_lists(tiles, as_numpy(projected.depths), views, num_views, width, height, tile_size)
+    return bins, torch.from_numpy(boxes)
+
+
+def _row_views(views: torch.Tensor | None, n: int) -> np.ndarray:
+    """Each row's view as int64 numpy (all 0 for one view)."""
+    return np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
+
+
+def _tile_lists(tiles: np.ndarray, depths: np.ndarray, views: torch.Tensor | None, num_views: int, width: int,
+                height: int, tile_size: int) -> TileBins:
+    """The :class:`TileBins` of the tile rectangles ``tiles [N, 4]``, ordered by the float32 ``depths``."""
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    depth_bits = depths.astype(np.float32).view(np.uint32).astype(np.int64)
+    ids, offsets = group_by_tile(tiles, _row_views(views, tiles.shape[0]), depth_bits, tiles_x, tiles_x * tiles_y,
+                                 tiles_x * tiles_y * num_views)
+    return TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
+                    tiles_y=tiles_y, tile_size=tile_size)
 
 
 def as_numpy(t: torch.Tensor) -> np.ndarray:

@@ -3,7 +3,7 @@
 Design (docs/paper-map.md "Rasterizer backends"): one ``prange`` iteration per
 image tile; within a tile the Gaussians of the tile's depth-sorted list are visited front
 to back (backward: back to front), each only over the pixels of its box
-(:func:`omg4.render.binning.pixel_boxes`). The backward writes one gradient row per
+(:func:`omg4.render.api.bin_gaussians`). The backward writes one gradient row per
 intersection (each intersection belongs to exactly one tile, so tiles never race);
 the caller sums them per Gaussian with ``index_add_``.
 

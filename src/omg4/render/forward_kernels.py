@@ -1,20 +1,19 @@
-"""Projection, tile binning and pixel boxes of a render that needs no gradient, as numba kernels.
+"""The CPU rasterizer's per-Gaussian projection and tile binning, as numba kernels.
 
-The differentiable CPU path (:func:`omg4.render.projection.project_gaussians`,
-:func:`omg4.render.binning.bin_tiles`, :func:`~omg4.render.binning.pixel_boxes`) is some 250 small torch
-operations per frame; when nothing asks for a gradient (evaluation, videos, the viewer) the same rules run
-here (rt4dgs §1.5; docs/paper-map.md "Rasterizer backends"): one parallel pass per Gaussian (projection,
-radius, pixel box, tile rectangle), a radix sort of the Gaussians by depth and a counting pass that lists
-each tile's intersections in that order.
+Binning (:func:`bin_projected`, :func:`group_by_tile`; called by :func:`omg4.render.api.bin_gaussians`) follows
+gsplat 1.5.3's ``isect_tiles``/``isect_offset_encode`` (docs/paper-map.md "Rasterizer backends"): one parallel
+pass per Gaussian gives its tile rectangle and pixel box, a radix sort orders the Gaussians by the float32 bit
+pattern of their depth (ties in Gaussian order, as a stable sort of the gsplat key leaves them) and a counting
+pass lists each tile's intersections in that order.
 
-The projection repeats the torch path's arithmetic operation by operation in the input precision, so
-float32 rounding falls alike — it decides, e.g., whether a needle-thin Gaussian's 2D determinant is
-positive. That holds bit for bit with torch's CPU kernels, whose tiny matrix products sum first term first
-(a BLAS that fused multiply-adds there could round differently). Tile ranges and sort keys use the stored
-float32 values as gsplat's ``isect_tiles`` does, so each tile's list is front to back with ties in Gaussian
-order, the order of :func:`~omg4.render.binning.bin_tiles`' stable sort. The opacity-dependent box width and
+When nothing asks for a gradient (evaluation, videos, the viewer) :func:`project_forward` also replaces the
+differentiable torch projection (:func:`omg4.render.projection.project_gaussians`, some 250 small torch
+operations per frame with the binning's): it repeats that path's arithmetic operation by operation in the
+input precision, so float32 rounding falls alike — it decides, e.g., whether a needle-thin Gaussian's 2D
+determinant is positive. That holds bit for bit with torch's CPU kernels, whose tiny matrix products sum first
+term first (a BLAS that fused multiply-adds there could round differently). The opacity-dependent box width and
 σ cutoff come in from :func:`~omg4.render.projection.opacity_extend` and
-:func:`~omg4.render.binning.sigma_cutoff`.
+:func:`~omg4.render.binning.sigma_cutoff` (rt4dgs §1.5).
 """
 
 from __future__ import annotations
@@ -45,8 +44,7 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
     standard deviations (:func:`omg4.render.projection.opacity_extend`), ``cutoff [N]`` float64 σ cutoffs
     (:func:`omg4.render.binning.sigma_cutoff`), ``views [N]`` int64, ``viewmats [V, 4, 4]``, ``Ks [V, 3, 3]``.
     Outputs (written): ``means2d [N, 2]``, ``conics [N, 3]``, ``depths [N]``, ``cov_diag [N, 2]`` (input precision),
-    ``radii [N, 2]`` int32, ``boxes [N, 4]`` int32 (``pixel_boxes``) and ``tiles [N, 4]`` int64 (first tile x,
-    first tile y, tiles across, tiles down; zero spans where not rendered).
+    ``radii [N, 2]`` int32, and, as :func:`bin_projected`, ``boxes [N, 4]`` int32 and ``tiles [N, 4]`` int64.
     """
     near, far, eps2d, one, fov_margin = consts[0], consts[1], consts[2], consts[3], consts[4]
     half_width, half_height, width_f, height_f, radius_max = consts[5], consts[6], consts[7], consts[8], consts[9]
@@ -112,27 +110,43 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
         my = fy * y * rz + cy
         visible = (visible and (radius_x > 0 or radius_y > 0) and mx + radius_x > 0 and mx - radius_x < width_f
                    and my + radius_y > 0 and my - radius_y < height_f)
-        rx, ry = (int(radius_x), int(radius_y)) if visible else (0, 0)
-        radii[i, 0] = rx
-        radii[i, 1] = ry
+        radii[i, 0], radii[i, 1] = (int(radius_x), int(radius_y)) if visible else (0, 0)
         means2d[i, 0] = mx if visible else zero
         means2d[i, 1] = my if visible else zero
-        tiles[i, 0], tiles[i, 2] = _tile_span(means2d[i, 0], rx, ts32, tiles_x, rx > 0 and ry > 0)
-        tiles[i, 1], tiles[i, 3] = _tile_span(means2d[i, 1], ry, ts32, tiles_y, rx > 0 and ry > 0)
-        # pixel boxes in float64 (binning.pixel_boxes)
-        cut = max(cutoff[i], 0.0)
-        px, py = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
-        half_x = math.sqrt(2.0 * cut * np.float64(d0)) * (1 + 1e-3) + 1e-3
-        half_y = math.sqrt(2.0 * cut * np.float64(d1)) * (1 + 1e-3) + 1e-3
-        boxes[i, 0], boxes[i, 1] = _pixel_range(px, half_x, width)
-        boxes[i, 2], boxes[i, 3] = _pixel_range(py, half_y, height)
+        _tiles_and_box(i, means2d, radii, cov_diag, cutoff, width, height, ts32, tiles_x, tiles_y, boxes, tiles)
+
+
+@njit(parallel=True, cache=True)
+def bin_projected(means2d, radii, cov_diag, cutoff, width, height, tile_size, tiles_x, tiles_y, boxes, tiles):
+    """The tile rectangles ``tiles [N, 4]`` and pixel boxes ``boxes [N, 4]`` (written) of Gaussians projected
+    elsewhere: ``means2d [N, 2]`` (0 where not rendered), ``radii [N, 2]`` int32, ``cov_diag [N, 2]``, ``cutoff [N]``
+    float64 (the differentiable path's :class:`~omg4.render.projection.Projected`)."""
+    ts32 = np.float32(tile_size)
+    for i in prange(means2d.shape[0]):
+        _tiles_and_box(i, means2d, radii, cov_diag, cutoff, width, height, ts32, tiles_x, tiles_y, boxes, tiles)
+
+
+@njit(cache=True, inline="always")
+def _tiles_and_box(i, means2d, radii, cov_diag, cutoff, width, height, ts32, tiles_x, tiles_y, boxes, tiles):
+    """Gaussian ``i``'s tile rectangle (first tile x, first tile y, tiles across, tiles down; empty unless both
+    radii are positive: gsplat's ``isect_tiles``) and its pixel box ``[x0, x1) × [y0, y1)`` holding every pixel
+    whose σ is within its cutoff: the ellipse ``½ dᵀ Σ⁻¹ d ≤ cut`` spans ``|dx| ≤ sqrt(2·cut·Σ_xx)``, widened by
+    0.1 % + 0.001 px so that rounding in the conic never puts a passing pixel outside (float64)."""
+    rx, ry = radii[i, 0], radii[i, 1]
+    tiles[i, 0], tiles[i, 2] = _tile_span(means2d[i, 0], rx, ts32, tiles_x, rx > 0 and ry > 0)
+    tiles[i, 1], tiles[i, 3] = _tile_span(means2d[i, 1], ry, ts32, tiles_y, rx > 0 and ry > 0)
+    cut = max(cutoff[i], 0.0)
+    half_x = math.sqrt(2.0 * cut * np.float64(cov_diag[i, 0])) * (1 + 1e-3) + 1e-3
+    half_y = math.sqrt(2.0 * cut * np.float64(cov_diag[i, 1])) * (1 + 1e-3) + 1e-3
+    boxes[i, 0], boxes[i, 1] = _pixel_range(np.float64(means2d[i, 0]), half_x, width)
+    boxes[i, 2], boxes[i, 3] = _pixel_range(np.float64(means2d[i, 1]), half_y, height)
 
 
 @njit(cache=True, inline="always")
 def _pixel_range(centre, half, limit):
-    """``[lo, hi)``: the pixels whose centres lie within ``half`` of ``centre``, clamped to ``[0, limit]``
-    (``binning.pixel_boxes``); the bounds are clamped to ``[−1, limit]`` before rounding, so that a huge box never
-    overflows the integers."""
+    """``[lo, hi)``: the pixels whose centres (index + 0.5) lie within ``half`` of ``centre``, clamped to
+    ``[0, limit]``; the bounds are clamped to ``[−1, limit]`` before rounding, so that a huge box never overflows
+    the integers."""
     lo = math.ceil(min(max(centre - half - 0.5, -1.0), float(limit)))
     hi = math.floor(min(max(centre + half - 0.5, -1.0), float(limit))) + 1
     return min(max(lo, 0), limit), min(max(hi, 0), limit)
@@ -140,7 +154,8 @@ def _pixel_range(centre, half, limit):
 
 @njit(cache=True, inline="always")
 def _tile_span(m, radius, ts32, limit, both_positive):
-    """(first tile, tiles spanned) along one axis, in float32 as ``binning.tile_ranges``."""
+    """(first tile, tiles spanned) along one axis: ``floor(m/ts − r/ts) … ceil(m/ts + r/ts) − 1`` clamped to the
+    grid, in float32 as gsplat's ``isect_tiles``."""
     mt = np.float32(m) / ts32
     rt = np.float32(radius) / ts32
     lo = min(max(math.floor(mt - rt), 0), limit)
@@ -151,8 +166,8 @@ def _tile_span(m, radius, ts32, limit, both_positive):
 @njit(cache=True)
 def _front_to_back(tiles, depth_bits):
     """The Gaussians that touch a tile, ordered by the unsigned bit pattern of their float32 depth (the sort key
-    of ``bin_tiles``; monotone for positive depths), ties in Gaussian order: a stable LSD radix sort, four 8-bit
-    passes."""
+    of gsplat's ``isect_tiles``; monotone for positive depths), ties in Gaussian order: a stable LSD radix sort,
+    four 8-bit passes."""
     order = np.nonzero((tiles[:, 2] > 0) & (tiles[:, 3] > 0))[0]
     keys = depth_bits[order]
     spare_order, spare_keys = np.empty_like(order), np.empty_like(keys)
