@@ -1,5 +1,5 @@
-"""Tile binning (numba, ``render.api.bin_gaussians``) vs gsplat's pure-torch ``_isect_tiles``/``_isect_offset_encode``;
-pixel boxes by brute force."""
+"""Tile binning (numba, ``render.api.bin_gaussians``) vs gsplat's pure-torch ``_isect_tiles``/``_isect_offset_encode``
+(where gsplat imports); several views binned at once vs each alone; pixel boxes by brute force."""
 
 from __future__ import annotations
 
@@ -11,8 +11,6 @@ from omg4.render.api import bin_gaussians
 from omg4.render.binning import sigma_cutoff, tile_grid
 from omg4.render.projection import Projected, project_gaussians
 
-gsplat_torch = pytest.importorskip("gsplat.cuda._torch_impl")
-
 
 def _projected(seed, n, width, height, **kw):
     sc = random_scene(seed, n, width, height, **kw)
@@ -23,6 +21,7 @@ def _projected(seed, n, width, height, **kw):
 
 @pytest.mark.parametrize("tile_size,size", [(16, (45, 37)), (8, (40, 24)), (5, (23, 31))])
 def test_bins_match_gsplat(tile_size, size):
+    gsplat_torch = pytest.importorskip("gsplat.cuda._torch_impl")
     width, height = size
     sc, p = _projected(11, 150, width, height, scale=0.15)
     bins, _ = bin_gaussians(p, sigma_cutoff(sc.opacities.float()), None, 1, width, height, tile_size)
@@ -34,6 +33,28 @@ def test_bins_match_gsplat(tile_size, size):
     assert torch.equal(bins.gaussian_ids, flatten_ids.long())
     assert torch.equal(bins.tile_offsets[:-1], offsets.long())
     assert int(bins.tile_offsets[-1]) == bins.num_intersections
+
+
+def test_views_binned_at_once_equal_each_view_binned_alone():
+    """Rows of three views (view 1 with no rows) in one call: view ``v``'s tiles come after those of the views
+    before it, and each view's lists and boxes are its own single-view ones, rows offset."""
+    width, height, tile_size = 37, 29, 8
+    parts = [_projected(seed, n, width, height, scale=0.15) for seed, n in ((21, 120), (22, 0), (23, 150))]
+    cuts = [sigma_cutoff(sc.opacities.float()) for sc, _ in parts]
+    joint = Projected(*(torch.cat([getattr(p, f) for _, p in parts])
+                        for f in ("means2d", "conics", "depths", "cov2d_diag", "radii", "visible")))
+    views = torch.cat([torch.full((p.radii.shape[0],), v) for v, (_, p) in enumerate(parts)])
+    bins, boxes = bin_gaussians(joint, torch.cat(cuts), views, 3, width, height, tile_size)
+    per_view = bins.tiles_x * bins.tiles_y
+    start = 0
+    for v, ((_, p), cut) in enumerate(zip(parts, cuts)):
+        alone, alone_boxes = bin_gaussians(p, cut, None, 1, width, height, tile_size)
+        offsets = bins.tile_offsets[v * per_view:(v + 1) * per_view + 1]
+        assert torch.equal(offsets - offsets[0], alone.tile_offsets)
+        assert torch.equal(bins.gaussian_ids[offsets[0]:offsets[-1]] - start, alone.gaussian_ids)
+        assert torch.equal(boxes[start:start + p.radii.shape[0]], alone_boxes)
+        start += p.radii.shape[0]
+    assert bins.num_intersections > 200
 
 
 def test_empty_bins():

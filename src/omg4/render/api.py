@@ -1,11 +1,11 @@
 """The rendering entry points, :func:`rasterize` (one view) and :func:`rasterize_views` (a batch), and the CPU backend.
 
 One differentiable call with two backends that follow
-gsplat 1.5.3's rules. The CPU backend runs the EWA projection
-(:mod:`omg4.render.projection`) and tile binning (:mod:`omg4.render.binning`) in torch and
-composites in numba (:mod:`omg4.render.cpu_kernels`) behind a custom autograd function
-whose backward gives ∂L/∂means2d (pixels) and ∂L/∂conic; autograd carries them on to the
-3D means and covariances. View depth is composited as one more feature channel
+gsplat 1.5.3's rules. The CPU backend runs the EWA projection in torch (:mod:`omg4.render.projection`;
+in numba when no input needs a gradient, :func:`project_and_bin`), bins tiles in numba
+(:mod:`omg4.render.forward_kernels`) and composites in numba (:mod:`omg4.render.cpu_kernels`) behind a
+custom autograd function whose backward gives ∂L/∂means2d (pixels) and ∂L/∂conic; autograd carries them on
+to the 3D means and covariances. View depth is composited as one more feature channel
 (``depth = Σ z·α·T``, rt4dgs §1.5), so its gradient reaches the means too.
 """
 
@@ -158,9 +158,9 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
                   far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
     """CPU backend of :func:`rasterize_views` (same arguments).
 
-    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. Tile binning
-    runs in numba (:func:`bin_gaussians`); so does the projection when no input needs a gradient
-    (:func:`project_and_bin`, the same values as the differentiable torch projection).
+    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. When an input
+    needs a gradient the torch projection runs, then :func:`bin_gaussians`; otherwise :func:`project_and_bin`
+    projects in numba (the same values) and bins in the same pass.
     """
     if means.device.type != "cpu":
         raise ValueError(f"the cpu rasterizer backend needs CPU tensors, got {means.device}")

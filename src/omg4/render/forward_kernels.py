@@ -7,13 +7,13 @@ pattern of their depth (ties in Gaussian order, as a stable sort of the gsplat k
 pass lists each tile's intersections in that order.
 
 When nothing asks for a gradient (evaluation, videos, the viewer) :func:`project_forward` also replaces the
-differentiable torch projection (:func:`omg4.render.projection.project_gaussians`, some 250 small torch
-operations per frame with the binning's): it repeats that path's arithmetic operation by operation in the
-input precision, so float32 rounding falls alike — it decides, e.g., whether a needle-thin Gaussian's 2D
-determinant is positive. That holds bit for bit with torch's CPU kernels, whose tiny matrix products sum first
-term first (a BLAS that fused multiply-adds there could round differently). The opacity-dependent box width and
-σ cutoff come in from :func:`~omg4.render.projection.opacity_extend` and
-:func:`~omg4.render.binning.sigma_cutoff` (rt4dgs §1.5).
+differentiable torch projection (:func:`omg4.render.projection.project_gaussians`, many small torch
+operations; rt4dgs §1.5) and bins in the same pass: it repeats that path's arithmetic operation by operation
+in the input precision, so float32 rounding falls alike — it decides, e.g., whether a needle-thin Gaussian's
+2D determinant is positive. That holds bit for bit with torch's CPU kernels, whose tiny matrix products sum
+first term first (a BLAS that fused multiply-adds there could round differently). The opacity-dependent box
+width and σ cutoff come in from :func:`~omg4.render.projection.opacity_extend` and
+:func:`~omg4.render.binning.sigma_cutoff`.
 """
 
 from __future__ import annotations
@@ -189,7 +189,8 @@ def _front_to_back(tiles, depth_bits):
 @njit(cache=True)
 def group_by_tile(tiles, views, depth_bits, tiles_x, tiles_per_view, num_tiles):
     """Intersections sorted by tile, then front to back: ``(gaussian_ids [I] int64, tile_offsets [num_tiles + 1]
-    int64)`` from the tile rectangles ``tiles [N, 4]`` of :func:`project_forward`, each row's view ``views [N]``
+    int64)`` from the tile rectangles ``tiles [N, 4]`` of :func:`project_forward` or :func:`bin_projected`, each
+    row's view ``views [N]``
     and ``depth_bits [N]`` int64, the unsigned bit patterns of the float32 depths."""
     order = _front_to_back(tiles, depth_bits)
     counts = np.zeros(num_tiles + 1, np.int64)
