@@ -147,18 +147,19 @@ def test_an_empty_render_without_gradients_shows_the_background():
     assert float(r.alpha.abs().max()) == 0.0
 
 
-def _assert_same_projection_and_bins(means, covars, opacities, viewmat, K, *, near=0.2, tile_size=8):
-    """The fast path's visible set, radii, tile lists and boxes equal the torch path's exactly; returns the
-    number of visible Gaussians."""
-    cameras = (viewmat[None], K[None])
-    p, bins, cutoff, boxes = project_and_bin(means, covars, opacities, None, *cameras, WIDTH, HEIGHT, near=near,
-                                             far=1e10, eps2d=0.3, tile_size=tile_size)
-    q = project_gaussians(means, covars, viewmat, K, WIDTH, HEIGHT, opacities=opacities, near=near)
-    ref_bins, ref_boxes = bin_gaussians(q, sigma_cutoff(opacities), None, 1, WIDTH, HEIGHT, tile_size)
+def _assert_same_projection_and_bins(means, covars, opacities, viewmat, K, *, near=0.2, tile_size=8,
+                                     size=(WIDTH, HEIGHT)):
+    """The fast path's visible set, radii, tile lists and boxes equal the torch path's exactly; returns both
+    projections (fast, torch)."""
+    width, height = size
+    p, bins, cutoff, boxes = project_and_bin(means, covars, opacities, None, viewmat[None], K[None], width, height,
+                                             near=near, far=1e10, eps2d=0.3, tile_size=tile_size)
+    q = project_gaussians(means, covars, viewmat, K, width, height, opacities=opacities, near=near)
+    ref_bins, ref_boxes = bin_gaussians(q, sigma_cutoff(opacities), None, 1, width, height, tile_size)
     assert torch.equal(p.visible, q.visible) and torch.equal(p.radii, q.radii)
     assert torch.equal(bins.gaussian_ids, ref_bins.gaussian_ids) and torch.equal(bins.tile_offsets, ref_bins.tile_offsets)
     assert torch.equal(boxes[q.visible], ref_boxes[q.visible])
-    return int(q.visible.sum())
+    return p, q
 
 
 def test_equal_depths_keep_gaussian_order_in_every_tile():
@@ -169,7 +170,8 @@ def test_equal_depths_keep_gaussian_order_in_every_tile():
     sc.viewmat[:3, 3] = 0.0
     sc.means[:, 2] = 3.0
     f32 = [getattr(sc, k).float() for k in ("means", "covars", "opacities")]
-    assert _assert_same_projection_and_bins(*f32, sc.viewmat.float(), sc.K.float()) > 200
+    p, _ = _assert_same_projection_and_bins(*f32, sc.viewmat.float(), sc.K.float())
+    assert int(p.visible.sum()) > 200
     _, bins, _, _ = project_and_bin(*f32, None, sc.viewmat.float()[None], sc.K.float()[None], WIDTH, HEIGHT, near=0.2,
                                     far=1e10, eps2d=0.3, tile_size=8)
     for t in range(bins.tile_offsets.numel() - 1):
@@ -189,10 +191,8 @@ def test_float32_boundaries_fall_as_on_the_torch_path():
     means[75:100, 2] = torch.nextafter(near, torch.tensor(0.0))
     opacities = sc.opacities.float()
     opacities[:50] = torch.tensor(1 / 255, dtype=torch.float32)
-    visible = _assert_same_projection_and_bins(means, sc.covars.float(), opacities, viewmat, sc.K.float(), near=0.7)
-    p, _, _, _ = project_and_bin(means, sc.covars.float(), opacities, None, viewmat[None], sc.K.float()[None], WIDTH,
-                                 HEIGHT, near=0.7, far=1e10, eps2d=0.3, tile_size=8)
-    assert not bool(p.visible[:50].any()) and not bool(p.visible[75:100].any()) and visible > 150
+    p, _ = _assert_same_projection_and_bins(means, sc.covars.float(), opacities, viewmat, sc.K.float(), near=0.7)
+    assert not bool(p.visible[:50].any()) and not bool(p.visible[75:100].any()) and int(p.visible.sum()) > 150
     assert int(p.visible[50:75].sum()) >= 5  # at the near plane (those still inside the image)
 
 
@@ -214,15 +214,11 @@ def test_needles_are_kept_or_culled_as_on_the_torch_path(fx):
     axes = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64)).Q
     covars = (axes @ torch.diag(torch.tensor([300.0, 1e-3, 1e-3], dtype=torch.float64)) ** 2 @ axes.mT).float()
     opacities = torch.full((n,), 0.8)
-    viewmat, Kf = sc.viewmat.float(), K.float()
-    p, bins, _, boxes = project_and_bin(means, covars, opacities, None, viewmat[None], Kf[None], width, height,
-                                        near=0.2, far=1e10, eps2d=0.3, tile_size=16)
-    q = project_gaussians(means, covars, viewmat, Kf, width, height, opacities=opacities)
-    ref_bins, _ = bin_gaussians(q, sigma_cutoff(opacities), None, 1, width, height, 16)
-    assert torch.equal(p.visible, q.visible) and torch.equal(p.radii, q.radii)
+    Kf = K.float()
+    p, q = _assert_same_projection_and_bins(means, covars, opacities, sc.viewmat.float(), Kf, tile_size=16,
+                                            size=(width, height))
     assert torch.equal(p.conics, q.conics) and torch.equal(p.cov2d_diag, q.cov2d_diag)
     assert torch.equal(p.means2d, q.means2d) and torch.equal(p.depths, q.depths)
-    assert torch.equal(bins.gaussian_ids, ref_bins.gaussian_ids) and torch.equal(bins.tile_offsets, ref_bins.tile_offsets)
     in_view = (pixels[:, 0] > 0) & (pixels[:, 0] < width) & (pixels[:, 1] > 0) & (pixels[:, 1] < height)
     kept = float(p.visible[in_view].float().mean())
     assert 0.05 < kept < 0.95  # many decisions really hang on the float32 determinant

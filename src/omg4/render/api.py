@@ -210,15 +210,16 @@ def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.
     means2d, conics = np.empty((n, 2), np_dtype), np.empty((n, 3), np_dtype)
     depths, cov_diag = np.empty(n, np_dtype), np.empty((n, 2), np_dtype)
     radii, boxes, tiles = np.empty((n, 2), np.int32), np.empty((n, 4), np.int32), np.empty((n, 4), np.int64)
+    view_of = _row_views(views, n)
     with keeping_torch_threads():
         project_forward(as_numpy(means), as_numpy(covars), as_numpy(opacity_extend(opacities)), as_numpy(cutoff),
-                        _row_views(views, n), as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), consts, width,
-                        height, tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles)
+                        view_of, as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), consts, width, height,
+                        tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles)
     radii_t = torch.from_numpy(radii)
     projected = Projected(means2d=torch.from_numpy(means2d), conics=torch.from_numpy(conics),
                           depths=torch.from_numpy(depths), cov2d_diag=torch.from_numpy(cov_diag), radii=radii_t,
                           visible=(radii_t > 0).any(dim=-1))
-    bins = _tile_lists(tiles, depths, views, viewmats.shape[0], width, height, tile_size)
+    bins = _tile_lists(tiles, depths, view_of, viewmats.shape[0], tiles_x, tiles_y, tile_size)
     return projected, bins, cutoff, torch.from_numpy(boxes)
 
 
@@ -242,7 +243,8 @@ def bin_gaussians(projected: Projected, cutoff: torch.Tensor, views: torch.Tenso
     with keeping_torch_threads():
         bin_projected(as_numpy(projected.means2d), as_numpy(projected.radii), as_numpy(projected.cov2d_diag),
                       as_numpy(cutoff), width, height, tile_size, tiles_x, tiles_y, boxes, tiles)
-    bins = _tile_lists(tiles, as_numpy(projected.depths), views, num_views, width, height, tile_size)
+    view_of = _row_views(views, n)
+    bins = _tile_lists(tiles, as_numpy(projected.depths), view_of, num_views, tiles_x, tiles_y, tile_size)
     return bins, torch.from_numpy(boxes)
 
 
@@ -251,13 +253,12 @@ def _row_views(views: torch.Tensor | None, n: int) -> np.ndarray:
     return np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
 
 
-def _tile_lists(tiles: np.ndarray, depths: np.ndarray, views: torch.Tensor | None, num_views: int, width: int,
-                height: int, tile_size: int) -> TileBins:
-    """The :class:`TileBins` of the tile rectangles ``tiles [N, 4]``, ordered by the float32 ``depths``."""
-    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+def _tile_lists(tiles: np.ndarray, depths: np.ndarray, view_of: np.ndarray, num_views: int, tiles_x: int,
+                tiles_y: int, tile_size: int) -> TileBins:
+    """The :class:`TileBins` of the tile rectangles ``tiles [N, 4]`` of rows in views ``view_of [N]``, ordered by
+    the float32 ``depths``."""
     depth_bits = depths.astype(np.float32).view(np.uint32).astype(np.int64)
-    ids, offsets = group_by_tile(tiles, _row_views(views, tiles.shape[0]), depth_bits, tiles_x, tiles_x * tiles_y,
-                                 tiles_x * tiles_y * num_views)
+    ids, offsets = group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y, tiles_x * tiles_y * num_views)
     return TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
                     tiles_y=tiles_y, tile_size=tile_size)
 

@@ -48,7 +48,7 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
     """
     near, far, eps2d, one, fov_margin = consts[0], consts[1], consts[2], consts[3], consts[4]
     half_width, half_height, width_f, height_f, radius_max = consts[5], consts[6], consts[7], consts[8], consts[9]
-    zero = one - one
+    zero, half = one - one, one / (one + one)
     ts32 = np.float32(tile_size)
     for i in prange(means.shape[0]):
         v = views[i]
@@ -78,7 +78,6 @@ def project_forward(means, covars, extend, cutoff, views, viewmats, Ks, consts, 
         b1 = zero * r[0, 1] + j11 * r[1, 1] + j12 * r[2, 1]
         b2 = zero * r[0, 2] + j11 * r[1, 2] + j12 * r[2, 2]
         c = covars[i]
-        half = one / (one + one)
         s00, s11, s22 = half * (c[0, 0] + c[0, 0]), half * (c[1, 1] + c[1, 1]), half * (c[2, 2] + c[2, 2])
         s01, s02, s12 = half * (c[0, 1] + c[1, 0]), half * (c[0, 2] + c[2, 0]), half * (c[1, 2] + c[2, 1])
         # (J R) S, then ((J R) S)(J R)ᵀ
