@@ -3,9 +3,11 @@
 For each model file (a ``.safetensors`` checkpoint or an ``.omg4`` file) on the test views of
 a dataset: median render time per frame (render only, as ``omg4 eval`` measures FPS; the models
 take turns frame by frame so that a shared host's slow spells fall on all alike), the
-aten operations one frame dispatches (the CPU proxy for GPU kernel launches), and the mean
+aten operations one frame dispatches (the CPU proxy for GPU kernel launches), the mean
 fraction of the model's Gaussians that reach the rasterizer (those passing the temporal
-cull). The paper reports OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
+cull), and the compositing work per pixel, counted on the CPU whatever ``--device``: box pixels
+the numba kernels visit and Gaussians blended, which every exact renderer must do
+(:mod:`compositing_load`). The paper reports OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
 
     python benchmarks/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
                                       [--device cpu|cuda] [--frames 30] [--rounds 3] [--label after] [--name demo]
@@ -16,6 +18,7 @@ Results are merged into ``benchmarks/results/render_frame.json`` under ``--label
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -23,18 +26,41 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Iterator
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compositing_load import compositing_load  # noqa: E402
 from train_step import OpCounter, sync  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "render_frame.json"
 
 
+@contextlib.contextmanager
+def timing_compositing() -> Iterator[list[float]]:
+    """Inside, the CPU compositing kernel adds its seconds to the yielded one-item list (``omg4.render.api``'s
+    reference to :func:`~omg4.render.cpu_kernels.composite_forward` is wrapped, and restored on exit)."""
+    import omg4.render.api as render_api
+
+    kernel, total = render_api.composite_forward, [0.0]
+
+    def timed(*args):
+        t0 = time.perf_counter()
+        kernel(*args)
+        total[0] += time.perf_counter() - t0
+
+    render_api.composite_forward = timed
+    try:
+        yield total
+    finally:
+        render_api.composite_forward = kernel
+
+
 def measure_models(paths: list[Path], views, device: str, frames: int, rounds: int) -> list[dict]:
-    """Per model: median ms per frame over ``rounds`` passes of ``frames`` test views. The models take turns
-    frame by frame, so a slow spell of a shared host falls on all of them alike."""
+    """Per model: median ms per frame over ``rounds`` passes of ``frames`` test views, and of those the median
+    ms in the CPU compositing kernel (None on CUDA). The models take turns frame by frame, so a slow spell of
+    a shared host falls on all of them alike."""
     from omg4.evaluate import load_model
     from omg4.render.view import render_view
 
@@ -51,26 +77,44 @@ def measure_models(paths: list[Path], views, device: str, frames: int, rounds: i
         for v in timed[:3]:
             frame(model, v)
     times = [[] for _ in models]
+    compositing = [[] for _ in models]
     fractions = [[] for _ in models]
-    for _ in range(rounds):
-        for v in timed:
-            for i, model in enumerate(models):
-                sync(device)
-                t0 = time.perf_counter()
-                sl = frame(model, v)
-                sync(device)
-                times[i].append(time.perf_counter() - t0)
-                fractions[i].append(sl.index.numel() / model.num_gaussians)
+    with timing_compositing() as kernel_seconds:
+        for _ in range(rounds):
+            for v in timed:
+                for i, model in enumerate(models):
+                    sync(device)
+                    before = kernel_seconds[0]
+                    t0 = time.perf_counter()
+                    sl = frame(model, v)
+                    sync(device)
+                    times[i].append(time.perf_counter() - t0)
+                    compositing[i].append(kernel_seconds[0] - before)
+                    fractions[i].append(sl.index.numel() / model.num_gaussians)
     rows = []
-    for path, model, ts, fs in zip(paths, models, times, fractions):
+    for path, model, ts, cs, fs in zip(paths, models, times, compositing, fractions):
         counter = OpCounter()
         with counter:
             frame(model, timed[len(timed) // 2])
         ms = 1000 * statistics.median(ts)
         rows.append({"model": str(path), "num_gaussians": int(model.num_gaussians), "ms_per_frame": ms,
                      "fps": 1000 / ms, "aten_ops_per_frame": sum(counter.ops.values()),
+                     "compositing_ms_per_frame": 1000 * statistics.median(cs) if any(cs) else None,
                      "visible_fraction": statistics.mean(fs), "frames": len(timed), "rounds": rounds})
     return rows
+
+
+def add_compositing_load(rows: list[dict], paths: list[Path], views, frames: int) -> None:
+    """Add each model's mean ``visited_per_pixel`` and ``blended_per_pixel`` over ``frames`` test views (CPU)."""
+    from omg4.evaluate import load_model
+
+    step = max(1, len(views) // frames)
+    counted = views[::step][:frames]
+    for row, path in zip(rows, paths):
+        model = load_model(path, "cpu")
+        loads = [compositing_load(model, v.camera, v.timestamp) for v in counted]
+        for key in loads[0]:
+            row[key] = statistics.mean(load[key] for load in loads)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,14 +137,18 @@ def main(argv: list[str] | None = None) -> int:
         keep_freed_memory()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
     rows = measure_models(args.models, scene.test_views, args.device, args.frames, args.rounds)
+    add_compositing_load(rows, args.models, scene.test_views, args.frames)
     base = rows[0]["ms_per_frame"]
     for r in rows:
         r["speedup_vs_first"] = base / r["ms_per_frame"]
-    print("| model | #Gaussians | ms/frame | FPS | speed-up | aten ops/frame | visible fraction |")
-    print("|---|---|---|---|---|---|---|")
+    print("| model | #Gaussians | ms/frame | of it compositing | FPS | speed-up | aten ops/frame | visible fraction "
+          "| visited / pixel | blended / pixel |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {Path(r['model']).name} | {r['num_gaussians']:,} | {r['ms_per_frame']:.2f} | {r['fps']:.1f} | "
-              f"{r['speedup_vs_first']:.2f}x | {r['aten_ops_per_frame']:,} | {r['visible_fraction']:.3f} |")
+        kernel_ms = "–" if r["compositing_ms_per_frame"] is None else f"{r['compositing_ms_per_frame']:.2f}"
+        print(f"| {Path(r['model']).name} | {r['num_gaussians']:,} | {r['ms_per_frame']:.2f} | {kernel_ms} | "
+              f"{r['fps']:.1f} | {r['speedup_vs_first']:.2f}x | {r['aten_ops_per_frame']:,} | "
+              f"{r['visible_fraction']:.3f} | {r['visited_per_pixel']:.1f} | {r['blended_per_pixel']:.1f} |")
     data = json.loads(args.json.read_text()) if args.json.exists() else {}
     entry = data.setdefault(args.label, {})
     entry[args.name or args.data.name] = {
