@@ -4,14 +4,16 @@ and how many they blend.
 Both backends follow gsplat 1.5.3's per-pixel rules, so the number of Gaussians blended into each pixel
 (``α ≥ 1/255``, before the transmittance falls to 1e-4) is work every exact renderer must do, on any
 hardware; the visited pairs are those of the pixel boxes the numba kernels walk
-(:func:`omg4.render.api.project_and_bin`). A compressed model's Gaussians are fewer but larger, so its
-frame keeps much of its baseline's blending work however cheap the per-Gaussian part becomes: this is
-what bounds the frame-rate ratio of OMG4 over its baseline (see README "Hot paths").
+(:func:`omg4.render.api.project_and_bin`; the kernels also skip rows and tiles whose pixels are all done,
+which this count does not — under 0.1 % on the shared scenes). A compressed model's Gaussians are fewer
+but larger, so its frame keeps much of its baseline's blending work however cheap the per-Gaussian part
+becomes: on the CPU this is what bounds the frame-rate ratio of OMG4 over its baseline (README "Hot paths").
 
 The count re-renders the frame's transmittance with ``exp`` per pixel and refuses to report when it does
 not match the renderer's alpha (the rules would then differ). The renderer's ``e^{−σ}`` comes from a
 float64 recurrence, so a Gaussian whose α lies within rounding of 1/255, or whose blending brings the
-transmittance within rounding of 1e-4, can be blended by one and not by the other: a pixel or two per frame.
+transmittance within rounding of 1e-4, can be blended by one and not by the other: a pixel or two per frame. The check sees transmittance only; the counts themselves are tested
+against a brute-force count (``tests/render/test_compositing_load.py``).
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ TRANSMITTANCE_TOLERANCE = 1e-5
 """Agreement expected between the counted transmittance and the renderer's ``1 − alpha`` (float32 output)."""
 
 MAX_THRESHOLD_FLIPS = 1e-3
-"""Largest fraction of pixels allowed to differ by more (a Gaussian at one of the thresholds decided apart)."""
+"""Largest fraction of pixels allowed to differ by more (a Gaussian at one of the thresholds decided apart);
+one pixel is always allowed."""
 
 
 @njit(parallel=True, cache=True)
@@ -84,14 +87,15 @@ def compositing_load(model, camera, timestamp: float) -> dict:
     Raises:
         RuntimeError: the counted transmittance differs from the renderer's beyond the tolerances above.
     """
-    rendered, sl = render_view(model, camera, timestamp, backend="cpu")
+    with torch.no_grad():
+        rendered, sl = render_view(model, camera, timestamp, backend="cpu")
     viewmat, K, _ = camera_tensors(camera)
     width, height = camera.width, camera.height
     settings = {k: v for k, v in RASTER_DEFAULTS.items() if k != "alpha_max"}
-    means = sl.means.detach()
-    proj, bins, cutoff, boxes = project_and_bin(means, sl.covars.detach(), sl.opacities.detach(), None, viewmat[None],
-                                                K[None], width, height, **settings)
-    params = torch.cat([proj.means2d, proj.conics, sl.opacities.detach()[:, None].to(means.dtype),
+    means, opacities = sl.means.detach(), sl.opacities.detach()
+    proj, bins, cutoff, boxes = project_and_bin(means, sl.covars.detach(), opacities, None, viewmat[None], K[None],
+                                                width, height, **settings)
+    params = torch.cat([proj.means2d, proj.conics, opacities[:, None].to(means.dtype),
                         cutoff.to(means.dtype)[:, None]], dim=1)
     dtype = as_numpy(params).dtype
     consts = np.array([0.5, RASTER_DEFAULTS["alpha_max"], ALPHA_THRESHOLD], dtype=dtype)
@@ -103,7 +107,7 @@ def compositing_load(model, camera, timestamp: float) -> dict:
                bins.tiles_x, bins.tile_size, blended, visited, trans)
     gap = np.abs(trans - (1.0 - rendered.alpha[..., 0].double().numpy()))
     off = gap > TRANSMITTANCE_TOLERANCE
-    if off.mean() > MAX_THRESHOLD_FLIPS:
+    if off.sum() > max(1.0, MAX_THRESHOLD_FLIPS * off.size):
         raise RuntimeError(f"counted transmittance differs from the renderer's by up to {gap.max():.3g} at "
                            f"{int(off.sum())} pixels: the rules differ")
     pixels = width * height
