@@ -27,7 +27,7 @@ from numba import njit, prange
 
 from omg4.render import rasterize
 from omg4.render.api import as_numpy, keeping_torch_threads, project_and_bin
-from omg4.render.cpu_kernels import TRANSMITTANCE_MIN
+from omg4.render.cpu_kernels import TRANSMITTANCE_MIN, _clipped_box, _gaussian, _tile_bounds
 from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.render.view import camera_tensors, render_view
 
@@ -47,21 +47,21 @@ one pixel is always allowed."""
 def _count(params, consts, pix_x, pix_y, boxes, ids, tile_offsets, tiles_x, tile_size, blended, visited, trans):
     """Per pixel: ``blended`` Gaussians, ``visited`` box pixels and the final transmittance ``trans`` (float64,
     starting at 1) of one view, tile by tile, front to back (gsplat's rules, ``exp`` per pixel; σ in the input
-    precision from the pixel centres ``pix_x``/``pix_y``, as the renderer)."""
+    precision from the pixel centres ``pix_x``/``pix_y``, as the renderer). Tiles, boxes and parameters are
+    read with the compositing kernels' own helpers."""
     height, width = trans.shape
     half, alpha_max, alpha_min = consts[0], consts[1], consts[2]
-    for tile in prange(tile_offsets.shape[0] - 1):
-        ty = tile // tiles_x
-        x0, y0 = (tile - ty * tiles_x) * tile_size, ty * tile_size
-        x1, y1 = min(x0 + tile_size, width), min(y0 + tile_size, height)
+    n_tiles = tile_offsets.shape[0] - 1
+    for tile in prange(n_tiles):
+        x0, y0, x1, y1, _ = _tile_bounds(tile, tiles_x, n_tiles, tile_size, width, height)
         done = np.zeros((y1 - y0, x1 - x0), np.bool_)
         for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
             gi = ids[k]
-            mx, my, ca, cb, cc, opac, cut = (params[gi, 0], params[gi, 1], params[gi, 2], params[gi, 3],
-                                             params[gi, 4], params[gi, 5], params[gi, 6])
-            for py in range(max(boxes[gi, 2], y0), min(boxes[gi, 3], y1)):
+            bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
+            mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
+            for py in range(by0, by1):
                 dy = my - pix_y[py]
-                for px in range(max(boxes[gi, 0], x0), min(boxes[gi, 1], x1)):
+                for px in range(bx0, bx1):
                     visited[py, px] += 1
                     if done[py - y0, px - x0]:
                         continue

@@ -57,16 +57,16 @@ def timing_compositing() -> Iterator[list[float]]:
         render_api.composite_forward = kernel
 
 
-def measure_models(paths: list[Path], views, device: str, frames: int, rounds: int) -> list[dict]:
-    """Per model: median ms per frame over ``rounds`` passes of ``frames`` test views, and of those the median
-    ms in the CPU compositing kernel (None on CUDA). The models take turns frame by frame, so a slow spell of
-    a shared host falls on all of them alike."""
-    from omg4.evaluate import load_model
-    from omg4.render.view import render_view
+def frame_views(views, frames: int) -> list:
+    """``frames`` test views spread evenly over ``views``."""
+    return views[::max(1, len(views) // frames)][:frames]
 
-    models = [load_model(p, device) for p in paths]
-    step = max(1, len(views) // frames)
-    timed = views[::step][:frames]
+
+def measure_models(paths: list[Path], models: list, timed: list, device: str, rounds: int) -> list[dict]:
+    """Per model (``models`` loaded from ``paths`` on ``device``): median ms per frame over ``rounds`` passes of the
+    views ``timed``, and of those the median ms in the CPU compositing kernel (None on CUDA). The models take
+    turns frame by frame, so a slow spell of a shared host falls on all of them alike."""
+    from omg4.render.view import render_view
 
     def frame(model, v):
         with torch.no_grad():
@@ -104,21 +104,18 @@ def measure_models(paths: list[Path], views, device: str, frames: int, rounds: i
     return rows
 
 
-def add_compositing_load(rows: list[dict], paths: list[Path], views, frames: int) -> None:
-    """Add each model's mean ``visited_per_pixel`` and ``blended_per_pixel`` over ``frames`` test views (CPU)."""
-    from omg4.evaluate import load_model
-
-    step = max(1, len(views) // frames)
-    counted = views[::step][:frames]
-    for row, path in zip(rows, paths):
-        model = load_model(path, "cpu")
-        loads = [compositing_load(model, v.camera, v.timestamp) for v in counted]
+def add_compositing_load(rows: list[dict], models: list, views: list) -> None:
+    """Add each model's mean ``visited_per_pixel`` and ``blended_per_pixel`` over ``views`` (``models`` on the
+    CPU)."""
+    for row, model in zip(rows, models):
+        loads = [compositing_load(model, v.camera, v.timestamp) for v in views]
         for key in loads[0]:
             row[key] = statistics.mean(load[key] for load in loads)
 
 
 def main(argv: list[str] | None = None) -> int:
     from omg4.data import load_scene
+    from omg4.evaluate import load_model
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("data", type=Path)
@@ -136,8 +133,11 @@ def main(argv: list[str] | None = None) -> int:
 
         keep_freed_memory()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
-    rows = measure_models(args.models, scene.test_views, args.device, args.frames, args.rounds)
-    add_compositing_load(rows, args.models, scene.test_views, args.frames)
+    timed = frame_views(scene.test_views, args.frames)
+    models = [load_model(p, args.device) for p in args.models]
+    rows = measure_models(args.models, models, timed, args.device, args.rounds)
+    cpu_models = models if args.device == "cpu" else [load_model(p, "cpu") for p in args.models]
+    add_compositing_load(rows, cpu_models, timed)
     base = rows[0]["ms_per_frame"]
     for r in rows:
         r["speedup_vs_first"] = base / r["ms_per_frame"]
