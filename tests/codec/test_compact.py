@@ -170,34 +170,66 @@ def test_weights_in_few_bits_match_an_independent_rounding(bits):
     assert (decoded[3] == 0).all()
     assert (np.abs(decoded - w64) <= scale / 2 + 1e-3 * np.abs(w64) + 6e-8).all()
     assert len(np.unique(decoded[0])) <= 2 * top + 1
-    assert weights.bits_of(weights.encoding(bits)) == bits and weights.encoding(8) == "int8-rows"
-    for name in ("int1-rows", "int9-rows", "int08-rows", "int8-rowsx", "smallest-three-8"):
-        assert weights.bits_of(name) is None
+    assert weights.bits_of(weights.encoding(bits)) == bits and weights.encoding(8) == "int8-cols"
+    assert weights.parse_encoding(f"int{bits}-rows") == (bits, False) and weights.parse_encoding(f"int{bits}-cols") == \
+        (bits, True)
+    for name in ("int1-rows", "int9-rows", "int08-rows", "int8-rowsx", "smallest-three-8", "int9-cols", "int8-col"):
+        assert weights.bits_of(name) is None and weights.parse_encoding(name) is None
+    # per column: the same rounding with one scale per column, decoded through the column encoding's name
+    by_column = weights.decode_matrix(weights.encode_columns(w.T, bits), w.T.shape, weights.encoding(bits))
+    np.testing.assert_array_equal(by_column.view(np.uint16), decoded.astype(np.float16).T.view(np.uint16))
 
 
-def test_files_with_weights_below_eight_bits_are_version_4_and_decode(tmp_path):
-    """Weights in 6 bits: a new encoding, so the file is version 4 (older builds refuse it by its version); the
-    default and the other grids keep version 3."""
-    p = make_payload(500)
+def _with_row_scaled_weights(path, bits: int) -> bytes:
+    """The file at ``path`` as the writer of versions 3 and 4 made it: every MLP matrix re-coded with a scale per row
+    (``int<bits>-rows``, the old writer path ``weights.encode_rows``), the version the container then needs."""
+    from omg4.codec import forge
+    header, sections = forge._split(path.read_bytes())
+    sections = dict(sections)
+    for name, shape in header["mlp"].items():
+        w = decode_payload(path).mlp[name]
+        if len(shape) == 2 and w.size:
+            sections[f"mlp.{name}"] = weights.encode_rows(w.astype(np.float32), bits)
+            header["encodings"][f"mlp.{name}"] = f"int{bits}-rows"
+    return forge._assemble(header, list(sections.items()))
+
+
+def test_weights_are_column_scaled_in_version_5_and_older_row_scaled_files_still_decode(tmp_path):
+    """The writer scales MLP weights per column (``int<b>-cols``, version 5, refused by older builds by its
+    version); files of versions 3 (8 bits) and 4 (fewer), whose weights have a scale per row, still decode to a
+    per-row rounding computed here."""
+    p = make_payload(500)  # no log-scale attribute, so no exact positions: only the weights need version 5
     encode_payload(p, tmp_path / "w6.omg4", precision=CompactGrids(weights=6))
-    encode_payload(p, tmp_path / "w8.omg4", precision=CompactGrids(12, 7, 7))
-    assert describe_container(tmp_path / "w6.omg4")["version"] == 4
-    assert describe_container(tmp_path / "w8.omg4")["version"] == 3
-    header, _ = read_container(tmp_path / "w6.omg4")
-    assert header["encodings"]["mlp.cont.0"] == "int6-rows"
-    d, ref = decode_payload(tmp_path / "w6.omg4"), p.to_fp16()
+    encode_payload(p, tmp_path / "w16.omg4", precision=CompactGrids(weights=16))
+    assert describe_container(tmp_path / "w6.omg4")["version"] == 5
+    assert describe_container(tmp_path / "w16.omg4")["version"] == 3
+    assert read_container(tmp_path / "w6.omg4")[0]["encodings"]["mlp.cont.0"] == "int6-cols"
+    ref = p.to_fp16()
+    d = decode_payload(tmp_path / "w6.omg4")
     for name, w in ref.mlp.items():
         if w.size:
-            assert len(np.unique(d.mlp[name][0])) <= 63
-            step = np.abs(w.astype(np.float64)).max(axis=1, keepdims=True) / 31
+            assert len(np.unique(d.mlp[name][:, 0])) <= 63
+            step = np.abs(w.astype(np.float64)).max(axis=0, keepdims=True) / 31
             assert (np.abs(d.mlp[name].astype(np.float64) - w) <= step / 2 + 1e-3 * np.abs(w) + 1e-7).all()
+    for bits, version in ((6, 4), (8, 3)):
+        (tmp_path / "old.omg4").write_bytes(_with_row_scaled_weights(tmp_path / "w16.omg4", bits))
+        assert describe_container(tmp_path / "old.omg4")["version"] == version
+        d = decode_payload(tmp_path / "old.omg4")
+        top = 2 ** (bits - 1) - 1
+        for name, w in ref.mlp.items():
+            if w.size:
+                w32 = w.astype(np.float32)  # the writer's float32 arithmetic, so ties round alike
+                scale = np.abs(w32).max(axis=1, keepdims=True) / np.float32(top)
+                codes = np.clip(np.rint(w32 / np.where(scale > 0, scale, np.float32(1))), -top, top)
+                rounded = codes.astype(np.float64) * scale.astype(np.float64)
+                np.testing.assert_array_equal(d.mlp[name], rounded.astype(np.float16))  # (−0 equals +0)
     sizes = {bits: sum(encode_payload(p, tmp_path / "x.omg4", precision=CompactGrids(weights=bits)).values())
              for bits in (8, 6, 4)}
     assert sizes[8] > sizes[6] > sizes[4]
     from omg4.commands.info import omg4_summary
     summary, text = omg4_summary(tmp_path / "w6.omg4")  # omg4 info names the version and the encodings
-    assert summary["version"] == 4 and "(container version 4)" in text.splitlines()[0]
-    assert summary["encodings"]["mlp.cont.0"] == "int6-rows" and sum(summary["groups"].values()) == \
+    assert summary["version"] == 5 and "(container version 5)" in text.splitlines()[0]
+    assert summary["encodings"]["mlp.cont.0"] == "int6-cols" and sum(summary["groups"].values()) == \
         (tmp_path / "w6.omg4").stat().st_size
 
 
@@ -234,9 +266,10 @@ def test_a_valid_weight_stream_on_a_codebook_section_is_refused(tmp_path):
 def test_forged_files_keep_the_version_their_encodings_need(tmp_path):
     from omg4.codec import forge
     encode_payload(make_payload(60), tmp_path / "w6.omg4", precision=CompactGrids(weights=6))
-    assert describe_container(forge._assemble(*forge._split((tmp_path / "w6.omg4").read_bytes())))["version"] == 4
-    encode_payload(make_payload(60), tmp_path / "w8.omg4")
-    assert describe_container(forge._assemble(*forge._split((tmp_path / "w8.omg4").read_bytes())))["version"] == 3
+    assert describe_container(forge._assemble(*forge._split((tmp_path / "w6.omg4").read_bytes())))["version"] == 5
+    encode_payload(make_payload(60), tmp_path / "w16.omg4", precision=CompactGrids(weights=16))
+    assert describe_container(forge._assemble(*forge._split((tmp_path / "w16.omg4").read_bytes())))["version"] == 3
+    assert describe_container(_with_row_scaled_weights(tmp_path / "w16.omg4", 6))["version"] == 4
 
 
 def test_identity_rotation_is_exact():
@@ -352,11 +385,12 @@ def test_compact_payload_round_trip(tmp_path):
             np.testing.assert_array_equal(a.view(np.uint16), b.view(np.uint16))
     for name, w in ref.mlp.items():
         assert d.mlp[name].shape == w.shape
-        if w.size:
-            step = np.abs(w.astype(np.float64)).max(axis=1, keepdims=True) / 127
+        if w.size:  # a scale per column (input)
+            step = np.abs(w.astype(np.float64)).max(axis=0, keepdims=True) / 127
             assert (np.abs(d.mlp[name].astype(np.float64) - w) <= step / 2 + 1e-3 * np.abs(w) + 1e-7).all()
     header, _ = read_container(tmp_path / "m.omg4")
     assert header["codec"] == "compact" and header["quaternions"] == ["rotation"]
+    assert header["encodings"]["mlp.cont.0"] == "int8-cols"
 
 
 @pytest.mark.parametrize("positions, rotations, times, weights, log_scales",
@@ -412,7 +446,7 @@ def test_compact_grids_hold_each_value_within_half_their_step(tmp_path, position
     finer = {"xyz": positions > 15, "t": times > 10 or times == 0, "quat.rotation": rotations > 9}
     for section in ("xyz", "t", "quat.rotation") if positions else ("t", "quat.rotation"):  # fp16: depends on the box
         assert (sizes[section] > default[section]) if finer[section] else (sizes[section] < default[section])
-    assert header["encodings"]["xyz"] == ("morton" if positions == 0 else "grid-morton")
+    assert header["encodings"]["xyz"] == ("morton" if positions == 0 else "grid-morton-exact")  # the default 3 %
 
 
 def test_lossless_grids_store_the_paper_coders_values_exactly_and_smaller(tmp_path):
@@ -464,10 +498,10 @@ def test_codebook_grid_rounds_the_other_codebooks_and_merges_their_codewords(tmp
 
 def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
     for bad in ((17, 9, 10), (15, 1, 10), (15, 9, -1), (15.0, 9, 10), (True, 9, 10), (15, 9, 10, 12, 5),
-                (15, 9, 10, 8, 15), (15, 9, 10, 8, 5, 15)):
+                (15, 9, 10, 8, 15), (15, 9, 10, 8, 5, 15), (15, 9, 10, 8, 5, 0, 101)):
         with pytest.raises(OMG4Error, match="bits must be an integer|weights take 2-8 bits"):
             CompactGrids(*bad)
-    for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1,1"):
+    for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1,1,1", "15,9,10,8,5,0,1000"):
         with pytest.raises(OMG4Error, match="three integers"):
             CompactGrids.parse(text)
     assert CompactGrids.parse(" 12, 7,7") == CompactGrids(12, 7, 7) and CompactGrids().label == "15/9/10"
@@ -477,6 +511,8 @@ def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
         "16/12/12/16/10"
     assert CompactGrids.parse("15,9,10,8,5,6") == CompactGrids(codebooks=6) and CompactGrids(codebooks=6).label == \
         "15/9/10/8/5/6"
+    assert CompactGrids.parse("12,7,7,8,5,0,2") == CompactGrids(12, 7, 7, exact=2) and \
+        CompactGrids(12, 7, 7, exact=2).label == "12/7/7/8/5/0/2" and CompactGrids(weights=6).label == "15/9/10/6/5"
     for codec in ("ans", "paper"):
         with pytest.raises(OMG4Error, match="compact codec only"):
             encode_payload(make_payload(10), tmp_path / "x.omg4", codec=codec, precision=CompactGrids(12, 7, 7))

@@ -262,7 +262,7 @@ def test_codec_decoder_does_not_import_training_or_torch():
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-@pytest.mark.parametrize("codec, version", [("compact", 3), ("ans", 1), ("paper", 1)])
+@pytest.mark.parametrize("codec, version", [("compact", 5), ("ans", 1), ("paper", 1)])
 def test_file_is_not_a_pickle(tmp_path, codec, version):
     path = tmp_path / "m.omg4"
     encode_payload(make_payload(20), path, codec=codec)

@@ -9,7 +9,7 @@ Layout (all integers little-endian)::
     12      4     JSON length L (uint32, at most MAX_JSON_BYTES)
     16      4     CRC-32 of the JSON bytes
     20      L     JSON object {"header": <caller's dict>, "sections": [[name, size, crc32], ...]}
-                  (version 1: UTF-8 text; versions 2 to 4: that text raw-DEFLATE-compressed)
+                  (version 1: UTF-8 text; versions 2 to 5: that text raw-DEFLATE-compressed)
     20+L    ...   the sections' bytes, concatenated in table order
 
 The file must end exactly after the last section. The section table lives inside the
@@ -32,13 +32,14 @@ from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAGIC = b"\x89OMG4\r\n\x1a"
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 #: versions this build reads: 1 (plain JSON; the "ans" and "paper" codecs still write it, so older omg4
 #: builds read those files), 2 (deflated JSON; the first "compact" codec) and 3 (deflated JSON; the "compact"
 #: codec with grid-coded positions and time centres, which builds reading only 1-2 cannot decode) and 4 (version 3
-#: whose MLP weights may be coded in fewer than 8 bits, which builds reading only 1-3 cannot decode)
-READABLE_VERSIONS = (1, 2, 3, 4)
-DEFLATED_VERSIONS = (2, 3, 4)
+#: whose MLP weights may be coded in fewer than 8 bits, which builds reading only 1-3 cannot decode) and 5
+#: (version 4 whose grid positions may carry exact corrections, which builds reading only 1-4 cannot decode)
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
+DEFLATED_VERSIONS = (2, 3, 4, 5)
 MAX_JSON_BYTES = 16 * 1024 * 1024
 MAX_SECTION_NAME = 200
 PREFIX = struct.Struct("<8sHHII")  # magic, version, flags, json length, json crc32
@@ -71,7 +72,7 @@ def deflate_raw(data: bytes) -> bytes:
 
 def stored_json(blob: bytes, version: int) -> bytes:
     """The container's start for the JSON text ``blob``: the prefix, then the JSON as ``version`` stores it
-    (versions 2 to 4 deflate it)."""
+    (versions 2 to 5 deflate it)."""
     stored = deflate_raw(blob) if version in DEFLATED_VERSIONS else blob
     return PREFIX.pack(MAGIC, version, 0, len(stored), crc32(stored)) + stored
 
@@ -85,7 +86,7 @@ def has_magic(path) -> bool:
 def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes], version: int = 1) -> int:
     """Write ``header`` (a JSON-able dict) and named binary ``sections`` to ``path`` atomically.
 
-    Section order is the dict's order; versions 2 to 4 deflate the JSON. Returns the file size in bytes.
+    Section order is the dict's order; versions 2 to 5 deflate the JSON. Returns the file size in bytes.
     """
     if version not in READABLE_VERSIONS:
         raise OMG4Error(f"unknown container version {version}")

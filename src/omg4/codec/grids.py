@@ -8,6 +8,12 @@ where the scene is instead:
   axes), Gaussians in Z-order of their grid cells, so the positions become sorted 3·bits-bit
   Morton codes whose gaps are hybrid-uint coded. At the default 15 bits a position moves by at most
   half a step, 1/65,534 of the scene's extent.
+* exact positions (beyond the paper): a few Gaussians chosen by the writer — the largest, whose appearance
+  covers the most pixels — keep their fp16 positions exactly (encoding ``grid-morton-exact``): the appearance MLP
+  reads positions through a 16-band frequency encoding (paper §4.4), whose top band turns a shift of 1/8,000 of
+  the scene into a different colour, so a large Gaussian on the grid can change a whole view (README, Rate).
+  After the Morton codes come the chosen storage ranks (gaps, hybrid uints) and, per chosen Gaussian and axis,
+  the zigzag difference between the ordered fp16 keys of its exact value and of its grid value.
 * time centres: a step of ``duration · 2^-bits`` (the clip's time range from the payload's meta,
   else the centres' own range), grid offsets ANS-coded; fp16 is kept where such a grid would not fit
   the coder or fp16.
@@ -23,13 +29,16 @@ import struct
 
 import numpy as np
 
-from omg4.codec.codewords import decode_sorted_codes, deinterleave, encode_sorted_codes, interleave
-from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices
+from omg4.codec.codewords import (decode_sorted_codes, deinterleave, encode_sorted_codes, interleave, keys_to_fp16,
+                                  ordered_keys)
+from omg4.codec.entropy import (MAX_SYMBOLS, decode_indices, decode_uints, encode_indices, encode_uints, join_streams,
+                                pack_varints, split_streams, unpack_varints)
 from omg4.errors import CorruptFileError
 
 POSITION_BITS = 15
 TIME_BITS = 10
 POSITIONS = "grid-morton"  # section encodings (names in a file's header)
+POSITIONS_EXACT = "grid-morton-exact"
 TIMES = "grid"
 _POSITION_HEAD = struct.Struct("<3ddB")  # origin (x, y, z), step, bits per axis
 _TIME_HEAD = struct.Struct("<ddI")  # origin, step, number of levels
@@ -50,15 +59,30 @@ def position_order(xyz: np.ndarray, bits: int = POSITION_BITS) -> np.ndarray:
     return np.argsort(interleave(_cells(xyz, bits)[2]), kind="stable")
 
 
-def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS) -> bytes:
-    """Code ``xyz: [N, 3]`` (N ≥ 1, finite), already in :func:`position_order`, on the ``bits``-bit grid."""
+def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS, exact: np.ndarray | None = None) -> bytes:
+    """Code ``xyz: [N, 3]`` (N ≥ 1, finite), already in :func:`position_order`, on the ``bits``-bit grid; with a
+    boolean ``exact: [N]`` that marks any Gaussian, those keep their fp16 values (encoding :data:`POSITIONS_EXACT`)."""
     if not 1 <= bits <= 16:
         raise ValueError(f"position grid of {bits} bits (allowed 1-16)")
     origin, step, cells = _cells(xyz, bits)
     codes = interleave(cells)
     if (np.diff(codes.astype(np.int64)) < 0).any():
         raise ValueError("positions must be in position_order")
-    return _POSITION_HEAD.pack(*origin, step, bits) + encode_sorted_codes(codes)
+    grid = _POSITION_HEAD.pack(*origin, step, bits) + encode_sorted_codes(codes)
+    if exact is None or not np.any(exact):
+        return grid
+    ranks = np.flatnonzero(exact)
+    on_grid = ordered_keys(_grid_values(origin, step, cells[ranks])).astype(np.int64)
+    diff = (ordered_keys(np.asarray(xyz, np.float16).reshape(-1, 3)[ranks]).astype(np.int64) - on_grid).ravel()
+    zigzag = np.where(diff < 0, -2 * diff - 1, 2 * diff).astype(np.uint64)
+    return join_streams(grid, pack_varints(np.array([ranks.size])) +
+                        join_streams(encode_sorted_codes(ranks.astype(np.uint64)), encode_uints(zigzag)))
+
+
+def _grid_values(origin, step: float, cells: np.ndarray) -> np.ndarray:
+    """fp16 positions of grid ``cells: [M, 3]`` (unchecked: :func:`_finite_in_fp16` checks what a file decodes to)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return (np.asarray(origin) + cells.astype(np.float64) * step).astype(np.float16)
 
 
 def _fp16(values: np.ndarray) -> np.ndarray | None:
@@ -75,16 +99,36 @@ def _finite_in_fp16(values: np.ndarray, what: str) -> np.ndarray:
     return rounded
 
 
-def decode_positions(data: bytes, count: int) -> np.ndarray:
-    """Inverse of :func:`encode_positions`: ``float16 [count, 3]``."""
-    if len(data) < _POSITION_HEAD.size:
+def decode_positions(data: bytes, count: int, exact: bool = False) -> np.ndarray:
+    """Inverse of :func:`encode_positions`: ``float16 [count, 3]``; ``exact``: the section is :data:`POSITIONS_EXACT`."""
+    grid, tail = split_streams(data, "position grid") if exact else (data, b"")
+    if len(grid) < _POSITION_HEAD.size:
         raise CorruptFileError("truncated position grid")
-    *origin, step, bits = _POSITION_HEAD.unpack_from(data)
+    *origin, step, bits = _POSITION_HEAD.unpack_from(grid)
     if not (1 <= bits <= 16 and np.isfinite([*origin, step]).all() and step > 0):
         raise CorruptFileError("invalid position grid")
-    codes = decode_sorted_codes(data[_POSITION_HEAD.size:], count, 3 * bits, strict=False, damaged="Morton codes")
-    cells = deinterleave(codes, 3)
-    return _finite_in_fp16(np.asarray(origin) + cells.astype(np.float64) * step, "positions")
+    codes = decode_sorted_codes(grid[_POSITION_HEAD.size:], count, 3 * bits, strict=False, damaged="Morton codes")
+    xyz = _finite_in_fp16(np.asarray(origin) + deinterleave(codes, 3).astype(np.float64) * step, "positions")
+    return _exact_positions(xyz, tail) if exact else xyz
+
+
+def _exact_positions(xyz: np.ndarray, tail: bytes) -> np.ndarray:
+    """``xyz`` (grid values, fp16) with the exact fp16 values the section's ``tail`` restores."""
+    (num,), used = unpack_varints(tail, 1, "exact-position count")
+    if not 1 <= num <= len(xyz):
+        raise CorruptFileError(f"{num} exact positions for {len(xyz)} Gaussians")
+    ranks_data, diffs_data = split_streams(tail[used:], "exact-position ranks")
+    ranks = decode_sorted_codes(ranks_data, int(num), 64, strict=True, damaged="exact-position ranks")
+    if int(ranks[-1]) >= len(xyz):
+        raise CorruptFileError("damaged exact-position ranks")
+    zigzag = decode_uints(diffs_data, 3 * int(num), max_bits=17).astype(np.int64)
+    keys = ordered_keys(xyz[ranks.astype(np.int64)]).astype(np.int64) + np.where(zigzag & 1, -(zigzag + 1) // 2,
+                                                                                  zigzag // 2).reshape(-1, 3)
+    if keys.min() < 0 or keys.max() > 0xFFFF:
+        raise CorruptFileError("damaged exact positions")
+    out = xyz.copy()
+    out[ranks.astype(np.int64)] = _finite_in_fp16(keys_to_fp16(keys.astype(np.uint16)), "exact positions")
+    return out
 
 
 def time_step(t: np.ndarray, time_range: object, bits: int = TIME_BITS) -> float:

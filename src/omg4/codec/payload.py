@@ -8,17 +8,18 @@ range, normalization, ...).
 
 Three codecs:
 
-* ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 3): positions on a
-  uniform 15-bit grid over the scene's box in Z-order, time centres on a grid of 1/1024 of the clip
+* ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 5): positions on a
+  uniform 15-bit grid over the scene's box in Z-order, the largest 3 % of Gaussians' exactly, time centres on a grid of 1/1024 of the clip
   (:mod:`omg4.codec.grids`); each SVQ slot's codebook and indices coded without paying for the codewords'
   order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped, the smaller of a sorted
   codeword set or first-use order), the codebooks of log-scale attributes (``log_scaled``: scales and
   durations, exp-activated) first rounded to steps of 1/32 in log space (a 3 % size step, so nearby
   codewords merge); rotation quaternions as unit quaternions in 3 × 9 bits (:mod:`omg4.codec.quaternions`)
-  where that is smaller than their codebooks; MLP weight matrices in 8 bits per weight
+  where that is smaller than their codebooks; MLP weight matrices in 8 bits per weight, a scale per column
   (:mod:`omg4.codec.weights`); the header deflated. Everything but the codewords' order and the header
-  changes values, each by a measured, small amount (README, Rate). Version-2 compact files (fp16 positions
-  as Morton codes, fp16 time centres, 3 × 10-bit quaternions, codebooks as stored) still decode.
+  changes values, each by a measured, small amount (README, Rate). Version-3 and -4 compact files (no exact
+  positions, a weight scale per row) and version-2 ones (fp16 positions as Morton codes, fp16 time centres,
+  3 × 10-bit quaternions, codebooks as stored) still decode.
 * ``"paper"`` — OMG4's ``encode``: fp16 positions, time centres, codebooks and MLP weights,
   Huffman-coded indices, everything LZMA-compressed (OMG4 wraps one pickle in xz; here
   each section is LZMA'd on its own — no pickle). Gaussians keep their order.
@@ -38,7 +39,7 @@ import lzma
 import math
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 
 import numpy as np
 
@@ -74,7 +75,7 @@ _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
 #: allowed bits of each :class:`CompactGrids` field (what the writer accepts)
 GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (2, 16),
-                     "log_scales": (0, 14), "codebooks": (0, 14)}
+                     "log_scales": (0, 14), "codebooks": (0, 14), "exact": (0, 100)}
 
 
 @dataclass(frozen=True)
@@ -88,12 +89,16 @@ class CompactGrids:
     codebooks and indices as the pipeline made them, losslessly;
     times: time centres on steps of the clip's duration · 2^-times (:func:`omg4.codec.grids.time_step`), or 0: fp16
     as the paper;
-    weights: MLP weight matrices in 2-8 bits per weight (:mod:`omg4.codec.weights`; below 8 the file needs
-    container version 4) or 16 (fp16, as the paper);
+    weights: MLP weight matrices in 2-8 bits per weight, a scale per column (:mod:`omg4.codec.weights`; the file
+    needs container version 5), or 16 (fp16, as the paper);
     log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are;
     codebooks: the other codebooks (appearance features, FreeTimeGS velocities; not rotations) rounded to steps of
     2^-codebooks, or 0 (the
-    default): as they are — near-equal codewords then merge, so indices shrink too.
+    default): as they are — near-equal codewords then merge, so indices shrink too;
+    exact: the percentage of Gaussians, the largest (:func:`largest_footprints`), whose grid positions are
+    corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; files with any need
+    container version 5), or 0: none. The default 3 % costs 0.03-0.08 B/G and keeps one large Gaussian's
+    appearance from changing a whole view (README, Rate).
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
     """
 
@@ -103,6 +108,7 @@ class CompactGrids:
     weights: int = 8
     log_scales: int = 5
     codebooks: int = 0
+    exact: int = 3
 
     def __post_init__(self):
         for name, (lo, hi) in GRID_BITS_ALLOWED.items():
@@ -114,29 +120,30 @@ class CompactGrids:
 
     @classmethod
     def parse(cls, text: str) -> "CompactGrids":
-        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS]]"`` bits, e.g. ``"15,9,10"``,
-        ``"16,12,12,16,10"`` or ``"15,8,8,8,5,6"``, or a name: ``"default"`` (15,9,10,8,5,0) or ``"lossless"``
-        (0,16,0,16,0,0: the paper coder's values)."""
+        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]]]"``, e.g. ``"15,9,10"``,
+        ``"16,12,12,16,10"``, ``"15,8,8,8,5,6"`` or ``"12,7,7,8,5,0,1"``, or a name: ``"default"`` (15,9,10,8,5,0,3)
+        or ``"lossless"`` (0,16,0,16,0,0,3: the paper coder's values; exact positions are moot without a grid)."""
         named = {"default": cls(), "lossless": cls(0, 16, 0, 16, 0)}
         if text.strip().lower() in named:
             return named[text.strip().lower()]
         parts = [p.strip() for p in text.split(",")]
-        if len(parts) not in (3, 5, 6) or not all(re.fullmatch(r"[0-9]{1,2}", p) for p in parts):
+        if len(parts) not in _GRID_LENGTHS or not all(re.fullmatch(r"[0-9]{1,3}", p) for p in parts):
             raise OMG4Error(f"compact grid {text!r}: give three integers POSITIONS,ROTATIONS,TIMES such as 15,9,10, "
-                            "five or six with WEIGHTS,LOG_SCALES[,CODEBOOKS] such as 16,12,12,16,10 or 15,8,8,8,5,6, "
-                            "or default or lossless")
+                            "five to seven with WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]] such as 16,12,12,16,10, "
+                            "15,8,8,8,5,6 or 12,7,7,8,5,0,2, or default or lossless")
         return cls(*(int(p) for p in parts))
 
     @property
     def label(self) -> str:
-        """``"15/9/10"`` (positions/rotations/times bits), with ``/weights/log_scales`` when those or the codebooks
-        are not the defaults, and ``/codebooks`` when that is not."""
-        bits = (self.positions, self.rotations, self.times, self.weights, self.log_scales, self.codebooks)
-        if self.codebooks != CompactGrids.codebooks:
-            return "/".join(map(str, bits))
-        if (self.weights, self.log_scales) != (CompactGrids.weights, CompactGrids.log_scales):
-            return "/".join(map(str, bits[:5]))
-        return "/".join(map(str, bits[:3]))
+        """``"15/9/10"`` (positions/rotations/times bits), then as many of ``/weights/log_scales``, ``/codebooks``
+        and ``/exact`` as the last field that is not the default needs (the forms :meth:`parse` reads)."""
+        fields = astuple(self)
+        defaults = astuple(CompactGrids())
+        length = next(n for n in _GRID_LENGTHS if fields[n:] == defaults[n:])
+        return "/".join(map(str, fields[:length]))
+
+
+_GRID_LENGTHS = (3, 5, 6, 7)  # how many CompactGrids fields a grid string may give
 
 
 @dataclass
@@ -278,13 +285,34 @@ def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
 # ------------------------------------------------------------------------ encoding
 def container_version(codec: object, encodings: object = None) -> int:
     """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``): 3 for
-    "compact" (deflated JSON, grid-coded sections), 4 for "compact" with an MLP weight in fewer than 8 bits (an
-    encoding builds reading 1-3 do not know), 1 otherwise, so files of the older codecs stay readable by builds
-    that predate versions 2 to 4. Any ``encodings`` value is accepted (a forged header's too)."""
+    "compact" (deflated JSON, grid-coded sections), 4 for "compact" with an MLP weight in fewer than 8 bits per row and
+    5 for "compact" with exact positions or column-scaled weights (encodings builds reading 1-3, or 1-4, do not
+    know), 1 otherwise, so files
+    of the older codecs stay readable by builds that predate versions 2 to 5. Any ``encodings`` value is accepted
+    (a forged header's too)."""
     if codec != "compact":
         return 1
     names = encodings.values() if isinstance(encodings, dict) else ()
+    if any(e == grids.POSITIONS_EXACT or (isinstance(e, str) and e.endswith("-cols") and weights.bits_of(e))
+           for e in names):
+        return 5
     return 4 if any(isinstance(e, str) and (weights.bits_of(e) or weights.BITS) < weights.BITS for e in names) else 3
+
+
+def largest_footprints(p: CompressedPayload, percent: int) -> np.ndarray:
+    """bool ``[N]``: the ⌈percent · N / 100⌉ Gaussians of ``p`` with the largest footprint — the product of their two
+    largest scales, from the 3-wide log-scale attribute ``scale`` of both backbones — whose positions the compact
+    codec stores exactly (:class:`CompactGrids` ``exact``); none without such an attribute. Ties: the earlier row."""
+    chosen = np.zeros(p.num_gaussians, bool)
+    scale = p.attributes.get("scale")
+    if not percent or scale is None or "scale" not in p.log_scaled:
+        return chosen
+    log_scales = scale.reconstruct().astype(np.float64)
+    if log_scales.shape[1] != 3:
+        return chosen
+    footprint = np.sort(log_scales, axis=1)[:, 1:].sum(axis=1)  # log of the two largest scales' product
+    chosen[np.argsort(-footprint, kind="stable")[:math.ceil(percent * p.num_gaussians / 100)]] = True
+    return chosen
 
 
 def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...], precision: CompactGrids) -> bool:
@@ -383,7 +411,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
     ``p.to_fp16()``. With "compact" the order is :func:`omg4.codec.grids.position_order` (:func:`canonical_order`
     with ``precision.positions`` 0),
-    positions and time centres are on their grids, and every SVQ attribute reconstructs to the same fp16
+    positions (but the largest ``precision.exact`` %) and time centres are on their grids, and every SVQ attribute reconstructs to the same fp16
     values (codebooks relabelled, unused and duplicate codewords dropped), except the log-scale codebooks
     rounded to steps of 2^-5 in log space, the quaternion attributes stored on the unit-quaternion grid and the
     MLP weight matrices stored in 8 bits (other grids: ``precision``). Returns the byte size of every section
@@ -409,7 +437,9 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     elif fp16_positions:
         sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
     else:
-        sections["xyz"], encodings["xyz"] = grids.encode_positions(q.xyz, precision.positions), grids.POSITIONS
+        exact = largest_footprints(q, precision.exact)
+        sections["xyz"] = grids.encode_positions(q.xyz, precision.positions, exact)
+        encodings["xyz"] = grids.POSITIONS_EXACT if exact.any() else grids.POSITIONS
     times = (grids.encode_times(q.t, grids.time_step(q.t, q.meta.get("time_range"), precision.times))
              if codec == "compact" and precision.times else None)
     if times is None:
@@ -439,7 +469,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
             shapes[attr] = [list(cb.shape) for cb in qa.codebooks]
     for name, w in q.mlp.items():
         if codec == "compact" and w.ndim == 2 and w.size and precision.weights <= weights.BITS:
-            sections[f"mlp.{name}"] = weights.encode_rows(w, precision.weights)
+            sections[f"mlp.{name}"] = weights.encode_columns(w, precision.weights)
             encodings[f"mlp.{name}"] = weights.encoding(precision.weights)
         else:
             put_float(f"mlp.{name}", w, float_encoding)
@@ -572,19 +602,19 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return quaternions.decode_quaternions(data, count, bits)
             if compact and encoding == "sorted" and kind == "svq":
                 return decode_sorted_codebook(data, *shape)
-            if compact and (bits := weights.bits_of(encoding)) and kind == "mlp" and len(shape) == 2:
-                return weights.decode_rows(data, shape, bits)
+            if compact and weights.parse_encoding(encoding) and kind == "mlp" and len(shape) == 2:
+                return weights.decode_matrix(data, shape, encoding)
             if encoding == "morton" and name == "xyz" and codec != "paper":
                 return _decode_xyz_morton(data, count)
-            if compact and encoding == grids.POSITIONS and name == "xyz":
-                return grids.decode_positions(data, count)
+            if compact and encoding in (grids.POSITIONS, grids.POSITIONS_EXACT) and name == "xyz":
+                return grids.decode_positions(data, count, exact=encoding == grids.POSITIONS_EXACT)
             if compact and encoding == grids.TIMES and name == "t":
                 return grids.decode_times(data, count)
             return _decode_f16(data, encoding, count)
         except CorruptFileError as exc:
             raise CorruptFileError(f"section {name}: {exc}") from None
 
-    xyz = decode("xyz", n if enc["xyz"] in ("morton", grids.POSITIONS) else 3 * n).reshape(n, 3)
+    xyz = decode("xyz", n if enc["xyz"] in ("morton", grids.POSITIONS, grids.POSITIONS_EXACT) else 3 * n).reshape(n, 3)
     t = decode("t", n)
     attributes = {}
     for attr, shapes in header["attributes"].items():

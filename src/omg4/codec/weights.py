@@ -1,12 +1,14 @@
-"""MLP weight matrices in a few bits per weight: per-row symmetric quantization (omg4 §8, "compact" codec).
+"""MLP weight matrices in a few bits per weight: symmetric quantization per column or per row (omg4 §8, "compact" codec).
 
-Each row (one output unit) of a ``[R, C]`` weight matrix gets a scale ``s = max|w| / L`` with
-``L = 2^(bits−1) − 1`` (stored as float32, so rows of tiny weights keep their precision) and its weights the
-integers ``round(w / s)`` in [−L, L], ANS-coded; the decoded weights are fp16. The section's encoding
-names the bits (``int8-rows`` by default; ``int2-rows`` … ``int7-rows`` under coarser grids,
-:class:`omg4.codec.payload.CompactGrids`, which need container version 4). The appearance MLPs of paper
-§4.4 tolerate 8 bits: on the demo's OMG4-M it moves PSNR by −0.002 dB and halves the MLPs' share of the
-file; on the demo's presets 6 bits cost 0.01-0.05 dB more, 4 bits 0.3-0.7 dB (README, Rate).
+Each column (one input of the layer; ``int<b>-cols``, what the writer uses since container version 5) or each row
+(one output unit; ``int<b>-rows``, versions 3 and 4) of a ``[R, C]`` weight matrix gets a scale
+``s = max|w| / L`` with ``L = 2^(bits−1) − 1`` (stored as float32, so tiny weights keep their precision) and its
+weights the integers ``round(w / s)`` in [−L, L], ANS-coded; the decoded weights are fp16. The section's encoding
+names the bits (8 by default; 2-7 under coarser grids, :class:`omg4.codec.payload.CompactGrids`) and the layout.
+Per-column scales follow the inputs: an appearance head (paper §4.4) takes 13 shared features and 3 Gaussian
+features of different ranges, which per-row scales give one step. On two basketball OMG4-M models per-row 8 bits
+moved PSNR by −0.064 and +0.071 dB against the fp16 weights, per-column 8 bits by +0.004 and +0.004; on the demo's
+OMG4-M −0.003 and +0.000 dB, for 0.1-0.6 % more weight bytes (README, Rate).
 """
 
 from __future__ import annotations
@@ -29,15 +31,21 @@ def levels(bits: int = BITS) -> int:
 
 
 def encoding(bits: int = BITS) -> str:
-    """The section encoding's name in a file's header for ``bits`` per weight."""
-    return f"int{bits}-rows"
+    """The section encoding's name in a file's header for ``bits`` per weight, per-column scales (the writer's)."""
+    return f"int{bits}-cols"
+
+
+def parse_encoding(name: str) -> tuple[int, bool] | None:
+    """(bits, per-column scales) of a weight encoding name (``int2-rows`` … ``int8-rows``, ``int2-cols`` …
+    ``int8-cols``), or None if it is not one."""
+    match = re.fullmatch(r"int([2-8])-(rows|cols)", name)
+    return (int(match.group(1)), match.group(2) == "cols") if match else None
 
 
 def bits_of(name: str) -> int | None:
-    """The bits per weight an encoding name declares (``int2-rows`` … ``int8-rows``), or None if it is not a weight
-    encoding."""
-    match = re.fullmatch(r"int([2-8])-rows", name)
-    return int(match.group(1)) if match else None
+    """The bits per weight a weight encoding name declares, or None if it is not a weight encoding."""
+    parsed = parse_encoding(name)
+    return parsed[0] if parsed else None
 
 
 def quantize_rows(w: np.ndarray, bits: int = BITS) -> tuple[np.ndarray, np.ndarray]:
@@ -70,3 +78,16 @@ def decode_rows(data: bytes, shape: tuple[int, int], bits: int = BITS) -> np.nda
         raise CorruptFileError("invalid weight scales (negative, non-finite or beyond the fp16 range)")
     codes = decode_indices(data[4 * rows:], 2 * top + 1, rows * cols, "ans").reshape(rows, cols) - top
     return (codes * scale[:, None]).astype(np.float16)
+
+
+def encode_columns(w: np.ndarray, bits: int = BITS) -> bytes:
+    """Code a 2-D weight matrix ``[R, C]`` with a scale per column: :func:`encode_rows` of its transpose."""
+    return encode_rows(np.asarray(w).T, bits)
+
+
+def decode_matrix(data: bytes, shape: tuple[int, int], name: str) -> np.ndarray:
+    """Decode a weight section of encoding ``name`` (:func:`parse_encoding`, checked by the caller) to
+    ``float16 [R, C]``."""
+    bits, columns = parse_encoding(name)
+    rows, cols = shape
+    return decode_rows(data, (cols, rows), bits).T.copy() if columns else decode_rows(data, shape, bits)

@@ -29,7 +29,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="beyond the paper: run every row once per rate weight of entropy-constrained codebooks "
                         "(see omg4 compress --help, --rate-weight), e.g. 0,30; the figure then shows each coder's "
                         "rate-distortion front (default 0: the paper's k-means)")
-    p.add_argument("--grid-bits", type=compact_grids, nargs="+", metavar="POS,ROT,TIME[,W,LS[,CB]]",
+    p.add_argument("--grid-bits", type=compact_grids, nargs="+", metavar="POS,ROT,TIME[,W,LS[,CB[,EX]]]",
                    help="write every row at each of these grids (the first by the pipeline run, the others "
                         "re-encoded from its paper-coder copy; one curve each). " + GRID_BITS_HELP)
     add_device_arguments(p)

@@ -92,7 +92,7 @@ def add_codec_argument(p: argparse.ArgumentParser) -> None:
 
 
 def compact_grids(text: str):
-    """An argparse type: the compact codec's grids, ``POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS]]`` bits
+    """An argparse type: the compact codec's grids, ``POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]]]``
     or a name (:class:`omg4.codec.payload.CompactGrids`)."""
     from omg4.codec.payload import CompactGrids
     from omg4.errors import OMG4Error
@@ -105,8 +105,9 @@ def compact_grids(text: str):
 
 GRID_BITS_HELP = ("beyond the paper: the compact codec's grids, bits per position axis (0: fp16), per quaternion "
                   "component (16: the rotation codebooks), of the clip's duration per time step (0: fp16), and "
-                  "optionally per MLP weight (2-8, or 16: fp16), of log-scale codebook steps (0: unrounded) and of the "
-                  "other codebooks' steps (0: unrounded); default 15,9,10 = 15,9,10,8,5,0; 15,8,8 saves about 4 %% "
+                  "optionally per MLP weight (2-8, or 16: fp16), of log-scale codebook steps (0: unrounded), of the "
+                  "other codebooks' steps (0: unrounded) and the percentage of Gaussians, the largest, whose positions "
+                  "are kept exactly (0: none); default 15,9,10 = 15,9,10,8,5,0,3; 15,8,8 saves about 4 %% "
                   "of the file, 15,9,10,8,5,6 about 4 %% for nothing measurable, 12,7,7 about a sixth of the "
                   "per-Gaussian bytes, at some quality; lossless (= 0,16,0,16,0) holds the paper coder's values exactly, "
                   "in 0.74-0.78x its bytes: README 'Rate')")

@@ -38,7 +38,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
     add_codec_argument(p)
-    p.add_argument("--grid-bits", type=compact_grids, metavar="POS,ROT,TIME[,W,LS[,CB]]", help=GRID_BITS_HELP)
+    p.add_argument("--grid-bits", type=compact_grids, metavar="POS,ROT,TIME[,W,LS[,CB[,EX]]]", help=GRID_BITS_HELP)
     add_rate_weight_argument(p)
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true",
