@@ -10,7 +10,7 @@ size class's valid file is measured the same way; the target is every failure a
 ``CorruptFileError``, no case over 2 s, none over 4× its class's valid peak memory.
 
     python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--label after] [--codecs compact,ans,paper]
-                                   [--grid-bits 15,9,10]  # the compact files' grids (version 4 with weights < 8 bits)
+                                   [--grid-bits 15,9,10]  # the compact files' grids (version 5 by default)
 
 Results are merged into ``benchmarks/results/fuzz_omg4.json`` under ``--label``.
 """

@@ -159,7 +159,7 @@ def rate_distortion_curves(results: dict[str, dict], codec: str) -> tuple[dict[s
     for r in results.values():
         if not r.get("full_pipeline"):
             continue
-        beta, grids = r["rate_weight"], CompactGrids(**r.get("grids", {}))
+        beta, grids = r["rate_weight"], CompactGrids(**{"exact": 0, **r.get("grids", {})})  # saved before exact: 0
         curves.setdefault(row_label(f"{codec} coder", beta, grids), {})[r["preset"]] = (r["storage_mb"], r["psnr"])
         if not beta and codec != "paper":
             curves.setdefault("paper coder", {})[r["preset"]] = (r["paper_codec_mb"], r["paper_codec_psnr"])

@@ -186,8 +186,9 @@ def _with_row_scaled_weights(path, bits: int) -> bytes:
     from omg4.codec import forge
     header, sections = forge._split(path.read_bytes())
     sections = dict(sections)
+    decoded = decode_payload(path)
     for name, shape in header["mlp"].items():
-        w = decode_payload(path).mlp[name]
+        w = decoded.mlp[name]
         if len(shape) == 2 and w.size:
             sections[f"mlp.{name}"] = weights.encode_rows(w.astype(np.float32), bits)
             header["encodings"][f"mlp.{name}"] = f"int{bits}-rows"
@@ -499,7 +500,7 @@ def test_codebook_grid_rounds_the_other_codebooks_and_merges_their_codewords(tmp
 def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
     for bad in ((17, 9, 10), (15, 1, 10), (15, 9, -1), (15.0, 9, 10), (True, 9, 10), (15, 9, 10, 12, 5),
                 (15, 9, 10, 8, 15), (15, 9, 10, 8, 5, 15), (15, 9, 10, 8, 5, 0, 101)):
-        with pytest.raises(OMG4Error, match="bits must be an integer|weights take 2-8 bits"):
+        with pytest.raises(OMG4Error, match="(bits|percentage) must be an integer|weights take 2-8 bits"):
             CompactGrids(*bad)
     for text in ("15,9", "15,9,10,1", "a,9,10", "-1,9,10", "15,9,10,8,5,1,1,1", "15,9,10,8,5,0,1000"):
         with pytest.raises(OMG4Error, match="three integers"):

@@ -18,50 +18,68 @@ from tests.codec.test_payload import make_payload
 
 
 def _payload(n: int, seed: int = 0):
+    """A payload whose Gaussians all have different scales (one codeword each), so "the largest" has no ties."""
     p = make_payload(n, seed)
     p.rotations, p.log_scaled = ("rotation",), ("scale",)
+    rng = np.random.default_rng(seed + 100)
+    log_scales = rng.uniform(-6, 0, size=(n, 3))
+    p.attributes["scale"] = QuantizedAttribute([log_scales[:, j:j + 1] for j in range(3)], [np.arange(n)] * 3)
     return p
 
 
-def _largest_by_hand(p, percent: int) -> set[tuple]:
-    """The fp16 positions of the ⌈percent·N/100⌉ Gaussians whose two largest scales have the largest product."""
-    scales = np.exp(p.attributes["scale"].reconstruct().astype(np.float64))
+def _largest_by_hand(p, percent: int) -> np.ndarray:
+    """Indices (input order) of the ⌈percent·N/100⌉ Gaussians whose two largest scales, as the fp16 payload holds
+    them, have the largest product."""
+    scales = np.exp(p.to_fp16().attributes["scale"].reconstruct().astype(np.float64))
     two_largest = -np.sort(-scales, axis=1)[:, :2]
     product = two_largest[:, 0] * two_largest[:, 1]
     count = math.ceil(percent * p.num_gaussians / 100)
-    chosen = np.argsort(-product, kind="stable")[:count]
-    return {tuple(r) for r in np.asarray(p.xyz, np.float16)[chosen].view(np.uint16)}
+    return np.argsort(-product)[:count]
 
 
-@pytest.mark.parametrize("percent", [1, 7, 100])
-def test_the_largest_gaussians_keep_their_fp16_positions_bit_for_bit(tmp_path, percent):
-    p = _payload(2000)
+@pytest.mark.parametrize("n, percent", [(2000, 1), (2010, 3), (2000, 7), (2000, 100)])
+def test_the_largest_gaussians_keep_their_fp16_positions_bit_for_bit(tmp_path, n, percent):
+    """Row by row: the chosen Gaussians decode to their own fp16 positions, every other one to its grid value (the
+    file without exact positions), and no attribute moves."""
+    p = _payload(n)
     encode_payload(p, tmp_path / "e.omg4", precision=CompactGrids(12, 7, 7, exact=percent))
     encode_payload(p, tmp_path / "g.omg4", precision=CompactGrids(12, 7, 7, exact=0))
     exact, grid = decode_payload(tmp_path / "e.omg4"), decode_payload(tmp_path / "g.omg4")
     assert read_container(tmp_path / "e.omg4")[0]["encodings"]["xyz"] == "grid-morton-exact"
     assert read_container(tmp_path / "g.omg4")[0]["encodings"]["xyz"] == "grid-morton"
     ref16 = np.asarray(p.xyz, np.float16)
-    stored = {tuple(r) for r in ref16.view(np.uint16)}
-    decoded = [tuple(r) for r in exact.xyz.view(np.uint16)]
-    kept = {r for r in decoded if r in stored}
-    wanted = _largest_by_hand(p, percent)
-    assert wanted <= kept  # every chosen Gaussian decodes to its own fp16 value
-    on_grid_exactly = {tuple(r) for r in grid.xyz.view(np.uint16)} & stored  # the grid alone hits some by chance
-    assert kept - wanted <= on_grid_exactly
-    # the others are the grid file's values (same order: the order is the grid cells' Z-order either way)
-    same = exact.xyz.view(np.uint16) == grid.xyz.view(np.uint16)
-    changed = ~same.all(axis=1)
-    assert changed.sum() <= len(wanted) and changed.sum() >= len(wanted - on_grid_exactly)
+    order = grids.position_order(ref16, 12)  # storage row i holds input Gaussian order[i]
+    np.testing.assert_array_equal(exact.attributes["app"].reconstruct(),
+                                  p.to_fp16().attributes["app"].reconstruct()[order])  # the rows are those Gaussians
+    chosen = np.isin(order, _largest_by_hand(p, percent))
+    assert chosen.sum() == math.ceil(percent * n / 100)  # 61 of 2010 at 3 %: rounded up
+    np.testing.assert_array_equal(exact.xyz[chosen].view(np.uint16), ref16[order][chosen].view(np.uint16))
+    np.testing.assert_array_equal(exact.xyz[~chosen].view(np.uint16), grid.xyz[~chosen].view(np.uint16))
+    assert (grid.xyz[chosen].view(np.uint16) != ref16[order][chosen].view(np.uint16)).any(axis=1).mean() > 0.5  # (grid moves them)
     for name in ("scale", "app"):
         np.testing.assert_array_equal(exact.attributes[name].reconstruct(), grid.attributes[name].reconstruct())
-    if percent == 100:
-        np.testing.assert_array_equal(np.sort(exact.xyz.view(np.uint16), axis=0), np.sort(ref16.view(np.uint16), axis=0))
     assert describe_container(tmp_path / "e.omg4")["version"] == 5
     encode_payload(p, tmp_path / "e16.omg4", precision=CompactGrids(12, 7, 7, weights=16, exact=percent))
     encode_payload(p, tmp_path / "g16.omg4", precision=CompactGrids(12, 7, 7, weights=16, exact=0))
     assert describe_container(tmp_path / "e16.omg4")["version"] == 5  # exact positions alone need version 5
     assert describe_container(tmp_path / "g16.omg4")["version"] == 3
+
+
+@pytest.mark.parametrize("bits", range(1, 17))
+def test_every_grid_with_every_position_exact_decodes_the_fp16_values(bits):
+    """Encoder and decoder agree on each grid value to the last bit (a correction is relative to it), at every grid."""
+    rng = np.random.default_rng(bits)
+    xyz = (rng.normal(size=(300, 3)) * [3.0, 0.5, 40.0]).astype(np.float16)
+    order = grids.position_order(xyz, bits)
+    decoded = grids.decode_positions(grids.encode_positions(xyz[order], bits, np.ones(300, bool)), 300, exact=True)
+    np.testing.assert_array_equal(decoded.view(np.uint16), xyz[order].view(np.uint16))
+
+
+def test_the_exact_mask_is_checked():
+    xyz = np.zeros((5, 3))
+    for bad in (np.ones(4, bool), np.array([0, 1, 0, 0, 1]), np.ones((5, 1), bool)):
+        with pytest.raises(ValueError, match="boolean mask of 5"):
+            grids.encode_positions(xyz, 8, bad)
 
 
 def test_exact_positions_cost_a_few_bits_each(tmp_path):
@@ -119,6 +137,7 @@ def _tail(count: int, ranks, diffs) -> bytes:
     (lambda: _tail(2, [3, 3], [0] * 6), "exact-position ranks"),
     (lambda: _tail(1, [2], [2 * 70000, 0, 0]), "uint stream|exact positions"),
     (lambda: _tail(1, [2], [2 * 40000, 2 * 40000, 2 * 40000]), "exact positions"),  # keys past 0xFFFF
+    (lambda: _tail(1, [0], [2 * 32769 - 1, 0, 0]), "damaged exact positions"),  # x: key 0x8000 − 32769 < 0
     (lambda: _tail(1, [2], [0, 2 * 0x7C00, 0]), "exact positions beyond"),  # y: from +0.0 to +inf
     (lambda: _tail(1, [2], [0, 2 * 0x7C01, 0]), "exact positions beyond"),  # to a NaN
     (lambda: _tail(1, [2], [0, 0]), "holds 2 symbols, expected 3"),

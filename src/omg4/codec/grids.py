@@ -1,4 +1,4 @@
-"""Positions and time centres on uniform grids: the "compact" codec's per-Gaussian floats (omg4 §8, version 3).
+"""Positions and time centres on uniform grids: the "compact" codec's per-Gaussian floats (omg4 §8, versions 3-5).
 
 The paper stores ``xyz`` and ``t`` as fp16 (OMG4 §4.4), whose step grows with the magnitude: a
 position at 8 is stored 16 times more coarsely than one at 0.5. A uniform grid spends its bits
@@ -69,7 +69,12 @@ def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS, exact: np.ndarr
     if (np.diff(codes.astype(np.int64)) < 0).any():
         raise ValueError("positions must be in position_order")
     grid = _POSITION_HEAD.pack(*origin, step, bits) + encode_sorted_codes(codes)
-    if exact is None or not np.any(exact):
+    if exact is None:
+        return grid
+    exact = np.asarray(exact)
+    if exact.dtype != bool or exact.shape != (len(cells),):
+        raise ValueError(f"exact must be a boolean mask of {len(cells)} Gaussians, got {exact.dtype} {exact.shape}")
+    if not exact.any():
         return grid
     ranks = np.flatnonzero(exact)
     on_grid = ordered_keys(_grid_values(origin, step, cells[ranks])).astype(np.int64)
@@ -80,7 +85,7 @@ def encode_positions(xyz: np.ndarray, bits: int = POSITION_BITS, exact: np.ndarr
 
 
 def _grid_values(origin, step: float, cells: np.ndarray) -> np.ndarray:
-    """fp16 positions of grid ``cells: [M, 3]`` (unchecked: :func:`_finite_in_fp16` checks what a file decodes to)."""
+    """fp16 positions of grid ``cells: [M, 3]``, the encoder's and the decoder's (which checks them for finiteness)."""
     with np.errstate(over="ignore", invalid="ignore"):
         return (np.asarray(origin) + cells.astype(np.float64) * step).astype(np.float16)
 
@@ -108,7 +113,9 @@ def decode_positions(data: bytes, count: int, exact: bool = False) -> np.ndarray
     if not (1 <= bits <= 16 and np.isfinite([*origin, step]).all() and step > 0):
         raise CorruptFileError("invalid position grid")
     codes = decode_sorted_codes(grid[_POSITION_HEAD.size:], count, 3 * bits, strict=False, damaged="Morton codes")
-    xyz = _finite_in_fp16(np.asarray(origin) + deinterleave(codes, 3).astype(np.float64) * step, "positions")
+    xyz = _grid_values(origin, step, deinterleave(codes, 3))
+    if not np.isfinite(xyz).all():
+        raise CorruptFileError("positions beyond the fp16 range")
     return _exact_positions(xyz, tail) if exact else xyz
 
 
@@ -118,7 +125,8 @@ def _exact_positions(xyz: np.ndarray, tail: bytes) -> np.ndarray:
     if not 1 <= num <= len(xyz):
         raise CorruptFileError(f"{num} exact positions for {len(xyz)} Gaussians")
     ranks_data, diffs_data = split_streams(tail[used:], "exact-position ranks")
-    ranks = decode_sorted_codes(ranks_data, int(num), 64, strict=True, damaged="exact-position ranks")
+    rank_bits = max(1, (len(xyz) - 1).bit_length())
+    ranks = decode_sorted_codes(ranks_data, int(num), rank_bits, strict=True, damaged="exact-position ranks")
     if int(ranks[-1]) >= len(xyz):
         raise CorruptFileError("damaged exact-position ranks")
     zigzag = decode_uints(diffs_data, 3 * int(num), max_bits=17).astype(np.int64)

@@ -8,8 +8,8 @@ range, normalization, ...).
 
 Three codecs:
 
-* ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 5): positions on a
-  uniform 15-bit grid over the scene's box in Z-order, the largest 3 % of Gaussians' exactly, time centres on a grid of 1/1024 of the clip
+* ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 5): positions on
+  a uniform 15-bit grid over the scene's box in Z-order (the largest 3 % of Gaussians exactly), time centres on a grid of 1/1024 of the clip
   (:mod:`omg4.codec.grids`); each SVQ slot's codebook and indices coded without paying for the codewords'
   order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped, the smaller of a sorted
   codeword set or first-use order), the codebooks of log-scale attributes (``log_scaled``: scales and
@@ -89,14 +89,14 @@ class CompactGrids:
     codebooks and indices as the pipeline made them, losslessly;
     times: time centres on steps of the clip's duration · 2^-times (:func:`omg4.codec.grids.time_step`), or 0: fp16
     as the paper;
-    weights: MLP weight matrices in 2-8 bits per weight, a scale per column (:mod:`omg4.codec.weights`; the file
-    needs container version 5), or 16 (fp16, as the paper);
+    weights: MLP weight matrices in 2-8 bits per weight, a scale per column (:mod:`omg4.codec.weights`; a file with
+    such a matrix is container version 5), or 16 (fp16, as the paper);
     log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are;
     codebooks: the other codebooks (appearance features, FreeTimeGS velocities; not rotations) rounded to steps of
     2^-codebooks, or 0 (the
     default): as they are — near-equal codewords then merge, so indices shrink too;
     exact: the percentage of Gaussians, the largest (:func:`largest_footprints`), whose grid positions are
-    corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; files with any need
+    corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; a file with any is
     container version 5), or 0: none. The default 3 % costs 0.03-0.08 B/G and keeps one large Gaussian's
     appearance from changing a whole view (README, Rate).
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
@@ -114,7 +114,8 @@ class CompactGrids:
         for name, (lo, hi) in GRID_BITS_ALLOWED.items():
             bits = getattr(self, name)
             if isinstance(bits, bool) or not isinstance(bits, int) or not lo <= bits <= hi:
-                raise OMG4Error(f"compact grid: {name} bits must be an integer in [{lo}, {hi}], got {bits!r}")
+                what = "percentage" if name == "exact" else "bits"
+                raise OMG4Error(f"compact grid: {name} {what} must be an integer in [{lo}, {hi}], got {bits!r}")
         if 8 < self.weights < 16:
             raise OMG4Error(f"compact grid: weights take 2-8 bits, or 16 (fp16), got {self.weights}")
 
@@ -292,17 +293,18 @@ def container_version(codec: object, encodings: object = None) -> int:
     (a forged header's too)."""
     if codec != "compact":
         return 1
-    names = encodings.values() if isinstance(encodings, dict) else ()
-    if any(e == grids.POSITIONS_EXACT or (isinstance(e, str) and e.endswith("-cols") and weights.bits_of(e))
-           for e in names):
+    names = [e for e in (encodings.values() if isinstance(encodings, dict) else ()) if isinstance(e, str)]
+    weight_encodings = [parsed for e in names if (parsed := weights.parse_encoding(e))]
+    if grids.POSITIONS_EXACT in names or any(columns for _, columns in weight_encodings):
         return 5
-    return 4 if any(isinstance(e, str) and (weights.bits_of(e) or weights.BITS) < weights.BITS for e in names) else 3
+    return 4 if any(bits < weights.BITS for bits, _ in weight_encodings) else 3
 
 
 def largest_footprints(p: CompressedPayload, percent: int) -> np.ndarray:
     """bool ``[N]``: the ⌈percent · N / 100⌉ Gaussians of ``p`` with the largest footprint — the product of their two
-    largest scales, from the 3-wide log-scale attribute ``scale`` of both backbones — whose positions the compact
-    codec stores exactly (:class:`CompactGrids` ``exact``); none without such an attribute. Ties: the earlier row."""
+    largest scales, from the 3-wide log-scale attribute ``scale`` of both backbones, as ``p`` holds it (the writer
+    passes its fp16 payload in storage order, before log-scale rounding) — whose positions the compact codec stores
+    exactly (:class:`CompactGrids` ``exact``); none without such an attribute. Ties: the earlier row."""
     chosen = np.zeros(p.num_gaussians, bool)
     scale = p.attributes.get("scale")
     if not percent or scale is None or "scale" not in p.log_scaled:
@@ -411,7 +413,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
     ``p.to_fp16()``. With "compact" the order is :func:`omg4.codec.grids.position_order` (:func:`canonical_order`
     with ``precision.positions`` 0),
-    positions (but the largest ``precision.exact`` %) and time centres are on their grids, and every SVQ attribute reconstructs to the same fp16
+    positions (but the largest ``precision.exact`` %) and time centres are on their grids, and every SVQ
+    attribute reconstructs to the same fp16
     values (codebooks relabelled, unused and duplicate codewords dropped), except the log-scale codebooks
     rounded to steps of 2^-5 in log space, the quaternion attributes stored on the unit-quaternion grid and the
     MLP weight matrices stored in 8 bits (other grids: ``precision``). Returns the byte size of every section
@@ -528,7 +531,7 @@ def _check_header(h: dict, section_bytes: int) -> None:
     if len(h["attributes"]) > MAX_ATTRIBUTES or len(h["mlp"]) > MAX_MLP_WEIGHTS:
         raise CorruptFileError(f"header lists {len(h['attributes'])} attributes and {len(h['mlp'])} MLP weights "
                                f"(limits {MAX_ATTRIBUTES} and {MAX_MLP_WEIGHTS})")
-    values = 4 * n + 8 * n * len(rotations)  # xyz and t; per rotation 4 codes and 4 values
+    values = 8 * n + 8 * n * len(rotations)  # xyz, t and exact-position corrections; per rotation 4 codes and 4 values
     for attr, shapes in h["attributes"].items():
         if not (_NAME.fullmatch(attr) and isinstance(shapes, list) and 1 <= len(shapes) <= MAX_SLOTS and all(
                 isinstance(s, list) and len(s) == 2 and _is_int(s[0], 1, MAX_SYMBOLS) and _is_int(s[1], 1, MAX_SUB_LEN)
