@@ -97,7 +97,7 @@ class CompactGrids:
     default): as they are — near-equal codewords then merge, so indices shrink too;
     exact: the percentage of Gaussians, the largest (:func:`largest_footprints`), whose grid positions are
     corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; a file with any is
-    container version 5), or 0: none. The default 3 % costs 0.03-0.08 B/G and keeps one large Gaussian's
+    container version 5), or 0: none. The default 3 % costs 0.03-0.09 B/G and keeps one large Gaussian's
     appearance from changing a whole view (README, Rate).
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
     """
