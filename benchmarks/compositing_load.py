@@ -12,8 +12,9 @@ becomes: on the CPU this is what bounds the frame-rate ratio of OMG4 over its ba
 The count re-renders the frame's transmittance with ``exp`` per pixel and refuses to report when it does
 not match the renderer's alpha (the rules would then differ). The renderer's ``e^{−σ}`` comes from a
 float64 recurrence, so a Gaussian whose α lies within rounding of 1/255, or whose blending brings the
-transmittance within rounding of 1e-4, can be blended by one and not by the other: a pixel or two per frame. The check sees transmittance only; the counts themselves are tested
-against a brute-force count (``tests/render/test_compositing_load.py``).
+transmittance within rounding of 1e-4, can be blended by one and not by the other: a pixel or two per frame.
+The check sees transmittance only; the counts themselves are tested against a brute-force count
+(``tests/render/test_compositing_load.py``).
 """
 
 from __future__ import annotations

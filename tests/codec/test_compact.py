@@ -170,11 +170,11 @@ def test_weights_in_few_bits_match_an_independent_rounding(bits):
     assert (decoded[3] == 0).all()
     assert (np.abs(decoded - w64) <= scale / 2 + 1e-3 * np.abs(w64) + 6e-8).all()
     assert len(np.unique(decoded[0])) <= 2 * top + 1
-    assert weights.bits_of(weights.encoding(bits)) == bits and weights.encoding(8) == "int8-cols"
+    assert weights.parse_encoding(weights.encoding(bits)) == (bits, True) and weights.encoding(8) == "int8-cols"
     assert weights.parse_encoding(f"int{bits}-rows") == (bits, False) and weights.parse_encoding(f"int{bits}-cols") == \
         (bits, True)
     for name in ("int1-rows", "int9-rows", "int08-rows", "int8-rowsx", "smallest-three-8", "int9-cols", "int8-col"):
-        assert weights.bits_of(name) is None and weights.parse_encoding(name) is None
+        assert weights.parse_encoding(name) is None
     # per column: the same rounding with one scale per column, decoded through the column encoding's name
     by_column = weights.decode_matrix(weights.encode_columns(w.T, bits), w.T.shape, weights.encoding(bits))
     np.testing.assert_array_equal(by_column.view(np.uint16), decoded.astype(np.float16).T.view(np.uint16))

@@ -126,16 +126,17 @@ def _exact_positions(xyz: np.ndarray, tail: bytes) -> np.ndarray:
         raise CorruptFileError(f"{num} exact positions for {len(xyz)} Gaussians")
     ranks_data, diffs_data = split_streams(tail[used:], "exact-position ranks")
     rank_bits = max(1, (len(xyz) - 1).bit_length())
-    ranks = decode_sorted_codes(ranks_data, int(num), rank_bits, strict=True, damaged="exact-position ranks")
-    if int(ranks[-1]) >= len(xyz):
+    ranks = decode_sorted_codes(ranks_data, int(num), rank_bits, strict=True,
+                                damaged="exact-position ranks").astype(np.int64)
+    if ranks[-1] >= len(xyz):
         raise CorruptFileError("damaged exact-position ranks")
     zigzag = decode_uints(diffs_data, 3 * int(num), max_bits=17).astype(np.int64)
-    keys = ordered_keys(xyz[ranks.astype(np.int64)]).astype(np.int64) + np.where(zigzag & 1, -(zigzag + 1) // 2,
-                                                                                  zigzag // 2).reshape(-1, 3)
+    diff = np.where(zigzag & 1, -(zigzag + 1) // 2, zigzag // 2).reshape(-1, 3)
+    keys = ordered_keys(xyz[ranks]).astype(np.int64) + diff
     if keys.min() < 0 or keys.max() > 0xFFFF:
         raise CorruptFileError("damaged exact positions")
     out = xyz.copy()
-    out[ranks.astype(np.int64)] = _finite_in_fp16(keys_to_fp16(keys.astype(np.uint16)), "exact positions")
+    out[ranks] = _finite_in_fp16(keys_to_fp16(keys.astype(np.uint16)), "exact positions")
     return out
 
 

@@ -9,7 +9,8 @@ range, normalization, ...).
 Three codecs:
 
 * ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 5): positions on
-  a uniform 15-bit grid over the scene's box in Z-order (the largest 3 % of Gaussians exactly), time centres on a grid of 1/1024 of the clip
+  a uniform 15-bit grid over the scene's box in Z-order (the largest 3 % of Gaussians exactly), time centres
+  on a grid of 1/1024 of the clip
   (:mod:`omg4.codec.grids`); each SVQ slot's codebook and indices coded without paying for the codewords'
   order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped, the smaller of a sorted
   codeword set or first-use order), the codebooks of log-scale attributes (``log_scaled``: scales and

@@ -42,12 +42,6 @@ def parse_encoding(name: str) -> tuple[int, bool] | None:
     return (int(match.group(1)), match.group(2) == "cols") if match else None
 
 
-def bits_of(name: str) -> int | None:
-    """The bits per weight a weight encoding name declares, or None if it is not a weight encoding."""
-    parsed = parse_encoding(name)
-    return parsed[0] if parsed else None
-
-
 def quantize_rows(w: np.ndarray, bits: int = BITS) -> tuple[np.ndarray, np.ndarray]:
     """(float32 scales ``[R]``, int codes ``[R, C]`` in [−L, L]) of a 2-D weight matrix ``w``."""
     top = levels(bits)
