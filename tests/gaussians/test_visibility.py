@@ -101,3 +101,81 @@ def test_cached_position_term_renders_the_frames_of_the_uncached_model(monkeypat
         assert a.index.tolist() == b.index.tolist() and a.index.numel() > 0
         torch.testing.assert_close(a.colors, b.colors, rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(a.opacities, b.opacities, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_culling_window_rows_gives_the_whole_sets_geometry(seed):
+    """condition_and_cull over a window's candidate rows = over every Gaussian, bit for bit, for 1 and 3 views."""
+    from omg4.gaussians.covariance import condition_and_cull, conditioning_terms
+
+    p = _gaussians(seed, n=2000)
+    gain, cov3, var_t = conditioning_terms(p["scales"], p["q_l"], p["q_r"], "flip")
+    index = VisibilityIndex.build(p["t"][:, 0], var_t, (0.0, 10.0), time_cull=0.05, windows=16)
+    g = torch.Generator().manual_seed(seed)
+    for times in ([float(x) for x in torch.rand(3, generator=g) * 10], [2.5], [0.0], [10.0]):
+        ts = torch.tensor(times, dtype=torch.float64)
+        rows = index.rows_at(ts)
+        assert rows.numel() < 2000
+        whole = condition_and_cull(p["xyz"], p["t"], gain, cov3, var_t, ts.float(), time_cull=0.05)
+        window = condition_and_cull(p["xyz"], p["t"], gain, cov3, var_t, ts.float(), time_cull=0.05, rows=rows)
+        assert whole.index.numel() > 50
+        assert torch.equal(window.index, whole.index) and torch.equal(window.views, whole.views)
+        for name in ("means", "covars", "marginal", "dt"):
+            assert torch.equal(getattr(window, name), getattr(whole, name)), name
+
+
+def test_only_the_candidate_rows_can_pass():
+    """Rows left out of the candidates never appear; the others keep the whole set's values."""
+    from omg4.gaussians.covariance import condition_and_cull, conditioning_terms
+
+    p = _gaussians(8, n=1000)
+    terms = conditioning_terms(p["scales"], p["q_l"], p["q_r"], "flip")
+    ts = torch.tensor([4.0, 6.5])
+    whole = condition_and_cull(p["xyz"], p["t"], *terms, ts)
+    rows = torch.arange(0, 1000, 3)
+    part = condition_and_cull(p["xyz"], p["t"], *terms, ts, rows=rows)
+    kept = (whole.index % 3) == 0
+    assert 0 < int(kept.sum()) < whole.index.numel()
+    assert torch.equal(part.index, whole.index[kept]) and torch.equal(part.views, whole.views[kept])
+    assert torch.equal(part.means, whole.means[kept]) and torch.equal(part.marginal, whole.marginal[kept])
+
+
+def test_windowed_freetimegs_renders_the_frames_of_the_plain_model():
+    """A FreeTimeGS checkpoint loaded for rendering (motion computed at load) shows the plain model's slices."""
+    from omg4.gaussians import GaussianConfig, Gaussians4D
+    from omg4.gaussians.visibility import WindowedModel
+
+    g = torch.Generator().manual_seed(9)
+    n = 700
+    params = {"xyz": torch.randn(n, 3, generator=g), "t": torch.rand(n, 1, generator=g) * 2.0,
+              "duration": torch.randn(n, 1, generator=g) * 0.8 - 1.5, "velocity": torch.randn(n, 3, generator=g) * 0.5,
+              "scaling": torch.randn(n, 3, generator=g) * 0.3 - 1.5, "rotation": torch.randn(n, 4, generator=g),
+              "opacity": torch.randn(n, 1, generator=g), "features_dc": torch.randn(n, 1, 3, generator=g),
+              "features_rest": torch.randn(n, 15, 3, generator=g)}
+    cfg = GaussianConfig(time_range=(0.0, 2.0), sh_degree_t=0, backbone="freetimegs")
+    plain = Gaussians4D(params, cfg, 3, 0)
+    windowed = WindowedModel(plain.params, cfg, 3, 0, windows=16)
+    centers = torch.tensor([[0.5, -0.2, -4.0], [-1.0, 0.4, -3.0]])
+    for times in ([0.0], [0.37], [1.25, 1.9], [2.0]):
+        ts = torch.tensor(times, dtype=torch.float64)
+        a, b = plain.slice_views(ts, centers[: len(times)]), windowed.slice_views(ts, centers[: len(times)])
+        assert a.index.tolist() == b.index.tolist() and 0 < a.index.numel() < n
+        assert a.views.tolist() == b.views.tolist()
+        for name in ("means", "covars", "colors", "opacities"):
+            torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-6, atol=1e-6)
+
+
+def test_windowed_mlp_model_renders_the_frames_of_the_plain_values():
+    """A decoded model (MLP appearance, terms cached at load) = the same values sliced with no window and no cache."""
+    from omg4.gaussians.model import slice_values
+
+    model = _mlp_model()
+    centers = torch.tensor([[0.5, -0.2, -4.0], [1.0, 0.3, -3.5]])
+    for times in ([0.31], [6.25, 9.0], [10.0]):
+        ts = torch.tensor(times, dtype=torch.float64)
+        with torch.no_grad():
+            a = slice_values(model.values, model.config, 3, 2, ts, centers[: len(times)], appearance=model.appearance)
+        b = model.slice_views(ts, centers[: len(times)])
+        assert a.index.tolist() == b.index.tolist() and 0 < a.index.numel() < model.num_gaussians
+        for name in ("means", "covars", "colors", "opacities"):
+            torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-5, atol=1e-6)

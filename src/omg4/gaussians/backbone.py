@@ -112,10 +112,12 @@ class Backbone:
             view's time, with no time input.
         geometry: ``(values, config, timestamps [V]) →`` :class:`SliceGeometry` (conditioning and cull).
         time_variance: ``(values, config) → [N]`` variance in time of each Gaussian's temporal opacity.
-        motion: ``(values, config) → (velocity [N, 3], covariance [N, 3, 3])``: every backbone's Gaussian
-            shows a 3D Gaussian moving linearly through ``xyz`` at time ``t`` with a constant covariance
-            (the conditional mean and Schur complement of rt4dgs §1.4; FreeTimeGS's motion), which the
-            ``.splatv`` export writes exactly.
+        motion: ``(values, config) → (velocity [N, 3], covariance [N, 3, 3], temporal variance [N])``: every
+            backbone's Gaussian shows a 3D Gaussian moving linearly through ``xyz`` at time ``t`` with a
+            constant covariance and opacity × exp(−½ (τ − t)² / variance) (the conditional mean, Schur
+            complement and Σtt of rt4dgs §1.4; FreeTimeGS's motion and duration), which the ``.splatv``
+            export writes exactly and a render-only model computes once at load
+            (:class:`~omg4.gaussians.visibility.WindowedModel`).
         sh_degree_t: the temporal SH degree it requires (None: any).
     """
 
@@ -126,7 +128,7 @@ class Backbone:
     mlp_time_input: bool
     geometry: Callable[..., SliceGeometry]
     time_variance: Callable[..., torch.Tensor]
-    motion: Callable[..., tuple[torch.Tensor, torch.Tensor]]
+    motion: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
     sh_degree_t: int | None = None
 
     @property
@@ -214,10 +216,10 @@ def _rt4dgs_time_variance(values: dict[str, torch.Tensor], config) -> torch.Tens
                                                 config.rotation_convention))
 
 
-def _rt4dgs_motion(values: dict[str, torch.Tensor], config) -> tuple[torch.Tensor, torch.Tensor]:
-    gain, cov3, _ = conditioning_terms(activated_scales(values), values["rotation"], values["rotation_r"],
-                                       config.rotation_convention)
-    return gain, cov3  # Σ12 / Σtt is the velocity of the conditional mean
+def _rt4dgs_motion(values: dict[str, torch.Tensor], config) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    # Σ12 / Σtt is the velocity of the conditional mean
+    return conditioning_terms(activated_scales(values), values["rotation"], values["rotation_r"],
+                              config.rotation_convention)
 
 
 def _ftgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Tensor) -> SliceGeometry:
@@ -253,7 +255,8 @@ FREETIMEGS = Backbone(
     mlp_time_input=False,
     geometry=_ftgs_geometry,
     time_variance=lambda values, config: duration_variance(values["duration"]),
-    motion=lambda values, config: (values["velocity"], covariance_3d(values["scaling"], values["rotation"])),
+    motion=lambda values, config: (values["velocity"], covariance_3d(values["scaling"], values["rotation"]),
+                                   duration_variance(values["duration"])),
     sh_degree_t=0,
 )
 

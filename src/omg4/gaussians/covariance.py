@@ -136,21 +136,40 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
     """Conditioning on each of ``timestamps`` plus the temporal cull p_t ≤ ``time_cull`` (rt4dgs §1.4).
 
     One pass serves every query time: the time-independent terms (:func:`conditioning_terms`:
-    gain, Σ_3D, Σtt) once per Gaussian, the marginals of all (time, Gaussian) pairs together,
-    and the conditional means and marginals only for the surviving pairs. Differentiable w.r.t.
-    all inputs.
+    gain, Σ_3D, Σtt) once per Gaussian, then :func:`condition_and_cull`. Differentiable w.r.t. all inputs.
 
     Args:
         xyz: [N, 3], t: [N, 1] means; scales: [N, 4] activated scales (x, y, z, t);
         q_l, q_r: [N, 4] quaternions; timestamps: one query time or [V] of them.
     """
     times = torch.as_tensor(timestamps, dtype=xyz.dtype, device=xyz.device).reshape(-1)
-    gain, cov3, var_t = conditioning_terms(scales, q_l, q_r, convention)
+    return condition_and_cull(xyz, t, *conditioning_terms(scales, q_l, q_r, convention), times, time_cull=time_cull)
+
+
+def condition_and_cull(xyz: torch.Tensor, t: torch.Tensor, gain: torch.Tensor, cov3: torch.Tensor,
+                       var_t: torch.Tensor, times: torch.Tensor, *, time_cull: float = 0.05,
+                       rows: torch.Tensor | None = None) -> SliceGeometry:
+    """The Gaussians moving as ``xyz + gain · (τ − t)`` with covariance ``cov3`` that pass the temporal cull at
+    each of ``times`` [V] (rt4dgs §1.4, from :func:`conditioning_terms` or a backbone's ``motion``).
+
+    The marginals of all (time, Gaussian) pairs are computed together, the conditional means and marginals
+    only for the surviving pairs. ``rows`` (sorted int64, optional) are the only candidates — a
+    :class:`~omg4.gaussians.visibility.VisibilityIndex` window — so a frame of a render-only model touches
+    nothing else; the result's ``index`` always holds rows of the whole set. Differentiable w.r.t. every
+    tensor but ``times``.
+
+    Args:
+        xyz: [N, 3]; t: [N, 1]; gain: [N, 3] velocity of the mean; cov3: [N, 3, 3]; var_t: [N] temporal variance.
+    """
+    t_all = t[:, 0]
+    t_rows, var_rows = (t_all, var_t) if rows is None else (t_all.index_select(0, rows), var_t.index_select(0, rows))
     with torch.no_grad():
-        p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
+        p_t = temporal_marginal(times[:, None] - t_rows[None, :], var_rows)  # [V, R]
         views, index = (p_t > time_cull).nonzero(as_tuple=True)
+    if rows is not None:
+        index = rows.index_select(0, index)
     # gathers by index_select: its backward is an index_add, far cheaper on the CPU than indexing's
-    dt = times.index_select(0, views) - t[:, 0].index_select(0, index)
+    dt = times.index_select(0, views) - t_all.index_select(0, index)
     means = xyz.index_select(0, index) + gain.index_select(0, index) * dt[:, None]
     marginal = temporal_marginal(dt, var_t.index_select(0, index))
     return SliceGeometry(index=index, means=means, covars=cov3.index_select(0, index), marginal=marginal, dt=-dt,
@@ -158,4 +177,4 @@ def slice_geometry(xyz: torch.Tensor, t: torch.Tensor, scales: torch.Tensor, q_l
 
 
 __all__ = ["scaled_rotation_4d", "temporal_variance", "covariance_4d", "conditioning_terms", "torch_conditioning_terms",
-           "temporal_marginal", "condition_on_time", "SliceGeometry", "slice_geometry"]
+           "temporal_marginal", "condition_on_time", "SliceGeometry", "slice_geometry", "condition_and_cull"]

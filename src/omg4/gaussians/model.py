@@ -287,7 +287,7 @@ def _moved_leaf(value: torch.Tensor, device: torch.device | str) -> torch.Tensor
 def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_degree: int, sh_degree_t: int,
                  timestamps: torch.Tensor, camera_centers: torch.Tensor, *,
                  appearance: "AppearanceMLP | None" = None, position_term: torch.Tensor | None = None,
-                 coefficient_rows: torch.Tensor | None = None) -> TimeSlice:
+                 geometry: SliceGeometry | None = None) -> TimeSlice:
     """The 3D Gaussians that raw per-Gaussian ``values`` show to ``V`` views (rt4dgs §1.4 + §2).
 
     Positions, covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for all views
@@ -304,17 +304,15 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
         timestamps: [V] view times; camera_centers: [V, 3] viewer positions.
         position_term: for a frozen model with time-conditioned MLPs, each row's
             :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term` (a renderer's cache).
-        coefficient_rows: [R] for a caller that passes a subset of the Gaussians (R rows of every value) but
-            the whole ``features_dc``/``features_rest``: the coefficient row of each of them (the colour
-            kernel gathers them, so a renderer never copies the SH coefficients of a time window).
+        geometry: the slice's geometry at ``timestamps`` when the caller has it (a render-only model conditions
+            from terms it computed at load, :func:`~omg4.gaussians.covariance.condition_and_cull`); else the
+            backbone's time slice computes it from ``values``.
     """
     xyz = values["xyz"]
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
-    geom = config.schema.geometry(values, config, times64.to(xyz.dtype))
+    geom = config.schema.geometry(values, config, times64.to(xyz.dtype)) if geometry is None else geometry
     coeffs, coeff_rows, logit = _appearance(values, config, geom, times64, appearance, position_term)
-    if coefficient_rows is not None and coeff_rows is not None:
-        coeff_rows = coefficient_rows.index_select(0, coeff_rows)
     origin = geom.means if config.sh_direction == "conditioned" else values["xyz"].index_select(0, geom.index)
     dirs = view_directions(origin, centers.index_select(0, geom.views))
     colors = colors_from_sh(coeffs, dirs, geom.dt, config.period, sh_degree, sh_degree_t, band_size=config.band_size,

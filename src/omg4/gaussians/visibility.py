@@ -4,8 +4,8 @@ A 4D Gaussian is shown at time τ only when its temporal marginal
 p_t(τ) = exp(−½ (τ − μ_t)² / Σtt) exceeds the cull threshold (rt4dgs §1.4). Over a window
 [a, b] the marginal peaks at τ* = clamp(μ_t, a, b), so a Gaussian whose peak there does not
 pass can be skipped for every frame in the window (the idea of 4DGS-1K's temporal filter).
-Built once when a model is loaded; a frame then touches only its window's rows before the
-appearance MLP and the 4D→3D conditioning run. The test is made against half the cull
+Built once when a model is loaded; a frame's temporal cull then looks at its window's rows only,
+and the appearance MLP and the 4D→3D conditioning see only the survivors. The test is made against half the cull
 threshold, so float rounding can never drop a Gaussian the exact cull would keep.
 
 This module is part of the render-only decoder: it imports no training or compression code.
@@ -13,11 +13,13 @@ This module is part of the render-only decoder: it imports no training or compre
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import torch
 
 from omg4.errors import CorruptFileError
+from omg4.gaussians.covariance import condition_and_cull
 from omg4.gaussians.model import GaussianConfig, slice_values
 from omg4.render.view import TimeSlice, ViewSlicer
 
@@ -54,20 +56,18 @@ class VisibilityIndex:
             rows.append((peak > 0.5 * time_cull).nonzero().squeeze(1).to(t.device))
         return VisibilityIndex(edges, rows)
 
+    def __post_init__(self):
+        self._edge_list = self.edges.tolist()  # a frame looks its windows up in Python: no tensor operations
+
     def rows_at(self, timestamps: torch.Tensor) -> torch.Tensor | None:
         """The candidate rows for all of ``timestamps`` (sorted, unique); None when a time lies outside the range."""
-        times = timestamps.detach().double().cpu().reshape(-1)
-        lo, hi = float(self.edges[0]), float(self.edges[-1])
-        if not bool(((times >= lo) & (times <= hi)).all()):
+        times, edges, last = timestamps.detach().reshape(-1).tolist(), self._edge_list, len(self.rows) - 1
+        if not all(edges[0] <= x <= edges[-1] for x in times):  # NaN too
             return None
-        k = (torch.searchsorted(self.edges, times, right=True) - 1).clamp(0, len(self.rows) - 1).unique().tolist()
+        k = sorted({min(bisect.bisect_right(edges, x) - 1, last) for x in times})
         if len(k) == 1:
             return self.rows[k[0]]
         return torch.cat([self.rows[i] for i in k]).unique()
-
-
-_GATHERED_BY_COLOUR = ("features_dc", "features_rest")
-"""Explicit SH coefficients: the colour kernel reads them by row, so a frame never copies them."""
 
 
 class WindowedModel(ViewSlicer):
@@ -76,11 +76,13 @@ class WindowedModel(ViewSlicer):
     Holds raw per-Gaussian ``values`` (the backbone's parameters, or its geometry plus
     ``f_static``/``f_view`` for a model whose appearance comes from ``appearance`` MLPs,
     paper §4.4), no gradients, and the :class:`VisibilityIndex` built from them at load.
-    A frame gathers its window's candidate rows, then conditions, culls and evaluates the
-    appearance for those only (:func:`omg4.gaussians.model.slice_values`). For time-conditioned
+    The time-independent half of every Gaussian's conditioning (its backbone's ``motion``: velocity,
+    Σ_3D, Σtt; rt4dgs §1.4) is computed once here too, so a frame only culls its window's candidate
+    rows by their temporal marginals, moves the survivors and evaluates the appearance for those
+    (:func:`~omg4.gaussians.covariance.condition_and_cull`, :func:`omg4.gaussians.model.slice_values`). For time-conditioned
     MLPs the positions' share of the first layer is computed once here (beyond the paper:
     :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term`), so a frame encodes only its time.
-    Both the index and that cache are built from ``values`` and ``appearance`` at load: they must
+    The index and these caches are built from ``values`` and ``appearance`` at load: they must
     not change afterwards (load the model again instead).
     """
 
@@ -94,7 +96,10 @@ class WindowedModel(ViewSlicer):
         self.appearance = appearance
         v = self.values
         scales = torch.cat([v[a.name] for a in config.schema.attributes if a.activation == "exp"], dim=1).exp()
-        var_t = config.schema.time_variance(v, config)
+        with torch.no_grad():
+            # (velocity, Σ_3D, Σtt) of every Gaussian: a frame only moves and culls (rt4dgs §1.4, once per model)
+            self.motion = config.schema.motion(v, config)
+        var_t = self.motion[2]
         if not bool(torch.isfinite(scales).all() & torch.isfinite(var_t).all() & (var_t > 0).all()):
             raise CorruptFileError("the model's scales overflow or its temporal variances are not positive "
                                    "(damaged or diverged values)")
@@ -110,22 +115,16 @@ class WindowedModel(ViewSlicer):
         return int(self.values["xyz"].shape[0])
 
     def slice_views(self, timestamps: torch.Tensor, camera_centers: torch.Tensor) -> TimeSlice:
-        """The Gaussians shown to ``V`` views (``timestamps [V]``, ``camera_centers [V, 3]``); indices are rows
-        of the whole model."""
-        rows = self.visibility.rows_at(timestamps)
-        values, position_term = self.values, self.position_term
-        if rows is not None:  # the window's rows; the SH coefficients stay whole (gathered by the colour kernel)
-            values = {k: v if k in _GATHERED_BY_COLOUR else v.index_select(0, rows) for k, v in values.items()}
-            if position_term is not None:
-                position_term = position_term.index_select(0, rows)
+        """The Gaussians shown to ``V`` views (``timestamps [V]``, ``camera_centers [V, 3]``): the candidates of
+        their time windows moved and culled with the terms computed at load, then coloured."""
+        xyz = self.values["xyz"]
         with torch.no_grad():
-            sl = slice_values(values, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
-                              camera_centers, appearance=self.appearance, position_term=position_term,
-                              coefficient_rows=rows)
-        if rows is not None:
-            sl.index = rows.index_select(0, sl.index)
-        sl.num_total = self.num_gaussians
-        return sl
+            times = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
+            geometry = condition_and_cull(xyz, self.values["t"], *self.motion, times.to(xyz.dtype),
+                                          time_cull=self.config.time_cull, rows=self.visibility.rows_at(times))
+            return slice_values(self.values, self.config, self.active_sh_degree, self.active_sh_degree_t, times,
+                                camera_centers, appearance=self.appearance, position_term=self.position_term,
+                                geometry=geometry)
 
 
 __all__ = ["DEFAULT_WINDOWS", "MAX_CACHED_TERMS", "VisibilityIndex", "WindowedModel"]

@@ -73,8 +73,7 @@ def splatv_records(model) -> np.ndarray:
     t0, t1 = config.time_range
     period = t1 - t0
     with torch.no_grad():
-        velocity, covars = config.schema.motion(values, config)
-        var_t = config.schema.time_variance(values, config)
+        velocity, covars, var_t = config.schema.motion(values, config)
         rgb, opacity = centre_appearance(values, config, model.active_sh_degree_t, appearance=appearance)
     log_scales, quats = covariance_to_scale_rotation(covars.numpy())
     scales = _fp16(np.exp(log_scales))
