@@ -217,6 +217,40 @@ def test_bad_inputs():
         rasterize(**t, backend="gsplat", alpha_max=0.99)
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("name", ["means", "covars", "colors", "opacities", "viewmat", "K", "background"])
+def test_a_non_finite_value_in_any_input_is_named(name, bad):
+    t = random_scene(12, 10, 16, 12).tensors(torch.float32, requires_grad=False)
+    t["background"] = torch.zeros(3)
+    t[name].view(-1)[-1] = bad
+    with pytest.raises(OMG4Error, match=f"rasterize: {name} contains NaN"):
+        rasterize(**t)
+
+
+def test_finite_float64_values_whose_sum_overflows_pass_the_check():
+    """The finiteness check sums each input in float64; huge finite float64 values overflow that sum, not the check."""
+    t = random_scene(13, 10, 16, 12).tensors(torch.float64, requires_grad=False)
+    t["colors"][:2] = 1.5e308
+    r = rasterize(**t)
+    assert r.image.shape == (12, 16, 3)
+    t["colors"][3, 0] = -float("inf")  # +inf and −inf would sum to NaN: still named
+    with pytest.raises(OMG4Error, match="colors"):
+        rasterize(**t)
+
+
+def test_views_out_of_range_are_refused():
+    from omg4.render.api import rasterize_views
+
+    t = random_scene(14, 10, 16, 12).tensors(torch.float32, requires_grad=False)
+    viewmats, Ks = torch.stack([t["viewmat"]] * 2), torch.stack([t["K"]] * 2)
+    views = torch.zeros(10, dtype=torch.int64)
+    rasterize_views(t["means"], t["covars"], t["colors"], t["opacities"], views, viewmats, Ks, 16, 12)
+    for wrong in (2, -1):
+        views[4] = wrong
+        with pytest.raises(ValueError, match=r"views must lie in \[0, 2\)"):
+            rasterize_views(t["means"], t["covars"], t["colors"], t["opacities"], views, viewmats, Ks, 16, 12)
+
+
 def test_auto_backend_is_cpu_for_cpu_tensors():
     assert resolve_backend("auto", torch.device("cpu")) == "cpu"
     assert resolve_backend("gsplat", torch.device("cpu")) == "gsplat"

@@ -143,14 +143,17 @@ def _check_inputs(means, covars, colors, opacities, views, viewmats, Ks, width, 
     named = {"means": means, "covars": covars, "colors": colors, "opacities": opacities, "viewmat": viewmats, "K": Ks}
     if background is not None:
         named["background"] = background
-    checks = [torch.isfinite(value).all() for value in named.values()]
+    # one float64 sum per tensor: NaN or ±inf in a tensor makes its sum non-finite, and float32 values cannot
+    # overflow it; a non-finite sum is confirmed element by element (float64 values can overflow the sum)
+    ok = torch.stack([value.sum(dtype=torch.float64) for value in named.values()]).isfinite()
     if views is not None:
-        checks.append(((views >= 0) & (views < v)).all())
-    passed = torch.stack(checks).tolist()  # one host synchronization for every check
-    bad = next((name for name, ok in zip(named, passed) if not ok), None)
+        ok = torch.cat([ok, ((views >= 0) & (views < v)).all()[None]])
+    passed = ok.tolist()  # one host synchronization for every check
+    bad = next((name for name, fine, value in zip(named, passed, named.values())
+                if not fine and not bool(torch.isfinite(value).all())), None)
     if bad is not None:
         raise OMG4Error(f"rasterize: {bad} contains NaN or infinite values")
-    if not passed[-1]:
+    if views is not None and not passed[-1]:
         raise ValueError(f"views must lie in [0, {v})")
 
 
