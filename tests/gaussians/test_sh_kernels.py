@@ -116,6 +116,28 @@ def test_the_torch_form_for_other_devices_agrees_with_the_kernels():
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
+def test_without_rows_weight_row_m_takes_coefficient_row_m():
+    """rows=None (coefficients predicted per slice row, as by the appearance MLPs) in the kernels and the torch
+    form: an einsum over the joined coefficients, values and gradients (float64)."""
+    g = torch.Generator().manual_seed(12)
+    dc, rest = torch.randn(30, 1, 3, generator=g, dtype=torch.float64), torch.randn(30, 47, 3, generator=g,
+                                                                                       dtype=torch.float64)
+    weights = torch.randn(30, 32, generator=g, dtype=torch.float64)
+    upstream = torch.randn(30, 3, generator=g, dtype=torch.float64)
+    results = []
+    for fn in (contract_coefficients, torch_contraction,
+               lambda d, r, w: torch.einsum("mk,mkc->mc", w, torch.cat([d, r], dim=1)[:, :32])):
+        leaves = [t.clone().requires_grad_(True) for t in (dc, rest, weights)]
+        out = fn(*leaves)
+        (out * upstream).sum().backward()
+        results.append([out.detach()] + [t.grad for t in leaves])
+    for got in results[:2]:
+        for a, b in zip(got, results[2]):
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="weight rows"):
+        contract_coefficients(dc[:29], rest[:29], weights)
+
+
 def test_other_dtypes_take_the_torch_form():
     dc, rest, weights, rows = _case(11, n=20, m=40, dtype=torch.float64)
     want = contract_coefficients(dc, rest, weights, rows)

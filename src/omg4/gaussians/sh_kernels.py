@@ -219,20 +219,23 @@ def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.T
             or not dc.dtype == rest.dtype == weights.dtype):
         raise ValueError(f"coefficients {dc.dtype} {list(dc.shape)} + {rest.dtype} {list(rest.shape)} do not fit "
                          f"weights {weights.dtype} {list(weights.shape)}")
-    if rows is None:
-        if dc.shape[0] != num_rows:
-            raise ValueError(f"{num_rows} weight rows for {dc.shape[0]} coefficient rows")
-        rows = torch.arange(num_rows, device=weights.device)
+    if rows is None and dc.shape[0] != num_rows:
+        raise ValueError(f"{num_rows} weight rows for {dc.shape[0]} coefficient rows")
     if not runs_cpu_kernels(dc, rest, weights):
         return torch_contraction(dc, rest, weights, rows)
-    if rows.shape != (num_rows,) or (num_rows and not 0 <= int(rows.min()) <= int(rows.max()) < dc.shape[0]):
+    if rows is None:  # valid by construction
+        rows = torch.arange(num_rows)
+    elif rows.shape != (num_rows,) or (num_rows and not 0 <= int(rows.min()) <= int(rows.max()) < dc.shape[0]):
         raise ValueError(f"rows must be {num_rows} indices into {dc.shape[0]} Gaussians")  # the kernels do not check
     return _GatheredContraction.apply(dc, rest, weights, rows)
 
 
-def torch_contraction(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """:func:`contract_coefficients` as torch operations (gather, join, product), for devices other than the CPU."""
-    coeffs = torch.cat([dc.index_select(0, rows), rest[:, : weights.shape[1] - 1].index_select(0, rows)], dim=1)
+def torch_contraction(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tensor,
+                      rows: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`contract_coefficients` as torch operations (gather unless ``rows`` is None, join, product), for
+    devices other than the CPU."""
+    parts = (dc, rest[:, : weights.shape[1] - 1])
+    coeffs = torch.cat(parts if rows is None else [part.index_select(0, rows) for part in parts], dim=1)
     return small_matmul(weights.unsqueeze(1), coeffs).squeeze(1)
 
 
