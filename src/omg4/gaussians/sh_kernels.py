@@ -224,7 +224,7 @@ def contract_coefficients(dc: torch.Tensor, rest: torch.Tensor, weights: torch.T
     if not runs_cpu_kernels(dc, rest, weights):
         return torch_contraction(dc, rest, weights, rows)
     if rows is None:  # valid by construction
-        rows = torch.arange(num_rows)
+        rows = torch.arange(num_rows, device=weights.device)
     elif rows.shape != (num_rows,) or (num_rows and not 0 <= int(rows.min()) <= int(rows.max()) < dc.shape[0]):
         raise ValueError(f"rows must be {num_rows} indices into {dc.shape[0]} Gaussians")  # the kernels do not check
     return _GatheredContraction.apply(dc, rest, weights, rows)
