@@ -61,7 +61,8 @@ def timing_compositing() -> Iterator[list[float]]:
 @contextlib.contextmanager
 def torch_forms() -> Iterator[None]:
     """Inside, the time slice runs the torch forms the CUDA path runs (conditioning, SH basis and colour sum)
-    instead of the CPU's numba kernels, so its aten operations count what a GPU would launch."""
+    instead of the CPU's numba kernels, so its aten operations count about what a GPU would launch
+    (``small_matmul`` still takes its CPU form, two or so operations more per call than on CUDA)."""
     import omg4.gaussians.covariance as covariance
     import omg4.gaussians.sh as sh
     import omg4.gaussians.sh_kernels as sh_kernels

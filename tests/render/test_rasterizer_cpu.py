@@ -233,6 +233,8 @@ def test_finite_float64_values_whose_sum_overflows_pass_the_check():
     t["colors"][:2] = 1.5e308
     r = rasterize(**t)
     assert r.image.shape == (12, 16, 3)
+    far_background = torch.tensor([1.7e308, 1.7e308, 0.0], dtype=torch.float64)
+    rasterize(**{**t, "background": far_background})  # the last input checked, no views: not a bad view
     t["colors"][3, 0] = -float("inf")  # +inf and −inf would sum to NaN: still named
     with pytest.raises(OMG4Error, match="colors"):
         rasterize(**t)

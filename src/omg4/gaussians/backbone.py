@@ -24,8 +24,7 @@ from typing import Callable
 
 import torch
 
-from omg4.gaussians.covariance import (SliceGeometry, conditioning_terms, scaled_rotation_4d, slice_geometry,
-                                      temporal_variance)
+from omg4.gaussians.covariance import SliceGeometry, conditioning_terms, slice_geometry
 from omg4.gaussians.freetime import covariance_3d, duration_variance, slice_geometry_ftgs
 
 SH_REST = "sh_rest"
@@ -111,7 +110,6 @@ class Backbone:
         mlp_time_input: the appearance MLPs see (canonical position, time) — else the position at the
             view's time, with no time input.
         geometry: ``(values, config, timestamps [V]) →`` :class:`SliceGeometry` (conditioning and cull).
-        time_variance: ``(values, config) → [N]`` variance in time of each Gaussian's temporal opacity.
         motion: ``(values, config) → (velocity [N, 3], covariance [N, 3, 3], temporal variance [N])``: every
             backbone's Gaussian shows a 3D Gaussian moving linearly through ``xyz`` at time ``t`` with a
             constant covariance and opacity × exp(−½ (τ − t)² / variance) (the conditional mean, Schur
@@ -127,7 +125,6 @@ class Backbone:
     svq_groups: tuple[SVQGroup, ...]
     mlp_time_input: bool
     geometry: Callable[..., SliceGeometry]
-    time_variance: Callable[..., torch.Tensor]
     motion: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
     sh_degree_t: int | None = None
 
@@ -211,11 +208,6 @@ def _rt4dgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.
                           time_cull=config.time_cull)
 
 
-def _rt4dgs_time_variance(values: dict[str, torch.Tensor], config) -> torch.Tensor:
-    return temporal_variance(scaled_rotation_4d(activated_scales(values), values["rotation"], values["rotation_r"],
-                                                config.rotation_convention))
-
-
 def _rt4dgs_motion(values: dict[str, torch.Tensor], config) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     # Σ12 / Σtt is the velocity of the conditional mean
     return conditioning_terms(activated_scales(values), values["rotation"], values["rotation_r"],
@@ -238,7 +230,6 @@ RT4DGS = Backbone(
                            (*_SVQ_3D, ("scale_t", 1, "svq4d"), ("rotation_r", 2, "svq4d"))),
     mlp_time_input=True,
     geometry=_rt4dgs_geometry,
-    time_variance=_rt4dgs_time_variance,
     motion=_rt4dgs_motion,
 )
 
@@ -254,7 +245,6 @@ FREETIMEGS = Backbone(
                            (*_SVQ_3D, ("duration", 1, "svq4d"), ("velocity", 1, "svq4d"))),
     mlp_time_input=False,
     geometry=_ftgs_geometry,
-    time_variance=lambda values, config: duration_variance(values["duration"]),
     motion=lambda values, config: (values["velocity"], covariance_3d(values["scaling"], values["rotation"]),
                                    duration_variance(values["duration"])),
     sh_degree_t=0,

@@ -5,7 +5,8 @@ p_t(τ) = exp(−½ (τ − μ_t)² / Σtt) exceeds the cull threshold (rt4dgs �
 [a, b] the marginal peaks at τ* = clamp(μ_t, a, b), so a Gaussian whose peak there does not
 pass can be skipped for every frame in the window (the idea of 4DGS-1K's temporal filter).
 Built once when a model is loaded; a frame's temporal cull then looks at its window's rows only,
-and the appearance MLP and the 4D→3D conditioning see only the survivors. The test is made against half the cull
+and the appearance MLP and the move to the frame's time see only the survivors (the time-independent
+half of the conditioning is computed once per Gaussian at load, :class:`WindowedModel`). The test is made against half the cull
 threshold, so float rounding can never drop a Gaussian the exact cull would keep.
 
 This module is part of the render-only decoder: it imports no training or compression code.
@@ -79,6 +80,7 @@ class WindowedModel(ViewSlicer):
     The time-independent half of every Gaussian's conditioning (its backbone's ``motion``: velocity,
     Σ_3D, Σtt; rt4dgs §1.4) is computed once here too, so a frame only culls its window's candidate
     rows by their temporal marginals, moves the survivors and evaluates the appearance for those
+    (13 more floats per Gaussian: about 100 MB for 2M Gaussians)
     (:func:`~omg4.gaussians.covariance.condition_and_cull`, :func:`omg4.gaussians.model.slice_values`). For time-conditioned
     MLPs the positions' share of the first layer is computed once here (beyond the paper:
     :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term`), so a frame encodes only its time.
@@ -118,10 +120,12 @@ class WindowedModel(ViewSlicer):
         """The Gaussians shown to ``V`` views (``timestamps [V]``, ``camera_centers [V, 3]``): the candidates of
         their time windows moved and culled with the terms computed at load, then coloured."""
         xyz = self.values["xyz"]
+        times = torch.as_tensor(timestamps, dtype=torch.float64).reshape(-1)
+        rows = self.visibility.rows_at(times)  # before the times move to a GPU: no extra synchronization
         with torch.no_grad():
-            times = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
+            times = times.to(xyz.device)
             geometry = condition_and_cull(xyz, self.values["t"], *self.motion, times.to(xyz.dtype),
-                                          time_cull=self.config.time_cull, rows=self.visibility.rows_at(times))
+                                          time_cull=self.config.time_cull, rows=rows)
             return slice_values(self.values, self.config, self.active_sh_degree, self.active_sh_degree_t, times,
                                 camera_centers, appearance=self.appearance, position_term=self.position_term,
                                 geometry=geometry)

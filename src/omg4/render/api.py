@@ -145,9 +145,10 @@ def _check_inputs(means, covars, colors, opacities, views, viewmats, Ks, width, 
         named["background"] = background
     # one float64 sum per tensor: NaN or ±inf in a tensor makes its sum non-finite, and float32 values cannot
     # overflow it; a non-finite sum is confirmed element by element (float64 values can overflow the sum)
-    ok = torch.stack([value.sum(dtype=torch.float64) for value in named.values()]).isfinite()
-    if views is not None:
-        ok = torch.cat([ok, ((views >= 0) & (views < v)).all()[None]])
+    with torch.no_grad():
+        ok = torch.stack([value.sum(dtype=torch.float64) for value in named.values()]).isfinite()
+        if views is not None:
+            ok = torch.cat([ok, ((views >= 0) & (views < v)).all()[None]])
     passed = ok.tolist()  # one host synchronization for every check
     bad = next((name for name, fine, value in zip(named, passed, named.values())
                 if not fine and not bool(torch.isfinite(value).all())), None)
