@@ -19,9 +19,28 @@ from omg4.train import Trainer, make_config
 COARSE = CompactGrids(positions=12, rotations=7, times=7)
 
 
-def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
+def _recording_evaluate(monkeypatch) -> list:
+    """Patch ``omg4.evaluate.evaluate`` to record the type of every model it evaluates."""
+    import omg4.evaluate
+
+    kinds, evaluate = [], omg4.evaluate.evaluate
+
+    def recording(model, *args, **kwargs):
+        kinds.append(type(model))
+        return evaluate(model, *args, **kwargs)
+
+    monkeypatch.setattr(omg4.evaluate, "evaluate", recording)
+    return kinds
+
+
+def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch):
+    from omg4.gaussians.visibility import WindowedModel
+
     out = tmp_path / "demo"
+    evaluated = _recording_evaluate(monkeypatch)
     results = run_demo(out, QUICK, log=lambda *_: None)
+    # both models render as they would from their files (FPS like with like): render-only, windowed
+    assert len(evaluated) == 3 and all(issubclass(kind, WindowedModel) for kind in evaluated)
     saved = json.loads((out / "results.json").read_text())
     methods = saved["methods"]
     assert set(methods) == {"Real-Time4DGS (baseline)", "OMG4-M"}
@@ -58,13 +77,17 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path):
     assert "| OMG4-M |" in saved["table"]
 
 
-def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path):
+def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):
+    from omg4.gaussians.visibility import WindowedModel
+
     cfg = make_config("cpu-small", iterations=20, batch_size=1, checkpoint_interval=0, densify_until=0,
                       backend="cpu")
     base = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
+    evaluated = _recording_evaluate(monkeypatch)
     results = run_bench(tiny_scene, base.model, base.model_path, tmp_path / "bench", schedule="tiny", batch_size=1,
                         baseline_iterations=20, rows=["GS+AC", "(GS+GP)+GM+AC", "OMG4-T"], backend="cpu",
                         rate_weights=(0.0, 30.0), grids=(COARSE, CompactGrids()), log=lambda *_: None)
+    assert evaluated and all(issubclass(kind, WindowedModel) for kind in evaluated)  # the baseline too
     # the first grid is the pipeline run's file (compress_to_file), the default one re-encoded from its paper copy
     assert list(results) == ["Real-Time4DGS", "GS+AC, grids 12/7/7", "GS+AC", "GS+AC, β=30, grids 12/7/7", "GS+AC, β=30",
                              "(GS+GP)+GM+AC, grids 12/7/7", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30, grids 12/7/7",
