@@ -36,11 +36,21 @@ def _recording_evaluate(monkeypatch) -> list:
 def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch):
     from omg4.gaussians.visibility import WindowedModel
 
+    import omg4.demo
+
     out = tmp_path / "demo"
-    evaluated = _recording_evaluate(monkeypatch)
+    evaluated, video = _recording_evaluate(monkeypatch), []
+    write_video = omg4.demo.side_by_side_video
+
+    def recording_video(path, views, models, *args, **kwargs):
+        video.extend(models)
+        return write_video(path, views, models, *args, **kwargs)
+
+    monkeypatch.setattr(omg4.demo, "side_by_side_video", recording_video)
     results = run_demo(out, QUICK, log=lambda *_: None)
-    # both models render as they would from their files (FPS like with like): render-only, windowed
+    # every model renders as it would from its file (FPS like with like): render-only, windowed
     assert len(evaluated) == 3 and all(issubclass(kind, WindowedModel) for kind in evaluated)
+    assert len(video) == 2 and all(isinstance(model, WindowedModel) for model in video)
     saved = json.loads((out / "results.json").read_text())
     methods = saved["methods"]
     assert set(methods) == {"Real-Time4DGS (baseline)", "OMG4-M"}

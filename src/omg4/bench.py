@@ -81,7 +81,9 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
               grids: tuple[CompactGrids, ...] = (CompactGrids(),), log=print) -> dict:
     """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and rate weight, write each result
     at every compact grid of ``grids`` (the first by the pipeline run, the others re-encoded from its paper-coder
-    copy), and evaluate everything on the test views, computing on ``device``."""
+    copy), and evaluate everything on the test views, computing on ``device``. ``baseline_path`` must be the checkpoint
+    ``baseline`` was loaded from: its row is evaluated as a render-only model loaded from that file, as the compressed
+    rows are from theirs."""
     from omg4.codec.decoder import load_omg4
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
