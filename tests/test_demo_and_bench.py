@@ -58,6 +58,9 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch):
         assert {"psnr", "ssim", "lpips_alex", "psnr_dynamic", "ssim_dynamic", "fps", "num_gaussians",
                 "storage_mb"} <= set(row)
         assert np.isfinite(row["psnr"]) and np.isfinite(row["psnr_dynamic"]) and row["fps"] > 0
+        assert row["fps_detail"]["timed_with"] == "models alternating frame by frame"
+        assert row["fps"] == row["fps_detail"]["fps"]
+        assert row["fps_detail"]["frames"] == len(results["per_view"]["OMG4-M"])  # every test view, one pass
         assert 0 < row["dynamic_fraction"] < 1
     omg4_file = out / "scene_M.omg4"
     assert methods["OMG4-M"]["storage_mb"] == omg4_file.stat().st_size / 2**20

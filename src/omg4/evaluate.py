@@ -45,6 +45,20 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
     return WindowedModel(model.params, model.config, model.active_sh_degree, model.active_sh_degree_t, meta=meta)
 
 
+def frame_rates(models: list, views: list[View], *, fps_views: int = 30, background: torch.Tensor | None = None,
+                backend: str = "auto", device: torch.device | str = "cpu") -> list[dict]:
+    """Render-only FPS of each of ``models`` (on ``device``) over ``fps_views`` of ``views`` spread evenly
+    (:func:`omg4.metrics.timing.measure_fps`); several models take turns frame by frame
+    (:func:`~omg4.metrics.timing.measure_fps_together`), so their ratio is not a host's slow spell."""
+    from omg4.metrics import measure_fps_together
+
+    step = max(1, len(views) // fps_views)
+    timed = views[::step][:fps_views]
+    renderers = [lambda v, m=m: render_view(m, v.camera, v.timestamp, background=background, backend=backend,
+                                            device=device) for m in models]
+    return measure_fps_together(renderers, timed, warmup=min(3, len(timed)), device=device)
+
+
 def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
     """The ground-truth image of ``view`` as float32 [H, W, 3] on ``device``; NaN or Inf is a one-line error."""
     img = view.image()
@@ -89,7 +103,7 @@ def dynamic_masks(views: list[View]) -> dict[str, np.ndarray]:
 def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpips_nets: tuple[str, ...] = ("alex",),
              background: torch.Tensor | None = None, backend: str = "auto", fps_views: int = 30,
              progress: bool = True, device: torch.device | str = "cpu",
-             masks: dict[str, np.ndarray] | None = None) -> dict:
+             masks: dict[str, np.ndarray] | None = None, time_frames: bool = True) -> dict:
     """Per-view and mean metrics of ``model`` on ``views``, plus FPS, Gaussian count and storage.
 
     ``model`` and ``background`` live on ``device``, where the renders, ground truths and
@@ -97,9 +111,10 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     and ``ssim_dynamic`` are PSNR and SSIM over each test camera's dynamic region
     (``masks``, by default :func:`dynamic_masks` of ``views``; pass them in to evaluate
     several models on one scene without recomputing), ``dynamic_fraction`` its share of
-    the pixels; the means skip views whose camera has no moving pixel.
+    the pixels; the means skip views whose camera has no moving pixel. With ``time_frames=False``
+    ``fps`` is None, for a caller that times several models together (:func:`frame_rates`).
     """
-    from omg4.metrics import lpips, measure_fps, psnr, ssim
+    from omg4.metrics import lpips, psnr, ssim
     from omg4.metrics.dynamic import masked_psnr, masked_ssim
 
     if not views:
@@ -124,10 +139,8 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     mean = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
     for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction"):
         mean.setdefault(k, None)
-    step = max(1, len(views) // fps_views)
-    timed = views[::step][:fps_views]
-    fps = measure_fps(lambda v: render_view(model, v.camera, v.timestamp, background=background, backend=backend,
-                                            device=device), timed, warmup=min(3, len(timed)), device=device)
+    fps = frame_rates([model], views, fps_views=fps_views, background=background, backend=backend,
+                      device=device)[0] if time_frames else {"fps": None}
     return {
         **mean,
         "fps": fps["fps"],

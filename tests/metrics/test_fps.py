@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from omg4.errors import OMG4Error
-from omg4.metrics import measure_fps
+from omg4.metrics import measure_fps, measure_fps_together
 from omg4.metrics import timing
 
 
@@ -33,6 +33,46 @@ def test_structure_counts_and_consistency():
     assert result["min_ms"] <= result["mean_ms"] <= result["max_ms"]
     assert result["fps"] == pytest.approx(1000.0 / result["median_ms"])
     assert result["fps_mean"] == pytest.approx(1000.0 / result["mean_ms"])
+
+
+def test_renderers_timed_together_take_turns_frame_by_frame():
+    """Every input is rendered by each renderer in turn, the first one rotating, after each one's own warm-up."""
+    order = []
+
+    def renderer(name):
+        return lambda x: order.append((name, x))
+
+    results = measure_fps_together([renderer("a"), renderer("b"), renderer("c")], [0, 1, 2, 3], warmup=2, repeats=2)
+    warm, timed = order[:6], order[6:]
+    assert warm == [("a", 0), ("a", 1), ("b", 0), ("b", 1), ("c", 0), ("c", 1)]
+    starts = "abcabcab"  # the renderer that goes first rotates from input to input and across passes
+    expected = []
+    for turn, x in enumerate([0, 1, 2, 3] * 2):
+        first = "abc".index(starts[turn])
+        expected += [("abc"[(first + k) % 3], x) for k in range(3)]
+    assert timed == expected
+    assert [r["frames"] for r in results] == [8, 8, 8] and all(r["warmup"] == 2 for r in results)
+
+
+def test_renderers_timed_together_each_get_their_own_times(monkeypatch):
+    """A fake clock where renderer b always takes 3× as long as a: the medians keep them apart."""
+    step = {"a": 0.002, "b": 0.006}
+    clock = {"t": 0.0, "next": 0.0}
+
+    def fake_perf_counter():
+        clock["t"] += clock["next"]
+        clock["next"] = 0.0
+        return clock["t"]
+
+    def renderer(name):
+        def render(x):
+            clock["next"] = step[name]
+        return render
+
+    monkeypatch.setattr(timing.time, "perf_counter", fake_perf_counter)
+    a, b = measure_fps_together([renderer("a"), renderer("b")], list(range(5)), warmup=0)
+    assert a["median_ms"] == pytest.approx(2.0) and b["median_ms"] == pytest.approx(6.0)
+    assert a["fps"] / b["fps"] == pytest.approx(3.0)
 
 
 def test_median_is_robust_to_one_slow_frame(monkeypatch):

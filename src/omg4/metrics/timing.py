@@ -49,23 +49,40 @@ def measure_fps(render_fn: Callable[[Any], Any], inputs: Sequence[Any], warmup: 
     Returns a dict with ``frames`` (timed calls), ``warmup``, ``median_ms``, ``mean_ms``,
     ``min_ms``, ``max_ms``, ``fps`` (= 1000 / median_ms) and ``fps_mean`` (= 1000 / mean_ms).
     """
+    return measure_fps_together([render_fn], inputs, warmup=warmup, repeats=repeats, device=device)[0]
+
+
+def measure_fps_together(render_fns: Sequence[Callable[[Any], Any]], inputs: Sequence[Any], warmup: int = 3,
+                         repeats: int = 1, device: torch.device | str | None = None) -> list[dict[str, float | int]]:
+    """:func:`measure_fps` of several renderers whose frames take turns: for each input every renderer renders
+    it once, the one to start rotating from input to input and pass to pass, so a slow spell of a shared
+    machine falls on all of them alike (their FPS ratio is then comparable). One result per renderer."""
     if len(inputs) == 0:
         raise OMG4Error("no views to time: the FPS measurement needs at least one input")
     if warmup < 0 or repeats < 1:
         raise ValueError(f"need warmup >= 0 and repeats >= 1, got warmup={warmup}, repeats={repeats}")
     sync = _synchronizer(device)
-    times: list[float] = []
+    times: list[list[float]] = [[] for _ in render_fns]
     with torch.no_grad():
-        for i in range(warmup):
-            render_fn(inputs[i % len(inputs)])
+        for render_fn in render_fns:
+            for i in range(warmup):
+                render_fn(inputs[i % len(inputs)])
+        turn = 0
         for _ in range(repeats):
             for x in inputs:
-                sync()
-                start = time.perf_counter()
-                out = render_fn(x)
-                sync()
-                times.append(time.perf_counter() - start)
-                del out  # freed outside the timed region
+                for k in range(len(render_fns)):
+                    which = (turn + k) % len(render_fns)
+                    sync()
+                    start = time.perf_counter()
+                    out = render_fns[which](x)
+                    sync()
+                    times[which].append(time.perf_counter() - start)
+                    del out  # freed outside the timed region
+                turn += 1
+    return [_summary(t, warmup) for t in times]
+
+
+def _summary(times: list[float], warmup: int) -> dict[str, float | int]:
     median_ms = 1e3 * statistics.median(times)
     mean_ms = 1e3 * statistics.fmean(times)
     return {
