@@ -8,7 +8,8 @@ fraction of the model's Gaussians that reach the rasterizer (those passing the t
 cull), and the compositing work per pixel, counted on the CPU whatever ``--device``: box pixels
 the numba kernels visit and Gaussians blended, which every exact renderer must do
 (:mod:`compositing_load`), and the aten operations of one time slice with the torch forms the CUDA path
-runs instead of the CPU's numba kernels (a proxy for the slice's GPU kernel launches). The paper reports OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
+runs instead of the CPU's numba kernels (a proxy for the slice's GPU kernel launches). The paper reports
+OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
 
     python benchmarks/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
                                       [--device cpu|cuda] [--frames 30] [--rounds 3] [--label after] [--name demo]

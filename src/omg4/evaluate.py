@@ -112,7 +112,7 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     (``masks``, by default :func:`dynamic_masks` of ``views``; pass them in to evaluate
     several models on one scene without recomputing), ``dynamic_fraction`` its share of
     the pixels; the means skip views whose camera has no moving pixel. With ``time_frames=False``
-    ``fps`` is None, for a caller that times several models together (:func:`frame_rates`).
+    ``fps`` and ``fps_detail`` are None, for a caller that times several models together (:func:`frame_rates`).
     """
     from omg4.metrics import lpips, psnr, ssim
     from omg4.metrics.dynamic import masked_psnr, masked_ssim
@@ -140,10 +140,10 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction"):
         mean.setdefault(k, None)
     fps = frame_rates([model], views, fps_views=fps_views, background=background, backend=backend,
-                      device=device)[0] if time_frames else {"fps": None}
+                      device=device)[0] if time_frames else None
     return {
         **mean,
-        "fps": fps["fps"],
+        "fps": None if fps is None else fps["fps"],
         "fps_detail": fps,
         "num_gaussians": int(model.num_gaussians),
         "storage_mb": storage_bytes / 2**20 if storage_bytes is not None else None,

@@ -292,8 +292,8 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
 
     Positions, covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for all views
     in one pass, by the backbone's time slice (``config.schema.geometry``: the Real-Time4DGS
-    conditioning or the FreeTimeGS motion) unless the caller gives that ``geometry``; colours max(SH + 0.5, 0) with the active degrees
-    only and Δt = μ_t − τ. The appearance (opacity, SH) is either explicit in ``values`` or,
+    conditioning or the FreeTimeGS motion) unless the caller gives that ``geometry``; colours
+    max(SH + 0.5, 0) with the active degrees only and Δt = μ_t − τ. The appearance (opacity, SH) is either explicit in ``values`` or,
     with ``appearance`` (paper §4.4), predicted by the MLPs from ``f_static``/``f_view`` —
     only for the rows that passed the cull, in one pass for every view. Differentiable
     w.r.t. every value.

@@ -6,8 +6,8 @@ p_t(τ) = exp(−½ (τ − μ_t)² / Σtt) exceeds the cull threshold (rt4dgs �
 pass can be skipped for every frame in the window (the idea of 4DGS-1K's temporal filter).
 Built once when a model is loaded; a frame's temporal cull then looks at its window's rows only,
 and the appearance MLP and the move to the frame's time see only the survivors (the time-independent
-half of the conditioning is computed once per Gaussian at load, :class:`WindowedModel`). The test is made against half the cull
-threshold, so float rounding can never drop a Gaussian the exact cull would keep.
+half of the conditioning is computed once per Gaussian at load, :class:`WindowedModel`). The test is
+made against half the cull threshold, so float rounding can never drop a Gaussian the exact cull would keep.
 
 This module is part of the render-only decoder: it imports no training or compression code.
 """
@@ -78,10 +78,10 @@ class WindowedModel(ViewSlicer):
     ``f_static``/``f_view`` for a model whose appearance comes from ``appearance`` MLPs,
     paper §4.4), no gradients, and the :class:`VisibilityIndex` built from them at load.
     The time-independent half of every Gaussian's conditioning (its backbone's ``motion``: velocity,
-    Σ_3D, Σtt; rt4dgs §1.4) is computed once here too, so a frame only culls its window's candidate
-    rows by their temporal marginals, moves the survivors and evaluates the appearance for those
-    (13 more floats per Gaussian: about 100 MB for 2M Gaussians)
-    (:func:`~omg4.gaussians.covariance.condition_and_cull`, :func:`omg4.gaussians.model.slice_values`). For time-conditioned
+    Σ_3D, Σtt; rt4dgs §1.4; 13 floats per Gaussian, about 100 MB for 2M Gaussians) is computed once
+    here too, so a frame only culls its window's candidate rows by their temporal marginals, moves the
+    survivors and evaluates the appearance for those (:func:`~omg4.gaussians.covariance.condition_and_cull`,
+    :func:`omg4.gaussians.model.slice_values`). For time-conditioned
     MLPs the positions' share of the first layer is computed once here (beyond the paper:
     :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term`), so a frame encodes only its time.
     The index and these caches are built from ``values`` and ``appearance`` at load: they must
@@ -98,9 +98,8 @@ class WindowedModel(ViewSlicer):
         self.appearance = appearance
         v = self.values
         scales = torch.cat([v[a.name] for a in config.schema.attributes if a.activation == "exp"], dim=1).exp()
-        with torch.no_grad():
-            # (velocity, Σ_3D, Σtt) of every Gaussian: a frame only moves and culls (rt4dgs §1.4, once per model)
-            self.motion = config.schema.motion(v, config)
+        # (velocity, Σ_3D, Σtt) of every Gaussian, from the detached values: a frame only culls and moves (§1.4)
+        self.motion = config.schema.motion(v, config)
         var_t = self.motion[2]
         if not bool(torch.isfinite(scales).all() & torch.isfinite(var_t).all() & (var_t > 0).all()):
             raise CorruptFileError("the model's scales overflow or its temporal variances are not positive "
