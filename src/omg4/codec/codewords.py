@@ -28,7 +28,6 @@ import numpy as np
 from omg4.codec.entropy import decode_indices, decode_uints, encode_indices, encode_uints, join_streams, split_streams
 from omg4.errors import CorruptFileError
 
-MODES = ("sorted", "first-use")
 MAX_SORTED_SUB_LEN = 4  # 16 bits per element: the interleaved code fits 64 bits
 
 

@@ -2,7 +2,7 @@
 
 * M (the official N3DV config): τ_GS = 0.2, pruning quantile p = 0.8; codebooks
   b_s = 2^9 (scale), b_r = 2^13 (rotation), b_f = 2^10 (appearance features),
-  2^9 for the time scale and 2^13 for the right quaternion.
+  2^9 for the time scale and 2^13 for the additional quaternion (the paper's q^l, omg4's ``rotation_r``).
 * L: τ_GS = 0.4, p = 0.8, the M codebooks.
 * S and T: τ_GS = 0.3, p = 0.9; the 3D scale codebook shrinks to b_s = 2^8, the 4D
   codebooks stay. The appendix states the same settings for S and T, yet its Table 1 has

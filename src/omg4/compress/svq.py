@@ -9,9 +9,10 @@ differentiable with respect to the codebooks alone.
 Codebook sizes, sub-vector lengths, τ_GS and the pruning quantile p per size preset
 (L / M / S / T, paper appendix "Additional Implementation Details") live in one table,
 :data:`omg4.compress.presets.PRESETS_BY_BACKBONE` (``size_preset(name, backbone).codebook(attribute)``).
-What the paper states: M (the official N3DV config) has b_s = 2^9 (s = 1), b_r = 2^13
-(s = 2), b_f = 2^10 (s = 2), 2^9 for the time scale (s = 1) and 2^13 for the right
-quaternion (s = 2), with τ_GS = 0.2, p = 0.8; L has τ_GS = 0.4, p = 0.8 and no codebook
+What the paper states: M (the official N3DV config) has b_s = 2^9, b_r = 2^13, b_f = 2^10,
+2^9 for the time scale s_t and 2^13 for the additional quaternion q^l (omg4's ``rotation_r``),
+with τ_GS = 0.2, p = 0.8 (the sub-vector lengths, 1 for scales and 2 for the others, are OMG's and
+the official code's; the paper does not state them); L has τ_GS = 0.4, p = 0.8 and no codebook
 sizes of its own (the paper names changes only for S and T), so M's; S and T use b_s = 2^8 (3D rotation and appearance codebooks unchanged, 4D
 unchanged) with τ_GS = 0.3, p = 0.9. The paper gives no setting in which S and T differ
 (its Table 1 nevertheless lists T with fewer Gaussians than S); the presets module
