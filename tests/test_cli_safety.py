@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from omg4.cli import main
 from omg4.codec import forge
@@ -159,6 +160,12 @@ def test_train_force_starts_afresh_in_an_existing_run_folder(tiny_scene_dir, tmp
     (["eval", "DATA", "--model", "M", "--max-views", "0"], "--max-views"),
     (["import-rt4dgs", "C", "--out", "x", "--time-range", "0", "inf"], "--time-range"),
     (["import-rt4dgs", "C", "--out", "x", "--time-range", "1", "0"], "T0 < T1"),
+    (["train", "DATA", "--out", "OUT", "--seed", "99999999999999999999"], "--seed: must be at most"),
+    (["compress", "DATA", "--model", "M", "--out", "x.omg4", "--seed", "-1"], "--seed: must be at least 0"),
+    (["synth", "OUT", "--seed", str(2**63)], "--seed: must be at most 9223372036854775807"),
+    (["demo", "--seed", "x"], "--seed: expected an integer"),
+    (["compress", "DATA", "--model", "M", "--out", "x.omg4", "--batch-size", "257"], "--batch-size: must be at most 256"),
+    (["bench", "DATA", "--model", "M", "--batch-size", "100000"], "--batch-size: must be at most 256"),
 ])
 def test_bad_numbers_are_one_line_errors(argv, contains, capsys):
     with pytest.raises(SystemExit) as info:
@@ -239,3 +246,141 @@ def test_synth_removes_the_folders_an_interrupted_synth_left(tmp_path):
     write_synthetic_scene(tmp_path / "scene", SynthConfig(num_cameras=2, num_frames=1, width=16, height=16,
                                                           num_points=10), progress=False)
     assert not stale.exists() and (tmp_path / "scene" / "poses_bounds.npy").exists()
+
+
+# ------------------------------------------------------------- nothing lost when a run fails or misnames
+def test_train_force_keeps_the_old_run_when_the_initialization_fails(tiny_scene_dir, tmp_path, capsys, monkeypatch):
+    from omg4.errors import OMG4Error
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    files = [run / "model.safetensors", run / "checkpoints" / "model_0000100.safetensors",
+             run / "checkpoints" / "state_0000100.pt"]
+    for f in files:
+        f.write_text("the earlier run")
+
+    def failing_init(scene, mode, cfg):
+        raise OMG4Error("initialization failed")
+
+    monkeypatch.setattr("omg4.train.init.initial_points", failing_init)
+    _refused(["train", str(tiny_scene_dir), "--out", str(run), "--force"], capsys, contains="initialization failed")
+    assert all(f.read_text() == "the earlier run" for f in files)
+
+
+@pytest.mark.parametrize("name", ["model.safetensors", "config.json", "checkpoints/summary.json"])
+def test_train_json_may_not_overwrite_what_the_run_folder_holds(tiny_scene_dir, tmp_path, capsys, name):
+    run = tmp_path / "run"
+    _refused(["train", str(tiny_scene_dir), "--out", str(run), "--json", str(run / name)], capsys,
+             contains=f"would overwrite {name.split('/')[0]}, which --out")
+    assert not run.exists()
+
+
+def test_train_json_beside_the_run_files_is_allowed():
+    from omg4.outputs import check_outputs
+    from omg4.train.run_state import RUN_FILES
+
+    run = Path("run")
+    check_outputs({"--out": run, "--json": run / "summary.json"}, folders=["--out"], reserved={"--out": RUN_FILES})
+
+
+def test_demo_refuses_a_folder_holding_anything_but_an_earlier_demo(tmp_path, capsys):
+    from omg4.demo import check_demo_folder
+
+    mine = tmp_path / "mine"
+    (mine / "scene").mkdir(parents=True)
+    (mine / "scene" / "mydata.txt").write_text("keep me")
+    _refused(["demo", "--quick", "--out", str(mine)], capsys, contains="is not a scene the demo wrote")
+    (mine / "notes.txt").write_text("keep me too")
+    _refused(["demo", "--quick", "--out", str(mine)], capsys, contains="holds 'notes.txt', which the demo does not")
+    assert (mine / "scene" / "mydata.txt").read_text() == "keep me"
+    earlier = tmp_path / "earlier"  # what a demo leaves, plus an interrupted write's hidden temporary
+    (earlier / "scene").mkdir(parents=True)
+    (earlier / "scene" / "synth.json").write_text('{"generator": "omg4 synth"}')
+    for name in ("results.json", "scene_M.omg4", ".scene_M.omg4.tmp-1-abc"):
+        (earlier / name).write_text("x")
+    (earlier / "baseline").mkdir()
+    check_demo_folder(earlier)
+    check_demo_folder(tmp_path / "new")
+
+
+def test_no_output_replaces_a_file_of_a_dataset_the_command_does_not_read(tiny_scene_dir, model_file, tmp_path,
+                                                                           capsys):
+    before = _digest(tiny_scene_dir)
+    _refused(["export", str(model_file), "--out", str(tiny_scene_dir / "points3d.ply")], capsys,
+             contains="would overwrite or add a file of the dataset")
+    _refused(["info", str(model_file), "--json", str(tiny_scene_dir / "poses_bounds.npy")], capsys,
+             contains="file of the dataset")
+    blender = tmp_path / "blender"
+    (blender / "train").mkdir(parents=True)
+    (blender / "transforms_train.json").write_text("{}")
+    _refused(["export", str(model_file), "--out", str(blender / "train" / "r_000.png"), "--format", "ply"], capsys,
+             contains="file of the dataset")
+    assert _digest(tiny_scene_dir) == before
+
+
+def test_a_failed_compression_leaves_the_earlier_scores_file(tiny_scene_dir, tmp_path, capsys, monkeypatch):
+    from omg4.compress.pipeline import CompressionPipeline
+    from omg4.errors import OMG4Error
+
+    baseline = tmp_path / "run"
+    assert main(["train", str(tiny_scene_dir), "--out", str(baseline), "--iterations", "2", "--init", "random",
+                 "--num-random-points", "200", "--test-interval", "0"]) == 0
+    out = tmp_path / "m.omg4"
+    scores = tmp_path / "m.omg4.scores.npz"
+    scores.write_bytes(b"an earlier run's scores")
+    computed = []
+
+    def failing_run(self, stop_after=None):
+        computed.append(self.ensure_scores())
+        raise OMG4Error("a stage failed")
+
+    monkeypatch.setattr(CompressionPipeline, "run", failing_run)
+    capsys.readouterr()
+    code = main(["compress", str(tiny_scene_dir), "--model", str(baseline / "model.safetensors"), "--out", str(out),
+                 "--schedule", "tiny"])
+    assert code == 2 and capsys.readouterr().err.splitlines()[-1] == "omg4 compress: error: a stage failed"
+    assert computed and scores.read_bytes() == b"an earlier run's scores" and not out.exists()
+
+
+def test_eval_skips_lpips_on_images_smaller_than_its_network_takes(tiny_scene_dir, model_file, tmp_path, capsys):
+    out = tmp_path / "eval.json"  # downscale 2: 32x24 test images, below AlexNet's 31 and above VGG's 16
+    assert main(["eval", str(tiny_scene_dir), "--model", str(model_file), "--downscale", "2", "--lpips", "alex,vgg",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["lpips_alex"] is None and 0.0 <= result["lpips_vgg"] <= 1.0
+    assert all("lpips_alex" not in row and "lpips_vgg" in row for row in result["per_view"])
+
+
+def test_unreadable_inputs_and_impossible_outputs_are_one_line_errors(tiny_scene_dir, model_file, tmp_path, capsys):
+    from omg4.codec.container import has_magic
+    from omg4.errors import OMG4Error
+
+    _refused(["render", "--model", str(model_file), "--camera", str(tmp_path), "--out", str(tmp_path / "x.png")],
+             capsys, contains="cannot read the camera file")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    _refused(["synth", str(blocker / "scene")], capsys, contains="is not a folder")
+    _refused(["synth", str(tmp_path / ("x" * 300))], capsys, contains="cannot check")
+    if Path("/proc/self/mem").exists():
+        with pytest.raises(OMG4Error, match="cannot read /proc/self/mem"):
+            has_magic("/proc/self/mem")
+
+
+def test_info_decides_a_file_kind_by_its_content_as_render_does(model_file, tmp_path, capsys):
+    import shutil
+
+    from omg4.gaussians import GaussianConfig, Gaussians4D
+    from omg4.gaussians.checkpoint import save_gaussians
+
+    checkpoint = tmp_path / "named_like_a_file.omg4"
+    save_gaussians(checkpoint, Gaussians4D.from_points(torch.rand(30, 3), torch.rand(30, 3),
+                                                       GaussianConfig(time_range=(0.0, 1.0))))
+    container = tmp_path / "named_like_a_checkpoint.safetensors"
+    shutil.copy(model_file, container)
+    for path, kind in ((checkpoint, "rt4dgs-checkpoint"), (container, "omg4")):
+        out = tmp_path / f"{path.stem}.json"
+        assert main(["info", str(path), "--json", str(out)]) == 0
+        assert json.loads(out.read_text())["kind"] == kind
+    damaged = tmp_path / "damaged.omg4"
+    damaged.write_bytes(b"garbage" * 10)
+    _refused(["info", str(damaged)], capsys, contains="damaged.omg4")

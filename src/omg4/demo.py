@@ -25,6 +25,7 @@ import torch
 
 from omg4.atomic import write_text_atomic
 from omg4.compress.schedule import SCHEDULES, StageLengths
+from omg4.errors import OMG4Error
 from omg4.report import format_table, rate_distortion_plot
 
 DEMO_LENGTHS = StageLengths(sample=300, prune=600, merge=300, appearance=2400, svq3d=400, svq4d=400)
@@ -64,9 +65,35 @@ def side_by_side_video(path: Path, views, models: list, labels: list[str], fps: 
     return write_video(path, frames(), fps=fps)
 
 
+DEMO_OUTPUTS = ("scene", "baseline", "scene_M.omg4", "scene_M.omg4.scores.npz", "scene_M_paper_codec.omg4",
+                "rate_distortion.png", "side_by_side.mp4", "results.json")
+"""What ``omg4 demo`` writes into its folder (``scene`` is replaced whole on a re-run)."""
+
+
+def check_demo_folder(out: str | Path) -> None:
+    """Refuse a folder the demo would damage: one holding anything but an earlier demo's outputs, or whose
+    ``scene`` is not a scene ``omg4 synth`` wrote (the demo replaces it whole). Hidden entries (``.name``: stale
+    temporaries of an interrupted run) are ignored."""
+    out = Path(out)
+    if not out.is_dir():
+        return
+    try:
+        foreign = sorted(p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in DEMO_OUTPUTS)
+        scene = out / "scene"
+        synth_made = (scene / "synth.json").is_file() and '"omg4 synth"' in (scene / "synth.json").read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise OMG4Error(f"cannot look into {out}: {exc}") from None
+    if foreign:
+        raise OMG4Error(f"{out} holds {foreign[0]!r}, which the demo does not write: choose a new or empty folder")
+    if scene.exists() and not synth_made:
+        raise OMG4Error(f"{scene} is not a scene the demo wrote and would be replaced: choose a new or empty folder")
+
+
 def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print,
              device: torch.device | str = "cpu") -> dict:
-    """Run the whole pipeline into ``out`` computing on ``device``; returns the results written to ``results.json``."""
+    """Run the whole pipeline into ``out`` computing on ``device``; returns the results written to ``results.json``.
+
+    Refuses (:func:`check_demo_folder`) a folder that holds anything but an earlier demo's outputs."""
     from omg4.codec.decoder import load_omg4
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
@@ -76,6 +103,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     from omg4.train import Trainer, make_config
 
     out = Path(out)
+    check_demo_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     torch.manual_seed(settings.seed)

@@ -111,10 +111,11 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     and ``ssim_dynamic`` are PSNR and SSIM over each test camera's dynamic region
     (``masks``, by default :func:`dynamic_masks` of ``views``; pass them in to evaluate
     several models on one scene without recomputing), ``dynamic_fraction`` its share of
-    the pixels; the means skip views whose camera has no moving pixel. With ``time_frames=False``
+    the pixels; the means skip views whose camera has no moving pixel. LPIPS skips views smaller than its
+    network takes (:func:`~omg4.metrics.lpips_min_side`; None when no view fits). With ``time_frames=False``
     ``fps`` and ``fps_detail`` are None, for a caller that times several models together (:func:`frame_rates`).
     """
-    from omg4.metrics import lpips, psnr, ssim
+    from omg4.metrics import lpips, lpips_min_side, psnr, ssim
     from omg4.metrics.dynamic import masked_psnr, masked_ssim
 
     if not views:
@@ -133,11 +134,12 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
             row.update(psnr_dynamic=masked_psnr(img, gt, mask), ssim_dynamic=masked_ssim(img, gt, mask),
                        dynamic_fraction=float(mask.mean()))
         for net in lpips_nets:
-            row[f"lpips_{net}"] = lpips(img, gt, net)
+            if min(v.camera.width, v.camera.height) >= lpips_min_side(net):
+                row[f"lpips_{net}"] = lpips(img, gt, net)
         per_view.append(row)
     keys = list(dict.fromkeys(k for r in per_view for k in r if k not in ("camera", "frame", "time")))
     mean = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
-    for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction"):
+    for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction", *(f"lpips_{net}" for net in lpips_nets)):
         mean.setdefault(k, None)
     fps = frame_rates([model], views, fps_views=fps_views, background=background, backend=backend,
                       device=device)[0] if time_frames else None

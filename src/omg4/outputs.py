@@ -6,8 +6,11 @@ The rule every command follows (the README's "Outputs never destroy inputs"):
   scores, camera file) is refused, ``--force`` or not;
 * a file a dataset reader takes from a dataset folder (or would take, were it created:
   :func:`omg4.data.readers.is_dataset_file` — videos, poses, points, metadata, images in
-  subfolders) is never an output; any other existing file inside a dataset folder is
-  replaced only with ``--force``;
+  subfolders) is never an output, whether the folder is one of the command's inputs or any
+  other dataset (a folder, or its parent, holding a layout's metadata file: :data:`DATASET_MARKERS`);
+  any other existing file inside an input dataset folder is replaced only with ``--force``;
+* a file output may not be one of the files a folder output of the same command holds
+  (``reserved``: e.g. a training run's model, configuration and checkpoints);
 * two outputs of one command may not be the same file;
 * the output's folder must exist or be creatable, and be writable (tried with a real file,
   so read-only mounts and permissions are caught as well), and a file output may not name
@@ -61,9 +64,13 @@ def _check_writable_folder(folder: Path, what: str) -> None:
     os.unlink(probe)
 
 
+DATASET_MARKERS = ("poses_bounds.npy", "transforms_*.json", "train_meta.json")
+"""Files whose presence makes a folder a dataset (N3DV, Blender, Panoptic) for output checks."""
+
+
 def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
                   datasets: Iterable[str | os.PathLike | None] = (), folders: Iterable[str] = (),
-                  force: bool = False) -> None:
+                  reserved: dict[str, Iterable[str]] | None = None, force: bool = False) -> None:
     """Refuse, before any work, outputs that cannot be written or would destroy an input.
 
     Args:
@@ -72,6 +79,8 @@ def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Itera
         datasets: dataset folders among the inputs: no output may be a file their readers take, and an
             existing file inside one is not replaced without ``force``.
         folders: the option names whose output is a folder (the others are files).
+        reserved: folder option name → names (first path component inside it) the command writes there;
+            no file output may be one of them or lie under one.
         force: allow replacing existing files inside dataset folders.
 
     An operating-system error while looking (a name too long, a folder that cannot be listed) is a
@@ -90,6 +99,7 @@ def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Itera
                 raise OMG4Error(f"{name} and {seen[key]} name the same file {path}")
             seen[key] = name
             _check_output(name, path, name in folders, datasets, force)
+        _check_reserved(outputs, folders, reserved or {})
     except OSError as exc:
         raise OMG4Error(f"cannot check the output paths: {exc.strerror or exc}") from None
 
@@ -101,16 +111,41 @@ def _check_output(name: str, path: Path, is_folder: bool, datasets: list[Path], 
     if not is_folder and path.is_dir():
         raise OMG4Error(f"{name} {path} is a folder; give a file name")
     dataset = None if is_folder else next((d for d in datasets if _inside(path, d)), None)
-    if dataset is not None:
+    if not is_folder:
         from omg4.data.readers import is_dataset_file
 
-        if is_dataset_file(path, dataset):
-            raise OMG4Error(f"{name} {path} would overwrite or add a file of the dataset; choose another "
-                            "output path")
+        for folder in ([dataset] if dataset is not None else []) + _datasets_around(path):
+            if is_dataset_file(path, folder):
+                raise OMG4Error(f"{name} {path} would overwrite or add a file of the dataset {folder}; choose "
+                                "another output path")
+    if dataset is not None:
         if path.exists() and not force:
             raise OMG4Error(f"{name} {path} would replace a file inside the dataset folder; choose another "
                             "output path or add --force")
     _check_writable_folder(path if is_folder else path.parent, name)
 
 
-__all__ = ["check_outputs"]
+def _datasets_around(path: Path) -> list[Path]:
+    """The folder of a file output and its parent, where either holds a dataset layout's metadata file."""
+    folder = _resolved(path).parent
+    return [f for f in (folder, folder.parent)
+            if f.is_dir() and any(next(f.glob(marker), None) is not None for marker in DATASET_MARKERS)]
+
+
+def _check_reserved(outputs: dict[str, str | os.PathLike | None], folders: Iterable[str],
+                    reserved: dict[str, Iterable[str]]) -> None:
+    """No file output names (or lies under) a name a folder output of the same command writes."""
+    for folder_name, names in reserved.items():
+        folder = outputs.get(folder_name)
+        if folder is None:
+            continue
+        for name, path in outputs.items():
+            if path is None or name in folders or not _inside(Path(path), Path(folder)):
+                continue
+            first = _resolved(path).relative_to(_resolved(folder)).parts[0]
+            if first in set(names):
+                raise OMG4Error(f"{name} {path} would overwrite {first}, which {folder_name} {folder} holds; "
+                                "choose another output path")
+
+
+__all__ = ["DATASET_MARKERS", "check_outputs"]

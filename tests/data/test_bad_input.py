@@ -142,3 +142,52 @@ def test_cli_info_n3dv_reads_metadata_only(tmp_path, n3dv_basketball, monkeypatc
     centers = [-np.asarray(c["viewmat"])[:3, :3].T @ np.asarray(c["viewmat"])[:3, 3] for c in info["cameras"]]
     assert np.linalg.norm(centers, axis=1).mean() == pytest.approx(4.0)  # normalized world
     assert not (tmp_path / "cache").exists()  # no video was decoded
+
+
+def test_poses_bounds_that_is_empty_or_not_numbers(tmp_path, tiny_scene_dir):
+    folder = tmp_path / "n3dv"
+    folder.mkdir()
+    os.symlink(tiny_scene_dir / "cam00.mp4", folder / "cam00.mp4")
+    (folder / "poses_bounds.npy").write_bytes(b"")
+    assert_data_error("cannot read .*poses_bounds.npy: No data left in file", folder)
+    np.save(folder / "poses_bounds.npy", np.full((1, 17), "x"))
+    assert_data_error("must hold a numeric array, got <U1", folder)
+
+
+def _blender_folder(tmp_path: Path, **frame) -> Path:
+    from PIL import Image
+
+    (tmp_path / "train").mkdir(exist_ok=True)
+    Image.new("RGB", (8, 6)).save(tmp_path / "train" / "r_000.png")
+    record = {"file_path": "./train/r_000", "transform_matrix": np.eye(4).tolist(), **frame}
+    top = {} if "camera_angle_x" in frame or "fl_x" in frame else {"camera_angle_x": 0.7}
+    (tmp_path / "transforms_train.json").write_text(json.dumps({**top, "frames": [record]}))
+    return tmp_path
+
+
+@pytest.mark.parametrize("frame, match", [
+    ({"camera_angle_x": 0.0}, r"camera_angle_x 0.0 is not an angle in \(0, π\)"),
+    ({"camera_angle_x": 3.2}, "is not an angle"),
+    ({"camera_angle_x": "wide"}, "non-numeric intrinsics"),
+    ({"fl_x": -100.0}, "invalid intrinsics"),
+    ({"fl_x": 100.0, "cx": float("inf")}, "invalid intrinsics"),
+    ({"transform_matrix": np.zeros((4, 4)).tolist()}, "not a rigid camera pose"),
+    ({"transform_matrix": (2 * np.eye(4)).tolist()}, "not a rigid camera pose"),
+])
+def test_blender_intrinsics_and_poses_that_cannot_be_cameras(tmp_path, frame, match):
+    assert_data_error(match, _blender_folder(tmp_path, **frame))
+
+
+def test_blender_folder_with_valid_values_reads(tmp_path):
+    scene = load_scene(_blender_folder(tmp_path), progress=False)
+    assert scene.train_views[0].camera.width == 8
+
+
+def test_resized_images_beyond_the_rendering_limits_are_refused():
+    from omg4.data.options import LoadOptions
+
+    assert LoadOptions(downscale=0.25).output_size(640, 360) == (2560, 1440)
+    with pytest.raises(DataError, match="640x360 images resized to 640000x360000 exceed 16384 pixels a side"):
+        LoadOptions(downscale=0.001).output_size(640, 360)
+    with pytest.raises(DataError, match="exceed"):  # each side fits, the pixel count does not
+        LoadOptions(downscale=0.05).output_size(640, 640)

@@ -111,3 +111,30 @@ def test_wrong_shapes_nan_dtype_and_version(tmp_path, model):
     _expect_corrupt(tmp_path / "d.safetensors", "version 99")
     _rewrite(src, tmp_path / "e.safetensors", header_update={"active_sh_degree": 5})
     _expect_corrupt(tmp_path / "e.safetensors", "inconsistent")
+
+
+def test_metadata_that_is_no_json_object_is_refused(tmp_path, model):
+    src = tmp_path / "m.safetensors"
+    save_gaussians(src, model, {"scene": "x"})
+    for k, value in enumerate(("a string", ["a", "list"], 7)):
+        _rewrite(src, tmp_path / f"meta{k}.safetensors", header_update={"metadata": value})
+        _expect_corrupt(tmp_path / f"meta{k}.safetensors", "metadata is not a JSON object")
+    _rewrite(src, tmp_path / "none.safetensors", header_update={"metadata": None})  # absent metadata is fine
+    assert load_gaussians(tmp_path / "none.safetensors")[1] == {}
+
+
+def test_no_gaussians_and_zero_quaternions_are_refused(tmp_path, model):
+    src = tmp_path / "m.safetensors"
+    save_gaussians(src, model)
+    empty = {k: v[:0].detach().clone().contiguous() for k, v in model.params.items()}
+    _rewrite(src, tmp_path / "empty.safetensors", empty)
+    _expect_corrupt(tmp_path / "empty.safetensors", "holds no Gaussians")
+    for name in ("rotation", "rotation_r"):
+        q = model.params[name].detach().clone()
+        q[17] = 0.0
+        _rewrite(src, tmp_path / f"{name}.safetensors", {name: q})
+        _expect_corrupt(tmp_path / f"{name}.safetensors", f"'{name}' holds a zero quaternion")
+    q = model.params["rotation"].detach().clone()
+    q[17] = torch.tensor([0.0, 0.0, 0.0, 1e-30])  # tiny but not zero: normalizes to a rotation
+    _rewrite(src, tmp_path / "tiny.safetensors", {"rotation": q})
+    assert load_gaussians(tmp_path / "tiny.safetensors")[0].num_gaussians == 40

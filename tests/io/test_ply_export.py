@@ -158,3 +158,28 @@ def test_float32_model_exports_like_float64(tmp_path):
     np.testing.assert_allclose(means_b, means_a, atol=1e-5)
     np.testing.assert_allclose(cov_b, cov_a, atol=1e-5)
     np.testing.assert_allclose(sh_b, sh_a, atol=1e-5)
+
+
+def test_values_beyond_float32_are_refused_and_nothing_is_written(tmp_path):
+    import pytest
+
+    from omg4.errors import OMG4Error
+
+    model = model64()
+    model.params["features_dc"][:] = 1e300  # finite in the float64 model, not in the file's float32
+    with pytest.raises(OMG4Error, match="not finite in float32"):
+        export_ply(tmp_path / "m.ply", model, 5.0)
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_normalization_records_that_are_no_similarity_transform_are_refused():
+    import pytest
+
+    good = Normalization(2.0, Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix(), np.array([0.5, 0.0, -1.0]))
+    assert Normalization.from_json(good.to_json()).scale == 2.0
+    for change, match in ((dict(scale=0.0), "positive"), (dict(scale=float("nan")), "positive"),
+                          (dict(rotation=(2 * np.eye(3)).tolist()), "orthonormal"),
+                          (dict(rotation=np.full((3, 3), np.nan).tolist()), "orthonormal"),
+                          (dict(translation=[0.0, float("inf"), 0.0]), "translation")):
+        with pytest.raises(ValueError, match=match):
+            Normalization.from_json({**good.to_json(), **change})

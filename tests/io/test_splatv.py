@@ -154,3 +154,29 @@ def test_library_reader_agrees_with_the_independent_parser_and_refuses_other_fil
     (tmp_path / "short.splatv").write_bytes(good[:-64])  # one record short
     with pytest.raises(CorruptFileError, match="texture bytes"):
         library_read(tmp_path / "short.splatv")
+
+
+def test_values_beyond_fp16_are_clipped_without_warnings_and_float32_overflow_is_refused(tmp_path):
+    import warnings
+
+    from omg4.errors import OMG4Error
+
+    model = rt4dgs_model()
+    camera = Camera(K=np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), viewmat=np.eye(4), width=64, height=48,
+                    name="c")
+    model.params["scaling"][3] = 20.0  # exp(20) ≈ 4.9e8: clipped to fp16's largest value
+    model.params["t"][4] = 1e12  # a time centre 10^11 clip lengths away: clipped to fp16's largest value
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        export_splatv(tmp_path / "m.splatv", model, [camera])
+    _, fields = read_splatv(tmp_path / "m.splatv")
+    assert np.isfinite(fields["scale"]).all() and fields["scale"].max() == 65504.0
+    assert np.isfinite(fields["trbf"]).all() and fields["trbf"][:, 0].max() == 65504.0  # (centre, time scale)
+    model.params["scaling"][3] = 800.0  # exp(800) overflows float64
+    with pytest.raises(OMG4Error, match="covariance is not finite"):
+        export_splatv(tmp_path / "huge.splatv", model, [camera])
+    model.params["scaling"][3] = 0.0
+    model.params["xyz"][2, 0] = 1e300
+    with pytest.raises(OMG4Error, match="positions beyond the float32 range"):
+        export_splatv(tmp_path / "far.splatv", model, [camera])
+    assert not (tmp_path / "far.splatv").exists()

@@ -113,3 +113,15 @@ def test_unpickler_admits_only_numpy_arrays():
     assert np.array_equal(loaded["a"]["kernel"], arrays["a"]["kernel"])
     with pytest.raises(CorruptFileError, match="collections.OrderedDict"):
         _NumpyOnlyUnpickler(io.BytesIO(pickle.dumps(OrderedDict(a=1)))).load()
+
+
+@pytest.mark.parametrize("net, side", [("alex", 31), ("vgg", 16)])
+def test_smallest_image_side_is_where_the_network_still_has_pixels(net, side):
+    model = LPIPS(net)
+    assert model.min_side == side
+    model.features(torch.rand(1, 3, side, side + 3))
+    with pytest.raises(RuntimeError):  # torch's own layers, without the guard in forward
+        model.features(torch.rand(1, 3, side - 1, side + 3))
+    images = torch.rand(2, side - 1, 64, 3)
+    with pytest.raises(OMG4Error, match=f"LPIPS-{net} needs images of at least {side}x{side} pixels, got 64x{side - 1}"):
+        lpips(images[0], images[1], net)

@@ -78,9 +78,13 @@ def stored_json(blob: bytes, version: int) -> bytes:
 
 
 def has_magic(path) -> bool:
-    """Whether the file at ``path`` starts with the ``.omg4`` container's magic bytes."""
-    with open(path, "rb") as f:
-        return f.read(len(MAGIC)) == MAGIC
+    """Whether the file at ``path`` starts with the ``.omg4`` container's magic bytes; an unreadable file is a
+    one-line :class:`OMG4Error`."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(MAGIC)) == MAGIC
+    except OSError as e:
+        raise OMG4Error(f"cannot read {path} ({e.strerror or e})") from None
 
 
 def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes], version: int = 1) -> int:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import (GRID_BITS_HELP, add_codec_argument, add_device_arguments, add_scene_arguments,
+from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_codec_argument, add_device_arguments,
+                                  add_scene_arguments,
                                   compact_grids, device_from_args, int_at_least, load_scene_from_args,
                                   rate_weight_list)
 from omg4.compress.pipeline import CompressConfig
@@ -18,8 +19,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("omg4_bench"), help="output folder")
     p.add_argument("--schedule", choices=list(SCHEDULES),
                    help="fine-tuning lengths (see omg4 compress --help; default: official on cuda, cpu elsewhere)")
-    p.add_argument("--batch-size", type=int_at_least(1), default=CompressConfig.batch_size,
-                   help="views per fine-tuning step")
+    p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), default=CompressConfig.batch_size,
+                   help=f"views per fine-tuning step (at most {MAX_BATCH_SIZE})")
     p.add_argument("--baseline-iterations", type=int_at_least(1), default=CompressConfig.baseline_iterations,
                    help="iterations the baseline was trained for (the position learning rate continues its decay)")
     p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "

@@ -8,8 +8,8 @@ import unicodedata
 from pathlib import Path
 
 
-def int_at_least(low: int):
-    """An argparse type: an integer ≥ ``low``."""
+def int_at_least(low: int, high: int | None = None):
+    """An argparse type: an integer ≥ ``low`` (and ≤ ``high`` when given)."""
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -17,8 +17,22 @@ def int_at_least(low: int):
             raise argparse.ArgumentTypeError(f"expected an integer, got '{text}'") from None
         if value < low:
             raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {value}")
         return value
     return parse
+
+
+MAX_BATCH_SIZE = 256
+"""The most views one optimizer step renders (``--batch-size``): a batch renders at once, so memory grows with it."""
+
+SEED_MAX = 2**63 - 1
+"""The largest random seed (torch's generators take a signed 64-bit one)."""
+
+
+def seed(text: str) -> int:
+    """An argparse type: a random seed, an integer in [0, 2⁶³ − 1]."""
+    return int_at_least(0, SEED_MAX)(text)
 
 
 def finite_float(text: str) -> float:

@@ -6,10 +6,10 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (GRID_BITS_HELP, add_background_argument, add_codec_argument,
+from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
                                   add_device_arguments, add_force_argument, add_rate_weight_argument,
                                   add_scene_arguments, background_from_args, compact_grids, config_from_args,
-                                  device_from_args, float_in, int_at_least, load_scene_from_args)
+                                  device_from_args, float_in, int_at_least, load_scene_from_args, seed)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.presets import PRESETS_BY_BACKBONE
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
@@ -32,8 +32,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stop-after", choices=list(MINIMIZING_STAGES),
                    help="stop after this stage and write a checkpoint of the minimized model")
     p.add_argument("--num-merge", type=int_at_least(1), default=CompressConfig.num_merge, help="merge rounds M")
-    p.add_argument("--batch-size", type=int_at_least(1), default=CompressConfig.batch_size,
-                   help="views per fine-tuning step")
+    p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), default=CompressConfig.batch_size,
+                   help=f"views per fine-tuning step (at most {MAX_BATCH_SIZE})")
     p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help="override the preset's sampling ratio, in (0, 1]")
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
@@ -47,7 +47,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="iterations the baseline was trained for (the position learning rate continues its decay)")
     add_background_argument(p)
     add_device_arguments(p)
-    p.add_argument("--seed", type=int, default=CompressConfig.seed)
+    p.add_argument("--seed", type=seed, default=CompressConfig.seed)
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
     add_force_argument(p)
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, device_from_args
+from omg4.commands.common import add_device_arguments, device_from_args, seed
 
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("omg4_demo"), help="output folder (default: ./omg4_demo)")
     p.add_argument("--quick", action="store_true", help="a tiny run (seconds) to check the installation")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     add_device_arguments(p, backend=False)
 
 

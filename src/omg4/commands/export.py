@@ -117,10 +117,13 @@ def _normalization(args, model):
     from omg4.errors import OMG4Error
 
     meta = model.meta.get("normalization")
+    if meta is None:
+        raise OMG4Error(f"{args.model} records no scene normalization: cannot write the original world")
     try:
         return Normalization.from_json(meta)
-    except (KeyError, TypeError, ValueError):
-        raise OMG4Error(f"{args.model} records no scene normalization: cannot write the original world") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise OMG4Error(f"{args.model} records an invalid scene normalization ({exc}): cannot write the original "
+                        "world") from None
 
 
 def _export_splatv(args, model) -> int:

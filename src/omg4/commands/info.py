@@ -155,17 +155,29 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
 
 
 def _is_omg4(path: Path) -> bool:
+    """An ``.omg4`` container by its magic bytes, as ``omg4 render`` and ``eval`` decide; a file named ``.omg4``
+    that is no checkpoint either gets the container's own error."""
     from omg4.codec.container import has_magic
 
-    if not path.is_file():
-        return False
-    if path.suffix == ".omg4":  # named as one: a damaged file gets the container's own error
-        return True
-    return has_magic(path)
+    return path.is_file() and (has_magic(path) or (path.suffix == ".omg4" and not _is_checkpoint(path)))
 
 
 def _is_checkpoint(path: Path) -> bool:
-    return path.is_file() and path.suffix == ".safetensors"
+    """A checkpoint: a ``.safetensors`` file without the container's magic, or any file holding an omg4
+    checkpoint header (what ``omg4 render`` and ``eval`` load whatever its name)."""
+    from omg4.codec.container import has_magic
+    from omg4.errors import CorruptFileError
+    from omg4.gaussians.checkpoint import describe_checkpoint
+
+    if not path.is_file() or has_magic(path):
+        return False
+    if path.suffix == ".safetensors":
+        return True
+    try:
+        describe_checkpoint(path)
+    except CorruptFileError:
+        return False
+    return True
 
 
 #: (accepts(path), summarize(path, **options)) in order; each file kind has one entry.

@@ -51,6 +51,8 @@ def _cameras(args):
             camera = Camera.from_json(json.loads(args.camera.read_text())).check_renderable()
         except FileNotFoundError:
             raise OMG4Error(f"camera file {args.camera} does not exist") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise OMG4Error(f"cannot read the camera file {args.camera} ({getattr(e, 'strerror', None) or e})") from None
         except (ValueError, KeyError, TypeError) as e:
             raise OMG4Error(f"{args.camera}: not a camera JSON ({type(e).__name__}: {e})") from None
         return camera, [camera], None

@@ -6,10 +6,12 @@ import argparse
 import time
 from pathlib import Path
 
+from omg4.commands.common import seed
+
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("out_dir", type=Path, help="folder to create (camXX.mp4, poses_bounds.npy, points3d.ply, synth.json)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the scene and rig (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the scene and rig (default 0)")
     p.add_argument("--cameras", type=int, default=16, help="number of cameras, cam00 = test camera (default 16)")
     p.add_argument("--frames", type=int, default=60, help="frames per video (default 60)")
     p.add_argument("--width", type=int, default=256, help="image width, even (default 256)")
@@ -22,7 +24,9 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+    from omg4.outputs import check_outputs
 
+    check_outputs({"OUT_DIR": args.out_dir}, folders=["OUT_DIR"])
     config = SynthConfig(seed=args.seed, num_cameras=args.cameras, num_frames=args.frames, width=args.width,
                          height=args.height, fps=args.fps, num_points=args.points, crf=args.crf)
     start = time.perf_counter()

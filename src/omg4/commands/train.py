@@ -6,8 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_background_argument, add_device_arguments, add_scene_arguments,
-                                  background_from_args, device_from_args, int_at_least, load_scene_from_args)
+from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments, add_scene_arguments,
+                                  background_from_args, device_from_args, int_at_least, load_scene_from_args,
+                                  seed)
 from omg4.gaussians.backbone import BACKBONES
 from omg4.train.config import PRESETS
 from omg4.train.init import INIT_MODES
@@ -19,7 +20,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="official", choices=list(PRESETS),
                    help="training schedule: official (30k iterations) or cpu-small")
     p.add_argument("--iterations", type=int_at_least(1), help="optimizer steps (overrides the preset)")
-    p.add_argument("--batch-size", type=int_at_least(1), help="views per step")
+    p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), help=f"views per step (at most {MAX_BATCH_SIZE})")
     p.add_argument("--backbone", choices=list(BACKBONES), default="rt4dgs",
                    help="representation: rt4dgs (Real-Time4DGS 4D Gaussians) or freetimegs (FreeTimeGS moving "
                         "Gaussians with a fixed budget and periodic relocation)")
@@ -41,7 +42,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "random), random, rays (coloured points along the first frame's pixel rays), mvs "
                         "(plane-sweep stereo of the first frame) or colmap (pycolmap triangulation of the "
                         "first frame)")
-    p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--seed", type=seed, help="random seed")
     add_background_argument(p)
     add_device_arguments(p)
     run = p.add_mutually_exclusive_group()
@@ -57,11 +58,11 @@ def run(args) -> int:
     from omg4.outputs import check_outputs
     from omg4.train import make_config
     from omg4.train.init import initial_points
-    from omg4.train.run_state import clear_run, holds_files, latest_iteration
+    from omg4.train.run_state import RUN_FILES, clear_run, holds_files, latest_iteration
     from omg4.train.trainer import Trainer, evaluate_psnr
 
     check_outputs({"--out": args.out, "--json": args.json}, inputs=[args.data], datasets=[args.data],
-                  folders=["--out"], force=args.force)
+                  folders=["--out"], reserved={"--out": RUN_FILES}, force=args.force)
     if holds_files(args.out) and not (args.resume or args.force):
         raise OMG4Error(f"{args.out} already holds a training run: add --resume to continue it or --force to "
                         "start afresh (its checkpoints and model are deleted)")
@@ -74,9 +75,9 @@ def run(args) -> int:
         checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
         backend=args.backend, device=str(device), background=background_from_args(args))
     resuming = args.resume and latest_iteration(args.out) is not None
-    if args.force:
-        clear_run(args.out)
     points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
+    if args.force:  # only once the initial points exist: a failing initialization keeps the old run
+        clear_run(args.out)
     trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume)
     result = trainer.run()
     test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend, device)

@@ -66,11 +66,17 @@ def frame_records(folder: Path, data: dict, json_name: str) -> list[dict]:
             raise DataError(f"{json_name}: frame {k} lacks a valid file_path or transform_matrix ({e})") from None
         if not (np.isfinite(c2w).all() and math.isfinite(time)):
             raise DataError(f"{json_name}: frame {k} has NaN or Inf in its pose or time")
+        rotation = c2w[:3, :3]
+        if np.abs(rotation @ rotation.T - np.eye(3)).max() > 1e-3 or not np.allclose(c2w[3], [0, 0, 0, 1]):
+            raise DataError(f"{json_name}: frame {k}'s transform_matrix is not a rigid camera pose")
         path = folder / rel
         if not path.suffix:
             path = path.with_name(path.name + ".png")
         w, h = image_size(path)
-        K = _intrinsics(frame, data, w, h, json_name, k)
+        try:
+            K = _intrinsics(frame, data, w, h, json_name, k)
+        except (TypeError, ValueError) as e:
+            raise DataError(f"{json_name}: frame {k} has non-numeric intrinsics ({e})") from None
         name = rel[2:] if rel.startswith("./") else rel
         records.append({"name": str(Path(name).with_suffix("")), "path": path, "c2w": c2w, "time": time,
                         "K": K, "w": w, "h": h})
@@ -89,10 +95,15 @@ def _intrinsics(frame: dict, top: dict, w: int, h: int, json_name: str, k: int) 
         cx = float(get("cx") if get("cx") is not None else meta_w / 2)
         cy = float(get("cy") if get("cy") is not None else meta_h / 2)
     elif get("camera_angle_x") is not None:
-        fx = fy = 0.5 * meta_w / math.tan(0.5 * float(get("camera_angle_x")))
+        angle = float(get("camera_angle_x"))
+        if not 0.0 < angle < math.pi:
+            raise DataError(f"{json_name}: frame {k}'s camera_angle_x {angle} is not an angle in (0, π)")
+        fx = fy = 0.5 * meta_w / math.tan(0.5 * angle)
         cx, cy = meta_w / 2, meta_h / 2
     else:
         raise DataError(f"{json_name}: frame {k} has no intrinsics (fl_x/fl_y/cx/cy or camera_angle_x)")
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy, meta_w, meta_h)) or min(fx, fy, meta_w, meta_h) <= 0:
+        raise DataError(f"{json_name}: frame {k} has invalid intrinsics (focal lengths and sizes must be positive)")
     sx, sy = w / meta_w, h / meta_h
     return np.array([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
 

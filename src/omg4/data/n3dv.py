@@ -67,8 +67,10 @@ def load_poses_bounds(folder: Path) -> np.ndarray:
         raise DataError(f"missing poses_bounds.npy in {folder}")
     try:
         arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise DataError(f"cannot read {path}: {e}") from None
+    except (OSError, ValueError, EOFError) as e:
+        raise DataError(f"cannot read {path}: {e or 'empty file'}") from None
+    if not isinstance(arr, np.ndarray) or not np.issubdtype(arr.dtype, np.number):
+        raise DataError(f"{path} must hold a numeric array, got {getattr(arr, 'dtype', type(arr).__name__)}")
     if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
         raise DataError(f"{path} must have shape [N, 17] (LLFF), got {arr.shape}")
     arr = arr.astype(np.float64)

@@ -9,6 +9,7 @@ from typing import Iterable
 
 import numpy as np
 
+from omg4.data.scene import MAX_IMAGE_SIDE, MAX_PIXELS
 from omg4.errors import DataError
 
 FrameSelection = slice | range | Iterable[int] | None
@@ -70,11 +71,18 @@ class LoadOptions:
         object.__setattr__(self, "background", bg)
 
     def output_size(self, width: int, height: int) -> tuple[int, int]:
-        """(width, height) of images of native size ``width × height`` after resizing."""
+        """(width, height) of images of native size ``width × height`` after resizing; a size beyond the
+        rendering limits (:data:`~omg4.data.scene.MAX_IMAGE_SIDE` a side, :data:`~omg4.data.scene.MAX_PIXELS` in
+        all) is a :class:`DataError`."""
         if self.width is not None:
             w = int(self.width)
-            return w, max(1, int(round(height * w / width)))
-        return max(1, int(round(width / self.downscale))), max(1, int(round(height / self.downscale)))
+            size = w, max(1, int(round(height * w / width)))
+        else:
+            size = max(1, int(round(width / self.downscale))), max(1, int(round(height / self.downscale)))
+        if max(size) > MAX_IMAGE_SIDE or size[0] * size[1] > MAX_PIXELS:
+            raise DataError(f"{width}x{height} images resized to {size[0]}x{size[1]} exceed {MAX_IMAGE_SIDE} pixels "
+                            f"a side or {MAX_PIXELS} pixels: choose a larger --downscale")
+        return size
 
     def frame_cache_dir(self) -> Path:
         """The frame-cache folder: ``cache_dir``, else ``$OMG4_CACHE_DIR``, else ``~/.cache/omg4/frames``."""

@@ -187,8 +187,18 @@ class Normalization:
 
     @staticmethod
     def from_json(d: dict) -> "Normalization":
-        return Normalization(float(d["scale"]), np.asarray(d["rotation"], dtype=np.float64).reshape(3, 3),
-                             np.asarray(d["translation"], dtype=np.float64).reshape(3))
+        """Inverse of :meth:`to_json`. Raises ValueError (or KeyError/TypeError for a malformed dict) unless the
+        scale is finite and positive, the rotation orthonormal (to 10⁻³) and the translation finite."""
+        scale = float(d["scale"])
+        rotation = np.asarray(d["rotation"], dtype=np.float64).reshape(3, 3)
+        translation = np.asarray(d["translation"], dtype=np.float64).reshape(3)
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale {scale} is not a positive number")
+        if not (np.isfinite(rotation).all() and np.abs(rotation @ rotation.T - np.eye(3)).max() <= 1e-3):
+            raise ValueError("the rotation is not orthonormal")
+        if not np.isfinite(translation).all():
+            raise ValueError("the translation is not finite")
+        return Normalization(scale, rotation, translation)
 
 
 @dataclass

@@ -69,6 +69,8 @@ def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
     if header.get("version") != FORMAT_VERSION:
         raise CorruptFileError(f"{path}: checkpoint format version {header.get('version')} is not supported "
                                f"(this omg4 reads version {FORMAT_VERSION})")
+    if not isinstance(header.get("metadata") or {}, dict):
+        raise CorruptFileError(f"{path}: the checkpoint's metadata is not a JSON object")
     return header, shapes
 
 
@@ -90,7 +92,7 @@ def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") 
         (model, metadata): parameters as float32 tensors on ``device`` without gradients,
         and the caller's metadata dict given at save time.
     Raises:
-        CorruptFileError: missing, truncated, damaged or wrong-kind file, or non-finite values.
+        CorruptFileError: missing, truncated, damaged or wrong-kind file, non-finite values, or no Gaussians.
     """
     from safetensors import safe_open
 
@@ -98,6 +100,8 @@ def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") 
     header, shapes = _read_header(path)
     config = _config_of(path, header)
     n = shapes.get("xyz", (0,))[0]
+    if n == 0:
+        raise CorruptFileError(f"{path}: the checkpoint holds no Gaussians")
     expected = param_shapes(n, config)
     names = config.schema.param_names
     for k in names:
@@ -113,6 +117,9 @@ def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") 
             raise CorruptFileError(f"{path}: parameter '{k}' has dtype {v.dtype}, expected float32")
         if not torch.isfinite(v).all():
             raise CorruptFileError(f"{path}: parameter '{k}' contains NaN or Inf")
+    for k in (k for k in names if config.schema.attribute(k).activation == "quaternion"):
+        if (params[k] == 0).all(dim=-1).any():  # normalized at use: a zero quaternion has no rotation
+            raise CorruptFileError(f"{path}: parameter '{k}' holds a zero quaternion")
     try:
         model = Gaussians4D(params, config, header["active_sh_degree"], header["active_sh_degree_t"])
     except (KeyError, TypeError, ValueError) as e:

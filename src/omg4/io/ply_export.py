@@ -55,8 +55,11 @@ def covariance_to_scale_rotation(covars: np.ndarray, min_var: float = 1e-24) -> 
     """Log-scales and quaternions with ``R diag(σ²) Rᵀ = Σ`` (eigendecomposition).
 
     covars: [M, 3, 3] symmetric PSD → (log σ [M, 3], quaternion (w, x, y, z) [M, 4]).
-    Eigenvalues below ``min_var`` are raised to it.
+    Eigenvalues below ``min_var`` are raised to it. A non-finite covariance (a scale that overflows float64) is a
+    one-line :class:`OMG4Error`.
     """
+    if not np.isfinite(covars).all():
+        raise OMG4Error("a Gaussian's covariance is not finite (its scale overflows float64); nothing written")
     lam, vec = np.linalg.eigh(covars)
     vec = vec.copy()
     vec[np.linalg.det(vec) < 0, :, 2] *= -1  # proper rotation
@@ -115,7 +118,12 @@ def write_3dgs_ply(path: str | os.PathLike, means: np.ndarray, covars: np.ndarra
              + [f"f_rest_{i}" for i in range(rest.shape[1])]
              + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
     columns = np.concatenate([means, np.zeros((m, 3)), sh[:, 0, :], rest, _logit(np.asarray(opacities))[:, None],
-                              log_scales, quats], axis=1).astype("<f4")
+                              log_scales, quats], axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        columns = columns.astype("<f4")
+    if not np.isfinite(columns).all():
+        raise OMG4Error(f"{path}: the model's values are not finite in float32 (NaN or beyond ±3.4e38); nothing "
+                        "written")
     header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {m}",
                         *[f"property float {n}" for n in names], "end_header"]) + "\n"
     with atomic_path(path) as tmp:

@@ -89,8 +89,9 @@ def _params_from_args(path: Path, args: tuple) -> dict[str, torch.Tensor]:
     params = {}
     for name, idx in OFFICIAL_PARAM_INDEX.items():
         v = args[idx]
-        if not isinstance(v, torch.Tensor):
-            raise CorruptFileError(f"{path}: item {idx} ({name}) is {type(v).__name__}, expected a tensor")
+        if not isinstance(v, torch.Tensor) or v.layout != torch.strided:
+            kind = type(v).__name__ if not isinstance(v, torch.Tensor) else f"a {v.layout} tensor"
+            raise CorruptFileError(f"{path}: item {idx} ({name}) is {kind}, expected a dense tensor")
         params[name] = v.detach().to("cpu", torch.float32).contiguous().clone()
     if params["xyz"].ndim != 2 or params["xyz"].shape[1] != 3:
         raise CorruptFileError(f"{path}: _xyz has shape {tuple(params['xyz'].shape)}, expected [N, 3]")
@@ -107,6 +108,9 @@ def _params_from_args(path: Path, args: tuple) -> dict[str, torch.Tensor]:
     for name, v in params.items():
         if not torch.isfinite(v).all():
             raise CorruptFileError(f"{path}: _{name} contains NaN or Inf")
+    for name in ("rotation", "rotation_r"):  # normalized at use: a zero quaternion has no rotation
+        if (params[name] == 0).all(dim=1).any():
+            raise CorruptFileError(f"{path}: _{name} holds a zero quaternion")
     return params
 
 

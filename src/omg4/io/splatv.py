@@ -31,6 +31,7 @@ import torch
 
 from omg4.atomic import atomic_path
 from omg4.data.scene import Camera
+from omg4.errors import OMG4Error
 from omg4.gaussians.model import centre_appearance
 from omg4.io.ply_export import covariance_to_scale_rotation, model_in_float64
 
@@ -78,13 +79,17 @@ def splatv_records(model) -> np.ndarray:
     log_scales, quats = covariance_to_scale_rotation(covars.numpy())
     scales = _fp16(np.exp(log_scales))
     xyz, opacity, rgb = values["xyz"].numpy(), opacity.numpy(), rgb.numpy()
-    centre = (values["t"][:, 0].numpy() - t0) / period
+    with np.errstate(over="ignore"):  # refused just below
+        xyz32 = xyz.astype("<f4")
+    if not np.isfinite(xyz32).all():
+        raise OMG4Error("positions beyond the float32 range do not fit the .splatv format; nothing written")
+    centre = _fp16((values["t"][:, 0].numpy() - t0) / period)
     time_scale = _fp16(np.sqrt(2.0 * var_t.numpy()) / period)
     motion = _fp16(velocity.numpy() * period)  # per unit of normalized time
     order = np.argsort(-(scales.prod(axis=1) * opacity), kind="stable")
     n = xyz.shape[0]
     words = np.zeros((n, RECORD_WORDS), np.uint32)
-    words[:, 0:3] = xyz.astype("<f4").view("<u4")
+    words[:, 0:3] = xyz32.view("<u4")
     words[:, 3] = _half_pair(quats[:, 0], quats[:, 1])
     words[:, 4] = _half_pair(quats[:, 2], quats[:, 3])
     words[:, 5] = _half_pair(scales[:, 0], scales[:, 1])
@@ -121,11 +126,9 @@ def read_splatv(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
     """(header, fields) of a ``.splatv`` file: float64 ``xyz [M, 3]``, ``quat [M, 4]`` (w, x, y, z), ``scale
     [M, 3]``, ``rgba [M, 4]`` in [0, 1], ``motion [M, 9]``, ``omega [M, 4]``, ``centre [M]``, ``time_scale [M]``
     (zero records dropped). Raises :class:`~omg4.errors.CorruptFileError` on a malformed file."""
-    from omg4.errors import CorruptFileError
-
     from pathlib import Path
 
-    from omg4.errors import OMG4Error
+    from omg4.errors import CorruptFileError
 
     try:
         data = Path(path).read_bytes()

@@ -175,6 +175,24 @@ class LPIPS(torch.nn.Module):
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
 
+    @functools.cached_property
+    def min_side(self) -> int:
+        """The smallest image height and width every layer still has an output pixel for (alex 31, vgg 16)."""
+        for side in range(1, 4096):
+            size, conv = side, 0
+            for step in self.steps:
+                if step[0] == "pool":
+                    size = (size - step[1]) // step[2] + 1
+                else:
+                    kernel = getattr(self, f"conv{conv}_weight").shape[-1]
+                    size = (size + 2 * step[2] - kernel) // step[1] + 1
+                    conv += 1
+                if size < 1:
+                    break
+            else:
+                return side
+        raise AssertionError("no image size fits the LPIPS network")
+
     def features(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Unit-normalized features ``[B, C_k, H_k, W_k]`` at the five taps of ``x`` [B, 3, H, W] in [0, 1]."""
         if not self.omg4_quirk:
@@ -196,6 +214,9 @@ class LPIPS(torch.nn.Module):
         x, y = image_pair_bchw(img, gt)
         if x.shape[1] != 3:
             raise OMG4Error(f"LPIPS needs RGB images, got {x.shape[1]} channels")
+        if min(x.shape[-2:]) < self.min_side:
+            raise OMG4Error(f"LPIPS-{self.net} needs images of at least {self.min_side}x{self.min_side} pixels, got "
+                            f"{x.shape[-1]}x{x.shape[-2]}")
         x, y = x.to(self.scale.dtype), y.to(self.scale.dtype)
         total = x.new_zeros(x.shape[0])
         for k, (fx, fy) in enumerate(zip(self.features(x), self.features(y))):
@@ -207,6 +228,11 @@ class LPIPS(torch.nn.Module):
 @functools.lru_cache(maxsize=4)
 def _cached_model(net: str, device: str, omg4_quirk: bool) -> LPIPS:
     return LPIPS(net, omg4_quirk=omg4_quirk).to(device)
+
+
+def lpips_min_side(net: str = "alex") -> int:
+    """The smallest image side :func:`lpips` takes with ``net`` (:attr:`LPIPS.min_side`)."""
+    return _cached_model(net, "cpu", False).min_side
 
 
 def lpips(img: ImageLike, gt: ImageLike, net: str = "alex", *, omg4_quirk: bool = False) -> float:

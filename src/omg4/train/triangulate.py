@@ -182,6 +182,8 @@ def triangulate_views(views: list[View], options: TriangulationOptions = Triangu
             result = pycolmap.triangulate_points(reconstruction, db_path, image_dir, out_dir, clear_points=True,
                                                  options=pipeline, refine_intrinsics=False)
             bar.update()
+    except (ValueError, RuntimeError) as e:  # pycolmap's refusals, e.g. too few images with matched features
+        raise OMG4Error(f"COLMAP could not triangulate the first frame ({e}); try --init mvs or --init random") from None
     finally:
         pycolmap.logging.minloglevel = old_level
     return _filter_points(result, up, options)
