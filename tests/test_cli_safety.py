@@ -31,6 +31,14 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _failed(argv: list[str], capsys, *, contains: str) -> None:
+    """Run ``omg4 argv``, which may print progress first: exit 2 and a last stderr line naming ``contains``."""
+    capsys.readouterr()
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and contains in err.splitlines()[-1], err
+
+
 def _refused(argv: list[str], capsys, *, contains: str) -> str:
     """Run ``omg4 argv``: exit 2 and one line on stderr naming ``contains``."""
     code = main(argv)
@@ -263,7 +271,7 @@ def test_train_force_keeps_the_old_run_when_the_initialization_fails(tiny_scene_
         raise OMG4Error("initialization failed")
 
     monkeypatch.setattr("omg4.train.init.initial_points", failing_init)
-    _refused(["train", str(tiny_scene_dir), "--out", str(run), "--force"], capsys, contains="initialization failed")
+    _failed(["train", str(tiny_scene_dir), "--out", str(run), "--force"], capsys, contains="initialization failed")
     assert all(f.read_text() == "the earlier run" for f in files)
 
 
@@ -289,18 +297,25 @@ def test_demo_refuses_a_folder_holding_anything_but_an_earlier_demo(tmp_path, ca
     mine = tmp_path / "mine"
     (mine / "scene").mkdir(parents=True)
     (mine / "scene" / "mydata.txt").write_text("keep me")
-    _refused(["demo", "--quick", "--out", str(mine)], capsys, contains="is not a scene the demo wrote")
+    _refused(["demo", "--quick", "--out", str(mine)], capsys, contains="is no scene it synthesized")
     (mine / "notes.txt").write_text("keep me too")
     _refused(["demo", "--quick", "--out", str(mine)], capsys, contains="holds 'notes.txt', which the demo does not")
     assert (mine / "scene" / "mydata.txt").read_text() == "keep me"
+    stray = tmp_path / "stray"  # a training run that no demo wrote: no synthesized scene beside it
+    (stray / "baseline").mkdir(parents=True)
+    (stray / "baseline" / "model.safetensors").write_text("my model")
+    _refused(["demo", "--quick", "--out", str(stray)], capsys, contains="is not a folder an earlier demo wrote")
+    assert (stray / "baseline" / "model.safetensors").read_text() == "my model"
     earlier = tmp_path / "earlier"  # what a demo leaves, plus an interrupted write's hidden temporary
     (earlier / "scene").mkdir(parents=True)
     (earlier / "scene" / "synth.json").write_text('{"generator": "omg4 synth"}')
     for name in ("results.json", "scene_M.omg4", ".scene_M.omg4.tmp-1-abc"):
         (earlier / name).write_text("x")
-    (earlier / "baseline").mkdir()
+    (earlier / "baseline" / "checkpoints").mkdir(parents=True)
     check_demo_folder(earlier)
     check_demo_folder(tmp_path / "new")
+    (earlier / "baseline" / "notes.txt").write_text("mine")
+    _refused(["demo", "--quick", "--out", str(earlier)], capsys, contains="which the demo's training does not write")
 
 
 def test_no_output_replaces_a_file_of_a_dataset_the_command_does_not_read(tiny_scene_dir, model_file, tmp_path,
@@ -315,7 +330,23 @@ def test_no_output_replaces_a_file_of_a_dataset_the_command_does_not_read(tiny_s
     (blender / "transforms_train.json").write_text("{}")
     _refused(["export", str(model_file), "--out", str(blender / "train" / "r_000.png"), "--format", "ply"], capsys,
              contains="file of the dataset")
+    panoptic = tmp_path / "panoptic"  # images two levels down: ims/<camera>/<frame>.jpg, seg/<camera>/<frame>.png
+    (panoptic / "seg" / "1").mkdir(parents=True)
+    (panoptic / "train_meta.json").write_text("{}")
+    _refused(["export", str(model_file), "--out", str(panoptic / "seg" / "1" / "000000.png"), "--format", "ply"],
+             capsys, contains="file of the dataset")
     assert _digest(tiny_scene_dir) == before
+
+
+def test_outputs_beside_a_dataset_that_no_reader_takes_are_allowed(tmp_path):
+    from omg4.outputs import check_outputs
+
+    project = tmp_path / "project"  # an N3DV folder: its reader takes top-level files only
+    (project / "renders").mkdir(parents=True)
+    (project / "poses_bounds.npy").write_bytes(b"")
+    for out in (project / "renders" / "frame.png", project / "renders" / "orbit.mp4", project / "eval.json",
+                tmp_path / "frame.png"):
+        check_outputs({"--out": out})
 
 
 def test_a_failed_compression_leaves_the_earlier_scores_file(tiny_scene_dir, tmp_path, capsys, monkeypatch):
@@ -335,11 +366,13 @@ def test_a_failed_compression_leaves_the_earlier_scores_file(tiny_scene_dir, tmp
         raise OMG4Error("a stage failed")
 
     monkeypatch.setattr(CompressionPipeline, "run", failing_run)
-    capsys.readouterr()
-    code = main(["compress", str(tiny_scene_dir), "--model", str(baseline / "model.safetensors"), "--out", str(out),
-                 "--schedule", "tiny"])
-    assert code == 2 and capsys.readouterr().err.splitlines()[-1] == "omg4 compress: error: a stage failed"
+    argv = ["compress", str(tiny_scene_dir), "--model", str(baseline / "model.safetensors"), "--out", str(out),
+            "--schedule", "tiny"]
+    _failed(argv, capsys, contains="a stage failed")
     assert computed and scores.read_bytes() == b"an earlier run's scores" and not out.exists()
+    scores.unlink()  # with no earlier scores the fresh ones are kept for a re-run
+    _failed(argv, capsys, contains="a stage failed")
+    assert np.array_equal(np.load(scores)["static"], computed[-1].static.double().numpy()) and not out.exists()
 
 
 def test_eval_skips_lpips_on_images_smaller_than_its_network_takes(tiny_scene_dir, model_file, tmp_path, capsys):

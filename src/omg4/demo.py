@@ -71,22 +71,30 @@ DEMO_OUTPUTS = ("scene", "baseline", "scene_M.omg4", "scene_M.omg4.scores.npz", 
 
 
 def check_demo_folder(out: str | Path) -> None:
-    """Refuse a folder the demo would damage: one holding anything but an earlier demo's outputs, or whose
-    ``scene`` is not a scene ``omg4 synth`` wrote (the demo replaces it whole). Hidden entries (``.name``: stale
-    temporaries of an interrupted run) are ignored."""
+    """Refuse a folder the demo would damage: one holding anything but an earlier demo's outputs (its ``scene``
+    written by ``omg4 synth`` — the demo writes it first and replaces it whole —, its ``baseline`` only a training
+    run's files). Hidden entries (``.name``: stale temporaries of an interrupted run) are ignored."""
+    from omg4.train.run_state import RUN_FILES
+
     out = Path(out)
     if not out.is_dir():
         return
     try:
-        foreign = sorted(p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in DEMO_OUTPUTS)
-        scene = out / "scene"
+        entries = [p.name for p in out.iterdir() if not p.name.startswith(".")]
+        foreign = sorted(name for name in entries if name not in DEMO_OUTPUTS)
+        scene, baseline = out / "scene", out / "baseline"
         synth_made = (scene / "synth.json").is_file() and '"omg4 synth"' in (scene / "synth.json").read_text()
+        foreign_run = sorted(p.name for p in baseline.iterdir() if p.name not in RUN_FILES) if baseline.is_dir() else []
     except (OSError, UnicodeDecodeError) as exc:
         raise OMG4Error(f"cannot look into {out}: {exc}") from None
     if foreign:
         raise OMG4Error(f"{out} holds {foreign[0]!r}, which the demo does not write: choose a new or empty folder")
-    if scene.exists() and not synth_made:
-        raise OMG4Error(f"{scene} is not a scene the demo wrote and would be replaced: choose a new or empty folder")
+    if entries and not synth_made:
+        raise OMG4Error(f"{out} is not a folder an earlier demo wrote ({scene} is no scene it synthesized): choose a "
+                        "new or empty folder")
+    if foreign_run:
+        raise OMG4Error(f"{baseline} holds {foreign_run[0]!r}, which the demo's training does not write: choose a new "
+                        "or empty folder")
 
 
 def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print,

@@ -7,7 +7,8 @@ The rule every command follows (the README's "Outputs never destroy inputs"):
 * a file a dataset reader takes from a dataset folder (or would take, were it created:
   :func:`omg4.data.readers.is_dataset_file` — videos, poses, points, metadata, images in
   subfolders) is never an output, whether the folder is one of the command's inputs or any
-  other dataset (a folder, or its parent, holding a layout's metadata file: :data:`DATASET_MARKERS`);
+  other dataset (the output's folder holding a layout's metadata file, :data:`DATASET_MARKERS`, or a
+  Blender or Panoptic folder up to two levels above it);
   any other existing file inside an input dataset folder is replaced only with ``--force``;
 * a file output may not be one of the files a folder output of the same command holds
   (``reserved``: e.g. a training run's model, configuration and checkpoints);
@@ -66,6 +67,8 @@ def _check_writable_folder(folder: Path, what: str) -> None:
 
 DATASET_MARKERS = ("poses_bounds.npy", "transforms_*.json", "train_meta.json")
 """Files whose presence makes a folder a dataset (N3DV, Blender, Panoptic) for output checks."""
+IMAGE_DATASET_MARKERS = ("transforms_*.json", "train_meta.json")
+"""The layouts among them whose readers take images from subfolders (Blender, Panoptic)."""
 
 
 def check_outputs(outputs: dict[str, str | os.PathLike | None], *, inputs: Iterable[str | os.PathLike | None] = (),
@@ -125,11 +128,17 @@ def _check_output(name: str, path: Path, is_folder: bool, datasets: list[Path], 
     _check_writable_folder(path if is_folder else path.parent, name)
 
 
+def _holds(folder: Path, patterns: Iterable[str]) -> bool:
+    return folder.is_dir() and any(next(folder.glob(p), None) is not None for p in patterns)
+
+
 def _datasets_around(path: Path) -> list[Path]:
-    """The folder of a file output and its parent, where either holds a dataset layout's metadata file."""
-    folder = _resolved(path).parent
-    return [f for f in (folder, folder.parent)
-            if f.is_dir() and any(next(f.glob(marker), None) is not None for marker in DATASET_MARKERS)]
+    """Dataset folders a file output could belong to: its own folder when that holds a layout's metadata file
+    (:data:`DATASET_MARKERS`), and up to two folders above it when they hold a Blender or Panoptic layout's, whose
+    images live in subfolders (``train/r_000.png``, ``ims/<camera>/<frame>.jpg``; N3DV reads top-level files only)."""
+    parents = _resolved(path).parents
+    return [folder for depth, folder in enumerate(parents[:3])
+            if _holds(folder, DATASET_MARKERS if depth == 0 else IMAGE_DATASET_MARKERS)]
 
 
 def _check_reserved(outputs: dict[str, str | os.PathLike | None], folders: Iterable[str],

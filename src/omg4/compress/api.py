@@ -56,17 +56,20 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
 
     SD scores are read from ``scores_path`` when given, else computed and saved beside
-    ``out`` as ``<out>.scores.npz`` so ablation runs can reuse them — once ``out`` is written, so a
-    failed run leaves an earlier run's scores as they were.
+    ``out`` as ``<out>.scores.npz`` so ablation runs can reuse them: at once when no such file exists,
+    else once ``out`` is written, so a failed run leaves an earlier run's scores as they were.
     """
     out = Path(out)
     check_codec(codec, precision)  # before the pipeline's minutes, not after
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log)
-    computed = None
+    computed, scores_out = None, out.with_name(out.name + ".scores.npz")
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         computed = pipeline.ensure_scores()
+        if not scores_out.exists():  # nothing to lose: kept for a re-run even if a later stage fails
+            computed.save(scores_out)
+            computed = None
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
@@ -82,7 +85,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         if paper_copy is not None:
             paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
     if computed is not None:
-        computed.save(out.with_name(out.name + ".scores.npz"))
+        computed.save(scores_out)
     return {
         "output": str(out),
         "file_bytes": out.stat().st_size,
