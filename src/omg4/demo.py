@@ -74,6 +74,7 @@ def check_demo_folder(out: str | Path) -> None:
     """Refuse a folder the demo would damage: one holding anything but an earlier demo's outputs (its ``scene``
     written by ``omg4 synth`` — the demo writes it first and replaces it whole —, its ``baseline`` only a training
     run's files). Hidden entries (``.name``: stale temporaries of an interrupted run) are ignored."""
+    from omg4.data.synthetic.writer import is_synthetic_scene
     from omg4.train.run_state import RUN_FILES
 
     out = Path(out)
@@ -83,9 +84,9 @@ def check_demo_folder(out: str | Path) -> None:
         entries = [p.name for p in out.iterdir() if not p.name.startswith(".")]
         foreign = sorted(name for name in entries if name not in DEMO_OUTPUTS)
         scene, baseline = out / "scene", out / "baseline"
-        synth_made = (scene / "synth.json").is_file() and '"omg4 synth"' in (scene / "synth.json").read_text()
+        synth_made = is_synthetic_scene(scene)
         foreign_run = sorted(p.name for p in baseline.iterdir() if p.name not in RUN_FILES) if baseline.is_dir() else []
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise OMG4Error(f"cannot look into {out}: {exc}") from None
     if foreign:
         raise OMG4Error(f"{out} holds {foreign[0]!r}, which the demo does not write: choose a new or empty folder")

@@ -134,7 +134,7 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
             row.update(psnr_dynamic=masked_psnr(img, gt, mask), ssim_dynamic=masked_ssim(img, gt, mask),
                        dynamic_fraction=float(mask.mean()))
         for net in lpips_nets:
-            if min(v.camera.width, v.camera.height) >= lpips_min_side(net):
+            if min(v.camera.width, v.camera.height) >= lpips_min_side(net, img.device):
                 row[f"lpips_{net}"] = lpips(img, gt, net)
         per_view.append(row)
     keys = list(dict.fromkeys(k for r in per_view for k in r if k not in ("camera", "frame", "time")))

@@ -155,11 +155,12 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
 
 
 def _is_omg4(path: Path) -> bool:
-    """An ``.omg4`` container by its magic bytes, as ``omg4 render`` and ``eval`` decide; a file named ``.omg4``
-    that is no checkpoint either gets the container's own error."""
+    """An ``.omg4`` container by its magic bytes, as ``omg4 render`` and ``eval`` decide, or a file named ``.omg4``
+    (it gets the container's own error). Asked after :func:`_is_checkpoint` (:data:`SUMMARIZERS`), so a checkpoint
+    named ``.omg4`` is already taken."""
     from omg4.codec.container import has_magic
 
-    return path.is_file() and (has_magic(path) or (path.suffix == ".omg4" and not _is_checkpoint(path)))
+    return path.is_file() and (path.suffix == ".omg4" or has_magic(path))
 
 
 def _is_checkpoint(path: Path) -> bool:

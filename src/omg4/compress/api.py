@@ -64,12 +64,12 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log)
-    computed, scores_out = None, out.with_name(out.name + ".scores.npz")
+    scores_out, unsaved = out.with_name(out.name + ".scores.npz"), None
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
-        computed = pipeline.ensure_scores()
+        unsaved = pipeline.ensure_scores()
         if not scores_out.exists():  # nothing to lose: kept for a re-run even if a later stage fails
-            computed.save(scores_out)
-            computed = None
+            unsaved.save(scores_out)
+            unsaved = None
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
@@ -84,8 +84,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         sections = encode_payload(payload, out, codec=codec, precision=precision)
         if paper_copy is not None:
             paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
-    if computed is not None:
-        computed.save(scores_out)
+    if unsaved is not None:  # an earlier run's scores give way only to a finished run's
+        unsaved.save(scores_out)
     return {
         "output": str(out),
         "file_bytes": out.stat().st_size,

@@ -32,7 +32,7 @@ from omg4.data.images import image_size, load_image
 from omg4.data.normalize import already_normalized, official_normalization
 from omg4.data.options import LoadOptions, select_cameras, select_frames
 from omg4.data.points import load_initial_points
-from omg4.data.scene import Camera, Normalization, Scene, View
+from omg4.data.scene import Camera, Normalization, Scene, View, is_orthonormal
 from omg4.errors import DataError
 
 SPLIT_FILES = {"train": "transforms_train.json", "val": "transforms_val.json", "test": "transforms_test.json"}
@@ -66,8 +66,7 @@ def frame_records(folder: Path, data: dict, json_name: str) -> list[dict]:
             raise DataError(f"{json_name}: frame {k} lacks a valid file_path or transform_matrix ({e})") from None
         if not (np.isfinite(c2w).all() and math.isfinite(time)):
             raise DataError(f"{json_name}: frame {k} has NaN or Inf in its pose or time")
-        rotation = c2w[:3, :3]
-        if np.abs(rotation @ rotation.T - np.eye(3)).max() > 1e-3 or not np.allclose(c2w[3], [0, 0, 0, 1]):
+        if not is_orthonormal(c2w[:3, :3]) or not np.allclose(c2w[3], [0, 0, 0, 1]):
             raise DataError(f"{json_name}: frame {k}'s transform_matrix is not a rigid camera pose")
         path = folder / rel
         if not path.suffix:

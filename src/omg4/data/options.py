@@ -9,7 +9,7 @@ from typing import Iterable
 
 import numpy as np
 
-from omg4.data.scene import MAX_IMAGE_SIDE, MAX_PIXELS
+from omg4.data.scene import MAX_IMAGE_SIDE, MAX_PIXELS, fits_render_limits
 from omg4.errors import DataError
 
 FrameSelection = slice | range | Iterable[int] | None
@@ -79,7 +79,7 @@ class LoadOptions:
             size = w, max(1, int(round(height * w / width)))
         else:
             size = max(1, int(round(width / self.downscale))), max(1, int(round(height / self.downscale)))
-        if max(size) > MAX_IMAGE_SIDE or size[0] * size[1] > MAX_PIXELS:
+        if not fits_render_limits(*size):
             raise DataError(f"{width}x{height} images resized to {size[0]}x{size[1]} exceed {MAX_IMAGE_SIDE} pixels "
                             f"a side or {MAX_PIXELS} pixels: choose a larger --downscale")
         return size

@@ -20,6 +20,18 @@ MAX_IMAGE_SIDE = 16384
 MAX_PIXELS = 1 << 26  # 8192 x 8192: what one rendered image may hold
 
 
+def fits_render_limits(width: int, height: int) -> bool:
+    """Whether one image of ``width × height`` fits the limits (:data:`MAX_IMAGE_SIDE` a side, :data:`MAX_PIXELS`)."""
+    return max(width, height) <= MAX_IMAGE_SIDE and width * height <= MAX_PIXELS
+
+
+def is_orthonormal(matrix: np.ndarray, tol: float = 1e-3) -> bool:
+    """Whether the square ``matrix`` is finite and ``M Mᵀ`` is the identity within ``tol`` (a rotation or a
+    reflection)."""
+    m = np.asarray(matrix, dtype=np.float64)
+    return bool(np.isfinite(m).all() and np.abs(m @ m.T - np.eye(m.shape[0])).max() <= tol)
+
+
 def look_at_viewmat(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
     """[4, 4] OpenCV world-to-camera matrix of a camera at ``center`` looking at ``target``.
 
@@ -74,7 +86,7 @@ class Camera:
     def check_renderable(self) -> "Camera":
         """This camera, after checking that one image of its size fits the limits (:data:`MAX_IMAGE_SIDE` a side,
         :data:`MAX_PIXELS` in all); raises :class:`DataError` otherwise."""
-        if max(self.width, self.height) > MAX_IMAGE_SIDE or self.width * self.height > MAX_PIXELS:
+        if not fits_render_limits(self.width, self.height):
             raise DataError(f"camera image size {self.width}x{self.height} exceeds {MAX_IMAGE_SIDE} pixels a side "
                             f"or {MAX_PIXELS} pixels")
         return self
@@ -194,7 +206,7 @@ class Normalization:
         translation = np.asarray(d["translation"], dtype=np.float64).reshape(3)
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"scale {scale} is not a positive number")
-        if not (np.isfinite(rotation).all() and np.abs(rotation @ rotation.T - np.eye(3)).max() <= 1e-3):
+        if not is_orthonormal(rotation):
             raise ValueError("the rotation is not orthonormal")
         if not np.isfinite(translation).all():
             raise ValueError("the translation is not finite")

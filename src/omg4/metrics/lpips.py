@@ -230,9 +230,10 @@ def _cached_model(net: str, device: str, omg4_quirk: bool) -> LPIPS:
     return LPIPS(net, omg4_quirk=omg4_quirk).to(device)
 
 
-def lpips_min_side(net: str = "alex") -> int:
-    """The smallest image side :func:`lpips` takes with ``net`` (:attr:`LPIPS.min_side`)."""
-    return _cached_model(net, "cpu", False).min_side
+def lpips_min_side(net: str = "alex", device: torch.device | str = "cpu") -> int:
+    """The smallest image side :func:`lpips` takes with ``net`` (:attr:`LPIPS.min_side`), from the network
+    :func:`lpips` uses on ``device``."""
+    return _cached_model(net, str(device), False).min_side
 
 
 def lpips(img: ImageLike, gt: ImageLike, net: str = "alex", *, omg4_quirk: bool = False) -> float:

@@ -27,6 +27,19 @@ from omg4.data.synthetic.world import SynthConfig
 from omg4.errors import OMG4Error
 
 
+GENERATOR = "omg4 synth"
+"""The ``generator`` entry of the ``synth.json`` this writer leaves in every scene."""
+
+
+def is_synthetic_scene(folder: str | os.PathLike) -> bool:
+    """Whether ``folder`` holds a scene this writer wrote (its ``synth.json`` names :data:`GENERATOR`)."""
+    try:
+        meta = json.loads((Path(folder) / "synth.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("generator") == GENERATOR
+
+
 @dataclass
 class SynthResult:
     """What :func:`write_synthetic_scene` wrote."""
@@ -105,7 +118,7 @@ def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = Synt
         poses_bounds = llff_poses_bounds(cams, near, far)
         np.save(tmp / "poses_bounds.npy", poses_bounds)
         write_ply(tmp / "points3d.ply", points)
-        meta = {"generator": "omg4 synth", **asdict(config), "test_camera": "cam00",
+        meta = {"generator": GENERATOR, **asdict(config), "test_camera": "cam00",
                 "world": "metres, +z up, LLFF poses", "time": "timestamp = frame / fps; motion phase = frame / frames"}
         (tmp / "synth.json").write_text(json.dumps(meta, indent=2) + "\n")
         _replace_dir(tmp, out_dir)
