@@ -287,8 +287,12 @@ def test_train_json_beside_the_run_files_is_allowed():
     from omg4.outputs import check_outputs
     from omg4.train.run_state import RUN_FILES
 
+    from omg4.errors import OMG4Error
+
     run = Path("run")
     check_outputs({"--out": run, "--json": run / "summary.json"}, folders=["--out"], reserved={"--out": RUN_FILES})
+    with pytest.raises(OMG4Error, match="would overwrite config.json"):  # the contrast: a file the run writes
+        check_outputs({"--out": run, "--json": run / "config.json"}, folders=["--out"], reserved={"--out": RUN_FILES})
 
 
 def test_demo_refuses_a_folder_holding_anything_but_an_earlier_demo(tmp_path, capsys):
@@ -347,6 +351,10 @@ def test_outputs_beside_a_dataset_that_no_reader_takes_are_allowed(tmp_path):
     for out in (project / "renders" / "frame.png", project / "renders" / "orbit.mp4", project / "eval.json",
                 tmp_path / "frame.png"):
         check_outputs({"--out": out})
+    from omg4.errors import OMG4Error
+
+    with pytest.raises(OMG4Error, match="file of the dataset"):  # the contrast: a new top-level camera video
+        check_outputs({"--out": project / "orbit.mp4"})
 
 
 def test_a_failed_compression_leaves_the_earlier_scores_file(tiny_scene_dir, tmp_path, capsys, monkeypatch):
