@@ -87,3 +87,56 @@ def test_nothing_moves_without_dead_gaussians():
     moved = relocate(model, None, DensifyStats(20), min_opacity=0.005, generator=torch.Generator().manual_seed(0))
     assert moved == 0
     assert all(torch.equal(before[k], model.params[k].detach()) for k in before)
+
+
+def _two_live(n_dead: int, opacity_a: float, opacity_b: float):
+    """Rows 0 and 1 alive (opacities given), the rest dead; row 0 carries the largest view gradient."""
+    model = _model(n_dead + 2, list(range(2, n_dead + 2)))
+    with torch.no_grad():
+        model.params["opacity"][0, 0] = math.log(opacity_a / (1 - opacity_a))
+        model.params["opacity"][1, 0] = math.log(opacity_b / (1 - opacity_b))
+    stats = DensifyStats(n_dead + 2)
+    stats.grad_sum[0] = 3.0
+    stats.visible_views[:] = 1.0
+    return model, stats
+
+
+def test_targets_are_drawn_in_proportion_to_half_gradient_plus_half_opacity():
+    n_dead = 4000
+    model, stats = _two_live(n_dead, 0.5, 0.9)
+    dc = model.params["features_dc"].detach().clone()
+    relocate(model, None, stats, min_opacity=0.005, generator=torch.Generator().manual_seed(3))
+    copies_of_a = int((model.params["features_dc"].detach()[2:] == dc[0]).all(-1).all(-1).sum())
+    # score: 0.5 · ĝ + 0.5 · σ, ĝ normalized to its maximum → A: 0.5 + 0.25, B: 0 + 0.45
+    p_a = 0.75 / (0.75 + 0.45)
+    assert abs(copies_of_a / n_dead - p_a) < 0.03  # 3.4 standard deviations of 4000 draws
+
+
+def test_a_gaussian_exactly_at_the_opacity_threshold_is_alive():
+    model = _model(4, [])
+    with torch.no_grad():
+        model.params["opacity"][:, 0] = torch.tensor([0.0, -1e-6, 1e-6, 0.0])  # sigmoid(0) is exactly 0.5
+    assert relocate(model, None, DensifyStats(4), min_opacity=0.5, generator=torch.Generator().manual_seed(0)) == 1
+
+
+def test_copies_are_spread_by_the_targets_scale_rotation_and_duration():
+    n_dead = 3000
+    model, stats = _two_live(n_dead, 0.99, 0.01 + 1e-3)
+    scales, duration = torch.tensor([0.2, 0.02, 0.05]), 0.05
+    with torch.no_grad():
+        model.params["scaling"][0] = scales.log()
+        model.params["rotation"][0] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+        model.params["duration"][0] = math.log(duration)
+        model.params["t"][0] = 0.5
+        model.params["opacity"][1, 0] = -20.0  # row 1 dies too: every copy comes from row 0
+    before = {k: v.detach().clone() for k, v in model.params.items()}
+    relocate(model, None, stats, min_opacity=0.005, generator=torch.Generator().manual_seed(4))
+    after = {k: v.detach() for k, v in model.params.items()}
+    moved = torch.arange(1, n_dead + 2)
+    dt = after["t"][moved, 0] - 0.5
+    assert abs(float(dt.std()) / duration - 1) < 0.06 and abs(float(dt.mean())) < 0.005
+    spatial = after["xyz"][moved] - before["xyz"][0] - before["velocity"][0] * dt[:, None]
+    ratio = spatial.std(0) / scales
+    assert float((ratio - 1).abs().max()) < 0.06, ratio
+    assert bool((spatial.mean(0).abs() < 4 * scales / math.sqrt(n_dead)).all())  # centred on the trajectory
+    torch.testing.assert_close(after["scaling"][moved], (scales.log() - math.log(1.6)).expand(n_dead + 1, 3))
