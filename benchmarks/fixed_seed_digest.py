@@ -1,14 +1,14 @@
-"""Digests of a fixed-seed Real-Time4DGS run: a bar of equality between two versions of omg4.
+"""Digests of fixed-seed runs of both backbones: a bar of equality between two versions of omg4.
 
-Trains a baseline on a tiny synthetic scene (5 cameras × 6 frames, 64×48; 120 iterations
-with densification), compresses it with every OMG4 stage (a few iterations each), decodes
-the file and renders the test view, then prints SHA-256 digests of the trained parameters,
-of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image.
+For Real-Time4DGS and FreeTimeGS: trains a baseline on a tiny synthetic scene (5 cameras × 6 frames,
+64×48; 120 iterations with densification or relocation), compresses it with every OMG4 stage (a few
+iterations each), decodes the file and renders the test view, then prints SHA-256 digests of the trained
+parameters, of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image.
 Run it under two versions (``PYTHONPATH=<other checkout>/src python benchmarks/fixed_seed_digest.py``)
 and compare: refactorings that must not change behaviour keep every digest. The file's
 bytes are listed too, but its header may legitimately change (new metadata fields).
 
-Usage: ``python benchmarks/fixed_seed_digest.py [--work DIR] [--json OUT]``; about 20 s.
+Usage: ``python benchmarks/fixed_seed_digest.py [--work DIR] [--json OUT]``; about 40 s.
 """
 
 from __future__ import annotations
@@ -31,14 +31,11 @@ def digest(*arrays) -> str:
 
 
 def main() -> None:
-    from omg4.codec.decoder import load_omg4
-    from omg4.codec.payload import decode_payload
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.compress.schedule import StageLengths
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-    from omg4.render.view import render_view
     from omg4.train import Trainer, make_config
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -49,13 +46,29 @@ def main() -> None:
     write_synthetic_scene(scene_dir, SynthConfig(num_cameras=5, num_frames=6, width=64, height=48, num_points=600),
                           progress=False, force=True)
     scene = load_scene(scene_dir, progress=False)
-    cfg = make_config("cpu-small", iterations=120, batch_size=2, checkpoint_interval=0, densify_from=20,
-                      densify_interval=40, densify_until=100, backend="cpu")
-    trained = Trainer(scene, cfg, args.work / "run", progress=False, log=lambda *_: None).run(stop_at=None)
-    lengths = StageLengths(sample=3, prune=3, merge=3, appearance=6, svq3d=3, svq4d=3)
-    path = args.work / "model.omg4"
-    compress_to_file(trained.model, scene, CompressConfig(preset="M", lengths=lengths, batch_size=2, backend="cpu"),
-                     path, progress=False, log=lambda *_: None)
+    results = {}
+    for backbone in ("rt4dgs", "freetimegs"):
+        extra = {"max_gaussians": 1500} if backbone == "freetimegs" else {}
+        cfg = make_config("cpu-small", iterations=120, batch_size=2, checkpoint_interval=0, densify_from=20,
+                          densify_interval=40, densify_until=100, backend="cpu", backbone=backbone, **extra)
+        trained = Trainer(scene, cfg, args.work / f"run_{backbone}", progress=False, log=lambda *_: None).run()
+        lengths = StageLengths(sample=3, prune=3, merge=3, appearance=6, svq3d=3, svq4d=3)
+        path = args.work / f"model_{backbone}.omg4"
+        compress_to_file(trained.model, scene, CompressConfig(lengths=lengths, batch_size=2, backend="cpu"), path,
+                         progress=False, log=lambda *_: None)
+        results[backbone] = digests(trained, path, scene)
+    text = json.dumps(results, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text + "\n")
+
+
+def digests(trained, path: Path, scene) -> dict:
+    """The digests of one backbone's run: trained parameters, decoded values, rendered test view, file."""
+    from omg4.codec.decoder import load_omg4
+    from omg4.codec.payload import decode_payload
+    from omg4.render.view import render_view
+
     payload = decode_payload(path)
     decoded = load_omg4(path)
     view = scene.test_views[0]
@@ -73,10 +86,7 @@ def main() -> None:
         "file_bytes": path.stat().st_size,
         "file": hashlib.sha256(path.read_bytes()).hexdigest(),
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    return result
 
 
 if __name__ == "__main__":

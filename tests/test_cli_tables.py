@@ -14,7 +14,6 @@ import pytest
 from omg4.cli import COMMANDS, _build_parser
 from omg4.codec.payload import CODECS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
-from omg4.compress.presets import PRESETS_BY_BACKBONE
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
 from omg4.data.readers import READERS
 from omg4.data.scene import SPLITS
@@ -35,7 +34,7 @@ TABLES: dict[str, dict[str, object]] = {
     "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES},
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
-                 "--preset": {name for presets in PRESETS_BY_BACKBONE.values() for name in presets}},
+                 "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE, "--path": PATHS},
     "export": {"--format": set(EXPORT_FORMATS.values())},
@@ -70,19 +69,36 @@ def test_choices_are_the_library_tables(command):
 def test_fine_tuning_defaults_are_the_library_defaults(command):
     actions = {a.option_strings[-1]: a for a in _subparser(command)._actions if a.option_strings}
     assert actions["--schedule"].default is None  # omg4.compress.schedule.default_schedule decides, per device
-    assert actions["--batch-size"].default == CompressConfig.batch_size
-    assert actions["--baseline-iterations"].default == CompressConfig.baseline_iterations
-    assert actions["--codec"].default == CODECS[0]
-    if command == "compress":  # the paper's k-means unless asked
-        assert actions["--rate-weight"].default == CompressConfig.rate_weight == 0.0
-    else:
+    if command == "bench":
+        assert actions["--batch-size"].default == CompressConfig.batch_size
+        assert actions["--baseline-iterations"].default == CompressConfig.baseline_iterations
+        assert actions["--codec"].default == CODECS[0]
         assert actions["--rate-weights"].default == (CompressConfig.rate_weight,)
+        return
+    # compress leaves its flags unset so that a config file can set them; unset, the run takes the library's
+    assert all(actions[f].default is None for f in ("--batch-size", "--baseline-iterations", "--codec", "--seed",
+                                                    "--num-merge", "--stages", "--device", "--backend"))
+    assert _compress_config([]) == CompressConfig(schedule="cpu", device="cpu")
+    assert _compress_config(["--stages", "sample,appearance", "--seed", "3"]) == CompressConfig(
+        schedule="cpu", device="cpu", stages=("sample", "appearance"), seed=3)
+
+
+def _compress_config(flags: list[str]) -> CompressConfig:
+    """The CompressConfig ``omg4 compress`` runs with these flags and no config file, on the CPU."""
+    import torch
+
+    from omg4.commands.common import fill_device_arguments
+    from omg4.commands.compress import pipeline_config
+
+    parser, _ = _build_parser("compress")
+    args = parser.parse_args(["compress", "DATA", "--model", "M", "--out", "F", *flags])
+    fill_device_arguments(args, {})
+    return pipeline_config(args, {}, torch.device("cpu"))
 
 
 def test_compress_stages_default_is_the_full_pipeline():
-    actions = {a.option_strings[-1]: a for a in _subparser("compress")._actions if a.option_strings}
-    assert tuple(actions["--stages"].default.split(",")) == FULL_STAGES
-    assert actions["--seed"].default == CompressConfig.seed and actions["--num-merge"].default == CompressConfig.num_merge
+    assert _compress_config([]).stages == FULL_STAGES
+    assert CompressConfig().seed == 6666 and CompressConfig().num_merge == 2
 
 
 @pytest.mark.parametrize("argv", [["train", "DATA", "--out", "RUN"], ["compress", "DATA", "--model", "M", "--out", "F"],

@@ -147,7 +147,9 @@ def test_bench_refuses_rate_weights_that_would_share_rows_or_files(tiny_scene, t
 
     from omg4.errors import OMG4Error
 
-    baseline = SimpleNamespace(config=SimpleNamespace(backbone="rt4dgs"))  # refused before the model is used
+    from omg4.gaussians.backbone import RT4DGS
+
+    baseline = SimpleNamespace(config=SimpleNamespace(backbone="rt4dgs", schema=RT4DGS))  # refused before use
     for rows, weights in ((["OMG4-T"], (0.1234561, 0.1234562)), (["OMG4-T", "OMG4-T"], (0.0,))):
         with pytest.raises(OMG4Error, match="share names or files"):
             run_bench(tiny_scene, baseline, tmp_path / "m.safetensors", tmp_path / "bench", rows=rows,

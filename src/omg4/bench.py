@@ -1,9 +1,9 @@
 """The paper's measurements on one scene: the baseline, the ablation rows and the size presets.
 
-Rows of a Real-Time4DGS baseline (paper Tab. 4 and Tab. 1): GS+AC; GS+GP+AC; GS+GP+GM+AC
-(= OMG4-M); GS and GP applied at once, then GM+AC; and the L / M / S / T presets. Rows of a
-FreeTimeGS baseline (paper Tab. 3): attribute compression only, and OMG4 at its L and S
-presets. Every row reports PSNR, SSIM,
+The rows are the baseline's backbone's (:attr:`omg4.gaussians.backbone.Backbone.paper_rows`): for
+Real-Time4DGS (paper Tab. 4 and Tab. 1) GS+AC; GS+GP+AC; GS+GP+GM+AC (= OMG4-M); GS and GP applied at
+once, then GM+AC; and the L / M / S / T presets; for FreeTimeGS (paper Tab. 3) attribute compression
+only, and OMG4 at its L and S presets. Every row reports PSNR, SSIM,
 LPIPS-alex, PSNR and SSIM over the moving pixels, FPS, #Gaussians, MB, bytes per Gaussian
 and the compression wall time, and the same pipeline result written with the paper's coder
 (its MB, PSNR and SSIM: the comparison point of the "compact" codec). With rate weights β > 0
@@ -26,23 +26,6 @@ import torch
 from omg4.atomic import write_text_atomic
 from omg4.codec.payload import CompactGrids
 from omg4.report import Curves, format_table, rate_distortion_plot
-
-AC = ("appearance", "svq3d", "svq4d")
-FULL = ("sample", "prune", "merge", *AC)
-ROWS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "GS+AC": ("M", ("sample", *AC)),
-    "GS+GP+AC": ("M", ("sample", "prune", *AC)),
-    "GS+GP+GM+AC (OMG4-M)": ("M", FULL),
-    "(GS+GP)+GM+AC": ("M", ("sample+prune", "merge", *AC)),
-    "OMG4-L": ("L", FULL),
-    "OMG4-S": ("S", FULL),
-    "OMG4-T": ("T", FULL),
-}
-ROWS_BY_BACKBONE: dict[str, dict[str, tuple[str, tuple[str, ...]]]] = {
-    "rt4dgs": ROWS,
-    "freetimegs": {"AC only": ("L", AC), "OMG4-FTGS-L": ("L", FULL), "OMG4-FTGS-S": ("S", FULL)},
-}
-
 
 def bench_table(rows: dict[str, dict]) -> str:
     """The paper's columns plus bytes per Gaussian, the same model's size and quality with the paper's coder,
@@ -79,7 +62,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
               baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
               backend: str = "auto", device: torch.device | str = "cpu", rate_weights: tuple[float, ...] = (0.0,),
               grids: tuple[CompactGrids, ...] = (CompactGrids(),), log=print) -> dict:
-    """Compress ``baseline`` once per row of its backbone (:data:`ROWS_BY_BACKBONE`) and rate weight, write each result
+    """Compress ``baseline`` once per row of its backbone (``Backbone.paper_rows``) and rate weight, write each result
     at every compact grid of ``grids`` (the first by the pipeline run, the others re-encoded from its paper-coder
     copy), and evaluate everything on the test views, computing on ``device``. ``baseline_path`` must be the checkpoint
     ``baseline`` was loaded from: its row is evaluated as a render-only model loaded from that file, as the compressed
@@ -87,12 +70,12 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.codec.decoder import load_omg4
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
-    from omg4.compress.pipeline import CompressConfig
+    from omg4.compress.pipeline import FULL_STAGES, CompressConfig
     from omg4.compress.score import compute_sd_scores
     from omg4.errors import OMG4Error
     from omg4.evaluate import dynamic_masks, evaluate, load_model
 
-    table_rows = ROWS_BY_BACKBONE[baseline.config.backbone]
+    table_rows = baseline.config.schema.paper_rows
     names = rows or list(table_rows)
     for g in grids:
         check_codec(codec, g)
@@ -141,7 +124,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
             r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=path.stat().st_size / r["num_gaussians"],
                      paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper["psnr"],
                      paper_codec_ssim=paper["ssim"], rate_weight=beta, grids=asdict(g), preset=preset,
-                     full_pipeline=stages == FULL, stages=report["stages"], file=str(path))
+                     full_pipeline=stages == FULL_STAGES, stages=report["stages"], file=str(path))
             results[row_label(name, beta, g)] = r
             write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
     base = results[base_name]
@@ -175,4 +158,4 @@ def _strip(results: dict[str, dict]) -> dict:
     return {k: {kk: vv for kk, vv in v.items() if kk != "per_view"} for k, v in results.items()}
 
 
-__all__ = ["ROWS", "ROWS_BY_BACKBONE", "bench_table", "rate_distortion_curves", "row_file", "row_label", "run_bench"]
+__all__ = ["bench_table", "rate_distortion_curves", "row_file", "row_label", "run_bench"]

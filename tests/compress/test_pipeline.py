@@ -289,11 +289,11 @@ def test_rate_weight_fits_entropy_constrained_codebooks(baseline, tiny_scene, tm
     import numpy as np
 
     from omg4.codec.payload import decode_payload
-    from omg4.compress import presets
+    from omg4.gaussians.backbone import RT4DGS
 
-    small = {name: dataclasses.replace(p, codebook_sizes={k: 16 for k in p.codebook_sizes})
-             for name, p in presets.SIZE_PRESETS.items()}
-    monkeypatch.setitem(presets.PRESETS_BY_BACKBONE, "rt4dgs", small)
+    for name, p in list(RT4DGS.size_presets.items()):
+        monkeypatch.setitem(RT4DGS.size_presets, name,
+                            dataclasses.replace(p, codebook_sizes={k: 16 for k in p.codebook_sizes}))
 
     def entropy(ix):
         p = np.bincount(ix) / len(ix)

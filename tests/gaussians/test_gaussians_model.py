@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.gaussians import PARAM_NAMES, GaussianConfig, Gaussians4D, sh_to_rgb
+from omg4.gaussians import GaussianConfig, Gaussians4D, sh_to_rgb
+from omg4.gaussians.backbone import RT4DGS
 from test_covariance4d import oracle_condition
 from test_rotation4d import oracle_rotation_4d
 from test_sh4d import real_sh_scipy
@@ -99,7 +100,7 @@ def test_cull_threshold_and_empty_slice():
 def test_gradcheck_every_parameter():
     cfg = GaussianConfig(time_range=(0.0, 2.0))
     base = random_params(3, seed=4, t_range=(0.8, 1.2))
-    names = list(PARAM_NAMES)
+    names = list(RT4DGS.param_names)
     cam = torch.tensor([0.2, 0.1, -3.0], dtype=torch.float64)
 
     def f(*tensors):

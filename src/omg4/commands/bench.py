@@ -37,13 +37,13 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def _row_names() -> dict[str, list[str]]:
-    from omg4.bench import ROWS_BY_BACKBONE
+    from omg4.gaussians.backbone import BACKBONES
 
-    return {backbone: list(rows) for backbone, rows in ROWS_BY_BACKBONE.items()}
+    return {name: list(b.paper_rows) for name, b in BACKBONES.items()}
 
 
 def run(args) -> int:
-    from omg4.bench import ROWS_BY_BACKBONE, run_bench
+    from omg4.bench import run_bench
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
@@ -56,7 +56,7 @@ def run(args) -> int:
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     device = device_from_args(args)
     baseline, _ = load_gaussians(args.model, device)
-    known = ROWS_BY_BACKBONE[baseline.config.backbone]
+    known = baseline.config.schema.paper_rows
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
     unknown = [r for r in rows or [] if r not in known]
     if unknown:

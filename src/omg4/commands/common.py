@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import unicodedata
 from pathlib import Path
@@ -95,11 +96,12 @@ def add_format_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=list(READERS), help="force the dataset reader")
 
 
-def add_codec_argument(p: argparse.ArgumentParser) -> None:
-    """``--codec``: the ``.omg4`` file coder (:data:`omg4.codec.payload.CODECS`, the first is the default)."""
+def add_codec_argument(p: argparse.ArgumentParser, *, from_settings: bool = False) -> None:
+    """``--codec``: the ``.omg4`` file coder (:data:`omg4.codec.payload.CODECS`, the first is the default; with
+    ``from_settings`` an unset flag stays None, for a config file to choose)."""
     from omg4.codec.payload import CODECS
 
-    p.add_argument("--codec", default=CODECS[0], choices=list(CODECS),
+    p.add_argument("--codec", default=None if from_settings else CODECS[0], choices=list(CODECS),
                    help="file coder: compact (default: codewords coded without their order, unit quaternions, "
                         "8-bit MLP weights; 0.49-0.78x the paper coder's file at the same quality, README 'Rate'), "
                         "ans (lossless, fp16 values as the paper), paper (Huffman + LZMA as OMG4)")
@@ -148,16 +150,29 @@ def add_rate_weight_argument(p: argparse.ArgumentParser) -> None:
                         "(README 'Rate'); 0 (default) is the paper's k-means")
 
 
-def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True) -> None:
-    """``--device`` (where models, images and optimizers live) and, with ``backend``, the rasterizer ``--backend``."""
+def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, from_settings: bool = False) -> None:
+    """``--device`` (where models, images and optimizers live) and, with ``backend``, the rasterizer ``--backend``.
+
+    ``from_settings``: unset flags stay None, so a command's config file can choose them
+    (:func:`fill_device_arguments`)."""
     from omg4.device import DEVICE_HELP
     from omg4.render.rendered import BACKENDS
 
     if backend:
-        p.add_argument("--backend", default="auto", choices=list(BACKENDS),
-                       help="rasterizer: auto (gsplat on cuda, the numba CPU rasterizer on cpu), cpu, or gsplat "
-                            "(cuda only)")
-    p.add_argument("--device", default="cpu", help=f"where to compute: {DEVICE_HELP}")
+        p.add_argument("--backend", default=None if from_settings else "auto", choices=list(BACKENDS),
+                       help="rasterizer: auto (gsplat on cuda, the numba CPU rasterizer on cpu; the default), cpu, "
+                            "or gsplat (cuda only)")
+    p.add_argument("--device", default=None if from_settings else "cpu",
+                   help=f"where to compute (default cpu): {DEVICE_HELP}")
+
+
+def fill_device_arguments(args, settings: dict) -> None:
+    """``--device`` and ``--backend`` left unset take the settings' values (removed from ``settings``), else cpu
+    and auto."""
+    for name, default in (("device", "cpu"), ("backend", "auto")):
+        value = settings.pop(name, None)
+        if getattr(args, name, None) is None:
+            setattr(args, name, value or default)
 
 
 def device_from_args(args):
@@ -211,15 +226,16 @@ def background_from_args(args) -> tuple[float, float, float]:
     return (1.0, 1.0, 1.0) if getattr(args, "white_background", False) else (0.0, 0.0, 0.0)
 
 
-def load_scene_from_args(args, *, decode: bool = True):
+def load_scene_from_args(args, *, decode: bool = True, background: tuple[float, float, float] | None = None):
     """The scene named by ``args.data`` with the reader options of :func:`add_scene_arguments`, its RGBA
-    images composited over the background of :func:`background_from_args` (``decode=False``: cameras and
-    times only, no frame decoded)."""
+    images composited over ``background`` (default: that of :func:`background_from_args`; ``decode=False``:
+    cameras and times only, no frame decoded)."""
     from omg4.data import load_scene
 
     cameras = [c.strip() for c in args.cameras.split(",")] if getattr(args, "cameras", None) else None
     return load_scene(args.data, format=args.format, downscale=args.downscale, frames=parse_frames(args.frames),
-                      cameras=cameras, background=background_from_args(args), decode=decode, progress=decode)
+                      cameras=cameras, background=background or background_from_args(args), decode=decode,
+                      progress=decode)
 
 
 def printable(value: object) -> str:
@@ -227,3 +243,61 @@ def printable(value: object) -> str:
     and messages that come from files cannot move the cursor, recolour the terminal or break a line."""
     text = str(value)
     return "".join(c if unicodedata.category(c)[0] != "C" else repr(c)[1:-1] for c in text)
+
+
+def add_settings_arguments(p: argparse.ArgumentParser, config_class, *, shortcuts: tuple[str, ...], section: str,
+                           defaults: str = "the defaults") -> None:
+    """``--config FILE``, ``--set KEY=VALUE`` and one ``--field-name`` flag per field of ``config_class`` (dotted
+    nested fields: ``--merge-grid-size``) that the command's own flags (``shortcuts``) do not already set.
+
+    Precedence (:func:`settings_from_args`): the preset < the file < ``--set`` < the flags.
+    """
+    from omg4.settings import settings_of
+
+    p.add_argument("--config", type=Path, metavar="FILE",
+                   help=f"settings from a TOML or JSON file: {config_class.__name__} field names and values "
+                        f"(a run's own record, which holds them under '{section}', reproduces the run)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", dest="settings",
+                   help="one setting by its field name (repeatable; values as JSON, e.g. background=[1,1,1], "
+                        "merge.grid_size=0.2)")
+    group = p.add_argument_group(f"every {config_class.__name__} field (also settable by --config and --set; "
+                                 f"{defaults})")
+    for name, setting in settings_of(config_class).items():
+        if name in shortcuts:
+            continue
+        default = "" if setting.default is None else f" (default {setting.default})"
+        group.add_argument("--" + name.replace(".", "-").replace("_", "-"), dest=_setting_dest(name),
+                           type=_setting_type(name, setting.type), metavar="VALUE",
+                           help=setting.help.replace("%", "%%") + default)
+
+
+def _setting_dest(name: str) -> str:
+    return "setting:" + name
+
+
+def _setting_type(name: str, kind):
+    from omg4.settings import convert
+
+    def parse(text: str):
+        from omg4.errors import OMG4Error
+
+        try:
+            value = json.loads(text)
+        except ValueError:
+            value = text
+        try:
+            return convert(name, value, kind)
+        except OMG4Error as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return parse
+
+
+def settings_from_args(args, config_class, *, section: str, extra: tuple[str, ...] = ()) -> dict:
+    """The checked flat settings of :func:`add_settings_arguments`: the ``--config`` file, then ``--set``, then the
+    per-field flags (later ones win); the command's own flags are applied by the command, last."""
+    from omg4.settings import check_settings, parse_assignments, read_config_file
+
+    values = read_config_file(args.config, section, extra) if args.config else {}
+    values.update(parse_assignments(args.settings))
+    values.update({k[len("setting:"):]: v for k, v in vars(args).items() if k.startswith("setting:") and v is not None})
+    return check_settings(config_class, values, extra=extra)

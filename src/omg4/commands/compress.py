@@ -1,18 +1,31 @@
-"""``omg4 compress DATA --model CKPT --out FILE.omg4``: run the OMG4 pipeline."""
+"""``omg4 compress DATA --model CKPT --out FILE.omg4 [--config FILE] [--set KEY=VALUE]``: run the OMG4 pipeline.
+
+Every :class:`~omg4.compress.pipeline.CompressConfig` field (the merge and stage-length ones included) is
+reachable (:mod:`omg4.settings`); ``<out>.config.json`` records them all with the codec and its grids, and
+``--config`` of it reproduces the run."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import astuple, replace
 from pathlib import Path
 
 from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
                                   add_device_arguments, add_force_argument, add_rate_weight_argument,
-                                  add_scene_arguments, background_from_args, compact_grids, config_from_args,
-                                  device_from_args, float_in, int_at_least, load_scene_from_args, seed)
+                                  add_scene_arguments, add_settings_arguments, compact_grids, device_from_args,
+                                  fill_device_arguments, float_in, int_at_least, load_scene_from_args, seed,
+                                  settings_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
-from omg4.compress.presets import PRESETS_BY_BACKBONE
+from omg4.gaussians.backbone import BACKBONES
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
+
+
+#: the CompressConfig fields this command has its own flags for
+SHORTCUTS = ("preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
+             "official_score_quirk", "baseline_iterations", "background", "backend", "device", "seed")
+#: options of the command itself that a config file may set (as the record beside the output does)
+COMMAND_KEYS = ("codec", "grid_bits")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -20,67 +33,101 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
     p.add_argument("--out", required=True, type=Path,
                    help="output .omg4 file (with --stop-after: a .safetensors checkpoint of the minimized model)")
-    p.add_argument("--preset", choices=sorted({name for presets in PRESETS_BY_BACKBONE.values() for name in presets}),
-                   help="size preset (paper appendix): L, M, S, T for Real-Time4DGS (default M); L, S for "
-                        "FreeTimeGS (default L)")
+    p.add_argument("--preset", choices=sorted({name for b in BACKBONES.values() for name in b.size_presets}),
+                   help="size preset (paper appendix): " + "; ".join(
+                       f"{', '.join(b.size_presets)} for {b.title} (default {b.default_preset})"
+                       for b in BACKBONES.values()))
     p.add_argument("--schedule", choices=list(SCHEDULES),
                    help="fine-tuning lengths: official (1000 per stage, 5000 MLP; the default on cuda), cpu (a fifth; "
                         "the default elsewhere), short (a tenth, 600 MLP), tiny (smoke test)")
-    p.add_argument("--stages", default=",".join(FULL_STAGES),
-                   help="comma-separated stages in order, from " + ", ".join(STAGE_NAMES) + " (ablations: e.g. "
-                        "sample,appearance,svq3d,svq4d or sample+prune,merge,appearance,svq3d,svq4d)")
+    p.add_argument("--stages",
+                   help="comma-separated stages in order, from " + ", ".join(STAGE_NAMES) + " (default "
+                        + ",".join(FULL_STAGES) + "; ablations: e.g. sample,appearance,svq3d,svq4d or "
+                        "sample+prune,merge,appearance,svq3d,svq4d)")
     p.add_argument("--stop-after", choices=list(MINIMIZING_STAGES),
                    help="stop after this stage and write a checkpoint of the minimized model")
-    p.add_argument("--num-merge", type=int_at_least(1), default=CompressConfig.num_merge, help="merge rounds M")
-    p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), default=CompressConfig.batch_size,
-                   help=f"views per fine-tuning step (at most {MAX_BATCH_SIZE})")
+    p.add_argument("--num-merge", type=int_at_least(1), help=f"merge rounds M (default {CompressConfig.num_merge})")
+    p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE),
+                   help=f"views per fine-tuning step (default {CompressConfig.batch_size}, at most {MAX_BATCH_SIZE})")
     p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help="override the preset's sampling ratio, in (0, 1]")
     p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
                    help="override the preset's pruning quantile p, in [0, 1)")
-    add_codec_argument(p)
+    add_codec_argument(p, from_settings=True)
     p.add_argument("--grid-bits", type=compact_grids, metavar="POS,ROT,TIME[,W,LS[,CB[,EX]]]", help=GRID_BITS_HELP)
     add_rate_weight_argument(p)
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
-    p.add_argument("--official-score-quirk", action="store_true",
+    p.add_argument("--official-score-quirk", action="store_true", default=None,
                    help="accumulate the time gradient without zeroing, as the official release does")
-    p.add_argument("--baseline-iterations", type=int_at_least(1), default=CompressConfig.baseline_iterations,
-                   help="iterations the baseline was trained for (the position learning rate continues its decay)")
+    p.add_argument("--baseline-iterations", type=int_at_least(1),
+                   help="iterations the baseline was trained for (the position learning rate continues its decay; "
+                        f"default {CompressConfig.baseline_iterations})")
     add_background_argument(p)
-    add_device_arguments(p)
-    p.add_argument("--seed", type=seed, default=CompressConfig.seed)
+    add_device_arguments(p, from_settings=True)
+    p.add_argument("--seed", type=seed, help=f"random seed (default {CompressConfig.seed})")
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
     add_force_argument(p)
+    add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",
+                           defaults="the lengths shown are the official schedule's; one set alone changes only "
+                                    "that stage of the run's schedule")
 
 
 def run(args) -> int:
     from omg4.atomic import write_text_atomic
-    from omg4.codec.payload import CompactGrids, check_codec
+    from omg4.codec.payload import CODECS, CompactGrids, check_codec
     from omg4.compress.api import compress_to_file
-    from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.outputs import check_outputs
+    from omg4.settings import config_dict
 
-    precision = args.grid_bits or CompactGrids()
-    check_codec(args.codec, precision)
+    settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
+    codec = args.codec or settings.pop("codec", None) or CODECS[0]
+    grid_text = settings.pop("grid_bits", None)
+    precision = args.grid_bits or (compact_grids(grid_text) if grid_text else CompactGrids())
+    check_codec(codec, precision)
     if args.stop_after and args.grid_bits:
         raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
-    stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
-    computes_scores = args.scores is None and any(s in stages for s in ("sample", "prune", "sample+prune"))
-    scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
-    check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out},
-                  inputs=[args.data, args.model, args.scores], datasets=[args.data], force=args.force)
+    fill_device_arguments(args, settings)
     device = device_from_args(args)
-    scene = load_scene_from_args(args)
+    cfg = pipeline_config(args, settings, device)
+    computes_scores = args.scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune"))
+    scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
+    record = args.out.with_name(args.out.name + ".config.json")
+    check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out, "the config record": record},
+                  inputs=[args.data, args.model, args.scores, args.config], datasets=[args.data], force=args.force)
+    scene = load_scene_from_args(args, background=cfg.background)
     baseline, _ = load_gaussians(args.model, device)
-    cfg = config_from_args(CompressConfig, args, stages=stages, schedule=args.schedule or default_schedule(device),
-                           device=str(device), background=background_from_args(args))
-    report = compress_to_file(baseline, scene, cfg, args.out, codec=args.codec, stop_after=args.stop_after,
+    report = compress_to_file(baseline, scene, cfg, args.out, codec=codec, stop_after=args.stop_after,
                               scores_path=args.scores, precision=precision)
+    write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
+                                          "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
     for r in report["stages"]:
         print(f"  {r['stage']:<13} at iteration {r['iteration']:>6}: {r['num_gaussians']:>8} Gaussians")
     print(f"wrote {args.out} ({report['file_bytes'] / 2**20:.3f} MB, {report['num_gaussians']} Gaussians, "
-          f"{report['wall_time_s']:.0f} s)")
+          f"{report['wall_time_s']:.0f} s) and its settings {record}")
     if args.json:
         write_text_atomic(args.json, json.dumps(report, indent=2))
     return 0
+
+
+def pipeline_config(args, settings: dict, device) -> CompressConfig:
+    """The run's :class:`CompressConfig`: the defaults, the file and ``--set`` (``settings``), then the flags; the
+    device's default schedule (:func:`~omg4.compress.schedule.default_schedule`) unless one is named; stage
+    lengths set one by one start from the schedule's."""
+    from omg4.compress.schedule import default_schedule
+    from omg4.settings import apply_settings
+
+    flags = {name: getattr(args, name) for name in SHORTCUTS if name not in ("stages", "background", "backend",
+                                                                            "device")}
+    flags.update(stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()) if args.stages else None,
+                 background=(1.0, 1.0, 1.0) if args.white_background else None, backend=args.backend,
+                 device=str(device))
+    lengths = {k: v for k, v in settings.items() if k.startswith("lengths.")}
+    given = {**{k: v for k, v in settings.items() if k not in lengths},
+             **{k: v for k, v in flags.items() if v is not None}}
+    cfg = apply_settings(CompressConfig(schedule=default_schedule(device)), given)
+    if lengths:
+        if cfg.lengths is None:
+            cfg = replace(cfg, lengths=cfg.stage_lengths())
+        cfg = apply_settings(cfg, lengths)
+    return cfg

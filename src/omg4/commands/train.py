@@ -1,4 +1,6 @@
-"""``omg4 train DATA --out RUN_DIR [--backbone freetimegs]``: train a baseline (Real-Time4DGS by default)."""
+"""``omg4 train DATA --out RUN_DIR [--backbone freetimegs] [--config FILE] [--set KEY=VALUE]``: train a baseline
+(Real-Time4DGS by default). Every :class:`~omg4.train.config.TrainConfig` field is reachable (:mod:`omg4.settings`);
+the run folder's ``config.json`` records them all, and ``--config`` of it reproduces the run."""
 
 from __future__ import annotations
 
@@ -7,11 +9,15 @@ import json
 from pathlib import Path
 
 from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments, add_scene_arguments,
-                                  background_from_args, device_from_args, int_at_least, load_scene_from_args,
-                                  seed)
+                                  add_settings_arguments, device_from_args, fill_device_arguments, int_at_least,
+                                  load_scene_from_args, seed, settings_from_args)
 from omg4.gaussians.backbone import BACKBONES
-from omg4.train.config import PRESETS
+from omg4.train.config import PRESETS, TrainConfig
 from omg4.train.init import INIT_MODES
+
+#: the TrainConfig fields this command has its own flags for
+SHORTCUTS = ("iterations", "batch_size", "backbone", "max_gaussians", "densify_until", "densify_interval",
+             "test_interval", "checkpoint_interval", "num_random_points", "seed", "background", "backend", "device")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -21,9 +27,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="training schedule: official (30k iterations) or cpu-small")
     p.add_argument("--iterations", type=int_at_least(1), help="optimizer steps (overrides the preset)")
     p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), help=f"views per step (at most {MAX_BATCH_SIZE})")
-    p.add_argument("--backbone", choices=list(BACKBONES), default="rt4dgs",
-                   help="representation: rt4dgs (Real-Time4DGS 4D Gaussians) or freetimegs (FreeTimeGS moving "
-                        "Gaussians with a fixed budget and periodic relocation)")
+    p.add_argument("--backbone", choices=list(BACKBONES),
+                   help="representation: rt4dgs (Real-Time4DGS 4D Gaussians; the default) or freetimegs (FreeTimeGS "
+                        "moving Gaussians with a fixed budget and periodic relocation)")
     budget = p.add_mutually_exclusive_group()
     budget.add_argument("--max-gaussians", type=int_at_least(0), help="cap on the Gaussian count (0 = none)")
     budget.add_argument("--budget", type=int_at_least(1), dest="max_gaussians", metavar="N",
@@ -44,12 +50,14 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "first frame)")
     p.add_argument("--seed", type=seed, help="random seed")
     add_background_argument(p)
-    add_device_arguments(p)
+    add_device_arguments(p, from_settings=True)
     run = p.add_mutually_exclusive_group()
     run.add_argument("--resume", action="store_true", help="continue from the run folder's last checkpoint")
     run.add_argument("--force", action="store_true",
                      help="start afresh in an existing run folder: its checkpoints and model are deleted")
     p.add_argument("--json", type=Path, help="write a summary (iterations, wall time, test PSNR) as JSON")
+    add_settings_arguments(p, TrainConfig, shortcuts=SHORTCUTS, section="train_config",
+                           defaults="the defaults shown are the official preset's")
 
 
 def run(args) -> int:
@@ -66,14 +74,17 @@ def run(args) -> int:
     if holds_files(args.out) and not (args.resume or args.force):
         raise OMG4Error(f"{args.out} already holds a training run: add --resume to continue it or --force to "
                         "start afresh (its checkpoints and model are deleted)")
+    settings = settings_from_args(args, TrainConfig, section="train_config")
+    fill_device_arguments(args, settings)
     device = device_from_args(args)
-    scene = load_scene_from_args(args)
-    cfg = make_config(
-        args.preset, iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
-        backbone=args.backbone,
-        densify_until=args.densify_until, densify_interval=args.densify_interval, test_interval=args.test_interval,
-        checkpoint_interval=args.checkpoint_interval, num_random_points=args.num_random_points, seed=args.seed,
-        backend=args.backend, device=str(device), background=background_from_args(args))
+    flags = dict(iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
+                 backbone=args.backbone, densify_until=args.densify_until, densify_interval=args.densify_interval,
+                 test_interval=args.test_interval, checkpoint_interval=args.checkpoint_interval,
+                 num_random_points=args.num_random_points, seed=args.seed,
+                 background=(1.0, 1.0, 1.0) if args.white_background else None)
+    cfg = make_config(args.preset, **{**settings, **{k: v for k, v in flags.items() if v is not None}},
+                      backend=args.backend, device=str(device))
+    scene = load_scene_from_args(args, background=cfg.background)
     resuming = args.resume and latest_iteration(args.out) is not None
     points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
     if args.force:  # only once the initial points exist: a failing initialization keeps the old run

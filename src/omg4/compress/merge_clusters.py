@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import torch
 
 from omg4.errors import OMG4Error
+from omg4.settings import knob
 
 _WORD_BITS = 32  # bits used per int64 word of a neighbour bit row (no sign-bit arithmetic)
 
@@ -46,15 +47,15 @@ _WORD_BITS = 32  # bits used per int64 word of a neighbour bit row (no sign-bit 
 class MergeConfig:
     """Gaussian Merging hyperparameters (paper §4.3, §5.1; official configs, omg4 §6a)."""
 
-    grid_size: float = 0.1  # spatial cell, normalized units; multiplied by grid_growth after each round
-    time_cell_fraction: float = 0.2  # temporal cell = fraction × duration (official 2.0 s of 10 s)
-    grid_growth: float = 1.2
-    color_weight: float = 4.0  # λ
-    tau_sim: float = -3e-4  # threshold floor (the configs' value; note the sign, omg4 §14.3)
-    sim_quantile: float = 0.7  # per-cell quantile of similarities
-    logit_lr: float = 0.01
-    max_cell_size: int = 2048  # larger cells are split into slabs along x (module docstring)
-    pair_chunk: int = 2_000_000  # pairs processed at once (bounds peak memory, not the result)
+    grid_size: float = knob(0.1, "spatial cell g of the first round (normalized units)")
+    time_cell_fraction: float = knob(0.2, "temporal cell φ as a fraction of the clip (official 2.0 s of 10 s)")
+    grid_growth: float = knob(1.2, "the spatial cell grows by this factor each round")
+    color_weight: float = knob(4.0, "λ: weight of the colour distance in the similarity")
+    tau_sim: float = knob(-3e-4, "similarity floor τ_sim of the per-cell threshold (the configs' sign)")
+    sim_quantile: float = knob(0.7, "per-cell quantile of the similarities")
+    logit_lr: float = knob(0.01, "learning rate of the merge weights")
+    max_cell_size: int = knob(2048, "larger cells are split into slabs along x")
+    pair_chunk: int = knob(2_000_000, "pairs processed at once (bounds memory, not the result)")
 
 
 @dataclass

@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 
 from omg4.compress import appearance_stage, merging
 from omg4.compress.model import CompressibleModel
-from omg4.compress.presets import DEFAULT_PRESET, SizePreset, size_preset
+from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
 from omg4.compress.sampling import sampling_mask
 from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
@@ -35,6 +35,7 @@ from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
 from omg4.render.api import resolve_backend
+from omg4.settings import knob
 from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
                               step_optimizers)
 from omg4.train.step import backward_batch, step_generator
@@ -45,35 +46,35 @@ FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
 @dataclass
 class CompressConfig:
     """Everything that decides an OMG4 run; ``preset`` sets τ_GS, p and the codebook sizes (None: the
-    backbone's default, M for Real-Time4DGS and L for FreeTimeGS).
+    backbone's default, :attr:`~omg4.gaussians.backbone.Backbone.default_preset`).
 
     ``rate_weight`` β > 0 (beyond the paper) fits the SVQ codebooks by entropy-constrained k-means
     (:func:`omg4.compress.kmeans.kmeans`: an index bit costs β times the mean k-means distortion), so index
     usage becomes skewed and the entropy-coded indices shrink; 0 keeps the paper's k-means.
     """
 
-    preset: str | None = None
-    stages: tuple[str, ...] = FULL_STAGES
-    schedule: str = "official"
+    preset: str | None = knob(None, "size preset (L, M, S, T; None: the backbone's default)")
+    stages: tuple[str, ...] = knob(FULL_STAGES, "the stages in order (ablations drop some)")
+    schedule: str = knob("official", "fine-tuning lengths: official, cpu, short or tiny")
     lengths: StageLengths | None = None
-    num_merge: int = 2
-    batch_size: int = 4
-    seed: int = 6666
+    num_merge: int = knob(2, "merge rounds M")
+    batch_size: int = knob(4, "views per fine-tuning step")
+    seed: int = knob(6666, "random seed (batches, MLP initialization, k-means)")
     merge: merging.MergeConfig = field(default_factory=merging.MergeConfig)
-    official_score_quirk: bool = False
-    baseline_iterations: int = 30_000  # the xyz learning rate continues the baseline's decay
-    position_lr_init: float = 1.6e-4
-    position_lr_final: float = 1.6e-6
-    codebook_lr: float = 1e-4
-    backend: str = "auto"
-    device: str = "cpu"  # where tensors live (omg4.device.resolve_device)
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    tau_gs: float | None = None  # overrides of the preset
-    prune_quantile: float | None = None
-    rate_weight: float = 0.0  # β of entropy-constrained codebooks (beyond the paper; 0 = its plain k-means)
+    official_score_quirk: bool = knob(False, "accumulate the time gradient without zeroing, as the official code")
+    baseline_iterations: int = knob(30_000, "the baseline's steps: the position learning rate continues its decay")
+    position_lr_init: float = knob(1.6e-4, "the baseline's initial position learning rate (× extent)")
+    position_lr_final: float = knob(1.6e-6, "the baseline's final position learning rate (× extent)")
+    codebook_lr: float = knob(1e-4, "learning rate of the SVQ codebooks")
+    backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
+    device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
+    background: tuple[float, float, float] = knob((0.0, 0.0, 0.0), "background colour, RGB in [0, 1]")
+    tau_gs: float | None = knob(None, "sampling ratio τ_GS, overriding the preset's")
+    prune_quantile: float | None = knob(None, "pruning quantile p, overriding the preset's")
+    rate_weight: float = knob(0.0, "β of entropy-constrained codebooks (beyond the paper; 0: its k-means)")
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
-        p = size_preset(self.preset or DEFAULT_PRESET[backbone], backbone)
+        p = size_preset(self.preset, backbone)
         return replace(p, tau_gs=self.tau_gs if self.tau_gs is not None else p.tau_gs,
                        prune_quantile=self.prune_quantile if self.prune_quantile is not None else p.prune_quantile)
 

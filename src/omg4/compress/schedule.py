@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from omg4.settings import knob
+
 STAGE_NAMES = ("sample", "prune", "sample+prune", "merge", "appearance", "svq3d", "svq4d")
 MINIMIZING_STAGES = ("sample", "prune", "sample+prune", "merge")
 """The stages that only remove or merge Gaussians: after them the model is still a baseline
@@ -20,12 +22,12 @@ model, written as a checkpoint by ``omg4 compress --stop-after``."""
 class StageLengths:
     """Fine-tuning iterations after each stage (official: 1000 each, 5000 for the MLPs)."""
 
-    sample: int = 1000
-    prune: int = 1000
-    merge: int = 1000
-    appearance: int = 5000
-    svq3d: int = 1000
-    svq4d: int = 1000
+    sample: int = knob(1000, "fine-tuning iterations after sampling")
+    prune: int = knob(1000, "fine-tuning iterations after pruning")
+    merge: int = knob(1000, "fine-tuning iterations after each merge round")
+    appearance: int = knob(5000, "fine-tuning iterations after the switch to MLP appearance")
+    svq3d: int = knob(1000, "fine-tuning iterations after SVQ of the 3D attributes")
+    svq4d: int = knob(1000, "fine-tuning iterations after SVQ of the 4D attributes")
 
     def scaled(self, factor: float, minimum: int = 10) -> "StageLengths":
         return StageLengths(**{k: max(minimum, int(round(v * factor))) for k, v in self.__dict__.items()})

@@ -8,7 +8,7 @@ differentiable with respect to the codebooks alone.
 
 Codebook sizes, sub-vector lengths, τ_GS and the pruning quantile p per size preset
 (L / M / S / T, paper appendix "Additional Implementation Details") live in one table,
-:data:`omg4.compress.presets.PRESETS_BY_BACKBONE` (``size_preset(name, backbone).codebook(attribute)``).
+:attr:`omg4.gaussians.backbone.Backbone.size_presets` (``size_preset(name, backbone).codebook(attribute)``).
 What the paper states: M (the official N3DV config) has b_s = 2^9, b_r = 2^13, b_f = 2^10,
 2^9 for the time scale s_t and 2^13 for the additional quaternion q^l (omg4's ``rotation_r``),
 with τ_GS = 0.2, p = 0.8 (the sub-vector lengths, 1 for scales and 2 for the others, are OMG's and

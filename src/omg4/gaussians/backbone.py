@@ -3,9 +3,13 @@
 A :class:`Backbone` lists its per-Gaussian attributes — name, shape, activation, learning
 rate and what each OMG4 stage does with it (merged by a proxy, §4.3; replaced by the
 appearance MLPs, §4.4; sub-vector quantized in stage 3D or 4D, §4.4; else kept explicit,
-positions and time centres in fp16) — and says how a time slice is formed. Training,
-every OMG4 stage, the codec and the decoder read these tables; nothing else names
-attributes. The ``.omg4`` header and checkpoints name their backbone
+positions and time centres in fp16) — and says how a time slice is formed, how a model
+starts from a point cloud, which density control trains it (a strategy of
+:mod:`omg4.train.strategy`, named here and imported only by training) and its OMG4 size presets.
+Training, every OMG4 stage, the codec, the decoder and the commands read these tables; nothing
+else names attributes or backbones. Every backbone has positions ``xyz`` and time centres ``t``
+(the codec stores both explicitly). A new backbone is one :class:`Backbone` passed to
+:func:`register_backbone`. The ``.omg4`` header and checkpoints name their backbone
 (``GaussianConfig.backbone``); files without the name are Real-Time4DGS.
 
 * ``rt4dgs`` — Real-Time4DGS (Yang et al., ICLR 2024): 4D Gaussians conditioned on time,
@@ -19,13 +23,14 @@ Part of the render-only decoder: imports only Gaussian math.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
 
 import torch
 
 from omg4.gaussians.covariance import SliceGeometry, conditioning_terms, slice_geometry
-from omg4.gaussians.freetime import covariance_3d, duration_variance, slice_geometry_ftgs
+from omg4.gaussians.freetime import covariance_3d, duration_variance, initialize_ftgs, slice_geometry_ftgs
+from omg4.gaussians.initial import identity_quaternions, log_time_scale, neighbour_log_scales, spatial_params
 
 SH_REST = "sh_rest"
 """Shape placeholder: the number of SH coefficients after the DC term, K − 1 (from the model config)."""
@@ -98,6 +103,22 @@ _SVQ_3D = (("scale", 1, "svq3d"), ("rotation", 2, "svq3d"), ("app", 2, "svq3d"))
 
 
 @dataclass(frozen=True)
+class SizePreset:
+    """Rate knobs of one OMG4 size (paper appendix): sampling ratio τ_GS, pruning quantile p, codebook size per
+    SVQ attribute of ``backbone``."""
+
+    name: str
+    tau_gs: float
+    prune_quantile: float
+    codebook_sizes: Mapping[str, int] = field(default_factory=dict)
+    backbone: str = "rt4dgs"
+
+    def codebook(self, attribute: str) -> tuple[int, int]:
+        """(sub-vector length, codebook size) of an SVQ attribute."""
+        return backbone_named(self.backbone).svq_group(attribute).sub_length, self.codebook_sizes[attribute]
+
+
+@dataclass(frozen=True)
 class Backbone:
     """A 4D Gaussian representation: its attributes, SVQ groups, MLP input and time slice.
 
@@ -116,6 +137,13 @@ class Backbone:
             complement and Σtt of rt4dgs §1.4; FreeTimeGS's motion and duration), which the ``.splatv``
             export writes exactly and a render-only model computes once at load
             (:class:`~omg4.gaussians.visibility.WindowedModel`).
+        initialize: ``(xyz [M, 3], rgb [M, 3], config, generator) → params``: a model's raw values from a point
+            cloud (CPU tensors, one Gaussian per point; :mod:`omg4.gaussians.initial` holds the shared part).
+        size_presets: its OMG4 sizes by name (paper appendix), and ``default_preset`` the one used unless named.
+        training: ``"module:attribute"`` of its density control, a :class:`omg4.train.strategy.DensityStrategy`
+            class (or the class itself); None trains a fixed set of Gaussians.
+        paper_rows: the rows ``omg4 bench`` measures for it (the paper's table of this backbone): label →
+            (size preset, stages).
         sh_degree_t: the temporal SH degree it requires (None: any).
     """
 
@@ -126,6 +154,11 @@ class Backbone:
     mlp_time_input: bool
     geometry: Callable[..., SliceGeometry]
     motion: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    initialize: Callable[..., dict[str, torch.Tensor]]
+    size_presets: Mapping[str, SizePreset]
+    default_preset: str
+    training: str | type | None = None
+    paper_rows: Mapping[str, tuple[str, tuple[str, ...]]] = field(default_factory=dict)
     sh_degree_t: int | None = None
 
     @property
@@ -219,6 +252,43 @@ def _ftgs_geometry(values: dict[str, torch.Tensor], config, timestamps: torch.Te
                                values["rotation"], timestamps, time_cull=config.time_cull)
 
 
+def _rt4dgs_initialize(xyz: torch.Tensor, rgb: torch.Tensor, config, generator: torch.Generator | None
+                       ) -> dict[str, torch.Tensor]:
+    """Real-Time4DGS from points (rt4dgs §3.5): t ~ U(t0 − 0.1 D, t1 + 0.1 D), log time scale log √(D/5), identity
+    right quaternion (a static Gaussian)."""
+    m, d = xyz.shape[0], config.period
+    params = spatial_params(rgb, neighbour_log_scales(xyz.double().numpy()), config.num_coeffs)
+    params.update(xyz=xyz.clone(),
+                  t=(torch.rand(m, 1, generator=generator, device="cpu") * 1.2 - 0.1) * d + config.time_range[0],
+                  scaling_t=torch.full((m, 1), log_time_scale(d), device="cpu"), rotation_r=identity_quaternions(m))
+    return params
+
+
+#: OMG4 sizes (paper appendix): M is the official N3DV config (τ_GS 0.2, p 0.8; codebooks 2^9 scale, 2^13
+#: rotation, 2^10 appearance, 2^9 time scale, 2^13 right quaternion — the paper's q^l); L samples 0.4; S and T
+#: prune at 0.9 with a 2^8 scale codebook. The appendix gives S and T the same settings, yet its Table 1 has T
+#: with 19 % fewer Gaussians than S (111,402 vs 137,414 on N3DV), which codebooks cannot cause: T samples 0.25
+#: here (≈ 0.83 × S's count), an inference from the table, not a stated setting.
+_M_CODEBOOKS = {"scale": 2**9, "rotation": 2**13, "app": 2**10, "scale_t": 2**9, "rotation_r": 2**13}
+_RT4DGS_PRESETS = {p.name: p for p in (
+    SizePreset("L", 0.4, 0.8, dict(_M_CODEBOOKS)),
+    SizePreset("M", 0.2, 0.8, dict(_M_CODEBOOKS)),
+    SizePreset("S", 0.3, 0.9, {**_M_CODEBOOKS, "scale": 2**8}),
+    SizePreset("T", 0.25, 0.9, {**_M_CODEBOOKS, "scale": 2**8}),
+)}
+_AC = ("appearance", "svq3d", "svq4d")
+_FULL = ("sample", "prune", "merge", *_AC)
+#: paper Tab. 4 (ablations; GS and GP applied at once in the fourth row) and Tab. 1 (sizes)
+_RT4DGS_ROWS = {
+    "GS+AC": ("M", ("sample", *_AC)),
+    "GS+GP+AC": ("M", ("sample", "prune", *_AC)),
+    "GS+GP+GM+AC (OMG4-M)": ("M", _FULL),
+    "(GS+GP)+GM+AC": ("M", ("sample+prune", "merge", *_AC)),
+    "OMG4-L": ("L", _FULL),
+    "OMG4-S": ("S", _FULL),
+    "OMG4-T": ("T", _FULL),
+}
+
 _RT4DGS_ATTRIBUTES = (_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE,
                       Attribute("scaling_t", (1,), "exp", lr="scaling_lr", svq="scale_t"), _ROTATION,
                       Attribute("rotation_r", (4,), "quaternion", lr="rotation_lr", svq="rotation_r"))
@@ -231,7 +301,18 @@ RT4DGS = Backbone(
     mlp_time_input=True,
     geometry=_rt4dgs_geometry,
     motion=_rt4dgs_motion,
+    initialize=_rt4dgs_initialize,
+    size_presets=_RT4DGS_PRESETS,
+    default_preset="M",
+    training="omg4.train.densify:Densification",
+    paper_rows=_RT4DGS_ROWS,
 )
+
+#: FreeTimeGS sizes (paper appendix, Table 3): L samples 0.7 and prunes at the 0.6-quantile, S 0.3 and 0.4; both
+#: keep the M codebooks for scale, rotation and appearance and add 2^10 for velocity and duration. No M or T.
+_FTGS_CODEBOOKS = {"scale": 2**9, "rotation": 2**13, "app": 2**10, "duration": 2**10, "velocity": 2**10}
+_FTGS_PRESETS = {p.name: p for p in (SizePreset("L", 0.7, 0.6, dict(_FTGS_CODEBOOKS), "freetimegs"),
+                                     SizePreset("S", 0.3, 0.4, dict(_FTGS_CODEBOOKS), "freetimegs"))}
 
 _FTGS_ATTRIBUTES = (_POSITION, _TIME, _SH_DC, _SH_REST, _OPACITY, _SCALE, _ROTATION,
                     Attribute("duration", (1,), "exp", lr="duration_lr", svq="duration"),
@@ -247,10 +328,35 @@ FREETIMEGS = Backbone(
     geometry=_ftgs_geometry,
     motion=lambda values, config: (values["velocity"], covariance_3d(values["scaling"], values["rotation"]),
                                    duration_variance(values["duration"])),
+    initialize=initialize_ftgs,
+    size_presets=_FTGS_PRESETS,
+    default_preset="L",
+    training="omg4.train.relocate:Relocation",
+    paper_rows={"AC only": ("L", _AC), "OMG4-FTGS-L": ("L", _FULL), "OMG4-FTGS-S": ("S", _FULL)},
     sh_degree_t=0,
 )
 
 BACKBONES: dict[str, Backbone] = {b.name: b for b in (RT4DGS, FREETIMEGS)}
+"""Every backbone by the name files carry; :func:`register_backbone` adds one."""
+
+
+def register_backbone(backbone: Backbone) -> Backbone:
+    """Make ``backbone`` known to training, compression, the codec and the decoder (by its name); returns it.
+
+    Raises ``ValueError`` for a name already taken by another backbone, or presets that name an SVQ attribute the
+    backbone does not have.
+    """
+    if BACKBONES.get(backbone.name, backbone) is not backbone:
+        raise ValueError(f"a different backbone is already called {backbone.name!r}")
+    groups = {g.name for g in backbone.svq_groups}
+    for preset in backbone.size_presets.values():
+        if set(preset.codebook_sizes) != groups or preset.backbone != backbone.name:
+            raise ValueError(f"preset {preset.name} of {backbone.name} must size exactly its SVQ attributes "
+                             f"{sorted(groups)} and name the backbone")
+    if backbone.default_preset not in backbone.size_presets:
+        raise ValueError(f"{backbone.name}'s default preset {backbone.default_preset!r} is not one of its presets")
+    BACKBONES[backbone.name] = backbone
+    return backbone
 
 
 def backbone_named(name: str) -> Backbone:
@@ -261,5 +367,5 @@ def backbone_named(name: str) -> Backbone:
         raise ValueError(f"unknown backbone {name!r} (choose from {', '.join(BACKBONES)})") from None
 
 
-__all__ = ["APPEARANCE_FEATURES", "Attribute", "SVQGroup", "Backbone", "RT4DGS", "FREETIMEGS", "BACKBONES",
-           "SH_REST", "activated_scales", "backbone_named"]
+__all__ = ["APPEARANCE_FEATURES", "Attribute", "SVQGroup", "SizePreset", "Backbone", "RT4DGS", "FREETIMEGS",
+           "BACKBONES", "SH_REST", "activated_scales", "backbone_named", "register_backbone"]

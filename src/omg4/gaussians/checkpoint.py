@@ -22,7 +22,6 @@ from omg4.errors import CorruptFileError
 from omg4.gaussians.backbone import BACKBONES
 from omg4.gaussians.model import GaussianConfig, Gaussians4D, param_shapes
 
-FORMAT_NAMES = {f"omg4-{name}": name for name in BACKBONES}
 FORMAT_VERSION = 1
 _META_KEY = "omg4"
 
@@ -63,7 +62,7 @@ def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
         header = json.loads(meta[_META_KEY])
     except (KeyError, ValueError):
         raise CorruptFileError(f"{path}: a safetensors file but not an omg4 checkpoint (no omg4 metadata)") from None
-    if not isinstance(header, dict) or header.get("format") not in FORMAT_NAMES:
+    if not isinstance(header, dict) or _backbone_of_format(header.get("format")) is None:
         kinds = " or ".join(b.title for b in BACKBONES.values())
         raise CorruptFileError(f"{path}: not an omg4 {kinds} checkpoint")
     if header.get("version") != FORMAT_VERSION:
@@ -74,12 +73,19 @@ def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
     return header, shapes
 
 
+def _backbone_of_format(name: object) -> str | None:
+    """The backbone named by a checkpoint's ``format`` (``"omg4-<backbone>"``), None for anything else."""
+    if isinstance(name, str) and name.startswith("omg4-") and name[5:] in BACKBONES:
+        return name[5:]
+    return None
+
+
 def _config_of(path: Path, header: dict) -> GaussianConfig:
     try:
         config = GaussianConfig.from_json(header["config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CorruptFileError(f"{path}: invalid model config in checkpoint ({e})") from None
-    if FORMAT_NAMES[header["format"]] != config.backbone:
+    if _backbone_of_format(header["format"]) != config.backbone:
         raise CorruptFileError(f"{path}: a {header['format']} checkpoint whose config names the {config.backbone} "
                                "backbone")
     return config
@@ -154,4 +160,4 @@ def describe_checkpoint(path: str | os.PathLike) -> dict:
     }
 
 
-__all__ = ["FORMAT_NAMES", "FORMAT_VERSION", "save_gaussians", "load_gaussians", "describe_checkpoint"]
+__all__ = ["FORMAT_VERSION", "save_gaussians", "load_gaussians", "describe_checkpoint"]

@@ -15,9 +15,11 @@ rasterizer are shared. Part of the render-only decoder: imports no training code
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from omg4.gaussians.covariance import SliceGeometry, temporal_marginal
+from omg4.gaussians.initial import log_time_scale, neighbour_log_scales, spatial_params
 from omg4.gaussians.rotation import build_rotation_3d
 from omg4.render.small_matmul import small_matmul
 
@@ -81,5 +83,21 @@ def opacity_regularizer(opacity_logit: torch.Tensor, t: torch.Tensor, log_durati
     return (torch.sigmoid(opacity_logit[:, 0])[None, :] * p_t).mean()
 
 
-__all__ = ["scaled_rotation_3d", "covariance_3d", "duration_variance", "moved_means", "opacity_regularizer",
+def initialize_ftgs(xyz: torch.Tensor, rgb: torch.Tensor, config, generator: torch.Generator | None
+                    ) -> dict[str, torch.Tensor]:
+    """FreeTimeGS from points: spread over the clip, t ~ U(t0, t1), zero velocity, the shared spatial terms
+    (:mod:`omg4.gaussians.initial`); a point given k times (a budget above the point count) makes k Gaussians that
+    share the clip, each with its point's scale and duration min(√(D/5), D / 2k)."""
+    m, d = xyz.shape[0], config.period
+    points, inverse = np.unique(xyz.double().numpy(), axis=0, return_inverse=True)
+    params = spatial_params(rgb, neighbour_log_scales(points)[torch.from_numpy(inverse.reshape(-1))],
+                            config.num_coeffs)
+    copies = m / len(points)
+    duration = min(log_time_scale(d), float(np.log(d / (2.0 * copies))))
+    params.update(xyz=xyz.clone(), t=torch.rand(m, 1, generator=generator, device="cpu") * d + config.time_range[0],
+                  duration=torch.full((m, 1), duration, device="cpu"), velocity=torch.zeros(m, 3, device="cpu"))
+    return params
+
+
+__all__ = ["initialize_ftgs", "scaled_rotation_3d", "covariance_3d", "duration_variance", "moved_means", "opacity_regularizer",
            "slice_geometry_ftgs"]

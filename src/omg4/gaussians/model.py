@@ -30,16 +30,15 @@ import numpy as np
 import torch
 
 from omg4.errors import DataError
-from omg4.gaussians.backbone import BACKBONES, FREETIMEGS, RT4DGS, Backbone, activated_scales, backbone_named
+from omg4.gaussians.backbone import BACKBONES, Backbone, activated_scales, backbone_named
 from omg4.gaussians.covariance import SliceGeometry, covariance_4d
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
-from omg4.gaussians.sh import colors_from_sh, fold_time_sh, num_sh_coeffs, rgb_to_sh, sh_to_rgb, view_directions
+from omg4.gaussians.sh import colors_from_sh, fold_time_sh, num_sh_coeffs, sh_to_rgb, view_directions
 from omg4.render.view import TimeSlice, ViewSlicer
 
 if TYPE_CHECKING:
     from omg4.gaussians.appearance import AppearanceMLP
 
-PARAM_NAMES = RT4DGS.param_names
 SH_DIRECTIONS = ("conditioned", "canonical")
 
 
@@ -143,21 +142,6 @@ def param_shapes(n: int, config: GaussianConfig) -> dict[str, tuple[int, ...]]:
     return config.schema.param_shapes(n, config.num_coeffs)
 
 
-def mean_neighbour_sq_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
-    """Mean squared distance of each point to its ``k`` nearest other points (simple-knn ``distCUDA2``).
-
-    xyz: [M, 3] → [M] (0 for a single point).
-    """
-    from scipy.spatial import cKDTree
-
-    m = xyz.shape[0]
-    kk = min(k, m - 1)
-    if kk == 0:
-        return np.zeros(m)
-    dist, _ = cKDTree(xyz).query(xyz, k=kk + 1)
-    return (dist[:, 1:] ** 2).mean(axis=1)
-
-
 class Gaussians4D(ViewSlicer):
     """A baseline 4D Gaussian model of any backbone: raw parameters, fixed config and active SH degrees."""
 
@@ -187,14 +171,9 @@ class Gaussians4D(ViewSlicer):
     @classmethod
     def from_points(cls, xyz: torch.Tensor, rgb: torch.Tensor, config: GaussianConfig, *,
                     generator: torch.Generator | None = None) -> "Gaussians4D":
-        """Initial model from a point cloud (rt4dgs §3.5), one Gaussian per point.
-
-        t ~ U(t0 − 0.1 D, t1 + 0.1 D); isotropic log-scale log √max(d², 1e-7) with d² the mean
-        squared distance to the 3 nearest neighbours; log time scale log √(D/5); identity
-        quaternions (a static Gaussian); opacity logit(0.1); DC = RGB2SH(rgb), other SH 0.
-        FreeTimeGS: the points spread over the clip, t ~ U(t0, t1), with the same spatial
-        terms and zero velocity; a point given k times (a budget above the point count) makes
-        k Gaussians that share the clip: duration min(√(D/5), D / 2k).
+        """Initial model from a point cloud (rt4dgs §3.5), one Gaussian per point, by the backbone's
+        ``initialize`` (:mod:`omg4.gaussians.initial`: isotropic scales from the 3 nearest neighbours, identity
+        rotations, opacity 0.1, the points' colours; Real-Time4DGS and FreeTimeGS add their time attributes).
         The model is built on the CPU (``generator`` is a CPU one); move it with :meth:`to`.
 
         Args:
@@ -210,33 +189,7 @@ class Gaussians4D(ViewSlicer):
             raise DataError(f"point cloud shapes {tuple(xyz.shape)} / {tuple(rgb.shape)}, expected [M, 3] both")
         if not (torch.isfinite(xyz).all() and torch.isfinite(rgb).all()):
             raise DataError("the point cloud contains NaN or Inf values")
-        t0, t1 = config.time_range
-        d = config.period
-        points = xyz.double().numpy()
-        freetime = config.schema is FREETIMEGS
-        if freetime:  # repeated points (copies that share the clip) take their point's scale
-            points, inverse = np.unique(points, axis=0, return_inverse=True)
-        dist2 = mean_neighbour_sq_distance(points)
-        dist2 = torch.from_numpy(dist2[inverse.reshape(-1)] if freetime else dist2).float()
-        log_s = 0.5 * torch.log(dist2.clamp_min(1e-7))
-        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=cpu).repeat(m, 1)
-        log_time_scale = 0.5 * float(np.log(d / 5.0))
-        params = {
-            "xyz": xyz.clone(),
-            "scaling": log_s.unsqueeze(1).repeat(1, 3),
-            "rotation": identity.clone(),
-            "opacity": torch.full((m, 1), float(np.log(0.1 / 0.9)), device=cpu),
-            "features_dc": rgb_to_sh(rgb).unsqueeze(1),
-            "features_rest": torch.zeros(m, config.num_coeffs - 1, 3, device=cpu),
-        }
-        if freetime:
-            copies = m / len(points)
-            duration = torch.full((m, 1), min(log_time_scale, float(np.log(d / (2.0 * copies)))), device=cpu)
-            params.update(t=torch.rand(m, 1, generator=generator, device=cpu) * d + t0, duration=duration,
-                          velocity=torch.zeros(m, 3, device=cpu))
-        else:
-            params.update(t=(torch.rand(m, 1, generator=generator, device=cpu) * 1.2 - 0.1) * d + t0,
-                          scaling_t=torch.full((m, 1), log_time_scale, device=cpu), rotation_r=identity.clone())
+        params = config.schema.initialize(xyz, rgb, config, generator)
         params = {k: params[k] for k in config.schema.param_names}
         return cls(params, config, active_sh_degree=0, active_sh_degree_t=0)
 
@@ -412,5 +365,5 @@ def centre_appearance(values: dict[str, torch.Tensor], config: GaussianConfig, s
     return sh_to_rgb(dc).clamp(0.0, 1.0), torch.sigmoid(logit)
 
 
-__all__ = ["slice_values", "static_slice", "StaticSlice", "centre_appearance", "PARAM_NAMES", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
-           "mean_neighbour_sq_distance"]
+__all__ = ["slice_values", "static_slice", "StaticSlice", "centre_appearance", "SH_DIRECTIONS", "GaussianConfig", "Gaussians4D", "param_shapes",
+           ]

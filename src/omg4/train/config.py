@@ -9,62 +9,58 @@ FreeTimeGS (``backbone="freetimegs"``) trains on the same schedule with a fixed 
 (``max_gaussians``; 0 = one Gaussian per initial point): at each densification event it
 relocates Gaussians whose opacity fell below ``relocate_opacity`` instead of densifying and
 pruning, never resets opacities, and adds the 4D regularization ``lambda_reg`` · mean σ·sg[p_t]
-until ``densify_until`` (FreeTimeGS §3.3–3.4).
+until ``densify_until`` (FreeTimeGS §3.3–3.4). Which of these a run uses is its backbone's density control
+(:mod:`omg4.train.strategy`). Every field is settable by name (:mod:`omg4.settings`).
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
+from omg4.settings import knob
+
 
 @dataclass(frozen=True)
 class TrainConfig:
     """Every knob of a baseline training run (iterations count optimizer steps)."""
 
-    iterations: int = 30_000
-    batch_size: int = 4
-    seed: int = 6666
+    iterations: int = knob(30_000, "optimizer steps")
+    batch_size: int = knob(4, "views per step")
+    seed: int = knob(6666, "random seed of every draw (initial points, batches, densification)")
     # learning rates (rt4dgs §3.3); position ones are multiplied by the scene extent
-    position_lr_init: float = 1.6e-4
-    position_lr_final: float = 1.6e-6
-    position_lr_max_steps: int = 30_000
-    time_lr: float = 1.6e-4
-    feature_lr: float = 0.0025
-    feature_rest_lr: float = 0.0025 / 20
-    opacity_lr: float = 0.05
-    scaling_lr: float = 0.005
-    rotation_lr: float = 0.001
-    # loss (rt4dgs §3.2)
-    lambda_dssim: float = 0.2
-    # densification (rt4dgs §3.4)
-    densify_from: int = 500
-    densify_until: int = 15_000
-    densify_interval: int = 100
-    densify_grad_threshold: float = 2e-4
-    percent_dense: float = 0.01
-    prune_opacity: float = 0.005
-    prune_screen_size: float = 20.0
-    prune_world_size: float = 0.1
-    opacity_reset_interval: int = 3000
-    max_gaussians: int = 0  # 0 = unbounded
-    # SH degree schedule: spatial 0→max, then temporal 0→max, one step per interval
-    sh_increase_interval: int = 1000
-    # initialization
-    num_random_points: int = 100_000
-    # evaluation and checkpoints
-    test_interval: int = 0  # 0 = only at the end
-    checkpoint_interval: int = 1000
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    # backbone (omg4.gaussians.backbone) and the FreeTimeGS terms
-    backbone: str = "rt4dgs"
-    velocity_lr: float = 1.6e-3  # × extent; ten times the position rate (demo scene: +1.2 dB on moving pixels)
-    # log duration; demo sweep (test PSNR / moving pixels): 0.005 (the log scales' rate) → 27.98 / 25.19 dB,
-    # 0.02 → 28.38 / 25.69, 0.05 → 28.50 / 25.84, 0.1 → 28.20 / 25.59
-    duration_lr: float = 0.05
-    lambda_reg: float = 0.01
-    relocate_opacity: float = 0.05  # demo sweep: 0.005 → 25.96 dB, 0.02 → 27.44, 0.05 → 27.98, 0.1 → 28.10
-    backend: str = "auto"
-    device: str = "cpu"  # where tensors live (omg4.device.resolve_device); configs written before it load as "cpu"
+    position_lr_init: float = knob(1.6e-4, "position learning rate at the start (× scene extent)")
+    position_lr_final: float = knob(1.6e-6, "position learning rate at position_lr_max_steps (× scene extent)")
+    position_lr_max_steps: int = knob(30_000, "steps of the log-linear position decay")
+    time_lr: float = knob(1.6e-4, "time-centre learning rate (× scene extent)")
+    feature_lr: float = knob(0.0025, "learning rate of the SH DC term (and of the OMG4 appearance features)")
+    feature_rest_lr: float = knob(0.0025 / 20, "learning rate of the other SH coefficients")
+    opacity_lr: float = knob(0.05, "opacity learning rate")
+    scaling_lr: float = knob(0.005, "learning rate of the log scales (spatial and temporal)")
+    rotation_lr: float = knob(0.001, "quaternion learning rate")
+    lambda_dssim: float = knob(0.2, "weight of the D-SSIM term in the loss (rt4dgs §3.2)")
+    # density control (rt4dgs §3.4; FreeTimeGS relocation uses the same schedule)
+    densify_from: int = knob(500, "first density event after this step")
+    densify_until: int = knob(15_000, "no density events, statistics or regularization from this step on")
+    densify_interval: int = knob(100, "steps between density events")
+    densify_grad_threshold: float = knob(2e-4, "mean view-space gradient (NDC) from which a Gaussian is densified")
+    percent_dense: float = knob(0.01, "largest scale (× extent) of a Gaussian that is cloned rather than split")
+    prune_opacity: float = knob(0.005, "Gaussians below this opacity are pruned")
+    prune_screen_size: float = knob(20.0, "after the first opacity reset, prune Gaussians wider than this (pixels)")
+    prune_world_size: float = knob(0.1, "after the first opacity reset, prune Gaussians larger than this (× extent)")
+    opacity_reset_interval: int = knob(3000, "steps between opacity resets (to 0.01)")
+    max_gaussians: int = knob(0, "cap on the Gaussian count (0: none); FreeTimeGS: its fixed budget")
+    sh_increase_interval: int = knob(1000, "steps per SH degree: spatial 0 → max, then temporal 0 → max")
+    num_random_points: int = knob(100_000, "initial points made when the data has none (random, rays, mvs)")
+    test_interval: int = knob(0, "test PSNR every N steps (0: only at the end)")
+    checkpoint_interval: int = knob(1000, "a resumable checkpoint every N steps (0: only at the end)")
+    background: tuple[float, float, float] = knob((0.0, 0.0, 0.0), "background colour, RGB in [0, 1]")
+    backbone: str = knob("rt4dgs", "the representation (omg4.gaussians.backbone.BACKBONES)")
+    velocity_lr: float = knob(1.6e-3, "FreeTimeGS velocity learning rate (× extent)")
+    duration_lr: float = knob(0.05, "FreeTimeGS log-duration learning rate")
+    lambda_reg: float = knob(0.01, "FreeTimeGS 4D regularization weight (FreeTimeGS §3.3)")
+    relocate_opacity: float = knob(0.05, "FreeTimeGS: Gaussians below this opacity are relocated")
+    backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
+    device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
 
     def to_dict(self) -> dict:
         return asdict(self)

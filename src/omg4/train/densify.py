@@ -16,6 +16,8 @@ import torch
 from omg4.gaussians import build_rotation_4d
 from omg4.gaussians.backbone import activated_scales
 from omg4.train.optim import append_rows, keep_rows, replace_param
+from omg4.train.step import step_generator
+from omg4.train.strategy import DensityStrategy
 
 
 class DensifyStats:
@@ -122,6 +124,28 @@ def _split_children(params, idx, convention: str, generator: torch.Generator, n_
     out["scaling"] = out["scaling"] - shrink
     out["scaling_t"] = out["scaling_t"] - shrink
     return out
+
+
+class Densification(DensityStrategy):
+    """Real-Time4DGS's density control (rt4dgs §3.4): statistics before ``densify_until``; every
+    ``densify_interval`` steps after ``densify_from`` a :func:`densify_and_prune` event (the screen-size limit
+    once the first opacity reset has passed); opacities reset every ``opacity_reset_interval`` steps before
+    ``densify_until``."""
+
+    def collects_statistics(self, cfg, step: int) -> bool:
+        return step < cfg.densify_until
+
+    def after_step(self, model, optimizer, stats, cfg, step: int, extent: float) -> None:
+        if step >= cfg.densify_until:
+            return
+        if step > cfg.densify_from and step % cfg.densify_interval == 0:
+            size_threshold = cfg.prune_screen_size if step > cfg.opacity_reset_interval else None
+            densify_and_prune(model, optimizer, stats, grad_threshold=cfg.densify_grad_threshold,
+                              percent_dense=cfg.percent_dense, extent=extent, prune_opacity=cfg.prune_opacity,
+                              max_screen_size=size_threshold, prune_world_size=cfg.prune_world_size,
+                              max_gaussians=cfg.max_gaussians, generator=step_generator(cfg.seed, step, stream=1))
+        if step % cfg.opacity_reset_interval == 0:
+            reset_opacity(model, optimizer)
 
 
 def reset_opacity(model, optimizer, ceiling: float = 0.01) -> None:

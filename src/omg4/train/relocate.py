@@ -23,13 +23,42 @@ import math
 
 import torch
 
-from omg4.gaussians.freetime import scaled_rotation_3d
+from omg4.gaussians.freetime import opacity_regularizer, scaled_rotation_3d
 from omg4.train.densify import DensifyStats
 from omg4.train.optim import overwrite_rows
+from omg4.train.step import step_generator
+from omg4.train.strategy import DensityStrategy
 
 LAMBDA_GRAD = 0.5
 LAMBDA_OPACITY = 0.5
 SPLIT_SHRINK = math.log(1.6)
+
+
+class Relocation(DensityStrategy):
+    """FreeTimeGS's density control (FreeTimeGS §3.3–3.4): a model that starts at its budget exactly (with
+    fewer initial points than ``max_gaussians``, points are drawn again: they spread over time), statistics
+    and the 4D regularization ``lambda_reg`` · mean σ·sg[p_t] before ``densify_until``, a :func:`relocate`
+    event every ``densify_interval`` steps strictly between ``densify_from`` and ``densify_until``; no opacity
+    resets."""
+
+    def initial_points(self, xyz, rgb, cfg, generator):
+        if cfg.max_gaussians > len(xyz):
+            extra = torch.randint(len(xyz), (cfg.max_gaussians - len(xyz),), generator=generator, device="cpu")
+            return torch.cat([xyz, xyz[extra]]), torch.cat([rgb, rgb[extra]])
+        return super().initial_points(xyz, rgb, cfg, generator)
+
+    def collects_statistics(self, cfg, step: int) -> bool:
+        return step < cfg.densify_until
+
+    def regularizer(self, params, cfg, timestamps, step: int):
+        if not cfg.lambda_reg or step >= cfg.densify_until:
+            return None
+        return cfg.lambda_reg * opacity_regularizer(params["opacity"], params["t"], params["duration"], timestamps)
+
+    def after_step(self, model, optimizer, stats, cfg, step: int, extent: float) -> None:
+        if cfg.densify_from < step < cfg.densify_until and step % cfg.densify_interval == 0:
+            relocate(model, optimizer, stats, min_opacity=cfg.relocate_opacity,
+                     generator=step_generator(cfg.seed, step, stream=1))
 
 
 def relocate(model, optimizer, stats: DensifyStats, *, min_opacity: float, generator: torch.Generator) -> int:

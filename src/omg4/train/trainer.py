@@ -1,13 +1,13 @@
-"""The baseline training loop (rt4dgs §3; FreeTimeGS with ``TrainConfig.backbone``).
+"""The baseline training loop of any backbone (rt4dgs §3; FreeTimeGS with ``TrainConfig.backbone``).
 
 Each iteration renders a batch of random (camera, frame) views, back-propagates
-``loss_v / B`` per view, and takes one Adam step; densification, opacity resets and the SH
-degree schedule happen at fixed iterations. Everything random is drawn from generators
+``loss_v / B`` per view, and takes one Adam step; the SH degree schedule happens at fixed
+iterations, and the backbone's density control (:mod:`omg4.train.strategy`: Real-Time4DGS's
+densification, pruning and opacity resets; FreeTimeGS's relocation and regularization) adds,
+removes or moves Gaussians through its hooks. Everything random is drawn from generators
 seeded by ``(seed, iteration)``, so a run resumed from a checkpoint continues exactly as
 an uninterrupted run of the same seed. The model, optimizer state, statistics and images live
 on ``TrainConfig.device``; the generators are CPU ones whose draws are moved there.
-A FreeTimeGS run keeps a fixed budget: relocation (:mod:`omg4.train.relocate`) replaces
-densification and opacity resets, and its 4D regularization joins the loss early on.
 """
 
 from __future__ import annotations
@@ -28,17 +28,16 @@ from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.evaluate import render_image, view_image
 from omg4.gaussians import GaussianConfig, Gaussians4D
-from omg4.gaussians.backbone import FREETIMEGS, backbone_named
+from omg4.gaussians.backbone import backbone_named
 from omg4.gaussians.checkpoint import save_gaussians
-from omg4.gaussians.freetime import opacity_regularizer
 from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
-from omg4.train import densify
 from omg4.train.config import TrainConfig
-from omg4.train.relocate import relocate
+from omg4.train.densify import DensifyStats
 from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_optimizers
-from omg4.train.step import backward_batch, step_generator
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
+from omg4.train.step import backward_batch, step_generator
+from omg4.train.strategy import strategy_for
 
 
 @dataclass
@@ -61,9 +60,10 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
     """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume.
 
-    At most ``cfg.max_gaussians`` (a random subset). A FreeTimeGS model starts at its budget
-    exactly: with fewer points than ``max_gaussians``, points are drawn again (they spread over
-    time). Built on the CPU (so the random draws do not depend on the device); the caller moves it.
+    The backbone's density control chooses the points (:meth:`~omg4.train.strategy.DensityStrategy.initial_points`:
+    at most ``cfg.max_gaussians``, a random subset; a FreeTimeGS model starts at its budget exactly) and its
+    ``initialize`` makes the Gaussians. Built on the CPU (so the random draws do not depend on the device); the
+    caller moves it.
     """
     if points is None:
         points = scene.initial_points
@@ -79,12 +79,7 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
     gen = torch.Generator().manual_seed(cfg.seed)
     xyz = torch.as_tensor(points.xyz, dtype=torch.float32, device="cpu")
     rgb = torch.as_tensor(points.rgb, dtype=torch.float32, device="cpu")
-    if cfg.max_gaussians and len(xyz) > cfg.max_gaussians:
-        keep = torch.randperm(len(xyz), generator=gen, device="cpu")[: cfg.max_gaussians]
-        xyz, rgb = xyz[keep], rgb[keep]
-    elif backbone is FREETIMEGS and cfg.max_gaussians > len(xyz):
-        extra = torch.randint(len(xyz), (cfg.max_gaussians - len(xyz),), generator=gen, device="cpu")
-        xyz, rgb = torch.cat([xyz, xyz[extra]]), torch.cat([rgb, rgb[extra]])
+    xyz, rgb = strategy_for(backbone).initial_points(xyz, rgb, cfg, gen)
     return Gaussians4D.from_points(xyz, rgb, config, generator=gen)
 
 
@@ -123,7 +118,7 @@ class Trainer:
             self.model, _, state = load_run_checkpoint(self.run_dir, start_it, self.device)
             self.optimizer = self._make_optimizer()
             self.optimizer.load_state_dict(state["optimizer"])
-            self.stats = densify.DensifyStats(self.model.num_gaussians, self.device)
+            self.stats = DensifyStats(self.model.num_gaussians, self.device)
             for k, v in state["stats"].items():
                 setattr(self.stats, k, v)
             self.start = int(state["iteration"])
@@ -131,7 +126,8 @@ class Trainer:
         else:
             self.model = initial_model(scene, cfg, points).to(self.device)
             self.optimizer = self._make_optimizer()
-            self.stats = densify.DensifyStats(self.model.num_gaussians, self.device)
+            self.stats = DensifyStats(self.model.num_gaussians, self.device)
+        self.strategy = strategy_for(self.model.config.schema)
         self.history: list[dict] = []
 
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -148,45 +144,21 @@ class Trainer:
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
         batch = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step), device="cpu")
-        densifying = step < cfg.densify_until
+        collecting = self.strategy.collects_statistics(cfg, step)
 
         def on_views(rendered, sl):
-            if densifying and rendered.means2d.grad is not None:
+            if collecting and rendered.means2d.grad is not None:
                 height, width = rendered.image.shape[1:3]
                 self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, width, height, cfg.batch_size)
 
         loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
                                           lambda_dssim=cfg.lambda_dssim, what="training", step=step,
                                           device=self.device, on_views=on_views,
-                                          regularizer=self._regularizer if densifying else None)
+                                          regularizer=lambda times: self.strategy.regularizer(model.params, cfg,
+                                                                                              times, step))
         step_optimizers([self.optimizer], self.device)
-        self._density_events(step)
+        self.strategy.after_step(model, self.optimizer, self.stats, cfg, step, self.extent)
         return loss, batch_psnr
-
-    def _regularizer(self, timestamps: torch.Tensor) -> torch.Tensor | None:
-        """FreeTimeGS's 4D regularization of the batch (None for other backbones)."""
-        if self.model.config.schema is not FREETIMEGS or not self.cfg.lambda_reg:
-            return None
-        p = self.model.params
-        return self.cfg.lambda_reg * opacity_regularizer(p["opacity"], p["t"], p["duration"], timestamps)
-
-    def _density_events(self, step: int) -> None:
-        cfg = self.cfg
-        if self.model.config.schema is FREETIMEGS:
-            if cfg.densify_from < step < cfg.densify_until and step % cfg.densify_interval == 0:
-                relocate(self.model, self.optimizer, self.stats, min_opacity=cfg.relocate_opacity,
-                         generator=step_generator(cfg.seed, step, stream=1))
-            return
-        if step < cfg.densify_until:
-            if step > cfg.densify_from and step % cfg.densify_interval == 0:
-                size_threshold = cfg.prune_screen_size if step > cfg.opacity_reset_interval else None
-                densify.densify_and_prune(
-                    self.model, self.optimizer, self.stats, grad_threshold=cfg.densify_grad_threshold,
-                    percent_dense=cfg.percent_dense, extent=self.extent, prune_opacity=cfg.prune_opacity,
-                    max_screen_size=size_threshold, prune_world_size=cfg.prune_world_size,
-                    max_gaussians=cfg.max_gaussians, generator=step_generator(cfg.seed, step, stream=1))
-            if step % cfg.opacity_reset_interval == 0:
-                densify.reset_opacity(self.model, self.optimizer)
 
     def save_checkpoint(self, step: int) -> Path:
         return save_run_checkpoint(self.run_dir, step, self.model, self.optimizer, self.stats, self.metadata)

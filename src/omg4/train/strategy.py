@@ -1,0 +1,61 @@
+"""Density control as a strategy of the backbone: the hooks the trainer calls (cf. gsplat's ``Strategy``).
+
+A backbone names its strategy (:attr:`omg4.gaussians.backbone.Backbone.training`): Real-Time4DGS
+densifies, prunes and resets opacities (:class:`omg4.train.densify.Densification`, rt4dgs §3.4),
+FreeTimeGS relocates within a fixed budget and regularizes opacity
+(:class:`omg4.train.relocate.Relocation`, FreeTimeGS §3.3–3.4). A backbone that names none trains a
+fixed set of Gaussians (:class:`DensityStrategy` itself), so a new backbone never inherits another's
+density control. The trainer calls, in order: :meth:`~DensityStrategy.initial_points` once;
+then at every step :meth:`~DensityStrategy.collects_statistics` (whether the view-space gradient
+statistics are accumulated), :meth:`~DensityStrategy.regularizer` (a term added to the loss) and, after
+the optimizer step, :meth:`~DensityStrategy.after_step` (the density events).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import torch
+
+from omg4.gaussians.backbone import Backbone
+from omg4.train.config import TrainConfig
+
+
+class DensityStrategy:
+    """A fixed set of Gaussians: at most ``max_gaussians`` of the initial points, no statistics, no events."""
+
+    def initial_points(self, xyz: torch.Tensor, rgb: torch.Tensor, cfg: TrainConfig, generator: torch.Generator
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points the model starts from (CPU [M, 3] each): a random subset of ``cfg.max_gaussians`` when
+        there are more."""
+        if cfg.max_gaussians and len(xyz) > cfg.max_gaussians:
+            keep = torch.randperm(len(xyz), generator=generator, device="cpu")[: cfg.max_gaussians]
+            xyz, rgb = xyz[keep], rgb[keep]
+        return xyz, rgb
+
+    def collects_statistics(self, cfg: TrainConfig, step: int) -> bool:
+        """Whether step ``step`` accumulates the view-space gradient statistics (:class:`DensifyStats`)."""
+        return False
+
+    def regularizer(self, params: dict[str, torch.Tensor], cfg: TrainConfig, timestamps: torch.Tensor,
+                    step: int) -> torch.Tensor | None:
+        """A scalar added to the loss of step ``step`` for views at ``timestamps`` [B], or None."""
+        return None
+
+    def after_step(self, model, optimizer: torch.optim.Optimizer, stats, cfg: TrainConfig, step: int,
+                   extent: float) -> None:
+        """The density events after the optimizer step ``step`` (1-based)."""
+
+
+def strategy_for(backbone: Backbone) -> DensityStrategy:
+    """A new instance of ``backbone``'s density control (:class:`DensityStrategy` when it names none)."""
+    spec = backbone.training
+    if spec is None:
+        return DensityStrategy()
+    if isinstance(spec, str):
+        module, _, name = spec.partition(":")
+        spec = getattr(importlib.import_module(module), name)
+    return spec()
+
+
+__all__ = ["DensityStrategy", "strategy_for"]
