@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from omg4.cli import main
-from omg4.codec import forge
+import forge
 
 
 @pytest.fixture(scope="module")

@@ -77,7 +77,7 @@ def test_fine_tuning_defaults_are_the_library_defaults(command):
         return
     # compress leaves its flags unset so that a config file can set them; unset, the run takes the library's
     assert all(actions[f].default is None for f in ("--batch-size", "--baseline-iterations", "--codec", "--seed",
-                                                    "--num-merge", "--stages", "--device", "--backend"))
+                                                    "--num-merge", "--stages", "--device", "--backend", "--rate-weight"))
     assert _compress_config([]) == CompressConfig(schedule="cpu", device="cpu")
     assert _compress_config(["--stages", "sample,appearance", "--seed", "3"]) == CompressConfig(
         schedule="cpu", device="cpu", stages=("sample", "appearance"), seed=3)

@@ -39,3 +39,36 @@ def test_no_citation_of_a_document_outside_the_repository():
 def test_cited_docs_exist():
     cited = {m for path in SOURCES for m in re.findall(r"docs/[\w-]+\.md", _text(path))}
     assert cited and all((ROOT / name).is_file() for name in cited), cited
+
+
+#: words about how the work was organised, which the project's files never use about themselves
+ORGANISATION_WORDS = re.compile(r"\bsessions?\b|\bissues? ?#?\d+|\bhelpers?\b|\bthrow-? ?away\b|\breview(s|ed|er|ers)?\b",
+                                re.IGNORECASE)
+
+
+def _project_files() -> list[Path]:
+    """What a user reads: the README, the changelog, docs/, and benchmarks/ with its scripts and results."""
+    files = [ROOT / "README.md", ROOT / "CHANGELOG.md"]
+    for folder in ("docs", "benchmarks"):
+        files += [p for p in (ROOT / folder).rglob("*") if p.is_file() and p.suffix in (".md", ".py", ".json", ".toml")
+                  and "__pycache__" not in p.parts]
+    return sorted(p for p in files if p.exists())
+
+
+def organisation_words(text: str) -> list[str]:
+    return [m.group(0) for m in ORGANISATION_WORDS.finditer(text)]
+
+
+def test_the_scan_finds_each_word_it_looks_for():
+    planted = "In session 3 a helper did a throw-away run, reviewed for issue 12 (issue #7, throwaway review)."
+    assert organisation_words(planted) == ["session", "helper", "throw-away", "reviewed", "issue 12", "issue #7",
+                                           "throwaway", "review"]
+    assert organisation_words("sessionless preview of the issuer's helpful reviewing tool") == []
+
+
+def test_project_files_speak_of_the_project_alone():
+    files = _project_files()
+    assert len(files) > 30 and ROOT / "README.md" in files
+    found = {str(p.relative_to(ROOT)): sorted(set(organisation_words(_text(p)))) for p in files}
+    found = {name: words for name, words in found.items() if words}
+    assert not found, f"words about how the work was organised: {found}"

@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 
 from omg4.cli import main
-from omg4.codec import forge
+import forge
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 TIMEOUT_S = 60

@@ -13,8 +13,8 @@ import importlib
 import os
 import sys
 
-# Idle OpenMP threads must not spin: on small machines shared with other work, torch's
-# default busy-waiting made small-image ops 15-30x slower (measured in benchmarks/metrics.py).
+# Idle OpenMP threads must not spin: on small machines shared with other work, torch's default busy-waiting
+# makes small-image ops many times slower (benchmarks/metrics.py; docs/results.md).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # name -> (module in omg4.commands, one-line help)

@@ -11,7 +11,6 @@ per pixel; M keeps about 5 % of them), so the demo renders 128×96 and lets the 
 to 60k Gaussians (4.9 per pixel) in 1500 iterations, then fine-tunes the compression for
 4,700 iterations (the paper's 11,000 scaled to the run, with more weight on the recovery
 after pruning and on the MLPs). The M preset's ratios (τ_GS 0.2, p 0.8) are untouched.
-(160×120 with 80k Gaussians lost 0.25–0.42 dB to its baseline in about 1.7× the time.)
 """
 
 from __future__ import annotations

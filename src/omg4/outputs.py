@@ -1,6 +1,6 @@
 """Output paths checked before any work: writable, not a folder where a file goes, never over an input.
 
-The rule every command follows (the README's "Outputs never destroy inputs"):
+The rule every command follows (outputs never destroy inputs):
 
 * an output that resolves to one of the command's inputs (model, dataset file or folder,
   scores, camera file) is refused, ``--force`` or not;

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omg4.codec import entropy, forge
+import forge
+
+from omg4.codec import entropy
 from omg4.codec.decoder import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
 from omg4.errors import CorruptFileError, OMG4Error
@@ -150,3 +152,22 @@ def test_names_with_a_trailing_newline_are_refused(valid, tmp_path):
     p.attributes[attribute + "\n"] = p.attributes.pop(attribute)
     with pytest.raises(OMG4Error, match="invalid attribute name"):
         encode_payload(p, tmp_path / "x.omg4")
+
+
+@pytest.mark.parametrize("codec", ["paper", "ans"])
+def test_info_refuses_what_the_decoder_refuses(tmp_path, capsys, codec):
+    """A file declaring 20,000 identical Gaussians in a few bytes: every section consistent with its header, so
+    only the decoder's bounds catch it; ``info`` decodes as ``render`` does and refuses it the same way."""
+    from omg4.cli import main
+    from omg4.codec.summary import describe_file
+
+    path = tmp_path / "inflated.omg4"
+    path.write_bytes(forge._inflated(20_000, codec))
+    with pytest.raises(CorruptFileError) as decoder_error:
+        load_omg4(path)
+    with pytest.raises(CorruptFileError) as info_error:
+        describe_file(path)
+    assert str(info_error.value) == str(decoder_error.value)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(decoder_error.value) in err

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from omg4.cli import main
-from omg4.codec import forge
+import forge
 from omg4.evaluate import load_model
 from omg4.render.api import rasterize
 from omg4.render.paths import bounds_camera

@@ -11,7 +11,7 @@ where the scene is instead:
 * exact positions (beyond the paper): a few Gaussians chosen by the writer — the largest, whose appearance
   covers the most pixels — keep their fp16 positions exactly (encoding ``grid-morton-exact``): the appearance MLP
   reads positions through a 16-band frequency encoding (omg4 §6b), whose top band turns a shift of 1/8,000 of
-  the scene into a different colour, so a large Gaussian on the grid can change a whole view (README, Rate).
+  the scene into a different colour, so a large Gaussian on the grid can change a whole view (``docs/results.md``, coders).
   After the Morton codes come the chosen storage ranks (gaps, hybrid uints) and, per chosen Gaussian and axis,
   the zigzag difference between the ordered fp16 keys of its exact value and of its grid value.
 * time centres: a step of ``duration · 2^-bits`` (the clip's time range from the payload's meta,

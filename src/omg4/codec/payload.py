@@ -18,7 +18,7 @@ Three codecs:
   codewords merge); rotation quaternions as unit quaternions in 3 × 9 bits (:mod:`omg4.codec.quaternions`)
   where that is smaller than their codebooks; MLP weight matrices in 8 bits per weight, a scale per column
   (:mod:`omg4.codec.weights`); the header deflated. Everything but the codewords' order and the header
-  changes values, each by a measured, small amount (README, Rate). Version-3 and -4 compact files (no exact
+  changes values, each by a small amount measured in ``docs/results.md`` (coders). Version-3 and -4 compact files (no exact
   positions, a weight scale per row) and version-2 ones (fp16 positions as Morton codes, fp16 time centres,
   3 × 10-bit quaternions, codebooks as stored) still decode.
 * ``"paper"`` — OMG4's ``encode``: fp16 positions, time centres, codebooks and MLP weights,
@@ -81,7 +81,7 @@ GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16
 
 @dataclass(frozen=True)
 class CompactGrids:
-    """The grids of the "compact" codec's lossy values (beyond the paper; README, Rate), a rate–distortion knob the
+    """The grids of the "compact" codec's lossy values (beyond the paper; ``docs/results.md``, coders), a rate–distortion knob the
     decoder needs no setting for (each section records its grid, or holds fp16 values).
 
     positions: bits per axis over the scene box's largest side (:func:`omg4.codec.grids.encode_positions`), or 0:
@@ -98,8 +98,9 @@ class CompactGrids:
     default): as they are — near-equal codewords then merge, so indices shrink too;
     exact: the percentage of Gaussians, the largest (:func:`largest_footprints`), whose grid positions are
     corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; a file with any is
-    container version 5), or 0: none. The default 3 % costs 0.03-0.09 B/G and keeps one large Gaussian's
-    appearance from changing a whole view (README, Rate).
+    container version 5), or 0: none. The default 3 % costs a few hundredths of a byte per Gaussian and keeps one
+    large Gaussian's
+    appearance from changing a whole view (``docs/results.md``, coders).
     ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
     """
 

@@ -9,8 +9,7 @@ ANS-coded) and the other three on a uniform grid of ``2^bits − 1`` levels over
 (odd, so 0 is a level and the identity is exact; ANS-coded); the decoder recovers the largest
 as √(1 − Σ others²). The grid's bits are part of the section's encoding name
 (``smallest-three-9``; version-2 files hold ``smallest-three-10``). At 9 bits a component is off by
-at most 1.4·10⁻³ (the rotation by ~0.3°): on the demo's OMG4-M 0.005 dB per quaternion attribute,
-against 0.035 dB at 8 bits (README, Rate).
+at most 1.4·10⁻³ (the rotation by ~0.3°; its measured cost in PSNR: ``docs/results.md``, coders).
 """
 
 from __future__ import annotations

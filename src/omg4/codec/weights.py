@@ -6,9 +6,8 @@ Each column (one input of the layer; ``int<b>-cols``, what the writer uses since
 weights the integers ``round(w / s)`` in [−L, L], ANS-coded; the decoded weights are fp16. The section's encoding
 names the bits (8 by default; 2-7 under coarser grids, :class:`omg4.codec.payload.CompactGrids`) and the layout.
 Per-column scales follow the inputs: an appearance head (paper §4.4) takes 13 shared features and 3 Gaussian
-features of different ranges, which per-row scales give one step. On two basketball OMG4-M models per-row 8 bits
-moved PSNR by −0.064 and +0.071 dB against the fp16 weights, per-column 8 bits by +0.004 and +0.004; on the demo's
-OMG4-M −0.003 and +0.000 dB, for 0.1-0.6 % more weight bytes (README, Rate).
+features of different ranges, which per-row scales give one step (the measured effect of both layouts on PSNR:
+``docs/results.md``, coders).
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ def add_codec_argument(p: argparse.ArgumentParser, *, from_settings: bool = Fals
 
     p.add_argument("--codec", default=None if from_settings else CODECS[0], choices=list(CODECS),
                    help="file coder: compact (default: codewords coded without their order, unit quaternions, "
-                        "8-bit MLP weights; 0.49-0.78x the paper coder's file at the same quality, README 'Rate'), "
+                        "8-bit MLP weights: about half the paper coder's file at the same quality, docs/results.md), "
                         "ans (lossless, fp16 values as the paper), paper (Huffman + LZMA as OMG4)")
 
 
@@ -123,10 +123,9 @@ GRID_BITS_HELP = ("beyond the paper: the compact codec's grids, bits per positio
                   "component (16: the rotation codebooks), of the clip's duration per time step (0: fp16), and "
                   "optionally per MLP weight (2-8, or 16: fp16), of log-scale codebook steps (0: unrounded), of the "
                   "other codebooks' steps (0: unrounded) and the percentage of Gaussians, the largest, whose positions "
-                  "are kept exactly (0: none); default 15,9,10 = 15,9,10,8,5,0,3; 15,8,8 saves about 4 %% "
-                  "of the file, 15,9,10,8,5,6 about 4 %% for nothing measurable, 12,7,7 about a sixth of the "
-                  "per-Gaussian bytes, at some quality; lossless (= 0,16,0,16,0) holds the paper coder's values exactly, "
-                  "in 0.74-0.78x its bytes: README 'Rate')")
+                  "are kept exactly (0: none); default 15,9,10 = 15,9,10,8,5,0,3; coarser grids (e.g. 15,8,8 or "
+                  "12,7,7) make smaller files at some quality; lossless (= 0,16,0,16,0) holds the paper coder's "
+                  "values exactly, in fewer bytes (sizes and PSNR of each: docs/results.md)")
 
 
 rate_weight = float_in(0.0, math.inf, low_open=False, high_open=True)
@@ -143,11 +142,10 @@ def rate_weight_list(text: str) -> tuple[float, ...]:
 
 def add_rate_weight_argument(p: argparse.ArgumentParser) -> None:
     """``--rate-weight``: β of entropy-constrained SVQ codebooks (:class:`omg4.compress.pipeline.CompressConfig`)."""
-    p.add_argument("--rate-weight", type=rate_weight, default=0.0,
-                   metavar="BETA",
+    p.add_argument("--rate-weight", type=rate_weight, metavar="BETA",
                    help="beyond the paper: fit the codebooks by entropy-constrained k-means, an index bit costing "
                         "BETA times the mean k-means distortion, so the indices code to fewer bits at some quality "
-                        "(README 'Rate'); 0 (default) is the paper's k-means")
+                        "(docs/results.md); 0 (default) is the paper's k-means")
 
 
 def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, from_settings: bool = False) -> None:

@@ -107,49 +107,19 @@ def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
 
 
 def omg4_summary(path: Path, **_) -> tuple[dict, str]:
-    """Per-section size breakdown of an ``.omg4`` file and its bits per Gaussian.
+    """Per-section size breakdown of an ``.omg4`` file and its bits per Gaussian, once the decoder has accepted the
+    whole file (:func:`omg4.codec.summary.describe_file`). The JSON also carries the container version and each
+    section's encoding (which names the compact codec's grids)."""
+    from omg4.codec.summary import describe_file
 
-    Groups: positions, time centres, each attribute's index streams and codebooks (or its unit
-    quaternions), the MLP weights, and the container header; the groups add up to the file size. The JSON also
-    carries the container version and each section's encoding (which names the compact codec's grids).
-    """
-    from omg4.codec.container import describe_container
-    from omg4.codec.payload import check_sections
-    from omg4.errors import CorruptFileError
-
-    d = describe_container(path)
-    header = d.pop("header")
-    try:
-        check_sections(header, d["sections"])
-    except CorruptFileError as exc:
-        raise CorruptFileError(f"{path}: {exc}") from None
-    n = header["num_gaussians"]
-    groups: dict[str, int] = {}
-    for name, size in d["sections"].items():
-        parts = name.split(".")
-        if parts[0] == "svq":
-            key = f"{parts[1]} {'indices' if parts[2].startswith('index') else 'codebooks'}"
-        elif parts[0] == "quat":
-            key = f"{parts[1]} quaternions"
-        else:
-            key = {"xyz": "positions", "t": "time centres", "mlp": "MLPs"}.get(parts[0], parts[0])
-        groups[key] = groups.get(key, 0) + size
-    groups["header"] = d["header_bytes"]
-    total = d["total_bytes"]
-    meta = header.get("meta", {})
-    config = meta.get("gaussian_config") if isinstance(meta, dict) else None
-    backbone = config.get("backbone", "rt4dgs") if isinstance(config, dict) else "rt4dgs"
-    summary = {"kind": "omg4", "path": str(path), "codec": header.get("codec"), "version": d["version"],
-               "backbone": backbone, "num_gaussians": n, "encodings": header.get("encodings"),
-               "total_bytes": total, "storage_mb": total / 2**20,
-               "bits_per_gaussian": 8 * total / n if n else None, "groups": groups, "sections": d["sections"],
-               "meta": meta}
-    lines = [f"{printable(path)}: OMG4 file ({printable(str(backbone))} backbone), codec {summary['codec']} "
-             f"(container version {summary['version']}), "
-             f"{n} Gaussians, {total} bytes "
-             f"({summary['storage_mb']:.4f} MB), {summary['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
+    d = describe_file(path)
+    n, total, groups = d["num_gaussians"], d["total_bytes"], d["groups"]
+    summary = {"kind": "omg4", **{k: v for k, v in d.items() if k != "backbone_title"}}
+    lines = [f"{printable(path)}: OMG4 file ({printable(d['backbone_title'])}), codec {printable(d['codec'])} "
+             f"(container version {d['version']}), {n} Gaussians, {total} bytes ({d['storage_mb']:.4f} MB), "
+             f"{d['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
     for key, size in groups.items():
-        lines.append(f"  {key:<22} {size:>10} B  {100 * size / total:5.1f}%  "
+        lines.append(f"  {printable(key):<22} {size:>10} B  {100 * size / total:5.1f}%  "
                      f"{8 * size / n if n else 0:7.2f} bits/G")
     return summary, "\n".join(lines)
 

@@ -52,8 +52,7 @@ def tile_grid(width: int, height: int, tile_size: int) -> tuple[int, int]:
 def sigma_cutoff(opacities: torch.Tensor) -> torch.Tensor:
     """[N] exponent above which ``o·exp(−σ) < 1/255`` for sure: ``ln(255·o) + SIGMA_MARGIN``.
 
-    Skipping ``exp`` when σ exceeds it is exact (no kept α is lost; the skip made the forward
-    pass 1.7× faster); computed in float64.
+    Skipping ``exp`` when σ exceeds it is exact (no kept α is lost); computed in float64.
     """
     o = opacities.detach().double().clamp(min=1e-30)
     return torch.log(o / ALPHA_THRESHOLD) + SIGMA_MARGIN

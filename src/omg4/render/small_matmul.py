@@ -2,8 +2,8 @@
 
 The per-Gaussian 4D covariance (rt4dgs §1.3) and the EWA projection's ``J R Σ Rᵀ Jᵀ`` are
 products of 2×3, 3×3 and 4×4 matrices, one per Gaussian. On the CPU a batched matrix
-product is about five times faster than broadcasting (measured at 10k Gaussians: 0.2 vs 1.1
-ms); on a GPU a batched GEMM of tiny matrices is launch- and occupancy-bound, while a
+product is several times faster than broadcasting; on a GPU a batched GEMM of tiny matrices is launch- and
+occupancy-bound, while a
 broadcast multiply and a sum are two element-wise kernels over all Gaussians.
 """
 

@@ -13,8 +13,8 @@ halves of a Real-Time4DGS split. A target drawn k times and its k
 copies get opacity ``1 − (1 − σ)^(1/(k+1))`` each, which keeps their combined peak opacity σ
 where they overlap; the moved rows and their targets restart with zero Adam moments. The
 Gaussian count never changes. The threshold (``TrainConfig.relocate_opacity``, 0.05) is
-higher than 3DGS-MCMC's 0.005: on the demo scene 0.005 moved almost nothing (25.96 dB),
-0.05 gave 27.98 dB (see the training config).
+higher than 3DGS-MCMC's 0.005, which on the demo scene moved almost nothing (the sweep that chose it:
+``docs/paper-map.md``, FreeTimeGS).
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ recomputed — plus raw byte flips and truncations that the checksums must catch
 :func:`exercise` runs a file through everything a user's command does with it (``omg4
 info``, decoding, loading, rendering a frame). ``benchmarks/fuzz_omg4.py`` and the test
 suite drive it; a correct decoder lets every case end as "ok" or a one-line
-:class:`~omg4.errors.CorruptFileError`.
+:class:`~omg4.errors.CorruptFileError`. Tooling for the tests and the fuzz benchmark, not part of the package:
+its valid models take the M preset's codebook sizes and the SVQ layout from the backbone table.
 """
 
 from __future__ import annotations
@@ -28,9 +29,6 @@ from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttrib
                                 encode_payload)
 from omg4.gaussians.backbone import RT4DGS
 
-#: codebook sizes of the M preset (paper appendix) per Real-Time4DGS SVQ attribute; widths and sub-vector
-#: lengths come from the backbone table
-_M_CODEBOOK_SIZES = {"scale": 512, "rotation": 8192, "app": 1024, "scale_t": 512, "rotation_r": 8192}
 #: stand-ins for JSON numbers that ``json.dumps`` refuses to write (overflowing to ±inf when parsed)
 _RAW_NUMBERS = {"__forge_inf__": "1e400", "__forge_ninf__": "-1e400", "__forge_tiny__": "1e-400"}
 _HOSTILE = [None, True, False, -1, 0, 1, 2, 3, 99, 2**24, 2**31 - 1, 2**31, 2**53 + 1, 2**63, 2**64 + 1, -2**63, 0.5,
@@ -56,7 +54,7 @@ def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0
     for group in RT4DGS.svq_groups:
         name, sub = group.name, group.sub_length
         width = sum(w for _, w in RT4DGS.svq_widths(name))
-        k = max(2, int(_M_CODEBOOK_SIZES[name] * codebook_scale))
+        k = max(2, int(RT4DGS.size_presets["M"].codebook_sizes[name] * codebook_scale))
         offset = 0.5 if name == "scale_t" else (-4.0 if name == "scale" else 0.0)
         attributes[name] = QuantizedAttribute([offset + 0.3 * rng.normal(size=(k, sub)) for _ in range(width // sub)],
                                               [rng.integers(0, k, n) for _ in range(width // sub)])
@@ -256,12 +254,12 @@ def exercise(path: str | Path) -> str:
     64×48 frame at the middle of its time range. Returns "ok"; a bad file raises (CorruptFileError if right)."""
     import torch
 
-    from omg4.commands.info import summarize
+    from omg4.codec.summary import describe_file
     from omg4.data.scene import Camera
     from omg4.evaluate import load_model
     from omg4.render.view import render_view
 
-    summarize(Path(path))
+    describe_file(path)
     model = load_model(path)
     t0, t1 = model.config.time_range
     K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])

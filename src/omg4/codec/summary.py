@@ -1,0 +1,49 @@
+"""What an ``.omg4`` file holds, byte by byte (``omg4 info``), once the decoder has accepted all of it.
+
+The file is first decoded exactly as ``render`` and ``eval`` decode it (:func:`omg4.codec.decoder.load_omg4`:
+every checksum, bound and section), so a file the decoder refuses is refused here with the same one-line
+:class:`~omg4.errors.CorruptFileError`. Sections are then grouped by what they store — positions, time
+centres, each SVQ attribute's indices and codebooks (or its unit quaternions), the MLP weights — plus the
+container header; the groups add up to the file size.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from omg4.codec.container import describe_container
+from omg4.codec.decoder import load_omg4
+
+_PLAIN_GROUPS = {"xyz": "positions", "t": "time centres", "mlp": "MLPs"}
+
+
+def section_group(name: str) -> str:
+    """The group a section belongs to: ``svq.scale.index0`` → ``scale indices``, ``quat.rotation`` →
+    ``rotation quaternions``, ``xyz`` → ``positions``, ``mlp.dc.0`` → ``MLPs``."""
+    parts = name.split(".")
+    if parts[0] == "svq" and len(parts) > 2:
+        return f"{parts[1]} {'indices' if parts[2].startswith('index') else 'codebooks'}"
+    if parts[0] == "quat" and len(parts) > 1:
+        return f"{parts[1]} quaternions"
+    return _PLAIN_GROUPS.get(parts[0], parts[0])
+
+
+def describe_file(path: str | os.PathLike) -> dict:
+    """Codec, container version, backbone, Gaussian count, encodings, total bytes, bits per Gaussian, bytes per
+    group and per section, and the file's metadata — after decoding the whole file (see the module docstring)."""
+    model = load_omg4(path)
+    d = describe_container(path)
+    header = d["header"]
+    groups: dict[str, int] = {}
+    for name, size in d["sections"].items():
+        groups[section_group(name)] = groups.get(section_group(name), 0) + size
+    groups["header"] = d["header_bytes"]
+    n, total = model.num_gaussians, d["total_bytes"]
+    return {"codec": header.get("codec"), "version": d["version"], "backbone": model.config.backbone,
+            "backbone_title": model.config.schema.title, "num_gaussians": n, "encodings": header.get("encodings"),
+            "total_bytes": total, "storage_mb": total / 2**20, "bits_per_gaussian": 8 * total / n if n else None,
+            "groups": groups, "sections": d["sections"], "meta": header.get("meta", {}), "path": str(Path(path))}
+
+
+__all__ = ["section_group", "describe_file"]
