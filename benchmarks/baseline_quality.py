@@ -7,19 +7,23 @@ Each run uses ``--preset cpu-small --batch-size 2`` and the default ``--init aut
 which has no ``points3d.ply``: plane-sweep stereo of the first frame; ``--init rays`` gave
 23.35 dB and ``--init random`` 19.02 dB there at 3000 iterations) and writes the training
 summary, the wall time of the whole ``omg4 train`` command (loading, initialization,
-training) and the evaluation (PSNR, SSIM, LPIPS-alex, FPS, #Gaussians, MB) to
-``benchmarks/results/baseline_<scene>.json``. Usage: ``python benchmarks/baseline_quality.py
-[--scenes basketball,mutant] [--work DIR]``; about 10–25 minutes per scene on 2 cores.
+training) and the evaluation (PSNR, SSIM, LPIPS-alex, FPS, #Gaussians, MB) as a run of the record
+``benchmarks/results/baseline_<scene>.json`` (:func:`environment.save_record`: commit, date, machine).
+Usage: ``python benchmarks/baseline_quality.py [--scenes basketball,mutant] [--work DIR]``; about
+10–25 minutes per scene on 2 cores.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from environment import save_record
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -49,11 +53,12 @@ def main() -> None:
         command_wall_s = time.perf_counter() - start
         omg4("eval", str(data), *options, "--model", str(run / "model.safetensors"), "--json",
              str(run / "eval.json"))
-        result = json.loads((run / "eval.json").read_text())
+        result = {"command": shlex.join(["python", "benchmarks/baseline_quality.py", *sys.argv[1:]]), "init": "auto",
+                  **json.loads((run / "eval.json").read_text())}
         result["training"] = json.loads((run / "train.json").read_text())
         result["training"]["command_wall_time_s"] = command_wall_s
         out = ROOT / "benchmarks" / "results" / f"baseline_{name}.json"
-        out.write_text(json.dumps(result, indent=2))
+        save_record(out, result)
         print(f"{name}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, LPIPS {result['lpips_alex']:.4f}, "
               f"{result['num_gaussians']} Gaussians, train {command_wall_s:.0f} s -> {out}")
 

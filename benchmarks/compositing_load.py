@@ -49,7 +49,7 @@ def _count(params, consts, pix_x, pix_y, boxes, ids, tile_offsets, tiles_x, tile
     """Per pixel: ``blended`` Gaussians, ``visited`` box pixels and the final transmittance ``trans`` (float64,
     starting at 1) of one view, tile by tile, front to back (gsplat's rules, ``exp`` per pixel; σ in the input
     precision from the pixel centres ``pix_x``/``pix_y``, as the renderer). Tiles, boxes and parameters are
-    read with the compositing kernels' own helpers."""
+    read with the compositing kernels' own functions."""
     height, width = trans.shape
     half, alpha_max, alpha_min = consts[0], consts[1], consts[2]
     n_tiles = tile_offsets.shape[0] - 1

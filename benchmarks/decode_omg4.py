@@ -1,28 +1,33 @@
 """Decode time of ``.omg4`` files of about 3 MB, per codec (the "compact" codec's speed bound).
 
-A well-formed compressed model (``codec.forge.valid_payload``: the M preset's codebook sizes,
+A well-formed compressed model (``tests/forge.py: valid_payload``: the M preset's codebook sizes,
 random values) is grown until its file holds at least ``--megabytes`` MB, written with each
 codec, then decoded ``--repeats`` times: ``decode_payload`` (file → arrays) and ``load_omg4``
 (file → renderable model with its visibility index). Reports the median seconds.
 
 Usage: python benchmarks/decode_omg4.py [--megabytes 3] [--repeats 5] [--json FILE]
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/decode_omg4.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from environment import save_result
+from environment import save_record
 from omg4.codec.decoder import load_omg4
-from omg4.codec.forge import valid_payload
 from omg4.codec.payload import CODECS, decode_payload, encode_payload
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # forge.py: the valid and hostile files the tests share
+from forge import valid_payload  # noqa: E402
 
 
 def sized_file(path: Path, codec: str, megabytes: float) -> tuple[int, int]:
@@ -63,7 +68,8 @@ def main() -> int:
             r = rows[-1]
             print(f"{codec:<8} {n:>8} G {r['MB']:>7.3f} MB  decode {r['decode_payload_s']:.3f} s  "
                   f"load {r['load_omg4_s']:.3f} s")
-    save_result(args.json, {"benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/decode_omg4.py", *sys.argv[1:]]),
+                            "benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
                             "results": rows})
     return 0
 

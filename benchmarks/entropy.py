@@ -9,13 +9,16 @@ Positions: 200k clustered fp16 positions and time centres as written by ``encode
 with the paper codec (fp16 + LZMA) and the default codec (Morton order + gap coding for xyz).
 
     python benchmarks/entropy.py [--json PATH]
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/entropy.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import lzma
+import shlex
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omg4.atomic import write_text_atomic
+from environment import save_record
 from omg4.codec.entropy import decode_indices, encode_indices
 from omg4.codec.payload import CompressedPayload, encode_payload
 from omg4.compress.kmeans import kmeans
@@ -120,9 +123,8 @@ def main() -> None:
     for r in pos:
         print(f"{r['codec']:>6} {r['n']:>7} {r['xyz_kib']:>8.1f} {r['xyz_bits_per_gaussian']:>8.2f} {r['t_kib']:>7.1f} "
               f"{r['t_bits_per_gaussian']:>6.2f}")
-    info = {"benchmark": "codec.entropy", "index_streams": idx, "positions": pos}
-    write_text_atomic(args.json, json.dumps(info, indent=2) + "\n")
-    print(f"wrote {args.json}")
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/entropy.py", *sys.argv[1:]]),
+                            "benchmark": "codec.entropy", "index_streams": idx, "positions": pos})
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@ For one scene: train a Real-Time4DGS and a FreeTimeGS baseline with the same com
 (same iterations, batch, initial points; FreeTimeGS's fixed budget = ``--budget``), evaluate
 both on the test camera (PSNR, SSIM, LPIPS, and PSNR/SSIM over the moving pixels), then run
 ``omg4 bench`` on the FreeTimeGS baseline (rows: attribute compression only, OMG4 at the L
-and S presets). Writes ``benchmarks/results/freetimegs_<scene>.json`` and ``.md``.
+and S presets). Records the run (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/freetimegs_<scene>.json`` and writes its table to ``freetimegs_<scene>.md``.
 
 Scenes:
 
@@ -21,10 +22,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from environment import save_record
+from omg4.atomic import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -72,7 +77,8 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     reader, training, budget = SCENES[args.scene]
     data = scene_folder(args.scene, work)
-    results: dict = {"scene": args.scene, "reader_options": reader, "training_options": training, "budget": budget}
+    results: dict = {"command": shlex.join(["python", "benchmarks/freetimegs.py", *sys.argv[1:]]), "scene": args.scene,
+                     "reader_options": reader, "training_options": training, "budget": budget}
     for backbone in ("rt4dgs", "freetimegs"):
         run = work / backbone
         extra = ["--backbone", backbone] + training
@@ -96,7 +102,7 @@ def main() -> None:
     results["bench"] = json.loads((bench / "bench.json").read_text())
     results["bench_command_s"] = wall
     out = ROOT / "benchmarks" / "results" / f"freetimegs_{args.scene}"
-    out.with_suffix(".json").write_text(json.dumps(results, indent=2))
+    save_record(out.with_suffix(".json"), results)
     rt, ft = results["rt4dgs"]["eval"], results["freetimegs"]["eval"]
     lines = ["| model | PSNR | SSIM | LPIPS | PSNR dyn | SSIM dyn | #G | MB |", "|---|---|---|---|---|---|---|---|"]
     rows = {"Real-Time4DGS": rt, **results["bench"]}
@@ -104,7 +110,7 @@ def main() -> None:
         lines.append(f"| {name} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['lpips_alex']:.4f} | "
                      f"{r.get('psnr_dynamic', float('nan')):.2f} | {r.get('ssim_dynamic', float('nan')):.4f} | "
                      f"{r['num_gaussians']} | {r['storage_mb']:.3f} |")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_text_atomic(out.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"FreeTimeGS {ft['psnr'] - rt['psnr']:+.2f} dB vs Real-Time4DGS -> {out.with_suffix('.json')}")
 

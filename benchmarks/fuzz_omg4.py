@@ -1,35 +1,38 @@
 """Fuzz benchmark: forged ``.omg4`` files through info, decoding, loading and rendering.
 
 Valid compressed models of three size classes (every codec) are mutated by
-:mod:`omg4.codec.forge` — hostile header values, damaged or re-split sections, hostile
+``tests/forge.py`` — hostile header values, damaged or re-split sections, hostile
 names, all with recomputed checksums, plus raw damage — and each case runs through
-:func:`omg4.codec.forge.exercise` in this process. Per case: the outcome ("ok",
+its ``exercise`` in this process. Per case: the outcome ("ok",
 "CorruptFileError", or the escaping exception's type), the wall time, and the peak resident
 memory (Linux ``VmHWM``, reset before each case through ``/proc/self/clear_refs``). Each
 size class's valid file is measured the same way; the target is every failure a
 ``CorruptFileError``, no case over 2 s, none over 4× its class's valid peak memory.
 
-    python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--label after] [--codecs compact,ans,paper]
+    python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--codecs compact,ans,paper]
                                    [--grid-bits 15,9,10]  # the compact files' grids (version 5 by default)
 
-Results are merged into ``benchmarks/results/fuzz_omg4.json`` under ``--label``.
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/fuzz_omg4.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
-import json
-import os
-import platform
+import shlex
 import signal
+import sys
 import tempfile
 import time
 from pathlib import Path
 
+from environment import save_record
 from omg4.codec.payload import CODECS
 
-RESULTS = Path(__file__).resolve().parent / "results" / "fuzz_omg4.json"
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))  # forge.py: the hostile-file generator the tests share
+RESULTS = REPO / "benchmarks" / "results" / "fuzz_omg4.json"
 #: size class → (Gaussians, codebook scale): a tiny file, a demo-sized one, a larger one
 CLASSES = {"small": (300, 0.1), "medium": (5000, 1.0), "large": (40000, 1.0)}
 CASE_TIMEOUT_S = 20
@@ -52,8 +55,8 @@ def _alarm(signum, frame):
 
 
 def run_case(path: Path) -> tuple[str, float, float]:
-    """(outcome, seconds, peak RSS MB) of one file through :func:`exercise`."""
-    from omg4.codec.forge import exercise
+    """(outcome, seconds, peak RSS MB) of one file through ``forge.exercise``."""
+    from forge import exercise
     from omg4.errors import CorruptFileError
 
     _peak_rss_reset()
@@ -76,14 +79,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=10000, help="forged files in total (split over classes and codecs)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--label", default="after")
     ap.add_argument("--codecs", default=",".join(CODECS), help="comma-separated codecs to fuzz")
     ap.add_argument("--grid-bits", default="15,9,10", help="the compact codec's grids (omg4 compress --grid-bits)")
     args = ap.parse_args()
 
     import torch
 
-    from omg4.codec.forge import forged_files, valid_file
+    from forge import forged_files, valid_file
     from omg4.codec.payload import CompactGrids
 
     grids = CompactGrids.parse(args.grid_bits)
@@ -123,17 +125,14 @@ def main() -> None:
                 rows.append(row)
                 print(f"{name:<7} {codec:<6} {len(base):>9} B  {dict(counts)}  slowest {worst_s:.3f} s ({slowest}),"
                       f" peak {worst_mb:.0f} MB = {worst_mb / valid_mb:.2f}x valid ({valid_mb:.0f} MB)")
-    result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "grids": grids.label,
-              "cases": sum(r["cases"] for r in rows),
+    result = {"command": shlex.join(["python", "benchmarks/fuzz_omg4.py", *sys.argv[1:]]), "seed": args.seed,
+              "codecs": codecs, "grids": grids.label, "cases": sum(r["cases"] for r in rows),
               "outcomes": dict(outcomes), "escapes": {f"{k} {o}": c for (k, o), c in escapes.items()},
               "slowest_s": max(r["slowest_s"] for r in rows), "max_peak_ratio": max(r["peak_ratio"] for r in rows),
               "rows": rows}
     print(f"{result['cases']} cases: {dict(outcomes)}; slowest {result['slowest_s']:.3f} s; "
           f"peak memory at most {result['max_peak_ratio']:.2f}x the valid file's")
-    RESULTS.parent.mkdir(exist_ok=True)
-    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    data[args.label] = result
-    RESULTS.write_text(json.dumps(data, indent=2) + "\n")
+    save_record(RESULTS, result)
 
 
 if __name__ == "__main__":

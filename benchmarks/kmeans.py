@@ -6,18 +6,21 @@ appearance-feature pairs (s = 2). For each case: wall time of ``kmeans`` with it
 inertia, and the inertia of a long run (300 Lloyd iterations, no early stop) for reference.
 
     python benchmarks/kmeans.py [--threads 2] [--quick] [--json PATH]
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/kmeans.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import shlex
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-from omg4.atomic import write_text_atomic
+from environment import save_record
 from omg4.compress.kmeans import KDTREE_MAX_DIM, inertia, kmeans
 
 RESULTS = Path(__file__).resolve().parent / "results" / "kmeans.json"
@@ -76,9 +79,9 @@ def main() -> None:
         print(f"{kind:>10} {n:>8} {r['d']:>2} {k:>5} {r['path']:>6} {r['seconds']:>7.2f} {r['inertia']:>11.5g} "
               f"{r.get('inertia_long_run', float('nan')):>11.5g} {r.get('seconds_long_run', float('nan')):>7.2f}",
               flush=True)
-    info = {"benchmark": "compress.kmeans", "threads": args.threads, "torch": torch.__version__, "rows": rows}
-    write_text_atomic(args.json, json.dumps(info, indent=2) + "\n")
-    print(f"wrote {args.json}")
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/kmeans.py", *sys.argv[1:]]),
+                            "benchmark": "compress.kmeans", "threads": args.threads, "torch": torch.__version__,
+                            "rows": rows})
 
 
 if __name__ == "__main__":

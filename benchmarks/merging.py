@@ -10,6 +10,8 @@ beside wall time because shared machines make wall time noisy. Target: 300k in u
 2 cores.
 
     python benchmarks/merging.py [--sizes 100000 300000 1000000] [--threads 2] [--json PATH]
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/merging.json``.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import shlex
 import subprocess
 import sys
 import time
@@ -24,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from omg4.atomic import write_text_atomic
+from environment import save_record
 from omg4.compress.merging import MergeConfig, build_merge_groups
 from omg4.compress.merge_clusters import merge_cells
 
@@ -99,10 +102,9 @@ def main() -> None:
         rows.append(r)
         print(f"{n:>9} {r['seconds']:>8.2f} {r['cpu_seconds']:>8.2f} {r['peak_rss_mib']:>9.0f} {r['extra_mib']:>9.0f} "
               f"{r['cells']:>8} {r['largest_cell']:>8} {r['pairs']:>11} {r['groups']:>8} {r['removed']:>8}", flush=True)
-    info = {"benchmark": "merging.build_merge_groups", "grid_size": MergeConfig().grid_size,
-            "torch": torch.__version__, "rows": rows}
-    write_text_atomic(args.json, json.dumps(info, indent=2) + "\n")
-    print(f"wrote {args.json}")
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/merging.py", *sys.argv[1:]]),
+                            "benchmark": "merging.build_merge_groups", "grid_size": MergeConfig().grid_size,
+                            "torch": torch.__version__, "rows": rows})
 
 
 if __name__ == "__main__":

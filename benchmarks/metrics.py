@@ -14,21 +14,23 @@ that choice. LPIPS-vgg runs once per size after the others (about 14 s at 1352×
 On a machine shared with other jobs, run with ``OMP_WAIT_POLICY=PASSIVE`` in the
 environment: with spinning OpenMP threads and more runnable jobs than cores, small torch
 ops measured 15–30× slower (PSNR at 320×180: 92 ms instead of 5 ms).
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/metrics.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
+import shlex
 import statistics
+import sys
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
-from omg4.atomic import write_text_atomic
+from environment import save_record
 from omg4.metrics import LPIPS, measure_fps, ms_ssim, psnr, ssim
 from omg4.metrics.ssim import C1, C2
 
@@ -108,12 +110,14 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     print(f"{'metric':20s} {'size':11s} {'median ms':>10s} {'min ms':>10s} {'calls':>6s}")
     rows = run(args.repeats, args.quick)
-    result = {"benchmark": "metrics", "device": "cpu", "threads": args.threads, "torch": torch.__version__,
-              "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-              "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"),
-              "load_average_1min_at_end": round(os.getloadavg()[0], 2), "rows": rows}
-    write_text_atomic(args.json, json.dumps(result, indent=2) + "\n")
-    print(f"wrote {args.json}")
+    policy = os.environ.get("OMP_WAIT_POLICY", "default")
+    command = shlex.join(["python", "benchmarks/metrics.py", *sys.argv[1:]])
+    if policy != "default":
+        command = f"OMP_WAIT_POLICY={shlex.quote(policy)} {command}"
+    save_record(args.json, {"command": command, "benchmark": "metrics",
+                            "device": "cpu", "threads": args.threads, "torch": torch.__version__,
+                            "omp_wait_policy": policy, "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+                            "rows": rows})
 
 
 if __name__ == "__main__":

@@ -301,7 +301,8 @@ class Workspace:
         shutil.copy(REPO / "pyproject.toml", self.root / "pyproject.toml")
         shared = Path(os.environ.get("OMG4_SHARED_DATA", REPO.parent / "shared" / "data")).resolve()
         self.env = {**os.environ, "PYTHONPATH": str(self.root / "src"), "PYTHONDONTWRITEBYTECODE": "1",
-                    "NUMBA_CACHE_DIR": str(folder / "numba_cache"), "OMG4_SHARED_DATA": str(shared)}
+                    "NUMBA_CACHE_DIR": str(folder / "numba_cache"), "OMG4_SHARED_DATA": str(shared),
+                    "OMP_WAIT_POLICY": "PASSIVE"}
         imported = subprocess.run([sys.executable, "-c", "import omg4; print(omg4.__file__)"], cwd=self.root,
                                   env=self.env, capture_output=True, text=True).stdout.strip()
         if not Path(imported).is_relative_to(self.root / "src"):

@@ -18,15 +18,15 @@ empty ``NUMBA_CACHE_DIR``, "warm" with the cache the cold run left.
 machine that other processes also load, torch's OpenMP threads can stall badly, so the
 setting is recorded with the results.
 
-Results are merged into the JSON per backend, so a GPU run adds its rows beside the CPU ones.
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/rasterizer.json`` (the CPU backend) or ``rasterizer_gsplat.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
+import shlex
 import statistics
 import subprocess
 import sys
@@ -36,13 +36,14 @@ from pathlib import Path
 
 import torch
 
-from omg4.atomic import write_text_atomic
+from environment import save_record
 from omg4.render import rasterize
 from omg4.render.api import bin_gaussians
 from omg4.render.binning import sigma_cutoff
 from omg4.render.projection import project_gaussians
 
-RESULTS = Path(__file__).resolve().parent / "results" / "rasterizer.json"
+RESULTS = Path(__file__).resolve().parent / "results"
+TARGET = "cpu fwd+bwd at 128x128/20k <= 50 ms on a 2-core machine"
 CASES = [(128, 128, 20_000), (256, 256, 50_000), (640, 360, 100_000)]
 QUICK_CASES = [(128, 128, 20_000)]
 
@@ -147,13 +148,12 @@ def compile_times() -> dict:
     return out
 
 
-def machine_info(device: str) -> dict:
+def setup_info(device: str) -> dict:
+    """Library versions, threads and the load at the start (the machine itself is in the record's run)."""
     import numba
 
-    info = {"python": platform.python_version(), "torch": torch.__version__, "numba": numba.__version__,
-            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "numba_threads": numba.get_num_threads(), "loadavg_at_start": [round(x, 2) for x in os.getloadavg()],
-            "time": time.strftime("%Y-%m-%d %H:%M:%S")}
+    info = {"torch": torch.__version__, "numba": numba.__version__, "torch_threads": torch.get_num_threads(),
+            "numba_threads": numba.get_num_threads(), "loadavg_at_start": [round(x, 2) for x in os.getloadavg()]}
     if device == "cuda":
         info["gpu"] = torch.cuda.get_device_name()
         import gsplat
@@ -182,14 +182,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="only 128x128 / 20k")
     ap.add_argument("--torch-threads", type=int, default=0, help="torch intra-op threads (0: leave torch's default)")
     ap.add_argument("--no-compile", action="store_true", help="skip the compile-time probes")
-    ap.add_argument("--json", type=Path, default=RESULTS)
+    ap.add_argument("--json", type=Path, default=None,
+                    help="record file (default benchmarks/results/rasterizer.json, rasterizer_gsplat.json for gsplat)")
     args = ap.parse_args(argv)
     if args.backend == "gsplat" and args.device != "cuda":
         ap.error("--backend gsplat needs --device cuda")
 
     if args.torch_threads > 0:
         torch.set_num_threads(args.torch_threads)
-    info = machine_info(args.device)
+    info = setup_info(args.device)
     rows = [run_case(w, h, n, args.backend, args.device, args.runs) for w, h, n in (QUICK_CASES if args.quick
                                                                                      else CASES)]
     if args.backend == "cpu":
@@ -200,15 +201,14 @@ def main(argv: list[str] | None = None) -> int:
     compile_info = None if (args.no_compile or args.backend != "cpu") else compile_times()
     print_table(args.backend, rows, compile_info)
 
-    results = json.loads(args.json.read_text()) if args.json.exists() else {}
-    entry = {"machine": info, "cases": rows}
+    result = {"command": shlex.join(["python", "benchmarks/rasterizer.py", *(sys.argv[1:] if argv is None else argv)]),
+              "backend": args.backend, "device": args.device, "torch_threads": info["torch_threads"], "setup": info,
+              "cases": rows}
     if compile_info:
-        entry["compile"] = compile_info
-    key = args.backend if args.torch_threads <= 0 else f"{args.backend}_torch{args.torch_threads}"
-    results.setdefault("backends", {})[key] = entry
-    results["target"] = "cpu fwd+bwd at 128x128/20k <= 50 ms on a 2-core machine"
-    write_text_atomic(args.json, json.dumps(results, indent=2) + "\n")
-    print(f"wrote {args.json}")
+        result["compile"] = compile_info
+    result["target"] = TARGET
+    save_record(args.json or RESULTS / ("rasterizer.json" if args.backend == "cpu" else
+                                        f"rasterizer_{args.backend}.json"), result)
     return 0
 
 

@@ -13,16 +13,20 @@ Extra rows (``--also LABEL=FILE``): other files of the same pipeline run, e.g. o
 (before/after a coder change), split and evaluated the same way.
 
 Usage: python benchmarks/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [--json FILE] [--also LABEL=FILE ...]
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/rate_<name>.json``; its table is written beside it as ``rate_<name>.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import tempfile
 from pathlib import Path
 
-from environment import save_result
+from environment import save_record
 from omg4.atomic import write_text_atomic
 from omg4.codec.decoder import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
@@ -97,11 +101,12 @@ def main() -> int:
     delta = {k: rows["compact"][k] - rows["paper"][k] for k in QUALITY}
     print("compact - paper:", {k: round(v, 4) for k, v in delta.items()},
           f"size {rows['compact']['bytes'] / rows['paper']['bytes']:.3f}x")
-    result = {"benchmark": "rate", "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
+    result = {"command": shlex.join(["python", "benchmarks/rate.py", *sys.argv[1:]]), "benchmark": "rate",
+              "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
               "downscale": args.downscale, "num_gaussians": payload.num_gaussians, "rows": rows,
               "compact_minus_paper": delta, "table": table}
     write_text_atomic(out_json.with_suffix(".md"), table + "\n")
-    save_result(out_json, result)
+    save_record(out_json, result)
     return 0
 
 

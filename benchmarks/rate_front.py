@@ -8,26 +8,31 @@ per Gaussian (all, and the per-Gaussian sections as ``benchmarks/rate.py`` split
 preset, rate weight β and grid; the figure has one panel per preset with every compact file, their Pareto
 front and the paper coder's files.
 Per preset, ``dominates`` says whether some compact file is smaller than the paper coder's file of the β = 0
-run and renders at least as well (PSNR and SSIM, float-order noise aside): the issue's "front strictly better
-than the paper coder's" (``--grid-bits 0,16,0,16,0`` holds the paper coder's values exactly).
+run and renders at least as well (PSNR and SSIM, float-order noise aside): a compact front strictly better
+than the paper coder's (``--grid-bits 0,16,0,16,0`` holds the paper coder's values exactly).
 
 Usage: python benchmarks/rate_front.py BENCH_DIR DATA [--downscale F] --grid-bits 15,9,10 12,7,7 ... [--name NAME]
+
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/rate_front_<name>.json``; its table and figure are written beside it (``.md``, ``.png``).
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
-from environment import save_result
+from environment import save_record
 from rate import measure
 from omg4.atomic import write_text_atomic
-from omg4.bench import FULL, row_label
+from omg4.bench import row_label
 from omg4.codec.payload import CompactGrids, decode_payload, encode_payload
 from omg4.commands.common import compact_grids
+from omg4.compress.pipeline import FULL_STAGES
 from omg4.data import load_scene
 from omg4.evaluate import dynamic_masks
 
@@ -119,7 +124,7 @@ def main() -> int:
         for paper_file in sorted(args.bench_dir.glob("*_paper_codec.omg4")):
             payload = decode_payload(paper_file)
             meta = payload.meta
-            if tuple(meta.get("stages", ())) != FULL:
+            if tuple(meta.get("stages", ())) != FULL_STAGES:
                 continue
             preset, beta = meta["preset"], float(meta.get("rate_weight", 0.0))
             paper = measure_front(paper_file, scene, masks)
@@ -147,7 +152,8 @@ def main() -> int:
     print("compact front strictly better than the paper coder's, per preset:", fronts)
     front_plot(out_json.with_suffix(".png"), results, args.name)
     write_text_atomic(out_json.with_suffix(".md"), table + "\n")
-    save_result(out_json, {"benchmark": "rate_front", "name": args.name, "bench_dir": str(args.bench_dir),
+    save_record(out_json, {"command": shlex.join(["python", "benchmarks/rate_front.py", *sys.argv[1:]]),
+                           "benchmark": "rate_front", "name": args.name, "bench_dir": str(args.bench_dir),
                            "data": str(args.data), "downscale": args.downscale,
                            "grids": [g.label for g in args.grid_bits], "rows": results, "dominates": fronts,
                            "table": table})

@@ -12,18 +12,19 @@ runs instead of the CPU's numba kernels (a proxy for the slice's GPU kernel laun
 OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
 
     python benchmarks/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
-                                      [--device cpu|cuda] [--frames 30] [--rounds 3] [--label after] [--name demo]
+                                      [--device cpu|cuda] [--frames 30] [--rounds 3] [--name demo]
 
-Results are merged into ``benchmarks/results/render_frame.json`` under ``--label`` / ``--name``.
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/render_frame_<name>.json`` (``render_frame_<name>_cuda.json`` with ``--device cuda``),
+``--name`` defaulting to the dataset folder's name. Run with ``PYTHONPATH=<another checkout>/src`` to time that
+checkout's code: the run then records that code's commit as ``code_commit``.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import json
-import os
-import platform
+import shlex
 import statistics
 import sys
 import time
@@ -34,9 +35,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compositing_load import compositing_load  # noqa: E402
-from train_step import OpCounter, sync  # noqa: E402
+from environment import save_record  # noqa: E402
+from train_step import OpCounter, code_under_test, keep_freed_memory_if_present, sync  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "render_frame.json"
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 @contextlib.contextmanager
@@ -160,14 +162,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--rounds", type=int, default=3, help="passes over the frames (models alternate frame by frame)")
-    ap.add_argument("--label", default="after")
-    ap.add_argument("--name", default=None, help="row name (default: the dataset folder's name)")
-    ap.add_argument("--json", type=Path, default=RESULTS)
+    ap.add_argument("--name", default=None, help="the scene's name in the record's file name (default: the dataset "
+                                                 "folder's name)")
+    ap.add_argument("--json", type=Path, default=None,
+                    help="record file (default benchmarks/results/render_frame_<name>[_cuda].json)")
     args = ap.parse_args(argv)
-    if not args.label.startswith("before"):  # the allocator setting is part of the change being measured
-        from omg4.allocator import keep_freed_memory
-
-        keep_freed_memory()
+    keep_freed_memory_if_present()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
     timed = frame_views(scene.test_views, args.frames)
     models = [load_model(p, args.device) for p in args.models]
@@ -186,14 +186,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['fps']:.1f} | {r['speedup_vs_first']:.2f}x | {r['aten_ops_per_frame']:,} | "
               f"{r['slice_ops_torch_forms']} | "
               f"{r['visible_fraction']:.3f} | {r['visited_per_pixel']:.1f} | {r['blended_per_pixel']:.1f} |")
-    data = json.loads(args.json.read_text()) if args.json.exists() else {}
-    entry = data.setdefault(args.label, {})
-    entry[args.name or args.data.name] = {
-        "device": args.device, "downscale": args.downscale, "rows": rows,
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-                    "torch_threads": torch.get_num_threads()}}
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(data, indent=2))
+    name = args.name or args.data.name
+    suffix = "" if args.device == "cpu" else "_" + args.device.split(":")[0]
+    save_record(args.json or RESULTS / f"render_frame_{name}{suffix}.json", {
+        "command": shlex.join(["python", "benchmarks/render_frame.py", *(sys.argv[1:] if argv is None else argv)]),
+        **code_under_test(), "scene": name, "device": args.device, "downscale": args.downscale,
+        "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "rows": rows})
     return 0
 
 

@@ -8,20 +8,24 @@ exactly; the loss is the view- and time-dependent colour that one RGBA8 per Gaus
 
     python benchmarks/splatv_fidelity.py DATA --models baseline.safetensors model.omg4 [--name demo]
 
-Results are merged into ``benchmarks/results/splatv_fidelity.json`` under ``--name``.
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/splatv_fidelity_<name>.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import shlex
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
-RESULTS = Path(__file__).resolve().parent / "results" / "splatv_fidelity.json"
+from environment import save_record
+
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def measure(path: Path, scene) -> dict:
@@ -58,7 +62,7 @@ def main() -> None:
     ap.add_argument("data", type=Path)
     ap.add_argument("--models", type=Path, nargs="+", required=True)
     ap.add_argument("--downscale", type=float, default=1.0)
-    ap.add_argument("--name", default="demo")
+    ap.add_argument("--name", default="demo", help="the scene's name in the record's file name")
     args = ap.parse_args()
     from omg4.data import load_scene
 
@@ -68,9 +72,9 @@ def main() -> None:
         print(f"{r['model']}: {r['num_gaussians']} G, .splatv {r['splatv_bytes'] / 2**20:.2f} MB; PSNR splatv vs ours "
               f"{r['psnr_splatv_vs_ours']:.2f} dB; vs ground truth: ours {r['psnr_ours_vs_gt']:.2f}, splatv "
               f"{r['psnr_splatv_vs_gt']:.2f} dB")
-    saved = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    saved[args.name] = results
-    RESULTS.write_text(json.dumps(saved, indent=2) + "\n")
+    save_record(RESULTS / f"splatv_fidelity_{args.name}.json", {
+        "command": shlex.join(["python", "benchmarks/splatv_fidelity.py", *sys.argv[1:]]), "scene": args.name,
+        "downscale": args.downscale, "rows": results})
 
 
 if __name__ == "__main__":

@@ -21,18 +21,20 @@ Times are the median of ``--steps`` steps after ``--warmup``; the aten count is 
 under a ``TorchDispatchMode`` that counts every dispatched operator.
 
     python benchmarks/train_step.py [--workloads demo basketball] [--device cpu|cuda]
-                                    [--steps 10] [--label after] [--json PATH]
+                                    [--steps 10] [--model CKPT] [--json PATH]
 
-Results are merged into the JSON under ``--label`` (e.g. ``before`` and ``after``).
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/train_step.json`` (``train_step_cuda.json`` with ``--device cuda``). To time another
+checkout's code, run with ``PYTHONPATH=<that checkout>/src``: the run records its commit as ``code_commit``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
+import shlex
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -42,7 +44,11 @@ from pathlib import Path
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-RESULTS = Path(__file__).resolve().parent / "results" / "train_step.json"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from environment import save_record  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
 SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
@@ -56,6 +62,28 @@ class OpCounter(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.ops[str(func.overloadpacket)] += 1
         return func(*args, **(kwargs or {}))
+
+
+def keep_freed_memory_if_present() -> None:
+    """Keep freed memory in the heap as the ``omg4`` command does (``omg4.allocator``), where the code under test has
+    that setting; code from before it is timed without, as its own command ran."""
+    try:
+        from omg4.allocator import keep_freed_memory
+    except ImportError:
+        return
+    keep_freed_memory()
+
+
+def code_under_test() -> dict:
+    """``{"code_commit", "code_path"}`` when the imported ``omg4`` is not this checkout's (``PYTHONPATH=<other
+    checkout>/src``), so that each side of a before/after pair records the code it timed; else ``{}``."""
+    import omg4
+
+    src = Path(omg4.__file__).resolve().parents[1]
+    if src == REPO / "src":
+        return {}
+    head = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=src, capture_output=True, text=True)
+    return {"code_commit": head.stdout.strip() or "unknown", "code_path": str(src)}
 
 
 def demo_scene(tmp: Path):
@@ -148,14 +176,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--label", default="after", help="key under which the rows are stored (e.g. before, after)")
     ap.add_argument("--model", type=Path, default=None, help="a trained checkpoint for the demo workload")
-    ap.add_argument("--json", type=Path, default=RESULTS)
+    ap.add_argument("--json", type=Path, default=None,
+                    help="record file (default benchmarks/results/train_step.json, train_step_cuda.json on CUDA)")
     args = ap.parse_args(argv)
-    if not args.label.startswith("before"):  # the allocator setting is part of the change being measured
-        from omg4.allocator import keep_freed_memory
-
-        keep_freed_memory()
+    keep_freed_memory_if_present()
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     names = args.workloads or [k for k, w in WORKLOADS.items() if kind in w[3]]
     rows = []
@@ -168,18 +193,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"train {row['train']['ms_per_step']:8.1f} ms {row['train']['aten_ops_per_step']:6d} ops | "
                   f"compress {row['compress']['ms_per_step']:8.1f} ms {row['compress']['aten_ops_per_step']:6d} ops",
                   flush=True)
-    data = json.loads(args.json.read_text()) if args.json.exists() else {}
-    entry = data.setdefault(args.label, {})
-    entry["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-                        "torch_threads": torch.get_num_threads(), "python": sys.version.split()[0]}
+    result = {"command": shlex.join(["python", "benchmarks/train_step.py", *(sys.argv[1:] if argv is None else argv)]),
+              **code_under_test(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     if kind == "cuda":
-        entry["machine"]["gpu"] = torch.cuda.get_device_name()
-    entry.setdefault("rows", {})
-    for row in rows:
-        suffix = "/trained" if row["model"] != "random initialization" else ""
-        entry["rows"][f"{row['workload']}/{row['device']}{suffix}"] = row
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(data, indent=2))
+        result["gpu"] = torch.cuda.get_device_name()
+    result["rows"] = {f"{row['workload']}/{row['device']}"
+                      f"{'/trained' if row['model'] != 'random initialization' else ''}": row for row in rows}
+    save_record(args.json or RESULTS / ("train_step.json" if kind == "cpu" else f"train_step_{kind}.json"), result)
     print("| workload | device | N | batch | train ms/step | train aten ops | compress ms/step | compress aten ops |")
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:

@@ -7,16 +7,17 @@ server sends. Target of the viewer: ≥ 10 frames per second for the demo's OMG4
 
     python benchmarks/viewer_fps.py DATA --models baseline.safetensors model.omg4 [--frames 40] [--name demo]
 
-Results are merged into ``benchmarks/results/viewer_fps.json`` under ``--name``.
+Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
+``benchmarks/results/viewer_fps_<name>.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import io
-import json
-import platform
+import shlex
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +25,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-RESULTS = Path(__file__).resolve().parent / "results" / "viewer_fps.json"
+from environment import save_record
+
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def measure(path: Path, camera, frames: int, width: int, height: int) -> dict:
@@ -61,7 +64,7 @@ def main() -> None:
     ap.add_argument("--models", type=Path, nargs="+", required=True)
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--size", default="640x360")
-    ap.add_argument("--name", default="demo")
+    ap.add_argument("--name", default="demo", help="the scene's name in the record's file name")
     args = ap.parse_args()
     from omg4.data import load_scene
 
@@ -72,10 +75,9 @@ def main() -> None:
     for r in results:
         print(f"{r['model']}: {r['num_gaussians']} G, {r['fps']:.1f} FPS at {r['size'][0]}x{r['size'][1]} "
               f"({r['ms_per_frame']:.1f} ms, {100 * r['visible_fraction']:.0f} % visible)")
-    saved = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    saved[args.name] = {"machine": {"platform": platform.platform(), "threads": torch.get_num_threads()},
-                        "rows": results}
-    RESULTS.write_text(json.dumps(saved, indent=2) + "\n")
+    save_record(RESULTS / f"viewer_fps_{args.name}.json", {
+        "command": shlex.join(["python", "benchmarks/viewer_fps.py", *sys.argv[1:]]), "scene": args.name,
+        "torch_threads": torch.get_num_threads(), "rows": results})
 
 
 if __name__ == "__main__":
