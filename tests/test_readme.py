@@ -37,8 +37,8 @@ def readme_commands() -> list[list[str]]:
         for line in text.splitlines():
             for part in line.split("  #")[0].split("&&"):
                 part = part.strip()
-                if part.startswith("omg4 "):
-                    commands.append(shlex.split(part.replace("$DATA", "DATA"))[1:])
+                if part.startswith("omg4 ") or " -m omg4 " in part:  # also what torchrun starts
+                    commands.append(shlex.split(part.replace("$DATA", "DATA").split("omg4 ", 1)[1]))
     return commands
 
 

@@ -66,7 +66,9 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     at every compact grid of ``grids`` (the first by the pipeline run, the others re-encoded from its paper-coder
     copy), and evaluate everything on the test views, computing on ``device``. ``baseline_path`` must be the checkpoint
     ``baseline`` was loaded from: its row is evaluated as a render-only model loaded from that file, as the compressed
-    rows are from theirs."""
+    rows are from theirs. In a distributed job every rank compresses and evaluates its share of the views
+    (:mod:`omg4.distributed`) and rank 0 alone writes and prints."""
+    from omg4 import distributed
     from omg4.codec.decoder import load_omg4
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
@@ -86,11 +88,16 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
         raise OMG4Error(f"bench rows {names} at rate weights {list(rate_weights)} and grids "
                         f"{[g.label for g in grids]} would share names or files: give distinct rows, grids and rate "
                         "weights that differ in their first 6 digits")
+    main = distributed.world().main
+    log = log if main else (lambda *_: None)
     out.mkdir(parents=True, exist_ok=True)
     baseline = baseline.to(device)
     scores_path = out / "sd_scores.npz"
-    if not scores_path.exists():
-        compute_sd_scores(baseline, scene.train_views, backend=backend, device=device).save(scores_path)
+    if not distributed.gather_objects(scores_path.exists(), "looking for the SD scores")[0]:
+        scores = compute_sd_scores(baseline, scene.train_views, backend=backend, device=device, progress=main)
+        if main:
+            scores.save(scores_path)
+        distributed.barrier("writing the SD scores")
     results: dict[str, dict] = {}
     masks = dynamic_masks(scene.test_views)  # one dynamic region for every row
     log("evaluating the baseline")
@@ -117,7 +124,9 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
         for g in grids:
             if g != grids[0]:
                 path = row_file(out, name, beta, g)
-                encode_payload(payload, path, codec=codec, precision=g)
+                if main:
+                    encode_payload(payload, path, codec=codec, precision=g)
+                distributed.barrier("writing a bench file")
             r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size,
                          backend=backend, device=device, masks=masks)
             paper = paper_r or r
@@ -126,7 +135,10 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
                      paper_codec_ssim=paper["ssim"], rate_weight=beta, grids=asdict(g), preset=preset,
                      full_pipeline=stages == FULL_STAGES, stages=report["stages"], file=str(path))
             results[row_label(name, beta, g)] = r
-            write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
+            if main:
+                write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))
+    if not main:
+        return results
     base = results[base_name]
     base["bytes_per_gaussian"] = baseline_path.stat().st_size / base["num_gaussians"]
     table = bench_table(results)

@@ -81,24 +81,40 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    from omg4 import distributed
+
+    if getattr(args, "nproc", None) and args.nproc > 1 and not distributed.launched():
+        from omg4.launch import launch
+
+        return launch(args.command, argv, args.nproc)
     from omg4.allocator import keep_freed_memory
 
     keep_freed_memory()
     try:
-        return int(modules[args.command].run(args) or 0)
+        status = int(modules[args.command].run(args) or 0)
+        distributed.finish()
+        return status
     except OMG4Error as e:
-        print(f"omg4 {args.command}: error: {printable(e)}", file=sys.stderr)
-        return 2
-    except MemoryError:
-        print(f"omg4 {args.command}: error: out of memory (a smaller scene, model or image size may fit)",
-              file=sys.stderr)
-        return 2
+        return _fail(args.command, printable(e), e)
+    except MemoryError as e:
+        return _fail(args.command, "out of memory (a smaller scene, model or image size may fit)", e)
     except KeyboardInterrupt:
         print(f"omg4 {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into a pager or `head` that closed early
         sys.stderr.close()
         return 0
+
+
+def _fail(command: str, message: str, exc: BaseException) -> int:
+    """One line on stderr (from rank 0 of a distributed job, or from the ``--nproc`` launcher; the other ranks leave
+    their cause for it), exit 2."""
+    from omg4 import distributed
+
+    distributed.record_failure(exc)
+    if distributed.reports_failures():
+        print(f"omg4 {command}: error: {message}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -49,14 +49,19 @@ def frame_rates(models: list, views: list[View], *, fps_views: int = 30, backgro
                 backend: str = "auto", device: torch.device | str = "cpu") -> list[dict]:
     """Render-only FPS of each of ``models`` (on ``device``) over ``fps_views`` of ``views`` spread evenly
     (:func:`omg4.metrics.timing.measure_fps`); several models take turns frame by frame
-    (:func:`~omg4.metrics.timing.measure_fps_together`), so their ratio is not a host's slow spell."""
+    (:func:`~omg4.metrics.timing.measure_fps_together`), so their ratio is not a host's slow spell. In a
+    distributed job rank 0 times them alone and every rank gets its figures."""
+    from omg4 import distributed
     from omg4.metrics import measure_fps_together
 
-    step = max(1, len(views) // fps_views)
-    timed = views[::step][:fps_views]
-    renderers = [lambda v, m=m: render_view(m, v.camera, v.timestamp, background=background, backend=backend,
-                                            device=device) for m in models]
-    return measure_fps_together(renderers, timed, warmup=min(3, len(timed)), device=device)
+    rates = None
+    if distributed.world().main:
+        step = max(1, len(views) // fps_views)
+        timed = views[::step][:fps_views]
+        renderers = [lambda v, m=m: render_view(m, v.camera, v.timestamp, background=background, backend=backend,
+                                                device=device) for m in models]
+        rates = measure_fps_together(renderers, timed, warmup=min(3, len(timed)), device=device)
+    return distributed.gather_objects(rates, "sharing the frame rates")[0]
 
 
 def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -114,15 +119,19 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     the pixels; the means skip views whose camera has no moving pixel. LPIPS skips views smaller than its
     network takes (:func:`~omg4.metrics.lpips_min_side`; None when no view fits). With ``time_frames=False``
     ``fps`` and ``fps_detail`` are None, for a caller that times several models together (:func:`frame_rates`).
+    In a distributed job each rank renders its share of the views and every rank returns the same result (rows in
+    view order; FPS timed by rank 0).
     """
+    from omg4 import distributed
     from omg4.metrics import lpips, lpips_min_side, psnr, ssim
     from omg4.metrics.dynamic import masked_psnr, masked_ssim
 
     if not views:
         raise OMG4Error("there are no test views to evaluate on")
     masks = dynamic_masks(views) if masks is None else masks
+    world = distributed.world()
     per_view = []
-    for v in tqdm(views, desc="eval", disable=not progress, dynamic_ncols=True):
+    for v in tqdm(world.shard(views), desc="eval", disable=not (progress and world.main), dynamic_ncols=True):
         with torch.no_grad():
             rendered, sl = render_view(model, v.camera, v.timestamp, background=background, backend=backend,
                                        device=device)
@@ -137,6 +146,7 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
             if min(v.camera.width, v.camera.height) >= lpips_min_side(net, img.device):
                 row[f"lpips_{net}"] = lpips(img, gt, net)
         per_view.append(row)
+    per_view = distributed.interleave(distributed.gather_objects(per_view, "gathering the metrics"))
     keys = list(dict.fromkeys(k for r in per_view for k in r if k not in ("camera", "frame", "time")))
     mean = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
     for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction", *(f"lpips_{net}" for net in lpips_nets)):

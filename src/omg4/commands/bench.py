@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_codec_argument, add_device_arguments,
-                                  add_scene_arguments,
+                                  add_distributed_arguments, add_scene_arguments,
                                   compact_grids, device_from_args, int_at_least, load_scene_from_args,
                                   rate_weight_list)
 from omg4.compress.pipeline import CompressConfig
@@ -34,6 +34,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="write every row at each of these grids (the first by the pipeline run, the others "
                         "re-encoded from its paper-coder copy; one curve each). " + GRID_BITS_HELP)
     add_device_arguments(p)
+    add_distributed_arguments(p, replicas=False)
 
 
 def _row_names() -> dict[str, list[str]]:
@@ -43,6 +44,7 @@ def _row_names() -> dict[str, list[str]]:
 
 
 def run(args) -> int:
+    from omg4 import distributed
     from omg4.bench import run_bench
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.schedule import default_schedule
@@ -54,7 +56,7 @@ def run(args) -> int:
     for g in grids:
         check_codec(args.codec, g)
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
-    device = device_from_args(args)
+    world, device = distributed.init(device_from_args(args))
     baseline, _ = load_gaussians(args.model, device)
     known = baseline.config.schema.paper_rows
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
@@ -62,7 +64,7 @@ def run(args) -> int:
     if unknown:
         raise OMG4Error(f"unknown bench rows {unknown} for a {baseline.config.backbone} baseline; known: "
                         f"{', '.join(known)}")
-    scene = load_scene_from_args(args)
+    scene = distributed.main_first(lambda: load_scene_from_args(args))
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
               baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
               device=device, rate_weights=args.rate_weights, grids=grids)

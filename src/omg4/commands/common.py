@@ -299,3 +299,15 @@ def settings_from_args(args, config_class, *, section: str, extra: tuple[str, ..
     values.update(parse_assignments(args.settings))
     values.update({k[len("setting:"):]: v for k, v in vars(args).items() if k.startswith("setting:") and v is not None})
     return check_settings(config_class, values, extra=extra)
+
+
+def add_distributed_arguments(p: argparse.ArgumentParser, *, replicas: bool = True) -> None:
+    """``--nproc N`` (run as N ranks on this machine, as ``torchrun --nproc-per-node N -m omg4`` does) and, with
+    ``replicas``, ``--check-replicas K`` (compare the ranks' parameters every K steps; a debugging aid)."""
+    p.add_argument("--nproc", type=int_at_least(1), metavar="N",
+                   help="run as N processes on this machine (torch.distributed: gloo on cpu, one GPU each on cuda); "
+                        "for several machines start the same command with torchrun")
+    if replicas:
+        p.add_argument("--check-replicas", type=int_at_least(0), default=0, metavar="K",
+                       help="in a distributed run, compare a hash of every rank's parameters every K steps and stop "
+                            "with an error when they differ (0: never)")

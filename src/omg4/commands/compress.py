@@ -12,7 +12,8 @@ from dataclasses import astuple, replace
 from pathlib import Path
 
 from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
-                                  add_device_arguments, add_force_argument, add_rate_weight_argument,
+                                  add_device_arguments, add_distributed_arguments, add_force_argument,
+                                  add_rate_weight_argument,
                                   add_scene_arguments, add_settings_arguments, compact_grids, device_from_args,
                                   fill_device_arguments, float_in, int_at_least, load_scene_from_args, seed,
                                   settings_from_args)
@@ -66,12 +67,14 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, help=f"random seed (default {CompressConfig.seed})")
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
     add_force_argument(p)
+    add_distributed_arguments(p)
     add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",
                            defaults="the lengths shown are the official schedule's; one set alone changes only "
                                     "that stage of the run's schedule")
 
 
 def run(args) -> int:
+    from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CODECS, CompactGrids, check_codec
     from omg4.compress.api import compress_to_file
@@ -88,17 +91,20 @@ def run(args) -> int:
     if args.stop_after and args.grid_bits:
         raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
     fill_device_arguments(args, settings)
-    device = device_from_args(args)
+    world, device = distributed.init(device_from_args(args))
     cfg = pipeline_config(args, settings, device)
     computes_scores = args.scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune"))
     scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
     record = args.out.with_name(args.out.name + ".config.json")
     check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out, "the config record": record},
                   inputs=[args.data, args.model, args.scores, args.config], datasets=[args.data], force=args.force)
-    scene = load_scene_from_args(args, background=cfg.background)
+    scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
     baseline, _ = load_gaussians(args.model, device)
     report = compress_to_file(baseline, scene, cfg, args.out, codec=codec, stop_after=args.stop_after,
-                              scores_path=args.scores, precision=precision)
+                              scores_path=args.scores, precision=precision, check_replicas=args.check_replicas)
+    if not world.main:
+        return 0
+    report["world_size"] = world.size
     write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
                                           "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
     for r in report["stages"]:

@@ -6,8 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
-                                  background_from_args, device_from_args, int_at_least, load_scene_from_args)
+from omg4.commands.common import (add_background_argument, add_device_arguments, add_distributed_arguments,
+                                  add_force_argument, add_scene_arguments, background_from_args, device_from_args,
+                                  int_at_least, load_scene_from_args)
 from omg4.data.scene import SPLITS
 
 
@@ -21,19 +22,21 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_device_arguments(p)
     p.add_argument("--json", type=Path, help="write per-view and mean metrics as JSON")
     add_force_argument(p)
+    add_distributed_arguments(p, replicas=False)
 
 
 def run(args) -> int:
     import torch
 
+    from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.evaluate import evaluate, load_model
     from omg4.outputs import check_outputs
 
     check_outputs({"--json": args.json}, inputs=[args.data, args.model], datasets=[args.data], force=args.force)
-    device = device_from_args(args)
+    world, device = distributed.init(device_from_args(args))
     model = load_model(args.model, device)
-    scene = load_scene_from_args(args)
+    scene = distributed.main_first(lambda: load_scene_from_args(args))
     views = scene.split_views(args.split)
     if args.max_views and len(views) > args.max_views:
         views = views[:: -(-len(views) // args.max_views)]
@@ -41,10 +44,13 @@ def run(args) -> int:
     nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
     result = evaluate(model, views, storage_bytes=args.model.stat().st_size, lpips_nets=nets, background=bg,
                       backend=args.backend, device=device)
+    if not world.main:
+        return 0
     cols = ["psnr", "ssim", *[f"lpips_{n}" for n in nets], "psnr_dynamic", "ssim_dynamic", "fps", "num_gaussians",
             "visible_fraction", "storage_mb"]
     print(" | ".join(f"{c}" for c in cols))
     print(" | ".join(f"{result[c]:.4g}" if isinstance(result[c], float) else str(result[c]) for c in cols))
     if args.json:
-        write_text_atomic(args.json, json.dumps({"model": str(args.model), "split": args.split, **result}, indent=2))
+        write_text_atomic(args.json, json.dumps({"model": str(args.model), "split": args.split, **result,
+                                                "world_size": world.size}, indent=2))
     return 0

@@ -8,8 +8,8 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments, add_scene_arguments,
-                                  add_settings_arguments, device_from_args, fill_device_arguments, int_at_least,
+from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments,
+                                  add_distributed_arguments, add_scene_arguments, add_settings_arguments, device_from_args, fill_device_arguments, int_at_least,
                                   load_scene_from_args, seed, settings_from_args)
 from omg4.gaussians.backbone import BACKBONES
 from omg4.train.config import PRESETS, TrainConfig
@@ -56,11 +56,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     run.add_argument("--force", action="store_true",
                      help="start afresh in an existing run folder: its checkpoints and model are deleted")
     p.add_argument("--json", type=Path, help="write a summary (iterations, wall time, test PSNR) as JSON")
+    add_distributed_arguments(p)
     add_settings_arguments(p, TrainConfig, shortcuts=SHORTCUTS, section="train_config",
                            defaults="the defaults shown are the official preset's")
 
 
 def run(args) -> int:
+    from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
     from omg4.outputs import check_outputs
@@ -76,7 +78,7 @@ def run(args) -> int:
                         "start afresh (its checkpoints and model are deleted)")
     settings = settings_from_args(args, TrainConfig, section="train_config")
     fill_device_arguments(args, settings)
-    device = device_from_args(args)
+    world, device = distributed.init(device_from_args(args))
     flags = dict(iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
                  backbone=args.backbone, densify_until=args.densify_until, densify_interval=args.densify_interval,
                  test_interval=args.test_interval, checkpoint_interval=args.checkpoint_interval,
@@ -84,12 +86,13 @@ def run(args) -> int:
                  background=(1.0, 1.0, 1.0) if args.white_background else None)
     cfg = make_config(args.preset, **{**settings, **{k: v for k, v in flags.items() if v is not None}},
                       backend=args.backend, device=str(device))
-    scene = load_scene_from_args(args, background=cfg.background)
+    scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
     resuming = args.resume and latest_iteration(args.out) is not None
     points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
-    if args.force:  # only once the initial points exist: a failing initialization keeps the old run
+    if args.force and world.main:  # only once the initial points exist: a failing initialization keeps the old run
         clear_run(args.out)
-    trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume)
+    distributed.barrier()
+    trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume, check_replicas=args.check_replicas)
     result = trainer.run()
     test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend, device)
     camera = scene.train_views[0].camera
@@ -97,7 +100,9 @@ def run(args) -> int:
     summary = {"iterations": result.iterations, "wall_time_s": result.wall_time_s,
                "num_gaussians": result.model.num_gaussians, "gaussians_per_pixel": per_pixel,
                "image_size": [camera.width, camera.height], "test_psnr": test_psnr,
-               "model": str(result.model_path), "history": result.history}
+               "model": str(result.model_path), "world_size": world.size, "history": result.history}
+    if not world.main:
+        return 0
     print(f"trained {result.iterations} iterations in {result.wall_time_s:.0f} s: {result.model.num_gaussians} "
           f"Gaussians ({per_pixel:.2f} per pixel at {camera.width}x{camera.height}), test PSNR {test_psnr:.2f} dB "
           f"-> {result.model_path}")

@@ -48,7 +48,7 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
 def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, out: str | Path, *,
                      codec: str = CODECS[0], stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
-                     progress: bool = True, log=print) -> dict:
+                     progress: bool = True, log=print, check_replicas: int = 0) -> dict:
     """Run OMG4 on ``baseline`` and write ``out`` (``precision``: the compact codec's grids); returns a JSON-ready
     report.
 
@@ -58,17 +58,25 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     SD scores are read from ``scores_path`` when given, else computed and saved beside
     ``out`` as ``<out>.scores.npz`` so ablation runs can reuse them: at once when no such file exists,
     else once ``out`` is written, so a failed run leaves an earlier run's scores as they were.
+
+    In a distributed job (:mod:`omg4.distributed`) every rank runs the pipeline on its share of the views and
+    rank 0 alone writes; every rank returns once the files exist.
     """
+    from omg4 import distributed
+
+    main = distributed.world().main
     out = Path(out)
     check_codec(codec, precision)  # before the pipeline's minutes, not after
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
-    pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log)
+    pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log,
+                                   check_replicas=check_replicas)
     scores_out, unsaved = out.with_name(out.name + ".scores.npz"), None
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         unsaved = pipeline.ensure_scores()
         if not scores_out.exists():  # nothing to lose: kept for a re-run even if a later stage fails
-            unsaved.save(scores_out)
+            if main:
+                unsaved.save(scores_out)
             unsaved = None
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
@@ -76,19 +84,24 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     if cfg.rate_weight:  # provenance of entropy-constrained codebooks; paper-faithful files stay as they were
         meta["rate_weight"] = cfg.rate_weight
     paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written
-    if stop_after is not None:
-        save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
-        sections = {}
-    else:
-        payload = build_payload(model, meta)
-        sections = encode_payload(payload, out, codec=codec, precision=precision)
-        if paper_copy is not None:
-            paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
-    if unsaved is not None:  # an earlier run's scores give way only to a finished run's
-        unsaved.save(scores_out)
+    sections: dict[str, int] = {}
+    file_bytes = None
+    if main:
+        if stop_after is not None:
+            save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
+        else:
+            payload = build_payload(model, meta)
+            sections = encode_payload(payload, out, codec=codec, precision=precision)
+            if paper_copy is not None:
+                paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
+        if unsaved is not None:  # an earlier run's scores give way only to a finished run's
+            unsaved.save(scores_out)
+        file_bytes = out.stat().st_size
+    sections, paper, file_bytes = distributed.gather_objects((sections, paper, file_bytes),
+                                                             "writing the compressed file")[0]
     return {
         "output": str(out),
-        "file_bytes": out.stat().st_size,
+        "file_bytes": file_bytes,
         "sections": sections,
         **paper,
         "num_gaussians": model.num_gaussians,

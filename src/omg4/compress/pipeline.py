@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from tqdm.auto import tqdm
 
+from omg4 import distributed
 from omg4.compress import appearance_stage, merging
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
@@ -101,15 +102,21 @@ class CompressionPipeline:
 
     The pipeline works on a copy of ``baseline`` on ``cfg.device`` (``baseline`` is left alone);
     an unusable device, or one that does not suit ``cfg.backend``, is an :class:`OMG4Error` here.
+    In a distributed job (:mod:`omg4.distributed`) every rank runs the same stages on a replica, scores and
+    fine-tunes on its share of the views, and rank 0 alone logs; ``check_replicas`` > 0 compares the replicas
+    every that many iterations.
     """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
-                 progress: bool = True, log=print):
+                 progress: bool = True, log=print, check_replicas: int = 0):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
-        self.scene, self.cfg, self.progress, self.log = scene, cfg, progress, log
+        self.world = distributed.world()
+        self.scene, self.cfg = scene, cfg
+        self.progress, self.log = progress and self.world.main, log if self.world.main else (lambda *_: None)
+        self.check_replicas = check_replicas
         self.schema: Backbone = baseline.config.schema
         self.size = cfg.size(baseline.config.backbone)
         self.device = resolve_device(cfg.device)
@@ -264,6 +271,11 @@ class CompressionPipeline:
             self.mlp_scheduler.step()
         return loss
 
+    def replicated_tensors(self) -> list[torch.Tensor]:
+        """Everything every rank must hold alike: the per-Gaussian tensors, merge weights, codebooks and MLPs."""
+        modules = [m for m in (self.model.merge, self.model.appearance, *self.model.quantizers.values()) if m is not None]
+        return [*self.model.params.values(), *(p for m in modules for p in m.parameters())]
+
     def run(self, stop_after: str | None = None) -> CompressibleModel:
         """Run every event and the fine-tuning between them; stop after the stage ``stop_after`` if given."""
         events = list(self.events)
@@ -285,6 +297,8 @@ class CompressionPipeline:
             loss = self.finetune_step(step)
             loss_ema = loss if loss_ema is None else 0.9 * loss_ema + 0.1 * loss
             bar.update(1)
+            if self.check_replicas and step % self.check_replicas == 0:
+                distributed.check_replicas(self.replicated_tensors(), step)
             if step % 10 == 0:
                 bar.set_postfix(loss=f"{loss_ema:.4f}", N=self.model.num_gaussians)
         bar.close()

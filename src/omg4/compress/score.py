@@ -71,7 +71,13 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
     time gradient of Σ_j w_j L_j is Σ_j w_j ∂L_j/∂t. With w_j = 1 that is T; the release's
     running sum (``official_quirk``) equals Σ_j (n − j) ∂L_j/∂t over the n views in order,
     so the quirk weights view j by n − j and divides its rows' 2D gradients by the same.
+
+    In a distributed job each rank scores its share of the batches and the sums are combined, so every rank
+    holds the scores of all the views.
     """
+    from omg4 import distributed
+
+    world = distributed.world()
     n = model.params["t"].shape[0]
     static = torch.zeros(n, dtype=torch.float64, device=device)
     dynamic = torch.zeros(n, dtype=torch.float64, device=device)
@@ -82,8 +88,10 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
         p.grad = None
     t_param.requires_grad_(True)
     try:
-        bar = tqdm(total=len(views), desc="SD score", disable=not progress, dynamic_ncols=True)
-        for start in range(0, len(views), max(1, batch_size)):
+        starts = world.shard(list(range(0, len(views), max(1, batch_size))))
+        bar = tqdm(total=sum(len(views[i:i + max(1, batch_size)]) for i in starts), desc="SD score",
+                   disable=not (progress and world.main), dynamic_ncols=True)
+        for start in starts:
             chunk = views[start:start + max(1, batch_size)]
             for group, rendered, sl, _, losses in view_losses(model, chunk, background=background, backend=backend,
                                                               lambda_dssim=lambda_dssim, device=device):
@@ -101,4 +109,5 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
     finally:
         for k, p in model.params.items():
             p.requires_grad_(saved_flags[k])
+    distributed.all_reduce_([static, dynamic], "sum", "combining the SD scores")
     return SDScores(static.cpu(), dynamic.cpu())

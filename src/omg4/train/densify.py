@@ -13,6 +13,7 @@ import math
 
 import torch
 
+from omg4 import distributed
 from omg4.gaussians import build_rotation_4d
 from omg4.gaussians.backbone import activated_scales
 from omg4.train.optim import append_rows, keep_rows, replace_param
@@ -31,6 +32,18 @@ class DensifyStats:
         self.grad_sum = torch.zeros(n, device=self.device)
         self.visible_views = torch.zeros(n, device=self.device)
         self.max_radii = torch.zeros(n, device=self.device)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The accumulators by name (what a checkpoint stores)."""
+        return {"grad_sum": self.grad_sum, "visible_views": self.visible_views, "max_radii": self.max_radii}
+
+    def combined(self) -> "DensifyStats":
+        """A copy holding the statistics of every rank of a distributed job (this rank's own in one process),
+        leaving this one as it is: what a checkpoint saves, so that a run resumes with any number of ranks."""
+        copy = DensifyStats(0, self.device)
+        copy.grad_sum, copy.visible_views, copy.max_radii = (t.clone() for t in self.state().values())
+        distributed.reduce_statistics(copy)
+        return copy
 
     def add_view(self, index: torch.Tensor, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
                  height: int, batch_size: int) -> None:
@@ -140,6 +153,7 @@ class Densification(DensityStrategy):
             return
         if step > cfg.densify_from and step % cfg.densify_interval == 0:
             size_threshold = cfg.prune_screen_size if step > cfg.opacity_reset_interval else None
+            distributed.reduce_statistics(stats)  # every rank decides on the statistics of every view
             densify_and_prune(model, optimizer, stats, grad_threshold=cfg.densify_grad_threshold,
                               percent_dense=cfg.percent_dense, extent=extent, prune_opacity=cfg.prune_opacity,
                               max_screen_size=size_threshold, prune_world_size=cfg.prune_world_size,

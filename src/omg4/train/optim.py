@@ -46,15 +46,20 @@ def make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float
 def step_optimizers(optimizers, device: torch.device | str) -> None:
     """Step every optimizer (None entries skipped) and clear its gradients.
 
-    Runs with ``device`` as torch's default device, so state that an optimizer creates
-    lazily (Adam's step counters) lands beside the parameters whatever the caller's default
-    device is.
+    In a distributed job the gradients of every parameter the optimizers hold are first summed over the
+    ranks (:func:`omg4.distributed.all_reduce_gradients`), so every replica takes the same step. Runs with
+    ``device`` as torch's default device, so state that an optimizer creates lazily (Adam's step counters)
+    lands beside the parameters whatever the caller's default device is.
     """
+    from omg4 import distributed
+
+    present = [opt for opt in optimizers if opt is not None]
+    if distributed.world().parallel:
+        distributed.all_reduce_gradients([p for opt in present for g in opt.param_groups for p in g["params"]])
     with torch.device(device):
-        for opt in optimizers:
-            if opt is not None:
-                opt.step()
-                opt.zero_grad(set_to_none=True)
+        for opt in present:
+            opt.step()
+            opt.zero_grad(set_to_none=True)
 
 
 def set_group_lr(optimizer: torch.optim.Optimizer, name: str, lr: float) -> None:

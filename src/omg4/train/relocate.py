@@ -23,6 +23,7 @@ import math
 
 import torch
 
+from omg4 import distributed
 from omg4.gaussians.freetime import opacity_regularizer, scaled_rotation_3d
 from omg4.train.densify import DensifyStats
 from omg4.train.optim import overwrite_rows
@@ -57,6 +58,7 @@ class Relocation(DensityStrategy):
 
     def after_step(self, model, optimizer, stats, cfg, step: int, extent: float) -> None:
         if cfg.densify_from < step < cfg.densify_until and step % cfg.densify_interval == 0:
+            distributed.reduce_statistics(stats)  # every rank relocates by the statistics of every view
             relocate(model, optimizer, stats, min_opacity=cfg.relocate_opacity,
                      generator=step_generator(cfg.seed, step, stream=1))
 

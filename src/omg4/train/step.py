@@ -46,33 +46,44 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
     Views of one image size are sliced and rasterized together (:func:`omg4.render.view.render_views`);
     the loss is computed on the whole batch; the step synchronizes with the device once, to
     read the loss. ``model`` and ``background`` live on ``device``; the ground truths are moved there.
+    In a distributed job (:mod:`omg4.distributed`) this rank renders its share of the global batch and
+    back-propagates that share of Σ_v loss_v / B (B the global batch size), so the gradients summed over the
+    ranks are the single-process gradients.
 
     ``on_views(rendered, time_slice)`` runs after the backward for each group of views
     (gradient statistics: ``rendered.means2d.grad`` rows follow ``time_slice.index``).
     ``regularizer(timestamps [B])``, when given, returns a scalar added to the loss (FreeTimeGS's
-    4D regularization), or None.
-    Returns the batch's mean per-view loss and mean PSNR (renders clamped); a non-finite
+    4D regularization, a mean over the views), or None.
+    Returns the global batch's mean per-view loss and mean PSNR (renders clamped); a non-finite
     loss is a one-line error naming ``what``.
     """
-    chosen = [views[i] for i in batch.tolist()]
-    total, psnr_sum, rendered_groups = 0.0, 0.0, []
+    from omg4 import distributed
+
+    indices = batch.tolist()
+    chosen = [views[i] for i in distributed.world().shard(indices)]
+    total, psnr_sum, rendered_groups = torch.zeros((), device=device), 0.0, []
     for _, rendered, sl, gts, losses in view_losses(model, chosen, background=background, backend=backend,
                                                     lambda_dssim=lambda_dssim, device=device):
-        total = total + losses.sum() / len(chosen)
+        total = total + losses.sum() / len(indices)
         mse = (rendered.image.detach().clamp(0, 1) - gts).square().mean((1, 2, 3))
         psnr_sum = psnr_sum + (-10.0 * torch.log10(mse)).sum()
         rendered_groups.append((rendered, sl))
-    extra = regularizer(torch.tensor([v.timestamp for v in chosen], dtype=torch.float64)) if regularizer else None
-    if extra is not None:
-        total = total + extra
-    loss, psnr_total = torch.stack([total.detach(), psnr_sum]).tolist()  # the step's one synchronization
+    times = torch.tensor([v.timestamp for v in chosen], dtype=torch.float64)
+    extra = regularizer(times) if regularizer and chosen else None
+    if extra is not None:  # a mean over this rank's views, weighted by their share of the batch
+        total = total + extra * (len(chosen) / len(indices)) if len(chosen) != len(indices) else total + extra
+    summary = torch.stack([total.detach().to(torch.float64), torch.as_tensor(psnr_sum, dtype=torch.float64,
+                                                                              device=device)])
+    distributed.all_reduce_([summary], "sum", f"{what} at iteration {step}")
+    loss, psnr_total = summary.tolist()  # the step's one synchronization
     if not np.isfinite(loss):
         raise OMG4Error(f"{what} diverged at iteration {step}: the loss is {loss}")
-    total.backward()
+    if total.requires_grad:
+        total.backward()
     if on_views is not None:
         for rendered, sl in rendered_groups:
             on_views(rendered, sl)
-    return loss, psnr_total / len(chosen)
+    return loss, psnr_total / len(indices)
 
 
 __all__ = ["backward_batch", "step_generator", "view_losses"]

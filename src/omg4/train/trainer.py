@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from omg4 import distributed
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import PointCloud, Scene, View
 from omg4.device import resolve_device
@@ -85,23 +86,34 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
 
 def evaluate_psnr(model, views: list[View], background: torch.Tensor, backend: str,
                   device: torch.device | str = "cpu") -> float:
-    """Mean PSNR of ``model`` (living on ``device``) over ``views`` (renders clamped to [0, 1])."""
-    values = [psnr(render_image(model, v, background, backend, device), view_image(v, device)) for v in views]
+    """Mean PSNR of ``model`` (living on ``device``) over ``views`` (renders clamped to [0, 1]); in a distributed
+    job each rank renders its share of the views and every rank gets the mean over all of them."""
+    world = distributed.world()
+    mine = [psnr(render_image(model, v, background, backend, device), view_image(v, device))
+            for v in world.shard(views)]
+    values = distributed.interleave(distributed.gather_objects(mine, "gathering the test PSNR"))
     return float(np.mean(values)) if values else float("nan")
 
 
 class Trainer:
     """Trains a :class:`Gaussians4D` on a :class:`Scene` and writes checkpoints into ``run_dir``.
 
+    In a distributed job (:mod:`omg4.distributed`) every rank trains a replica on its share of each batch;
+    rank 0 alone logs, shows progress and writes files. ``check_replicas`` > 0 compares the replicas' parameters
+    every that many steps and stops with a one-line error when they differ.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, run_dir: str | Path, *, points: PointCloud | None = None,
-                 resume: bool = False, log: Callable[[str], None] = print, progress: bool = True):
+                 resume: bool = False, log: Callable[[str], None] = print, progress: bool = True,
+                 check_replicas: int = 0):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
+        self.world = distributed.world()
         self.scene, self.cfg, self.run_dir = scene, cfg, Path(run_dir)
-        self.log, self.progress = log, progress
+        self.log = log if self.world.main else (lambda *_: None)
+        self.progress = progress and self.world.main
+        self.check_replicas = check_replicas
         self.extent = scene.extent
         self.device = resolve_device(cfg.device)
         resolve_backend(cfg.backend, self.device)
@@ -111,6 +123,7 @@ class Trainer:
             "time_range": list(scene.time_range),
             "normalization": scene.normalization.to_json(),
             "train_config": cfg.to_dict(),
+            "world_size": self.world.size,
         }
         self.start = 0
         start_it = latest_iteration(self.run_dir) if resume else None
@@ -119,14 +132,16 @@ class Trainer:
             self.optimizer = self._make_optimizer()
             self.optimizer.load_state_dict(state["optimizer"])
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
-            for k, v in state["stats"].items():
-                setattr(self.stats, k, v)
+            if self.world.main:  # the checkpoint holds every rank's statistics combined: rank 0 carries them on
+                for k, v in state["stats"].items():
+                    setattr(self.stats, k, v)
             self.start = int(state["iteration"])
-            log(f"resuming from iteration {self.start} ({self.model.num_gaussians} Gaussians)")
+            self.log(f"resuming from iteration {self.start} ({self.model.num_gaussians} Gaussians)")
         else:
             self.model = initial_model(scene, cfg, points).to(self.device)
             self.optimizer = self._make_optimizer()
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
+        distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
         self.strategy = strategy_for(self.model.config.schema)
         self.history: list[dict] = []
 
@@ -161,14 +176,20 @@ class Trainer:
         return loss, batch_psnr
 
     def save_checkpoint(self, step: int) -> Path:
-        return save_run_checkpoint(self.run_dir, step, self.model, self.optimizer, self.stats, self.metadata)
+        """Write the checkpoint of ``step`` (rank 0; the statistics of every rank combined)."""
+        stats = self.stats.combined()
+        if self.world.main:
+            save_run_checkpoint(self.run_dir, step, self.model, self.optimizer, stats, self.metadata)
+        distributed.barrier("writing a checkpoint")
+        return self.run_dir
 
     def run(self, stop_at: int | None = None) -> TrainResult:
         """Train until ``cfg.iterations`` (or ``stop_at``, for tests of resuming)."""
         cfg = self.cfg
         end = min(cfg.iterations, stop_at) if stop_at else cfg.iterations
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(self.run_dir / "config.json", json.dumps(self.metadata, indent=2))
+        if self.world.main:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(self.run_dir / "config.json", json.dumps(self.metadata, indent=2))
         t0 = time.perf_counter()
         bar = tqdm(range(self.start + 1, end + 1), initial=self.start, total=cfg.iterations, desc="train",
                    disable=not self.progress, dynamic_ncols=True)
@@ -184,14 +205,17 @@ class Trainer:
                                           self.device)
                 self.history.append({"iteration": step, "test_psnr": test_psnr, "num_gaussians":
                                      self.model.num_gaussians})
-                bar.write(f"[{step}] test PSNR {test_psnr:.2f} dB, {self.model.num_gaussians} Gaussians")
+                if self.world.main:
+                    bar.write(f"[{step}] test PSNR {test_psnr:.2f} dB, {self.model.num_gaussians} Gaussians")
             if cfg.checkpoint_interval and step % cfg.checkpoint_interval == 0 and step != end:
                 self.save_checkpoint(step)
+            if self.check_replicas and step % self.check_replicas == 0:
+                distributed.check_replicas(list(self.model.params.values()), step)
         bar.close()
         wall = time.perf_counter() - t0
         self.save_checkpoint(end)
         model_path = self.run_dir / "model.safetensors"
-        if end == cfg.iterations:
+        if end == cfg.iterations and self.world.main:
             save_gaussians(model_path, self.model, {**self.metadata, "iteration": end})
         return TrainResult(self.model, model_path, end, wall, self.history)
 
