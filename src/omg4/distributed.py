@@ -21,9 +21,11 @@ one node) or the error a rank recorded before it stopped.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import os
+import threading
 from dataclasses import dataclass
 
 import torch
@@ -61,14 +63,28 @@ class World:
 
 
 SINGLE = World()
+_ALONE = threading.local()
 
 
 def world() -> World:
-    """The current process group's world, or :data:`SINGLE` when none is initialized."""
-    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+    """The current process group's world, or :data:`SINGLE` when none is initialized (or inside :func:`alone`)."""
+    if getattr(_ALONE, "active", False) or not (torch.distributed.is_available()
+                                               and torch.distributed.is_initialized()):
         return SINGLE
     return World(torch.distributed.get_rank(), torch.distributed.get_world_size(),
                  int(os.environ.get("LOCAL_RANK", "0")))
+
+
+@contextlib.contextmanager
+def alone():
+    """Inside this block this rank works as a single process (no collectives): for units of work a rank does on
+    its own, such as whole segments of a long capture (``omg4 train --parallel segments``)."""
+    previous = getattr(_ALONE, "active", False)
+    _ALONE.active = True
+    try:
+        yield
+    finally:
+        _ALONE.active = previous
 
 
 def launched() -> bool:
@@ -296,6 +312,6 @@ def check_replicas(tensors: list[torch.Tensor], step: int) -> None:
         raise OMG4Error(f"the replicas diverged by step {step}: {which} from rank 0")
 
 
-__all__ = ["World", "SINGLE", "RankLost", "world", "launched", "init", "finish", "record_failure", "reports_failures", "main_first", "barrier",
+__all__ = ["World", "SINGLE", "RankLost", "world", "alone", "launched", "init", "finish", "record_failure", "reports_failures", "main_first", "barrier",
            "all_reduce_", "all_reduce_gradients", "broadcast_", "gather_objects", "interleave", "reduce_statistics",
            "parameter_digest", "check_replicas"]

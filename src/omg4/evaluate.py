@@ -20,20 +20,32 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4.data.scene import View
+from omg4.data.segments import near_boundary
 from omg4.errors import OMG4Error
 from omg4.render.view import render_view
 
 def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
-    """A render-only model on ``device`` from a checkpoint (``.safetensors``) or a compressed ``.omg4`` file.
+    """A render-only model on ``device`` from a checkpoint (``.safetensors``), a compressed ``.omg4`` file, an
+    ``.omg4`` sequence of segments, or a segmented training run's folder (``segments.json``).
 
-    Both come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`) and
-    the file's metadata as ``.meta`` (scene name, time range, normalization).
+    Single models come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`)
+    and the file's metadata as ``.meta`` (scene name, time range, normalization); sequences and segmented runs
+    are :class:`omg4.codec.sequence.SequenceModel` s, decoding each segment when first shown.
     """
     path = Path(path)
+    from omg4.data.segments import is_segmented_run
+
+    if is_segmented_run(path):
+        return load_segmented_run(path, device)
     if not path.is_file():
         raise OMG4Error(f"model file {path} does not exist")
     from omg4.codec.container import has_magic
+    from omg4.codec.sequence import is_sequence
 
+    if is_sequence(path):
+        from omg4.codec.sequence import load_sequence
+
+        return load_sequence(path, device)
     if has_magic(path):
         from omg4.codec.decoder import load_omg4
 
@@ -43,6 +55,22 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
 
     model, meta = load_gaussians(path, device)
     return WindowedModel(model.params, model.config, model.active_sh_degree, model.active_sh_degree_t, meta=meta)
+
+
+def load_segmented_run(run_dir: Path, device: torch.device | str = "cpu"):
+    """A :class:`~omg4.codec.sequence.SequenceModel` of a segmented run's final models (one per segment)."""
+    from omg4.codec.sequence import SequenceModel
+    from omg4.data.segments import read_run_plan
+
+    plan = read_run_plan(run_dir)
+    models = [run_dir / seg["folder"] / "model.safetensors" for seg in plan["segments"]]
+    missing = [str(m) for m in models if not m.is_file()]
+    if missing:
+        raise OMG4Error(f"{run_dir}: segment models not trained yet ({missing[0]}{' …' if len(missing) > 1 else ''});"
+                        " resume the training with --resume")
+    return SequenceModel([tuple(seg["time_range"]) for seg in plan["segments"]],
+                         lambda k: load_model(models[k], device), meta={"fps": plan["fps"]},
+                         storage_bytes=sum(m.stat().st_size for m in models))
 
 
 def frame_rates(models: list, views: list[View], *, fps_views: int = 30, background: torch.Tensor | None = None,
@@ -120,7 +148,9 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     network takes (:func:`~omg4.metrics.lpips_min_side`; None when no view fits). With ``time_frames=False``
     ``fps`` and ``fps_detail`` are None, for a caller that times several models together (:func:`frame_rates`).
     In a distributed job each rank renders its share of the views and every rank returns the same result (rows in
-    view order; FPS timed by rank 0).
+    view order; FPS timed by rank 0). ``bitrate_mbps`` is the storage per second of the model's time range (for
+    video captures, whose times are seconds). A sequence of segments (``model.ranges``) also reports the views near
+    a boundary between segments and the others apart (``boundary``, ``interior``: mean PSNR, SSIM, view count).
     """
     from omg4 import distributed
     from omg4.metrics import lpips, lpips_min_side, psnr, ssim
@@ -137,7 +167,9 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
                                        device=device)
         img, gt = rendered.image.clamp(0.0, 1.0), view_image(v, device)
         row = {"camera": v.camera.name, "frame": v.frame_index, "time": v.timestamp, "psnr": psnr(img, gt),
-               "ssim": float(ssim(img, gt)), "visible_fraction": sl.index.numel() / max(model.num_gaussians, 1)}
+               "ssim": float(ssim(img, gt)), "visible_fraction": sl.index.numel() / max(sl.num_total, 1)}
+        if hasattr(model, "ranges"):
+            row["boundary"] = near_boundary(v.timestamp, model.ranges, model.meta["fps"])
         mask = masks.get(v.camera.name)
         if mask is not None and mask.any():
             row.update(psnr_dynamic=masked_psnr(img, gt, mask), ssim_dynamic=masked_ssim(img, gt, mask),
@@ -147,18 +179,28 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
                 row[f"lpips_{net}"] = lpips(img, gt, net)
         per_view.append(row)
     per_view = distributed.interleave(distributed.gather_objects(per_view, "gathering the metrics"))
-    keys = list(dict.fromkeys(k for r in per_view for k in r if k not in ("camera", "frame", "time")))
+    keys = list(dict.fromkeys(k for r in per_view for k in r if k not in ("camera", "frame", "time", "boundary")))
     mean = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
     for k in ("psnr_dynamic", "ssim_dynamic", "dynamic_fraction", *(f"lpips_{net}" for net in lpips_nets)):
         mean.setdefault(k, None)
     fps = frame_rates([model], views, fps_views=fps_views, background=background, backend=backend,
                       device=device)[0] if time_frames else None
+    t0, t1 = model.config.time_range
+    segments = {}
+    if hasattr(model, "ranges"):
+        for name, rows in (("boundary", [r for r in per_view if r["boundary"]]),
+                           ("interior", [r for r in per_view if not r["boundary"]])):
+            segments[name] = {"num_views": len(rows), **{k: float(np.mean([r[k] for r in rows])) if rows else None
+                                                         for k in ("psnr", "ssim")}}
+        segments["num_segments"] = model.num_segments
     return {
         **mean,
+        **segments,
         "fps": None if fps is None else fps["fps"],
         "fps_detail": fps,
         "num_gaussians": int(model.num_gaussians),
         "storage_mb": storage_bytes / 2**20 if storage_bytes is not None else None,
+        "bitrate_mbps": 8 * storage_bytes / (t1 - t0) / 1e6 if storage_bytes is not None else None,
         "num_views": len(views),
         "per_view": per_view,
     }

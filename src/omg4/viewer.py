@@ -66,7 +66,7 @@ def render_frame(model, camera: Camera, timestamp: float, *, background: torch.T
     """(uint8 image [H, W, 3], fraction of the model's Gaussians drawn) of ``camera`` at ``timestamp``."""
     with torch.no_grad():
         rendered, sl = render_view(model, camera, timestamp, background=background, backend=backend, device=device)
-    return to_uint8(rendered.image.cpu().numpy()), sl.index.numel() / max(model.num_gaussians, 1)
+    return to_uint8(rendered.image.cpu().numpy()), sl.index.numel() / max(sl.num_total, 1)
 
 
 def camera_from_pose(position: np.ndarray, wxyz: np.ndarray, fov_y: float, aspect: float, long_side: int) -> Camera:

@@ -47,7 +47,7 @@ import numpy as np
 from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, decode_sorted_codes, deinterleave,
                                   encode_codewords, encode_sorted_codes, interleave, keys_to_fp16, ordered_keys)
-from omg4.codec.container import read_container, write_container
+from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, read_container, write_container
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices, pack_varints, unpack_varints
 from omg4.errors import CorruptFileError, OMG4Error
 
@@ -575,8 +575,13 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
 
     Any damage raises a one-line :class:`CorruptFileError` naming the file and section.
     """
-    header, sections = read_container(source)
+    version, header, sections = _read_versioned(source)
     label = "data" if isinstance(source, (bytes, bytearray, memoryview)) else str(source)
+    if version == SEQUENCE_VERSION or header.get("layout") is not None:
+        if version == SEQUENCE_VERSION and header.get("layout") == "sequence":
+            raise OMG4Error(f"{label} is a sequence of {len(sections)} segments, not one model: open it with "
+                            "omg4.load_model (or any omg4 command)")
+        raise CorruptFileError(f"{label}: a single-model header and a sequence's version or layout")
     try:
         return _decode_sections(header, sections)
     except CorruptFileError as exc:

@@ -30,8 +30,9 @@ def section_group(name: str) -> str:
 
 
 def describe_file(path: str | os.PathLike) -> dict:
-    """Codec, container version, backbone, Gaussian count, encodings, total bytes, bits per Gaussian, bytes per
-    group and per section, and the file's metadata — after decoding the whole file (see the module docstring)."""
+    """Codec, container version, backbone, Gaussian count, encodings, total bytes, bits per Gaussian, bitrate (megabits
+    per second of the model's time range), bytes per group and per section, and the file's metadata — after
+    decoding the whole file (see the module docstring)."""
     model = load_omg4(path)
     d = describe_container(path)
     header = d["header"]
@@ -40,10 +41,40 @@ def describe_file(path: str | os.PathLike) -> dict:
         groups[section_group(name)] = groups.get(section_group(name), 0) + size
     groups["header"] = d["header_bytes"]
     n, total = model.num_gaussians, d["total_bytes"]
+    t0, t1 = model.config.time_range
     return {"codec": header.get("codec"), "version": d["version"], "backbone": model.config.backbone,
             "backbone_title": model.config.schema.title, "num_gaussians": n, "encodings": header.get("encodings"),
             "total_bytes": total, "storage_mb": total / 2**20, "bits_per_gaussian": 8 * total / n if n else None,
-            "groups": groups, "sections": d["sections"], "meta": header.get("meta", {}), "path": str(Path(path))}
+            "bitrate_mbps": 8 * total / (t1 - t0) / 1e6, "groups": groups, "sections": d["sections"],
+            "meta": header.get("meta", {}), "path": str(Path(path))}
 
 
 __all__ = ["section_group", "describe_file"]
+
+
+def describe_sequence(path: str | os.PathLike) -> dict:
+    """The index of an ``.omg4`` sequence file and each segment's :func:`describe_file` (each segment decoded as
+    the decoder does), with the file's bitrate over the capture."""
+    import tempfile
+
+    from omg4.codec.sequence import read_index, read_segment
+
+    index = read_index(path)
+    segments = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for entry in index.segments:
+            part = Path(tmp) / f"segment_{entry.index:03d}.omg4"
+            part.write_bytes(read_segment(path, entry))
+            d = describe_file(part)
+            segments.append({"index": entry.index, "frames": list(entry.frames), "time_range": list(entry.time_range),
+                             "offset": entry.offset, **{k: d[k] for k in ("codec", "version", "backbone",
+                                                                          "num_gaussians", "total_bytes", "groups")}})
+            part.unlink()
+    total = index.total_bytes
+    return {"layout": "sequence", "path": str(Path(path)), "fps": index.fps, "time_range": list(index.time_range),
+            "duration_s": index.duration_s, "total_bytes": total, "storage_mb": total / 2**20,
+            "bitrate_mbps": index.bitrate_mbps, "num_gaussians": sum(s["num_gaussians"] for s in segments),
+            "segments": segments, "meta": index.meta}
+
+
+__all__ += ["describe_sequence"]

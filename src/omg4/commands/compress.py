@@ -31,7 +31,9 @@ COMMAND_KEYS = ("codec", "grid_bits")
 
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
-    p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
+    p.add_argument("--model", required=True, type=Path,
+                   help="trained baseline checkpoint (.safetensors), or a segmented run's folder (train "
+                        "--segment-frames): every segment is compressed into one sequence file")
     p.add_argument("--out", required=True, type=Path,
                    help="output .omg4 file (with --stop-after: a .safetensors checkpoint of the minimized model)")
     p.add_argument("--preset", choices=sorted({name for b in BACKBONES.values() for name in b.size_presets}),
@@ -80,6 +82,7 @@ def run(args) -> int:
     from omg4.compress.api import compress_to_file
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.data.segments import is_segmented_run
     from omg4.outputs import check_outputs
     from omg4.settings import config_dict
 
@@ -98,6 +101,8 @@ def run(args) -> int:
     record = args.out.with_name(args.out.name + ".config.json")
     check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out, "the config record": record},
                   inputs=[args.data, args.model, args.scores, args.config], datasets=[args.data], force=args.force)
+    if is_segmented_run(args.model):
+        return _compress_segments(args, cfg, codec, precision, record, world)
     scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
     baseline, _ = load_gaussians(args.model, device)
     report = compress_to_file(baseline, scene, cfg, args.out, codec=codec, stop_after=args.stop_after,
@@ -137,3 +142,33 @@ def pipeline_config(args, settings: dict, device) -> CompressConfig:
             cfg = replace(cfg, lengths=cfg.stage_lengths())
         cfg = apply_settings(cfg, lengths)
     return cfg
+
+
+def _compress_segments(args, cfg, codec, precision, record, world) -> int:
+    """A segmented run: every segment compressed, one sequence file written."""
+    import argparse
+
+    from omg4 import distributed
+    from omg4.atomic import write_text_atomic
+    from omg4.compress.api import compress_segments
+    from omg4.errors import OMG4Error
+    from omg4.settings import config_dict
+
+    if args.stop_after or args.scores:
+        raise OMG4Error("a segmented run compresses into one sequence file: --stop-after and --scores take one model")
+
+    def load_segment(start: int, stop: int):
+        options = argparse.Namespace(**{**vars(args), "frames": f"{start}:{stop}"})
+        return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
+
+    report = compress_segments(args.model, load_segment, cfg, args.out, codec=codec, precision=precision,
+                               check_replicas=args.check_replicas)
+    if not world.main:
+        return 0
+    write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
+                                          "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
+    print(f"wrote {args.out}: {len(report['segments'])} segments, {report['file_bytes'] / 2**20:.3f} MB, "
+          f"{report['bitrate_mbps']:.2f} Mbit/s over {report['duration_s']:.2f} s, {report['wall_time_s']:.0f} s")
+    if args.json:
+        write_text_atomic(args.json, json.dumps({**report, "world_size": world.size}, indent=2))
+    return 0

@@ -42,14 +42,20 @@ def run(args) -> int:
         views = views[:: -(-len(views) // args.max_views)]
     bg = torch.tensor(background_from_args(args), device=device)
     nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
-    result = evaluate(model, views, storage_bytes=args.model.stat().st_size, lpips_nets=nets, background=bg,
+    storage = getattr(model, "storage_bytes", None) or args.model.stat().st_size  # a sequence or run: all its files
+    result = evaluate(model, views, storage_bytes=storage, lpips_nets=nets, background=bg,
                       backend=args.backend, device=device)
     if not world.main:
         return 0
     cols = ["psnr", "ssim", *[f"lpips_{n}" for n in nets], "psnr_dynamic", "ssim_dynamic", "fps", "num_gaussians",
-            "visible_fraction", "storage_mb"]
+            "visible_fraction", "storage_mb", "bitrate_mbps"]
     print(" | ".join(f"{c}" for c in cols))
     print(" | ".join(f"{result[c]:.4g}" if isinstance(result[c], float) else str(result[c]) for c in cols))
+    if "boundary" in result:
+        b, i = result["boundary"], result["interior"]
+        print(f"{result['num_segments']} segments: boundary views {b['num_views']} (PSNR {b['psnr'] or 0:.4g}, SSIM "
+              f"{b['ssim'] or 0:.4g}), interior views {i['num_views']} (PSNR {i['psnr'] or 0:.4g}, SSIM "
+              f"{i['ssim'] or 0:.4g})")
     if args.json:
         write_text_atomic(args.json, json.dumps({"model": str(args.model), "split": args.split, **result,
                                                 "world_size": world.size}, indent=2))

@@ -93,6 +93,9 @@ def run(args) -> int:
 
     model = load_model(args.model)
     if fmt == "splatv":
+        if hasattr(model, "parts_at"):
+            raise OMG4Error(f"{args.model} is a sequence of {model.num_segments} segments and a .splatv holds one model:"
+                            " export its time slices as .ply (--times A:B:N)")
         return _export_splatv(args, model)
     times = _times(args, requested, model.config.time_range)
     normalization = _normalization(args, model) if args.original_world else None

@@ -117,11 +117,58 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
     summary = {"kind": "omg4", **{k: v for k, v in d.items() if k != "backbone_title"}}
     lines = [f"{printable(path)}: OMG4 file ({printable(d['backbone_title'])}), codec {printable(d['codec'])} "
              f"(container version {d['version']}), {n} Gaussians, {total} bytes ({d['storage_mb']:.4f} MB), "
-             f"{d['bits_per_gaussian'] or 0:.1f} bits/Gaussian"]
+             f"{d['bits_per_gaussian'] or 0:.1f} bits/Gaussian, {d['bitrate_mbps']:.3g} Mbit/s"]
     for key, size in groups.items():
         lines.append(f"  {printable(key):<22} {size:>10} B  {100 * size / total:5.1f}%  "
                      f"{8 * size / n if n else 0:7.2f} bits/G")
     return summary, "\n".join(lines)
+
+
+def sequence_summary(path: Path, **_) -> tuple[dict, str]:
+    """An ``.omg4`` sequence file: its segments (frames, times, Gaussians, bytes), every one decoded first, and the
+    bitrate over the capture (:func:`omg4.codec.summary.describe_sequence`)."""
+    from omg4.codec.summary import describe_sequence
+
+    d = describe_sequence(path)
+    lines = [f"{printable(path)}: OMG4 sequence of {len(d['segments'])} segments, {d['duration_s']:.3g} s at "
+             f"{d['fps']:g} fps, {d['total_bytes']} bytes ({d['storage_mb']:.4f} MB), {d['bitrate_mbps']:.3g} Mbit/s, "
+             f"{d['num_gaussians']} Gaussians"]
+    for s in d["segments"]:
+        lines.append(f"  segment {s['index']:>3}: frames {s['frames'][0]}-{s['frames'][1] - 1}, "
+                     f"{s['num_gaussians']:>8} Gaussians, {s['total_bytes']:>10} B ({printable(s['codec'])})")
+    return {"kind": "omg4-sequence", **d}, "\n".join(lines)
+
+
+def segmented_run_summary(path: Path, **_) -> tuple[dict, str]:
+    """A segmented training run: its plan and each segment's final model (or that it is not trained yet)."""
+    from omg4.data.segments import read_run_plan
+    from omg4.gaussians.checkpoint import describe_checkpoint
+
+    plan = read_run_plan(path)
+    segments = []
+    for seg in plan["segments"]:
+        model = path / seg["folder"] / "model.safetensors"
+        info = describe_checkpoint(model) if model.is_file() else None
+        segments.append({**seg, "num_gaussians": info and info["num_gaussians"],
+                         "file_size_bytes": info and info["file_size_bytes"]})
+    lines = [f"{printable(path)}: segmented training run, {len(segments)} segments of {plan['segment_frames']} "
+             f"frames sharing {plan['overlap']}, {plan['fps']:g} fps"]
+    for s in segments:
+        state = f"{s['num_gaussians']} Gaussians" if s["num_gaussians"] is not None else "not trained yet"
+        lines.append(f"  segment {s['index']:>3}: frames {s['frames'][0]}-{s['frames'][1] - 1}, {state}")
+    return {"kind": "segmented-run", "path": str(path), **plan, "segments": segments}, "\n".join(lines)
+
+
+def _is_sequence(path: Path) -> bool:
+    from omg4.codec.sequence import is_sequence
+
+    return is_sequence(path)
+
+
+def _is_segmented_run(path: Path) -> bool:
+    from omg4.data.segments import is_segmented_run
+
+    return is_segmented_run(path)
 
 
 def _is_omg4(path: Path) -> bool:
@@ -153,7 +200,9 @@ def _is_checkpoint(path: Path) -> bool:
 
 #: (accepts(path), summarize(path, **options)) in order; each file kind has one entry.
 SUMMARIZERS: list[tuple[Callable[[Path], bool], Callable[..., tuple[dict, str]]]] = [
+    (_is_segmented_run, segmented_run_summary),
     (Path.is_dir, dataset_summary),
     (_is_checkpoint, checkpoint_summary),
+    (_is_sequence, sequence_summary),
     (_is_omg4, omg4_summary),
 ]

@@ -57,6 +57,15 @@ def configure(p: argparse.ArgumentParser) -> None:
                      help="start afresh in an existing run folder: its checkpoints and model are deleted")
     p.add_argument("--json", type=Path, help="write a summary (iterations, wall time, test PSNR) as JSON")
     add_distributed_arguments(p)
+    segments = p.add_argument_group("long captures: one model per segment of the capture")
+    segments.add_argument("--segment-frames", type=int_at_least(2), metavar="F",
+                          help="train one model per segment of F frames (default: one model of the whole capture); "
+                               "compress then writes one sequence file")
+    segments.add_argument("--overlap", type=int_at_least(0), metavar="K",
+                          help="frames neighbouring segments share, blended across (default: F/6, rounded)")
+    segments.add_argument("--parallel", choices=("data", "segments"), default="data",
+                          help="in a distributed run: every rank trains every segment together (data, the default) or "
+                               "each rank trains whole segments on its own (segments)")
     add_settings_arguments(p, TrainConfig, shortcuts=SHORTCUTS, section="train_config",
                            defaults="the defaults shown are the official preset's")
 
@@ -86,6 +95,10 @@ def run(args) -> int:
                  background=(1.0, 1.0, 1.0) if args.white_background else None)
     cfg = make_config(args.preset, **{**settings, **{k: v for k, v in flags.items() if v is not None}},
                       backend=args.backend, device=str(device))
+    if args.segment_frames:
+        return _train_segments(args, cfg, world)
+    if args.overlap is not None:
+        raise OMG4Error("--overlap needs --segment-frames")
     scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
     resuming = args.resume and latest_iteration(args.out) is not None
     points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
@@ -108,4 +121,55 @@ def run(args) -> int:
           f"-> {result.model_path}")
     if args.json:
         write_text_atomic(args.json, json.dumps(summary, indent=2))
+    return 0
+
+
+def _train_segments(args, cfg, world) -> int:
+    """``--segment-frames``: plan the segments of the capture and train one model per segment (resumable)."""
+    import argparse
+
+    from omg4 import distributed
+    from omg4.atomic import write_text_atomic
+    from omg4.data.segments import plan_segments
+    from omg4.errors import OMG4Error
+    from omg4.train.init import initial_points
+    from omg4.train.run_state import clear_run
+    from omg4.train.segmented import segment_plan, train_segments, write_plan
+
+    capture = load_scene_from_args(args, decode=False, background=cfg.background)
+    if capture.format not in ("n3dv", "panoptic"):
+        raise OMG4Error(f"--segment-frames cuts multi-view video into segments of frames; a {capture.format} scene "
+                        "has no frame sequence to cut")
+    frames = sorted({v.frame_index for v in capture.train_views})
+    if frames != list(range(frames[0], frames[-1] + 1)):
+        raise OMG4Error("--segment-frames needs a contiguous range of frames")
+    fps = len(frames) / (capture.time_range[1] - capture.time_range[0])
+    overlap = args.overlap if args.overlap is not None else max(1, round(args.segment_frames / 6))
+    segments = plan_segments(len(frames), args.segment_frames, overlap)
+    plan = segment_plan(segments, fps, frames[0], args.segment_frames, overlap)
+    if args.force and world.main:
+        import shutil
+
+        for seg in plan["segments"]:
+            clear_run(args.out / seg["folder"])
+        (args.out / "segments.json").unlink(missing_ok=True)
+        shutil.rmtree(args.out / "checkpoints", ignore_errors=True)
+    distributed.barrier()
+    write_plan(args.out, plan)
+    distributed.barrier()
+
+    def load_segment(start: int, stop: int):
+        options = argparse.Namespace(**{**vars(args), "frames": f"{start}:{stop}"})
+        return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
+
+    summaries = train_segments(args.out, plan, cfg, load_segment, lambda scene: initial_points(scene, args.init, cfg),
+                               parallel=args.parallel, check_replicas=args.check_replicas)
+    if not world.main:
+        return 0
+    print(f"trained {len(summaries)} segments of {args.segment_frames} frames (sharing {overlap}) -> {args.out}")
+    for s in summaries:
+        print(f"  segment {s['index']}: frames {s['frames'][0]}-{s['frames'][1] - 1}, {s['num_gaussians']} Gaussians")
+    if args.json:
+        write_text_atomic(args.json, json.dumps({"segments": summaries, "plan": plan, "world_size": world.size},
+                                                indent=2))
     return 0

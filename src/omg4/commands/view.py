@@ -38,7 +38,8 @@ def run(args) -> int:
     cameras = load_scene_from_args(args, decode=False).cameras() if args.data is not None else None
     settings = ViewerSettings(host=args.host, port=args.port, long_side=args.resolution,
                               moving_long_side=max(16, args.resolution // 2), backend=args.backend, device=str(device))
-    viewer = Viewer(model, view_presets(model, cameras), file_bytes=args.model.stat().st_size, settings=settings)
+    file_bytes = getattr(model, "storage_bytes", None) or args.model.stat().st_size  # a sequence or run: all of it
+    viewer = Viewer(model, view_presets(model, cameras), file_bytes=file_bytes, settings=settings)
     viewer.background = torch.tensor(background_from_args(args), device=device)
     host = "localhost" if args.host in ("127.0.0.1", "0.0.0.0") else args.host
     print(f"omg4 view: http://{host}:{viewer.server.get_port()} ({model.num_gaussians:,} Gaussians; Ctrl-C to stop)")

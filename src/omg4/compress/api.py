@@ -114,3 +114,50 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
                    "rate_weight": cfg.rate_weight,
                    "device": str(pipeline.device)},
     }
+
+
+def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
+                      codec: str = CODECS[0], precision: CompactGrids = CompactGrids(), progress: bool = True,
+                      log=print, check_replicas: int = 0) -> dict:
+    """Compress every segment of a segmented training run (:mod:`omg4.train.segmented`) and write them as one
+    sequence file (:mod:`omg4.codec.sequence`) at ``out``; ``load_scene(start, stop)`` gives a segment's scene.
+
+    One segment's scene and models are held at a time. Returns the report: per segment the
+    :func:`compress_to_file` report, and the file's bytes, duration and bitrate.
+    """
+    import shutil
+
+    from omg4 import distributed
+    from omg4.codec.sequence import read_index, write_sequence
+    from omg4.data.segments import read_run_plan
+    from omg4.gaussians.checkpoint import load_gaussians
+
+    run_dir, out = Path(run_dir), Path(out)
+    plan = read_run_plan(run_dir)
+    main = distributed.world().main
+    work = out.with_name(f".{out.name}.segments")  # each segment's file, until the sequence is written
+    if main:
+        work.mkdir(parents=True, exist_ok=True)
+    parts, reports, t0 = [], [], time.perf_counter()
+    try:
+        for seg in plan["segments"]:
+            log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}")
+            scene = load_scene(*seg["frames"])
+            baseline, _ = load_gaussians(run_dir / seg["folder"] / "model.safetensors", cfg.device)
+            path = work / f"segment_{seg['index']:03d}.omg4"
+            reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
+                                            progress=progress, log=log, check_replicas=check_replicas))
+            if main:
+                parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
+            del scene, baseline
+        if main:
+            write_sequence(out, parts, fps=plan["fps"], meta={"segment_frames": plan["segment_frames"],
+                                                              "overlap": plan["overlap"]})
+    finally:
+        if main:
+            shutil.rmtree(work, ignore_errors=True)
+    distributed.barrier("writing the sequence")
+    index = read_index(out)
+    return {"output": str(out), "file_bytes": index.total_bytes, "segments": reports,
+            "num_gaussians": sum(r["num_gaussians"] for r in reports), "duration_s": index.duration_s,
+            "bitrate_mbps": index.bitrate_mbps, "wall_time_s": time.perf_counter() - t0}

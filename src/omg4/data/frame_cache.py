@@ -8,9 +8,11 @@ only when asked (:meth:`FrameCache.image`).
 Cache files live in one folder (``$OMG4_CACHE_DIR``, else ``~/.cache/omg4/frames``) and are
 named ``<video stem>-<key>.npy`` where the key hashes the video's resolved path, size and
 mtime and the decode options (output size, resize filter, cache version): a changed video
-or a different resolution never reuses a stale cache. A cache holds the first ``F`` frames
-(a prefix), so a run on frames 0–49 reuses a cache of all 300 frames; asking for more
-frames than cached decodes a longer prefix and replaces the file. Files are written with
+or a different resolution never reuses a stale cache. A cache holds the frames from its first one on:
+from frame 0 (a prefix), so a run on frames 0–49 reuses a cache of all 300 frames, or, when no prefix
+covers a later range, from its first frame (a window: one segment of a long capture, :mod:`omg4.data.segments`,
+holds only its own frames on disk); asking for more frames than cached decodes a longer one and replaces the
+file. Files are written with
 :func:`omg4.atomic.atomic_path`: a crashed decode leaves at most a ``.tmp`` file, never a
 cache that looks complete. Stale entries are not deleted automatically.
 """
@@ -75,30 +77,39 @@ def probe_video(path: Path) -> VideoInfo:
 
 
 class FrameCache:
-    """The first ``num_frames`` frames of one video at ``width × height``, as uint8 on disk.
+    """Frames ``first … num_frames − 1`` of one video at ``width × height``, as uint8 on disk.
 
     Args:
         video: the probed video.
         width, height: output frame size (frames are resized with PIL bicubic when it differs
             from the video's size).
-        num_frames: how many leading frames must be available.
+        num_frames: frames up to this one (exclusive) must be available.
         cache_dir: folder of the cache files.
+        first: the first frame the cache holds (0: a prefix of the video).
     """
 
-    def __init__(self, video: VideoInfo, width: int, height: int, num_frames: int, cache_dir: Path):
+    def __init__(self, video: VideoInfo, width: int, height: int, num_frames: int, cache_dir: Path, first: int = 0):
         self.video = video
         self.width, self.height = int(width), int(height)
         self.num_frames = int(num_frames)
+        self.first = int(first)
         self.cache_dir = Path(cache_dir)
         self._frames: np.ndarray | None = None
+        self._base = 0  # the video frame of the open cache's row 0
 
     @property
     def path(self) -> Path:
-        """The cache file: ``<cache_dir>/<stem>-<key>.npy``."""
+        """The cache file this cache decodes into: ``<cache_dir>/<stem>-<key>.npy``."""
+        return self._path_for(self.first)
+
+    def _path_for(self, first: int) -> Path:
         src = self.video.path.resolve()
         st = src.stat()
-        key = json.dumps({"v": CACHE_VERSION, "path": str(src), "size": st.st_size, "mtime_ns": st.st_mtime_ns,
-                          "w": self.width, "h": self.height, "filter": RESIZE_FILTER}, sort_keys=True)
+        fields = {"v": CACHE_VERSION, "path": str(src), "size": st.st_size, "mtime_ns": st.st_mtime_ns,
+                  "w": self.width, "h": self.height, "filter": RESIZE_FILTER}
+        if first:  # a window (prefix caches keep the key they always had)
+            fields["first"] = first
+        key = json.dumps(fields, sort_keys=True)
         return self.cache_dir / f"{src.stem}-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npy"
 
     def is_cached(self) -> bool:
@@ -112,20 +123,21 @@ class FrameCache:
         """
         if self._frames is not None:
             return
-        frames = self._open_existing()
-        if frames is None:
+        opened = self._open_existing()
+        if opened is None:
             self._decode(on_frame)
-            frames = self._open_existing()
-            if frames is None:
+            opened = self._open_existing()
+            if opened is None:
                 raise DataError(f"frame cache {self.path} is unreadable after decoding")
-        self._frames = frames
+        self._frames, self._base = opened
 
     def frame(self, index: int) -> np.ndarray:
-        """uint8 [H, W, 3] of frame ``index`` (a read-only view into the memory map)."""
-        if not 0 <= index < self.num_frames:
-            raise DataError(f"frame {index} of {self.video.path} is outside the {self.num_frames} cached frames")
+        """uint8 [H, W, 3] of frame ``index`` of the video (a read-only view into the memory map)."""
+        if not self.first <= index < self.num_frames:
+            raise DataError(f"frame {index} of {self.video.path} is outside the cached frames "
+                            f"{self.first}-{self.num_frames - 1}")
         self.ensure()
-        return self._frames[index]
+        return self._frames[index - self._base]
 
     def image(self, index: int) -> np.ndarray:
         """float32 [H, W, 3] in [0, 1] of frame ``index`` (what a view's loader returns)."""
@@ -137,23 +149,26 @@ class FrameCache:
         state["_frames"] = None
         return state
 
-    def _open_existing(self) -> np.ndarray | None:
-        path = self.path
-        if not path.exists():
-            return None
-        try:
-            frames = np.load(path, mmap_mode="r")
-        except (OSError, ValueError):
-            return None
-        if frames.dtype != np.uint8 or frames.shape[1:] != (self.height, self.width, 3):
-            return None
-        if frames.shape[0] < self.num_frames:
-            return None
-        return frames
+    def _open_existing(self) -> tuple[np.ndarray, int] | None:
+        """(frames, first frame) of a complete cache covering the frames asked for: a prefix long enough, else this
+        cache's own window; None when neither exists."""
+        for first in dict.fromkeys((0, self.first)):
+            path = self._path_for(first)
+            if not path.exists():
+                continue
+            try:
+                frames = np.load(path, mmap_mode="r")
+            except (OSError, ValueError):
+                continue
+            if frames.dtype == np.uint8 and frames.shape[1:] == (self.height, self.width, 3) and \
+                    frames.shape[0] >= self.num_frames - first:
+                return frames, first
+        return None
 
     def _decode(self, on_frame: Callable[[], None] | None) -> None:
-        """Decode frames ``0 … num_frames − 1`` into a temporary memmap, then rename it into place."""
-        shape = (self.num_frames, self.height, self.width, 3)
+        """Decode frames ``first … num_frames − 1`` into a temporary memmap (earlier frames are decoded and
+        dropped), then rename it into place."""
+        shape = (self.num_frames - self.first, self.height, self.width, 3)
         decoded = 0
         with atomic_path(self.path) as tmp:
             out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
@@ -162,10 +177,12 @@ class FrameCache:
                     stream = container.streams.video[0]
                     stream.thread_type = "AUTO"
                     for frame in container.decode(stream):
-                        out[decoded] = resize_rgb(frame.to_ndarray(format="rgb24"), self.width, self.height)
+                        if decoded >= self.first:
+                            out[decoded - self.first] = resize_rgb(frame.to_ndarray(format="rgb24"), self.width,
+                                                                   self.height)
+                            if on_frame is not None:
+                                on_frame()
                         decoded += 1
-                        if on_frame is not None:
-                            on_frame()
                         if decoded == self.num_frames:
                             break
             except (av.error.FFmpegError, OSError, ValueError) as e:

@@ -104,7 +104,9 @@ def read_n3dv(folder: Path, opts: LoadOptions) -> Scene:
     for name in chosen:
         i = names.index(name)
         camera = _camera(name, c2w[i], hwf[i], infos[name], norm, opts)
-        cache = FrameCache(infos[name], camera.width, camera.height, int(frame_ids[-1]) + 1, cache_dir)
+        # frames from 0: a prefix cache every shorter run reuses; a later start (a segment): its own window
+        cache = FrameCache(infos[name], camera.width, camera.height, int(frame_ids[-1]) + 1, cache_dir,
+                           first=int(min(frame_ids)))
         caches.append(cache)
         views = [View(camera=camera, timestamp=float(f) / fps, frame_index=int(f),
                       loader=functools.partial(cache.image, int(f))) for f in frame_ids]
@@ -136,7 +138,7 @@ def _camera(name: str, c2w: np.ndarray, hwf: np.ndarray, info: VideoInfo, norm: 
 def decode_all(caches: list[FrameCache], progress: bool = True) -> None:
     """Decode every cache that is not on disk yet, with one progress bar over all frames."""
     todo = [c for c in caches if not c.is_cached()]
-    with tqdm(total=sum(c.num_frames for c in todo), unit="frame", desc="decoding videos",
+    with tqdm(total=sum(c.num_frames - c.first for c in todo), unit="frame", desc="decoding videos",
               disable=not progress or not todo) as bar:
         for cache in todo:
             cache.ensure(on_frame=lambda: bar.update(1))

@@ -138,9 +138,11 @@ def export_ply(path: str | os.PathLike, model, timestamp: float, *, normalizatio
     ``model``: a :class:`Gaussians4D` or a render-only model (a loaded checkpoint or decoded
     ``.omg4`` file, :func:`omg4.evaluate.load_model`; its appearance MLPs give the SH). The
     model's active SH degrees are kept (spatial degree → f_rest count; temporal bands folded
-    at τ). With ``normalization`` the output is in the dataset's original world. Returns the
-    number of Gaussians written.
+    at τ). With ``normalization`` the output is in the dataset's original world. A sequence of segments writes
+    the slice of the segment weighing most at ``timestamp``. Returns the number of Gaussians written.
     """
+    if hasattr(model, "segment_at"):
+        model = model.segment_at(timestamp)
     sl = slice_in_float64(model, timestamp)
     means, covars, sh = sl.means.numpy(), sl.covars.numpy(), sl.sh.numpy()
     if normalization is not None:

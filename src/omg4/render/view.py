@@ -82,7 +82,15 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
 
     Returns ``(rendered, time_slice)``: the :class:`omg4.render.Rendered` of the slice and
     the slice itself (its ``index`` maps ``rendered.means2d`` rows to model Gaussians).
+
+    A model made of segments (a long capture, :class:`omg4.codec.sequence.SequenceModel`) offers
+    ``parts_at(timestamp)``, the models shown at that time with weights summing to 1: each is rendered and the
+    images, alphas and depths are blended by the weights (a crossfade across a boundary); the slice returned is
+    the heaviest part's.
     """
+    if hasattr(model, "parts_at"):
+        return _render_blend(model.parts_at(timestamp), camera, timestamp, background=background, backend=backend,
+                             device=device, **raster_kwargs)
     from omg4.render import rasterize
 
     viewmat, K, center = camera_tensors(camera, device)
@@ -90,6 +98,19 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
     rendered = rasterize(sl.means, sl.covars, sl.colors, sl.opacities, viewmat, K, camera.width, camera.height,
                          background=background, backend=backend, **raster_kwargs)
     return rendered, sl
+
+
+def _render_blend(parts: list, camera: Camera, timestamp: float, **kwargs):
+    """The weighted blend of each part's render (see :func:`render_view`)."""
+    import dataclasses
+
+    renders = [(render_view(part, camera, timestamp, **kwargs), weight) for part, weight in parts]
+    if len(renders) == 1:
+        return renders[0][0]
+    (first, first_slice), _ = max(renders, key=lambda r: r[1])
+    blended = {name: sum(getattr(rendered, name) * weight for (rendered, _), weight in renders)
+               for name in ("image", "alpha", "depth")}
+    return dataclasses.replace(first, **blended), first_slice
 
 
 def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: list[float], *,

@@ -20,7 +20,7 @@ from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians.checkpoint import load_gaussians, save_gaussians
 
 _STATE_RE = re.compile(r"state_(\d{7})\.pt$")
-RUN_FILES = ("config.json", "model.safetensors", "checkpoints")
+RUN_FILES = ("config.json", "model.safetensors", "checkpoints", "segments.json")
 """What a run folder holds (the final model beside its configuration and checkpoints)."""
 
 

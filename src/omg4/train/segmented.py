@@ -1,0 +1,84 @@
+"""Training a long capture segment by segment (:mod:`omg4.data.segments`): one baseline per segment.
+
+The run folder holds the plan (``segments.json``: each segment's frames, time range and folder) and one
+ordinary run folder per segment (``segment_000/``: checkpoints, ``config.json``, ``model.safetensors``). A
+segment whose model exists is done; one with checkpoints resumes from its last; so a stopped run continues
+segment by segment. Only one segment's frames, Gaussians and optimizer are held at a time. In a distributed
+job the ranks either train every segment together (data-parallel, the default) or each train whole segments
+on their own (``parallel="segments"``: rank r takes segments r, r + W, …).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+from typing import Callable
+
+from omg4 import distributed
+from omg4.atomic import write_text_atomic
+from omg4.data.scene import Scene
+from omg4.data.segments import PLAN_FILE, Segment, segment_folder
+from omg4.errors import OMG4Error
+from omg4.train.config import TrainConfig
+from omg4.train.run_state import latest_iteration
+
+PARALLEL_MODES = ("data", "segments")
+
+
+def segment_plan(segments: list[Segment], fps: float, first_frame: int, segment_frames: int | None,
+                 overlap: int) -> dict:
+    """The plan a segmented run records (frames counted from the capture's first, times in seconds)."""
+    return {"fps": fps, "segment_frames": segment_frames, "overlap": overlap, "segments": [
+        {"index": s.index, "frames": [first_frame + s.start, first_frame + s.stop],
+         "time_range": [(first_frame + s.start) / fps, (first_frame + s.stop) / fps], "folder": segment_folder(s.index)}
+        for s in segments]}
+
+
+def write_plan(run_dir: Path, plan: dict) -> None:
+    """Record ``plan`` in ``run_dir`` (rank 0); a folder already holding another plan is refused."""
+    path = Path(run_dir) / PLAN_FILE
+    if path.exists():
+        try:
+            existing = json.loads(path.read_text())
+        except (OSError, ValueError):
+            existing = None
+        if existing != json.loads(json.dumps(plan)):
+            raise OMG4Error(f"{run_dir} holds a run with other segments: use another --out, or --force to start afresh")
+        return
+    if distributed.world().main:
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
+        write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
+
+
+def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
+                   initial_points: Callable[[Scene], object], *, parallel: str = "data", check_replicas: int = 0,
+                   log=print) -> list[dict]:
+    """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
+    order; with ``parallel="segments"`` the others' segments are read from their folders)."""
+    from omg4.gaussians.checkpoint import describe_checkpoint
+    from omg4.train.trainer import Trainer
+
+    if parallel not in PARALLEL_MODES:
+        raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")
+    world = distributed.world()
+    mine = world.shard(plan["segments"]) if parallel == "segments" else plan["segments"]
+    for seg in mine:
+        folder = Path(run_dir) / seg["folder"]
+        if (folder / "model.safetensors").is_file():
+            log(f"segment {seg['index']}: done")
+            continue
+        with distributed.alone() if parallel == "segments" else contextlib.nullcontext():
+            resume = latest_iteration(folder) is not None
+            scene = load_scene(*seg["frames"])
+            log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
+                f"{' (resuming)' if resume else ''}")
+            points = None if resume else initial_points(scene)
+            Trainer(scene, cfg, folder, points=points, resume=resume, log=log, check_replicas=check_replicas).run()
+            del scene
+    distributed.barrier("training the segments")
+    return [{"index": seg["index"], "frames": seg["frames"],
+             **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
+
+
+__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "train_segments"]
