@@ -1,6 +1,7 @@
 """Data-parallel training steps: 1 rank against N ranks (torch.distributed; gloo on the CPU, NCCL on CUDA).
 
-Loads a trained baseline (so every run steps the same Gaussians), and times training steps of a fixed global
+Loads a trained baseline (or makes ``--random N`` Gaussians from random points of the scene; either way every
+run steps the same Gaussians), and times training steps of a fixed global
 batch with densification off, once per world size: the whole step (render, loss, backward, gradient all-reduce,
 Adam) per rank, images per second, and the all-reduce alone — its bytes per rank and its seconds — so the
 communication's share of a step is visible. Each world is started with ``torch.distributed.run`` (one thread
@@ -8,7 +9,7 @@ per rank on the CPU). Scaling efficiency = images/s with N ranks / (N × images/
 
 Usage::
 
-    python benchmarks/distributed.py DATA --model BASELINE.safetensors [--downscale 2] [--nproc 1 2]
+    python benchmarks/distributed.py DATA (--model BASELINE.safetensors | --random N) [--downscale 2] [--ranks 1 2]
         [--batch-size 4] [--steps 30] [--warmup 5] [--device cpu|cuda] [--name demo]
 """
 
@@ -42,7 +43,14 @@ def worker(args) -> None:
     world, device = distributed.init(resolve_device(args.device))
     args.format, args.frames, args.cameras = None, None, None
     scene = distributed.main_first(lambda: load_scene_from_args(args, decode=True))
-    model, _ = load_gaussians(args.model, device)
+    if args.model:
+        model, _ = load_gaussians(args.model, device)
+    else:
+        from omg4.train import make_config
+        from omg4.train.trainer import initial_model
+
+        model = initial_model(scene, make_config("cpu-small", num_random_points=args.random, max_gaussians=args.random,
+                                                 seed=0)).to(device)
     for p in model.params.values():
         p.requires_grad_(True)
     optimizer = make_adam(model.params, baseline_lrs(TrainConfig(), scene.extent, model.config.schema))
@@ -87,9 +95,13 @@ def worker(args) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("data", type=Path)
-    ap.add_argument("--model", type=Path, required=True, help="a trained baseline checkpoint")
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--model", type=Path, help="a trained baseline checkpoint")
+    source.add_argument("--random", type=int, metavar="N", help="N Gaussians from random points of the scene")
     ap.add_argument("--downscale", type=float, default=1.0)
-    ap.add_argument("--nproc", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2], help="world sizes to time")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="rounds over the world sizes, taking turns (a shared host's slow spells fall on all of them)")
     ap.add_argument("--batch-size", type=int, default=4, help="the global batch (views per step over all ranks)")
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--warmup", type=int, default=5)
@@ -107,17 +119,22 @@ def main() -> None:
 
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads),
            "OMP_WAIT_POLICY": "PASSIVE"}
+    rounds: dict[int, list[dict]] = {n: [] for n in args.ranks}
+    for _ in range(args.repeats):
+        for n in args.ranks:
+            with tempfile.TemporaryDirectory() as tmp:
+                out = Path(tmp) / "result.json"
+                cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={n}",
+                       __file__, *sys.argv[1:], "--worker-out", str(out)]
+                subprocess.run(cmd, env=env, check=True)
+                rounds[n].append(json.loads(out.read_text()))
+            r = rounds[n][-1]
+            print(f"{n} rank(s): {r['step_s'] * 1000:.1f} ms/step, {r['images_per_s']:.2f} images/s, all-reduce "
+                  f"{r['allreduce_s'] * 1000:.1f} ms of {r['allreduce_bytes_per_rank'] / 2**20:.1f} MB", flush=True)
     runs = []
-    for n in args.nproc:
-        with tempfile.TemporaryDirectory() as tmp:
-            out = Path(tmp) / "result.json"
-            cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={n}",
-                   __file__, *sys.argv[1:], "--worker-out", str(out)]
-            subprocess.run(cmd, env=env, check=True)
-            runs.append(json.loads(out.read_text()))
-        r = runs[-1]
-        print(f"{n} rank(s): {r['step_s'] * 1000:.1f} ms/step, {r['images_per_s']:.2f} images/s, all-reduce "
-              f"{r['allreduce_s'] * 1000:.1f} ms of {r['allreduce_bytes_per_rank'] / 2**20:.1f} MB", flush=True)
+    for n, results in rounds.items():  # the median round of each world size
+        median = sorted(results, key=lambda r: r["step_s"])[len(results) // 2]
+        runs.append({**median, "rounds_step_s": [round(r["step_s"], 4) for r in results]})
     single = next((r for r in runs if r["world_size"] == 1), None)
     for r in runs:
         if single:

@@ -11,6 +11,7 @@ size class's valid file is measured the same way; the target is every failure a
 
     python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--codecs compact,ans,paper]
                                    [--grid-bits 15,9,10]  # the compact files' grids (version 5 by default)
+                                   [--layouts single,sequence]  # single models, and sequences of three segments
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/fuzz_omg4.json``.
@@ -81,11 +82,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--codecs", default=",".join(CODECS), help="comma-separated codecs to fuzz")
     ap.add_argument("--grid-bits", default="15,9,10", help="the compact codec's grids (omg4 compress --grid-bits)")
+    ap.add_argument("--layouts", default="single,sequence",
+                    help="single models and/or sequences (three segments of the class's size)")
     args = ap.parse_args()
 
     import torch
 
-    from forge import forged_files, valid_file
+    from forge import forged_files, valid_file, valid_sequence
     from omg4.codec.payload import CompactGrids
 
     grids = CompactGrids.parse(args.grid_bits)
@@ -93,40 +96,44 @@ def main() -> None:
     torch.set_num_threads(1)
     signal.signal(signal.SIGALRM, _alarm)
     codecs = args.codecs.split(",")
-    per_base = max(1, args.cases // (len(codecs) * len(CLASSES)))
+    layouts = args.layouts.split(",")
+    per_base = max(1, args.cases // (len(codecs) * len(CLASSES) * len(layouts)))
     rows, outcomes, escapes = [], collections.Counter(), collections.Counter()
     with tempfile.TemporaryDirectory() as tmp:
         case_path = Path(tmp) / "case.omg4"
         valid_file(Path(tmp) / "warm.omg4", 50)
         run_case(Path(tmp) / "warm.omg4")  # loads the rasterizer kernels before anything is measured
-        for name, (n, scale) in CLASSES.items():
-            for codec in codecs:
-                base_path = Path(tmp) / f"{name}_{codec}.omg4"
-                base = valid_file(base_path, n, codec=codec, seed=1, codebook_scale=scale,
-                                  precision=grids if codec == "compact" else CompactGrids())
-                valid_outcome, valid_s, valid_mb = run_case(base_path)
-                assert valid_outcome == "ok", valid_outcome
-                worst_s, worst_mb, slowest = 0.0, 0.0, None
-                counts = collections.Counter()
-                for k, (kind, data) in enumerate(forged_files(base, per_base, seed=args.seed)):
-                    case_path.write_bytes(data)
-                    outcome, seconds, mb = run_case(case_path)
-                    counts[outcome] += 1
-                    if outcome not in ("ok", "CorruptFileError"):
-                        escapes[(kind, outcome)] += 1
-                    if seconds > worst_s:
-                        worst_s, slowest = seconds, f"{kind} #{k}"
-                    worst_mb = max(worst_mb, mb)
-                outcomes.update(counts)
-                row = {"class": name, "codec": codec, "gaussians": n, "file_bytes": len(base), "cases": per_base,
-                       "outcomes": dict(counts), "valid_s": round(valid_s, 4), "valid_peak_mb": round(valid_mb, 1),
-                       "slowest_s": round(worst_s, 4), "slowest_case": slowest, "peak_mb": round(worst_mb, 1),
-                       "peak_ratio": round(worst_mb / valid_mb, 3)}
-                rows.append(row)
-                print(f"{name:<7} {codec:<6} {len(base):>9} B  {dict(counts)}  slowest {worst_s:.3f} s ({slowest}),"
-                      f" peak {worst_mb:.0f} MB = {worst_mb / valid_mb:.2f}x valid ({valid_mb:.0f} MB)")
+        for name, (n, scale), codec, layout in ((*c, k, lay) for c in CLASSES.items() for k in codecs
+                                                for lay in layouts):
+            base_path = Path(tmp) / f"{name}_{codec}_{layout}.omg4"
+            precision = grids if codec == "compact" else CompactGrids()
+            base = (valid_file(base_path, n, codec=codec, seed=1, codebook_scale=scale, precision=precision)
+                    if layout == "single" else
+                    valid_sequence(base_path, 3, n, codec=codec, seed=1, codebook_scale=scale, precision=precision))
+            valid_outcome, valid_s, valid_mb = run_case(base_path)
+            assert valid_outcome == "ok", valid_outcome
+            worst_s, worst_mb, slowest = 0.0, 0.0, None
+            counts = collections.Counter()
+            for k, (kind, data) in enumerate(forged_files(base, per_base, seed=args.seed)):
+                case_path.write_bytes(data)
+                outcome, seconds, mb = run_case(case_path)
+                counts[outcome] += 1
+                if outcome not in ("ok", "CorruptFileError"):
+                    escapes[(kind, outcome)] += 1
+                if seconds > worst_s:
+                    worst_s, slowest = seconds, f"{kind} #{k}"
+                worst_mb = max(worst_mb, mb)
+            outcomes.update(counts)
+            row = {"class": name, "codec": codec, "layout": layout, "gaussians": n, "file_bytes": len(base),
+                   "cases": per_base,
+                   "outcomes": dict(counts), "valid_s": round(valid_s, 4), "valid_peak_mb": round(valid_mb, 1),
+                   "slowest_s": round(worst_s, 4), "slowest_case": slowest, "peak_mb": round(worst_mb, 1),
+                   "peak_ratio": round(worst_mb / valid_mb, 3)}
+            rows.append(row)
+            print(f"{name:<7} {codec:<6} {layout:<8} {len(base):>9} B  {dict(counts)}  slowest {worst_s:.3f} s "
+                  f"({slowest}), peak {worst_mb:.0f} MB = {worst_mb / valid_mb:.2f}x valid ({valid_mb:.0f} MB)")
     result = {"command": shlex.join(["python", "benchmarks/fuzz_omg4.py", *sys.argv[1:]]), "seed": args.seed,
-              "codecs": codecs, "grids": grids.label, "cases": sum(r["cases"] for r in rows),
+              "codecs": codecs, "layouts": layouts, "grids": grids.label, "cases": sum(r["cases"] for r in rows),
               "outcomes": dict(outcomes), "escapes": {f"{k} {o}": c for (k, o), c in escapes.items()},
               "slowest_s": max(r["slowest_s"] for r in rows), "max_peak_ratio": max(r["peak_ratio"] for r in rows),
               "rows": rows}

@@ -1,4 +1,4 @@
-"""Mutation testing: each package of omg4 against its own test folder.
+"""Mutation testing: each package of omg4 against its own tests.
 
 A *mutant* is one small change of the kind a developer writes by mistake, planted in one copy
 of the package at a time: a comparison flipped (``<`` ↔ ``<=``, ``==`` ↔ ``!=``, ``is`` ↔ ``is not``),
@@ -44,7 +44,18 @@ from pathlib import Path
 from environment import save_record
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("compress", "train", "metrics", "codec", "gaussians", "render")
+#: what is mutated → (its sources, the tests that guard it, whether coverage can map its lines to tests: not for
+#: code that runs in the processes a test starts)
+TARGETS: dict[str, tuple[tuple[str, ...], str, bool]] = {
+    "compress": (("src/omg4/compress",), "tests/compress", True),
+    "train": (("src/omg4/train",), "tests/train", True),
+    "metrics": (("src/omg4/metrics",), "tests/metrics", True),
+    "codec": (("src/omg4/codec",), "tests/codec", True),
+    "gaussians": (("src/omg4/gaussians",), "tests/gaussians", True),
+    "render": (("src/omg4/render",), "tests/render", True),
+    "distributed": (("src/omg4/distributed.py", "src/omg4/launch.py"), "tests/test_distributed.py", False),
+}
+PACKAGES = tuple(TARGETS)
 EQUIVALENTS = Path(__file__).with_name("mutation_equivalents.toml")
 
 _COMPARE = {ast.Lt: "<=", ast.LtE: "<", ast.Gt: ">=", ast.GtE: ">", ast.Eq: "!=", ast.NotEq: "==",
@@ -283,7 +294,12 @@ def mutants_of(package: str, path: Path) -> list[Mutant]:
 
 
 def package_mutants(package: str) -> list[Mutant]:
-    return [m for path in sorted((REPO / "src" / "omg4" / package).rglob("*.py")) for m in mutants_of(package, path)]
+    """Every mutant of a target's sources (:data:`TARGETS`)."""
+    paths = []
+    for source in TARGETS[package][0]:
+        path = REPO / source
+        paths += sorted(path.rglob("*.py")) if path.is_dir() else [path]
+    return [m for path in paths for m in mutants_of(package, path)]
 
 
 # ------------------------------------------------------------------------------------------ running
@@ -344,8 +360,11 @@ class TestMap:
     by_line: dict[str, dict[int, list[str]]]  # path → line → test ids
     by_module: dict[str, list[str]]  # path → tests that execute any of its function bodies
     seconds: dict[str, float]  # test id → seconds (under coverage)
+    every: list[str] | None = None  # all the target's tests, for every mutant (code the tests run in subprocesses)
 
     def tests_for(self, mutant: Mutant) -> list[str]:
+        if self.every is not None:
+            return self.every
         tests = [] if mutant.in_kernel else self.by_line.get(mutant.path, {}).get(mutant.line, [])
         if not tests and (mutant.in_kernel or mutant.function == "" or "." not in mutant.function):
             tests = self.by_module.get(mutant.path, [])  # kernels, and values fixed at import
@@ -353,17 +372,29 @@ class TestMap:
 
 
 def map_tests(workspace: Workspace, package: str, folder: Path) -> TestMap:
-    """Run the package's test folder once under coverage, one context per test; fails if a test fails."""
+    """Run the target's tests once under coverage, one context per test; fails if a test fails. A target whose
+    code runs in processes the tests start gets every one of its tests for every mutant."""
+    sources, tests_path, mapped = TARGETS[package]
     data = folder / f"coverage_{package}"
     report = folder / f"durations_{package}.xml"
-    rc, seconds = workspace.pytest([f"tests/{package}", f"--cov=omg4.{package}", "--cov-context=test",
-                                    "--cov-report=", f"--junitxml={report}"], timeout=3600)
+    modules = [f"--cov={s[len('src/'):].removesuffix('.py').replace('/', '.')}" for s in sources] if mapped else []
+    rc, seconds = workspace.pytest([tests_path, *modules, "--cov-context=test", "--cov-report=",
+                                    f"--junitxml={report}"] if mapped else [tests_path, f"--junitxml={report}"],
+                                   timeout=3600)
     generated = workspace.root / ".coverage"
     if rc != 0:
         raise SystemExit(f"the unmutated tests of {package} do not pass (pytest exit {rc})")
+    import xml.etree.ElementTree as ET
+
+    seconds = {}
+    for case in ET.parse(report).iter("testcase"):
+        file = case.get("classname", "").replace(".", "/") + ".py"
+        seconds[f"{file}::{case.get('name')}"] = float(case.get("time", 0))
+    if not mapped:
+        every = sorted(seconds)
+        return TestMap({}, {str(Path(s)): every for s in sources}, seconds, every)
     shutil.move(generated, data)
     import coverage
-    import xml.etree.ElementTree as ET
 
     cov = coverage.CoverageData(basename=str(data))
     cov.read()
@@ -375,10 +406,6 @@ def map_tests(workspace: Workspace, package: str, folder: Path) -> TestMap:
                  cov.contexts_by_lineno(measured).items()}
         by_line[path] = {line: tests for line, tests in lines.items() if tests}
         by_module[path] = sorted({t for tests in by_line[path].values() for t in tests})
-    seconds = {}
-    for case in ET.parse(report).iter("testcase"):
-        file = case.get("classname", "").replace(".", "/") + ".py"
-        seconds[f"{file}::{case.get('name')}"] = float(case.get("time", 0))
     print(f"{package}: {len(seconds)} tests mapped", flush=True)
     return TestMap(by_line, by_module, seconds)
 

@@ -249,17 +249,36 @@ def forged_files(base: bytes, count: int, seed: int = 0) -> Iterator[tuple[str, 
 
 
 # -------------------------------------------------------------------------- running
+def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: str = "ans", seed: int = 0,
+                   codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids()) -> bytes:
+    """A sequence file (:mod:`omg4.codec.sequence`) of ``segments`` valid models of ``num_gaussians`` each, segments of
+    10 frames sharing 2 at 10 fps; returns the file's bytes."""
+    import tempfile
+
+    from omg4.codec.sequence import write_sequence
+
+    parts = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(segments):
+            data = valid_file(Path(tmp) / f"s{i}.omg4", num_gaussians, codec, seed + i, codebook_scale, precision)
+            parts.append(((8 * i, 8 * i + 10), (0.8 * i, 0.8 * i + 1.0), data))
+    write_sequence(path, parts, fps=10.0)
+    return Path(path).read_bytes()
+
+
 def exercise(path: str | Path) -> str:
-    """What the commands do with an ``.omg4`` file: ``omg4 info``'s summary, decoding and loading it, and one
-    64×48 frame at the middle of its time range. Returns "ok"; a bad file raises (CorruptFileError if right)."""
+    """What the commands do with an ``.omg4`` file (or sequence): ``omg4 info``'s summary (which decodes every
+    segment of a sequence), decoding and loading it, and one 64×48 frame at the middle of its time range. Returns
+    "ok"; a bad file raises (CorruptFileError if right)."""
     import torch
 
-    from omg4.codec.summary import describe_file
+    from omg4.codec.sequence import is_sequence
+    from omg4.codec.summary import describe_file, describe_sequence
     from omg4.data.scene import Camera
     from omg4.evaluate import load_model
     from omg4.render.view import render_view
 
-    describe_file(path)
+    (describe_sequence if is_sequence(path) else describe_file)(path)
     model = load_model(path)
     t0, t1 = model.config.time_range
     K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
@@ -270,4 +289,4 @@ def exercise(path: str | Path) -> str:
     return "ok"
 
 
-__all__ = ["MUTATIONS", "exercise", "forged_files", "valid_file", "valid_payload"]
+__all__ = ["MUTATIONS", "exercise", "forged_files", "valid_file", "valid_payload", "valid_sequence"]

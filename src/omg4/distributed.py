@@ -239,25 +239,46 @@ def all_reduce_(tensors: list[torch.Tensor], op: str = "sum", what: str = "combi
             offset += t.numel()
 
 
+_GRADIENT_BUFFERS: dict[tuple, torch.Tensor] = {}
+
+
 def all_reduce_gradients(params: list[torch.Tensor], what: str = "summing the gradients") -> int:
     """Sum the gradients of ``params`` over the ranks; returns the bytes of gradients each rank reduced.
 
     A parameter no rank has a gradient for keeps none (its optimizer then skips it, as in one process); one
-    that some ranks have no gradient for (no views of theirs reached it) counts as zeros there.
+    that some ranks have no gradient for (no views of theirs reached it) counts as zeros there. The gradients
+    are gathered into one flat buffer per dtype, kept from step to step (no allocation), reduced in place, and
+    the parameters' gradients become views of it (no copy back).
     """
     if not world().parallel or not params:
         return 0
     device = params[0].device
     present = torch.tensor([p.grad is not None for p in params], dtype=torch.float32, device=device)
     all_reduce_([present], "max", what)
-    grads = []
-    for p, used in zip(params, present.tolist()):
-        if used:
-            if p.grad is None:
-                p.grad = torch.zeros_like(p)
-            grads.append(p.grad)
-    all_reduce_(grads, "sum", what)
-    return sum(g.numel() * g.element_size() for g in grads)
+    used = [p for p, flag in zip(params, present.tolist()) if flag]
+    by_dtype: dict[torch.dtype, list[torch.Tensor]] = {}
+    for p in used:
+        by_dtype.setdefault(p.dtype, []).append(p)
+    sent = 0
+    for dtype, group in by_dtype.items():
+        total = sum(p.numel() for p in group)
+        key = (dtype, str(device), total)
+        flat = _GRADIENT_BUFFERS.get(key)
+        if flat is None:
+            _GRADIENT_BUFFERS.clear()  # one layout at a time: the parameter set changes with densification
+            flat = _GRADIENT_BUFFERS[key] = torch.empty(total, dtype=dtype, device=device)
+        storage = flat.untyped_storage().data_ptr()
+        if any(p.grad is not None and p.grad.untyped_storage().data_ptr() == storage for p in group):
+            flat = _GRADIENT_BUFFERS[key] = torch.empty_like(flat)  # the gradients are last step's views of it
+        torch.cat([p.grad.reshape(-1) if p.grad is not None else torch.zeros(p.numel(), dtype=dtype, device=device)
+                   for p in group], out=flat)
+        _collective(what, torch.distributed.all_reduce, flat, op=torch.distributed.ReduceOp.SUM)
+        offset = 0
+        for p in group:
+            p.grad = flat[offset:offset + p.numel()].view_as(p)
+            offset += p.numel()
+        sent += flat.numel() * flat.element_size()
+    return sent
 
 
 def broadcast_(tensors: list[torch.Tensor], what: str = "sharing the model") -> None:

@@ -1,0 +1,187 @@
+"""Long captures as segments: memory and time against capture length, and quality across boundaries.
+
+``scaling``: synthetic captures of 60, 120, 240 and 480 frames, each trained and compressed once as a whole
+clip and once as segments of 60 frames (sharing 10): wall time and peak resident memory of the ``omg4 train``
+and ``omg4 compress`` processes (``ru_maxrss`` of each child), and the files' sizes. Every model (the whole clip,
+or each segment) gets the same iterations, so the segments' work grows with the length while one model's does
+not — the point is the memory.
+
+``quality``: one capture trained as segments, compressed with OMG4-M into a sequence file and evaluated on the
+test camera: PSNR and SSIM of the boundary frames (:func:`omg4.data.segments.near_boundary`) against the
+interior ones, and temporal flicker — the mean absolute difference between consecutive rendered frames minus
+that of the ground truth, over the pairs that touch a boundary frame against the others — and the bitrate.
+
+Usage::
+
+    python benchmarks/segments.py scaling [--lengths 60 120 240 480] [--work runs/segments]
+    python benchmarks/segments.py quality DATA [--downscale 2] [--segment-frames 50] [--overlap 10]
+        [--iterations 1500] [--schedule cpu] [--name basketball]
+    python benchmarks/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from environment import save_record
+
+RESULTS = Path(__file__).resolve().parent / "results"
+ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+
+
+def run(args: list[str]) -> dict:
+    """Run ``omg4 args`` in a child process: its wall seconds and peak resident memory (MB; the only child of the
+    process that measures, :func:`_measure_in_fresh_process`)."""
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "omg4", *args], env=ENV, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    seconds = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return {"seconds": round(seconds, 1), "peak_mb": round(peak / 1024, 1)}
+
+
+def _measure_in_fresh_process(argv: list[str]) -> dict:
+    """Run this script's ``measure`` mode in a new process, so ``ru_maxrss`` covers that one command alone."""
+    out = subprocess.run([sys.executable, __file__, "measure", *argv], env=ENV, check=True, capture_output=True,
+                         text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def scaling(args) -> None:
+    work = Path(args.work)
+    rows = []
+    for frames in args.lengths:
+        scene = work / f"scene{frames}"
+        if not scene.exists():
+            subprocess.run([sys.executable, "-m", "omg4", "synth", str(scene), "--cameras", str(args.cameras),
+                            "--frames", str(frames), "--width", str(args.width), "--height", str(args.height),
+                            "--points", "2000"], env=ENV, check=True, stdout=subprocess.DEVNULL)
+        train = [str(scene), "--preset", "cpu-small", "--iterations", str(args.iterations), "--batch-size", "2",
+                 "--checkpoint-interval", "0", "--backend", "cpu", "--force"]
+        for mode, extra in (("whole clip", []), ("segments", ["--segment-frames", "60", "--overlap", "10"])):
+            if mode == "whole clip" and frames > args.max_whole:
+                continue
+            run_dir = work / f"run{frames}_{'seg' if extra else 'whole'}"
+            out = run_dir.with_suffix(".omg4")
+            trained = _measure_in_fresh_process(["train", *train, "--out", str(run_dir), *extra])
+            compressed = _measure_in_fresh_process(["compress", str(scene), "--model", str(
+                run_dir if extra else run_dir / "model.safetensors"), "--out", str(out), "--schedule", "tiny",
+                "--batch-size", "2", "--backend", "cpu", "--force"])
+            row = {"frames": frames, "mode": mode, "train": trained, "compress": compressed,
+                   "file_bytes": out.stat().st_size}
+            rows.append(row)
+            print(f"{frames:>4} frames, {mode:<10}: train {trained['seconds']:7.1f} s, {trained['peak_mb']:7.1f} MB; "
+                  f"compress {compressed['seconds']:6.1f} s, {compressed['peak_mb']:7.1f} MB; {row['file_bytes']} B",
+                  flush=True)
+    save_record(args.json or RESULTS / "segments_scaling.json", {
+        "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
+        "cameras": args.cameras, "size": [args.width, args.height], "iterations": args.iterations, "rows": rows})
+
+
+def quality(args) -> None:
+    import numpy as np
+    import torch
+
+    from omg4.data import load_scene
+    from omg4.data.segments import near_boundary
+    from omg4.evaluate import evaluate, load_model
+    from omg4.render.view import render_view
+
+    work = Path(args.work) / args.name
+    data = Path(args.data) if args.data else work / "scene"
+    if args.synthetic and not data.exists():
+        subprocess.run([sys.executable, "-m", "omg4", "synth", str(data), "--cameras", str(args.cameras), "--frames",
+                        str(args.synthetic), "--width", str(args.width), "--height", str(args.height)], env=ENV,
+                       check=True, stdout=subprocess.DEVNULL)
+    reader = ["--downscale", str(args.downscale)]
+    run_dir, out = work / "run", work / "sequence_M.omg4"
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "omg4", "train", str(data), *reader, "--out", str(run_dir), "--preset",
+                    "cpu-small", "--iterations", str(args.iterations), "--checkpoint-interval", "0",
+                    "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), "--resume"],
+                   env=ENV, check=True, stdout=subprocess.DEVNULL)
+    train_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "omg4", "compress", str(data), *reader, "--model", str(run_dir), "--out",
+                    str(out), "--preset", "M", "--schedule", args.schedule, "--force"], env=ENV, check=True,
+                   stdout=subprocess.DEVNULL)
+    compress_s = time.perf_counter() - t0
+    scene = load_scene(data, downscale=args.downscale, progress=False)
+    model = load_model(out)
+    result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)
+    fps = model.meta["fps"]
+    by_camera: dict[str, list] = {}
+    for v in scene.test_views:
+        by_camera.setdefault(v.camera.name, []).append(v)
+    flicker = {"boundary": [], "interior": []}
+    for views in by_camera.values():
+        views = sorted(views, key=lambda v: v.timestamp)
+        previous = None
+        for v in views:
+            with torch.no_grad():
+                image = render_view(model, v.camera, v.timestamp)[0].image.clamp(0, 1).numpy()
+            truth = v.image()
+            if previous is not None:
+                rendered_change = float(np.abs(image - previous[0]).mean())
+                true_change = float(np.abs(truth - previous[1]).mean())
+                near = near_boundary(v.timestamp, model.ranges, fps) or near_boundary(previous[2], model.ranges, fps)
+                flicker["boundary" if near else "interior"].append(rendered_change - true_change)
+            previous = (image, truth, v.timestamp)
+    summary = {k: float(np.mean(v)) if v else None for k, v in flicker.items()}
+    record = {
+        "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
+        "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
+        "iterations_per_segment": args.iterations, "schedule": args.schedule, "segments": model.num_segments,
+        "psnr": result["psnr"], "ssim": result["ssim"], "boundary": result["boundary"],
+        "interior": result["interior"], "flicker": summary,
+        "flicker_ratio": summary["boundary"] / summary["interior"] if summary["interior"] else None,
+        "file_bytes": out.stat().st_size, "bitrate_mbps": result["bitrate_mbps"],
+        "num_gaussians": result["num_gaussians"], "train_s": round(train_s, 1), "compress_s": round(compress_s, 1)}
+    b, i = result["boundary"], result["interior"]
+    print(f"{model.num_segments} segments: boundary PSNR {b['psnr']:.2f} / interior {i['psnr']:.2f} dB; flicker "
+          f"{summary['boundary']:.4f} / {summary['interior']:.4f}; {record['bitrate_mbps']:.2f} Mbit/s")
+    save_record(args.json or RESULTS / f"segments_quality_{args.name}.json", record)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="mode", required=True)
+    s = sub.add_parser("scaling")
+    s.add_argument("--lengths", type=int, nargs="+", default=[60, 120, 240, 480])
+    s.add_argument("--max-whole", type=int, default=480, help="longest capture also trained as one model")
+    q = sub.add_parser("quality")
+    q.add_argument("data", nargs="?")
+    q.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")
+    q.add_argument("--downscale", type=float, default=1.0)
+    q.add_argument("--segment-frames", type=int, default=60)
+    q.add_argument("--overlap", type=int, default=10)
+    q.add_argument("--schedule", default="cpu")
+    q.add_argument("--name", default="synthetic")
+    for p in (s, q):
+        p.add_argument("--cameras", type=int, default=6)
+        p.add_argument("--width", type=int, default=96)
+        p.add_argument("--height", type=int, default=64)
+        p.add_argument("--iterations", type=int, default=600)
+        p.add_argument("--work", default="runs/segments")
+        p.add_argument("--json", type=Path)
+    m = sub.add_parser("measure")
+    m.add_argument("argv", nargs=argparse.REMAINDER)
+    args = ap.parse_args()
+    if args.mode == "measure":
+        print(json.dumps(run(args.argv)))
+    elif args.mode == "scaling":
+        scaling(args)
+    else:
+        quality(args)
+
+
+if __name__ == "__main__":
+    main()
