@@ -1,0 +1,156 @@
+"""The .omg4 sequence file (omg4.codec.sequence): round trip, seeking to one segment, forged indexes."""
+
+from __future__ import annotations
+
+import pytest
+
+import forge
+from omg4.codec import sequence
+from omg4.codec.container import read_container, write_container
+from omg4.errors import CorruptFileError, OMG4Error
+
+
+def _segments(tmp_path, count=3):
+    """``count`` small valid single-model files as consecutive segments of 10 frames sharing 2, at 10 fps."""
+    parts = []
+    for i in range(count):
+        path = tmp_path / f"s{i}.omg4"
+        forge.valid_file(path, 200 + 50 * i, codec="compact", seed=i, codebook_scale=1 / 32)
+        start = 8 * i
+        parts.append(((start, start + 10), (start / 10, (start + 10) / 10), path.read_bytes()))
+    return parts
+
+
+def test_sequence_round_trip_and_index(tmp_path):
+    parts = _segments(tmp_path)
+    path = tmp_path / "seq.omg4"
+    size = sequence.write_sequence(path, parts, fps=10.0, meta={"overlap": 2})
+    index = sequence.read_index(path)
+    assert size == path.stat().st_size == index.total_bytes
+    assert [e.frames for e in index.segments] == [p[0] for p in parts]
+    assert index.time_range == (0.0, 2.6) and index.bitrate_mbps == pytest.approx(8 * size / 2.6 / 1e6)
+    for entry, (_, _, data) in zip(index.segments, parts):
+        assert sequence.read_segment(path, entry) == data
+    _, datas = sequence.read_sequence(path)
+    assert datas == [p[2] for p in parts]
+    assert sequence.is_sequence(path) and not sequence.is_sequence(tmp_path / "s0.omg4")
+    with pytest.raises(OMG4Error, match="sequence of 3 segments"):
+        from omg4.codec.payload import decode_payload
+        decode_payload(path)
+
+
+def test_one_segment_is_read_by_seeking_to_it(tmp_path, monkeypatch):
+    """The index costs its own bytes; decoding segment k then reads segment k's bytes and nothing else."""
+    from omg4.codec import container
+
+    parts = _segments(tmp_path, 4)
+    path = tmp_path / "seq.omg4"
+    sequence.write_sequence(path, parts, fps=10.0)
+    read = []
+    original_read = container._Source.read
+    def counted(self, n, what):  # reads from the file (a segment's bytes are then decoded from memory)
+        if self.file is not None:
+            read.append(n)
+        return original_read(self, n, what)
+
+    monkeypatch.setattr(container._Source, "read", counted)
+    real_open = open
+
+    class Counting:
+        def __init__(self, f):
+            self.f = f
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+        def seek(self, offset):
+            return self.f.seek(offset)
+
+        def read(self, n):
+            read.append(n)
+            return self.f.read(n)
+
+    monkeypatch.setattr(sequence, "open", lambda p, mode="r": Counting(real_open(p, mode)), raising=False)
+    entries = sequence.read_index(path).segments
+    assert sum(read) == entries[0].offset  # the prefix and the index: everything before the first segment
+    model = sequence.load_sequence(path)  # the index, then segment 0 for the model's settings
+    read.clear()
+    model.segment(2)
+    assert read == [entries[2].size]
+
+
+def _forged(tmp_path, header_edit=None, sections_edit=None):
+    parts = _segments(tmp_path)
+    path = tmp_path / "seq.omg4"
+    sequence.write_sequence(path, parts, fps=10.0)
+    header, sections = read_container(path)
+    if header_edit:
+        header_edit(header)
+    if sections_edit:
+        sections = sections_edit(sections)
+    forged = tmp_path / "forged.omg4"
+    write_container(forged, header, sections, version=sequence.SEQUENCE_VERSION)
+    return forged
+
+
+@pytest.mark.parametrize("edit", [
+    lambda h: h["segments"][1].update(frames=[4, 30]),            # beyond its neighbour's range
+    lambda h: h["segments"][2].update(frames=[1, 9]),              # going back
+    lambda h: h["segments"][1].update(time_range=[1.0, 0.5]),      # a reversed time range
+    lambda h: h["segments"][2].update(frames=[7, 26]),             # overlapping the segment before its neighbour
+    lambda h: h.update(segments=h["segments"][:2]),                # fewer index entries than sections
+    lambda h: h.update(segments=h["segments"] * 2),                # more
+    lambda h: h.update(fps=0),
+    lambda h: h["segments"][0].update(time_range=[0, "x"]),
+    lambda h: h.update(layout="other"),
+])
+def test_a_forged_index_is_a_one_line_error(tmp_path, edit):
+    forged = _forged(tmp_path, header_edit=edit)
+    with pytest.raises(CorruptFileError) as err:
+        sequence.read_index(forged)
+    assert "\n" not in str(err.value)
+
+
+def test_a_billion_segments_and_bytes_past_the_end_are_refused(tmp_path):
+    header = {"layout": "sequence", "fps": 10.0,
+              "segments": [{"frames": [i, i + 1], "time_range": [i, i + 1]} for i in range(sequence.MAX_SEGMENTS + 1)]}
+    with pytest.raises(CorruptFileError, match="1 to 100000 segments"):
+        sequence._check_index("x", header, sequence.MAX_SEGMENTS + 1)
+    # an index of 10^9 entries would be gigabytes of JSON: the container refuses headers beyond its limit unread
+    from omg4.codec.container import MAX_JSON_BYTES
+
+    assert MAX_JSON_BYTES < 10**9 * len('{"frames":[0,1],"time_range":[0,1]},')
+    parts = _segments(tmp_path)
+    path = tmp_path / "seq.omg4"
+    sequence.write_sequence(path, parts, fps=10.0)
+    (tmp_path / "cut.omg4").write_bytes(path.read_bytes()[:-100])  # the last segment would end past the file
+    with pytest.raises(CorruptFileError, match="truncated"):
+        sequence.read_index(tmp_path / "cut.omg4")
+
+
+def test_forged_sequence_files_end_as_one_line_errors_or_decode(tmp_path):
+    """The fuzz harness's forged-file classes on a sequence: every case decodes or is one CorruptFileError."""
+    from omg4.evaluate import load_model
+
+    parts = _segments(tmp_path)
+    path = tmp_path / "seq.omg4"
+    sequence.write_sequence(path, parts, fps=10.0)
+    outcomes = {"ok": 0, "refused": 0}
+    for i, (kind, data) in enumerate(forge.forged_files(path.read_bytes(), 60, seed=3)):
+        case = tmp_path / f"case{i}.omg4"
+        case.write_bytes(data)
+        try:
+            model = load_model(case)
+            for k in range(getattr(model, "num_segments", 1)):
+                model.segment(k) if hasattr(model, "segment") else None
+            outcomes["ok"] += 1
+        except CorruptFileError as exc:
+            assert "\n" not in str(exc)
+            outcomes["refused"] += 1
+    assert outcomes["refused"] > 30
+
+
+# ---------------------------------------------------------------- rendering, training, evaluation

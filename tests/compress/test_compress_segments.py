@@ -1,0 +1,56 @@
+"""Compressing a segmented run into one sequence file (omg4.compress.api.compress_segments)."""
+
+from __future__ import annotations
+
+import pytest
+
+from omg4.codec.sequence import read_index, read_segment
+from omg4.compress.api import compress_segments, compress_to_file
+from omg4.compress.pipeline import CompressConfig
+from omg4.compress.schedule import StageLengths
+from omg4.data import load_scene
+from omg4.data.segments import plan_segments
+from omg4.gaussians.checkpoint import load_gaussians
+from omg4.train import make_config
+from omg4.train.init import initial_points
+from omg4.train.segmented import segment_plan, train_segments, write_plan
+
+LENGTHS = StageLengths(sample=2, prune=2, merge=2, appearance=4, svq3d=2, svq4d=2)
+
+
+@pytest.fixture(scope="module")
+def segmented(tmp_path_factory):
+    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+
+    root = tmp_path_factory.mktemp("segmented")
+    write_synthetic_scene(root / "scene", SynthConfig(num_cameras=4, num_frames=10, width=48, height=32,
+                                                      num_points=300), progress=False)
+    cfg = make_config("cpu-small", iterations=6, batch_size=1, checkpoint_interval=0, backend="cpu",
+                      num_random_points=300)
+    plan = segment_plan(plan_segments(10, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
+    write_plan(root / "run", plan)
+    train_segments(root / "run", plan, cfg, lambda a, b: load_scene(root / "scene", frames=range(a, b),
+                                                                     progress=False),
+                   lambda scene: initial_points(scene, "random", cfg), log=lambda *_: None)
+    return root, plan
+
+
+def test_each_segment_is_the_file_compress_to_file_writes_for_it_alone(segmented, tmp_path):
+    root, plan = segmented
+    cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu")
+    out = tmp_path / "seq.omg4"
+    report = compress_segments(root / "run", lambda a, b: load_scene(root / "scene", frames=range(a, b),
+                                                                      progress=False), cfg, out, progress=False,
+                               log=lambda *_: None)
+    index = read_index(out)
+    assert [e.frames for e in index.segments] == [(0, 6), (4, 10)]
+    assert [e.time_range for e in index.segments] == [pytest.approx((0.0, 0.2)), pytest.approx((4 / 30, 10 / 30))]
+    assert report["file_bytes"] == out.stat().st_size and len(report["segments"]) == 2
+    assert report["bitrate_mbps"] == pytest.approx(8 * out.stat().st_size / (10 / 30) / 1e6)
+    assert not list(tmp_path.glob(".*"))  # the segments' working files are gone
+    for k, seg in enumerate(plan["segments"]):
+        baseline, _ = load_gaussians(root / "run" / seg["folder"] / "model.safetensors")
+        alone = tmp_path / f"alone{k}.omg4"
+        compress_to_file(baseline, load_scene(root / "scene", frames=range(*seg["frames"]), progress=False), cfg,
+                         alone, progress=False, log=lambda *_: None)
+        assert read_segment(out, index.segments[k]) == alone.read_bytes()
