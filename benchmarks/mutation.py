@@ -475,14 +475,15 @@ def main() -> None:
     for package in args.packages:
         mutants = package_mutants(package)
         chosen = [m for m in mutants if m.sampled(args.fraction)]
-        tests_hash = _fingerprint(sorted((REPO / "tests").rglob("*.py")))
-        todo = [m for m in chosen if _reusable(done.get(m.key), m, tests_hash) is None]
+        tests_hash = _fingerprint(sorted((workspace.root / "tests").rglob("*.py")), workspace.root)
+        todo = [m for m in chosen if _reusable(done.get(m.key), m, tests_hash, workspace.root) is None]
         tests = map_tests(workspace, package, args.work) if todo else None
         rows = []
         for i, m in enumerate(chosen):
-            row = _reusable(done.get(m.key), m, tests_hash)
+            row = _reusable(done.get(m.key), m, tests_hash, workspace.root)
             if row is None:
-                row = {"key": m.key, "module": _fingerprint([REPO / m.path]), "tests": tests_hash, "line": m.line,
+                row = {"key": m.key, "module": _fingerprint([workspace.root / m.path], workspace.root),
+                       "tests": tests_hash, "line": m.line,
                        "original": m.original, "replacement": m.replacement, **run_mutant(workspace, tests, m)}
                 with outcomes_path.open("a") as f:
                     f.write(json.dumps(row) + "\n")
@@ -501,17 +502,18 @@ def main() -> None:
     })
 
 
-def _fingerprint(paths) -> str:
+def _fingerprint(paths, root: Path) -> str:
+    """A hash of the files (their path below ``root`` and bytes): the copy the mutants ran against."""
     h = hashlib.sha256()
     for path in paths:
-        h.update(str(path.relative_to(REPO)).encode() + path.read_bytes())
+        h.update(str(path.relative_to(root)).encode() + path.read_bytes())
     return h.hexdigest()[:16]
 
 
-def _reusable(row: dict | None, mutant: Mutant, tests_hash: str) -> dict | None:
+def _reusable(row: dict | None, mutant: Mutant, tests_hash: str, root: Path) -> dict | None:
     """An earlier outcome of ``mutant`` that still holds: same module source, and killed (tests are only
     added) or run against the same tests."""
-    if row is None or row["module"] != _fingerprint([REPO / mutant.path]):
+    if row is None or row["module"] != _fingerprint([root / mutant.path], root):
         return None
     return row if row["outcome"] in ("killed", "timeout") or row["tests"] == tests_hash else None
 

@@ -220,3 +220,41 @@ def test_rate_weight_keeps_exact_fits_and_the_plain_path():
     y = torch.randn(3000, 2, generator=torch.Generator().manual_seed(1))
     a, b = kmeans(y, 100, seed=3), kmeans(y, 100, seed=3, rate_weight=0.0)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+@pytest.mark.parametrize("k", [5, 64, 256, 300])
+def test_initial_centres_are_drawn_in_batches_doubling_up_to_k_over_32(k, monkeypatch):
+    """Batched D² sampling: batches of 1, 1, 2, 4, … (the centres so far), at most max(1, k // 32), never beyond k
+    nor beyond the points with positive probability; k centres in all."""
+    from omg4.compress import kmeans as module
+
+    batches = []
+    real = torch.multinomial
+    monkeypatch.setattr(module.torch, "multinomial",
+                        lambda p, n, **kw: batches.append(n) or real(p, n, **kw))
+    g = torch.Generator().manual_seed(k)
+    x = torch.randn(4 * k + 50, 2, generator=g, dtype=torch.float64)
+    centres = module._init_centres(x, torch.ones(len(x), dtype=torch.float64), k, torch.Generator().manual_seed(0),
+                                   1 << 20)
+    expected, total = [1], 1
+    while total < k:
+        expected.append(min(total, max(1, k // 32), k - total))
+        total += expected[-1]
+    assert batches == expected and len(centres) == k and len(set(centres.tolist())) == k
+
+
+def test_a_model_missing_any_quantized_attribute_or_its_mlps_is_not_written():
+    """build_payload refuses a model unless every SVQ attribute and the appearance MLPs are present."""
+    from types import SimpleNamespace
+
+    from omg4.compress.api import build_payload
+    from omg4.errors import OMG4Error
+    from omg4.gaussians.backbone import RT4DGS
+
+    config = SimpleNamespace(schema=RT4DGS)
+    all_groups = {g.name: object() for g in RT4DGS.svq_groups}
+    for appearance, quantizers in ((object(), {k: v for k, v in all_groups.items() if k != "rotation_r"}),
+                                   (None, all_groups)):
+        model = SimpleNamespace(config=config, appearance=appearance, quantizers=quantizers)
+        with pytest.raises(OMG4Error, match="not fully compressed"):
+            build_payload(model, {})
