@@ -4,11 +4,12 @@ For Real-Time4DGS and FreeTimeGS: trains a baseline on a tiny synthetic scene (5
 64×48; 120 iterations with densification or relocation), compresses it with every OMG4 stage (a few
 iterations each), decodes the file and renders the test view, then prints SHA-256 digests of the trained
 parameters, of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image.
-Run it under two versions (``PYTHONPATH=<other checkout>/src python benchmarks/fixed_seed_digest.py``)
-and compare: refactorings that must not change behaviour keep every digest. The file's
-bytes are listed too, but its header may legitimately change (new metadata fields).
+With ``--against CHECKOUT`` the same runs are made with that checkout's code too (its ``src`` first on
+``PYTHONPATH``) and the record says which digests are equal: refactorings that must not change behaviour keep
+every digest. The file's bytes are listed too, but its header may legitimately change (new metadata fields).
 
-Usage: ``python benchmarks/fixed_seed_digest.py [--work DIR] [--json OUT]``; about 40 s.
+Usage: ``python benchmarks/fixed_seed_digest.py [--against CHECKOUT] [--work DIR] [--print]``; about 40 s a
+version. Recorded in ``benchmarks/results/fixed_seed_digest.json`` (``--print``: printed only).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +42,8 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("runs/fixed_seed_digest"))
-    ap.add_argument("--json", type=Path)
+    ap.add_argument("--against", type=Path, help="another checkout whose code makes the same runs for comparison")
+    ap.add_argument("--print", action="store_true", help="print the digests as JSON and record nothing")
     args = ap.parse_args()
     scene_dir = args.work / "scene"
     write_synthetic_scene(scene_dir, SynthConfig(num_cameras=5, num_frames=6, width=64, height=48, num_points=600),
@@ -57,10 +60,28 @@ def main() -> None:
         compress_to_file(trained.model, scene, CompressConfig(lengths=lengths, batch_size=2, backend="cpu"), path,
                          progress=False, log=lambda *_: None)
         results[backbone] = digests(trained, path, scene)
-    text = json.dumps(results, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    if args.print:
+        print(json.dumps(results))
+        return
+    record = {"command": "python benchmarks/fixed_seed_digest.py" + (f" --against {args.against}" if args.against
+                                                                     else ""), "digests": results}
+    if args.against:
+        import os
+        import subprocess
+
+        env = {**os.environ, "PYTHONPATH": str(args.against.resolve() / "src")}
+        out = subprocess.run([sys.executable, __file__, "--print", "--work", str(args.work / "against")], env=env,
+                             check=True, capture_output=True, text=True).stdout
+        other = json.loads(out.strip().splitlines()[-1])
+        commit = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=args.against, capture_output=True,
+                                text=True).stdout.strip()
+        record.update(against_commit=commit, against=other,
+                      equal={b: {k: results[b][k] == other.get(b, {}).get(k) for k in results[b]} for b in results})
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from environment import save_record
+
+    save_record(Path(__file__).resolve().parent / "results" / "fixed_seed_digest.json", record)
+    print(json.dumps(record.get("equal", results), indent=2))
 
 
 def digests(trained, path: Path, scene) -> dict:
