@@ -54,3 +54,15 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it_alone(segmented
         compress_to_file(baseline, load_scene(root / "scene", frames=range(*seg["frames"]), progress=False), cfg,
                          alone, progress=False, log=lambda *_: None)
         assert read_segment(out, index.segments[k]) == alone.read_bytes()
+
+
+def test_leftovers_of_an_interrupted_compression_do_not_block_the_next(segmented, tmp_path):
+    root, _ = segmented
+    out = tmp_path / "seq.omg4"
+    leftover = tmp_path / ".seq.omg4.segments"
+    leftover.mkdir()
+    (leftover / "segment_000.omg4").write_bytes(b"partial")
+    cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu")
+    compress_segments(root / "run", lambda a, b: load_scene(root / "scene", frames=range(a, b), progress=False), cfg,
+                      out, progress=False, log=lambda *_: None)
+    assert len(read_index(out).segments) == 2 and not leftover.exists()

@@ -214,3 +214,19 @@ def _quantile(x, q):
     lo = math.floor(pos)
     hi = min(lo + 1, len(v) - 1)
     return float(v[lo] + (pos - lo) * (v[hi] - v[lo]))
+
+
+def test_stopping_after_a_stage_fine_tunes_until_the_next_event(tiny_scene, monkeypatch):
+    """--stop-after prune: the pruned model is fine-tuned for the prune stage's iterations (up to where merging
+    would start), and no later event runs."""
+    rec = Recorder(monkeypatch)
+    steps = []
+    original = pl.CompressionPipeline.finetune_step
+    monkeypatch.setattr(pl.CompressionPipeline, "finetune_step", lambda self, step: steps.append(step) or
+                        original(self, step))
+    cfg = CompressConfig(preset="M", lengths=LENGTHS, batch_size=1, backend="cpu")
+    pipeline = CompressionPipeline(baseline(tiny_scene, n=200), tiny_scene, cfg, scores=scores(200), progress=False,
+                                   log=lambda *_: None)
+    pipeline.run(stop_after="prune")
+    assert [e[0] for e in rec.events] == ["sample", "prune"]
+    assert steps == list(range(1, LENGTHS.sample + LENGTHS.prune + 1))

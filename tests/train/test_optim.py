@@ -58,3 +58,9 @@ def test_expon_lr_endpoints_and_midpoint():
     assert math.isclose(expon_lr(100, 1e-2, 1e-4, 100), 1e-4)
     assert math.isclose(expon_lr(50, 1e-2, 1e-4, 100), 1e-3, rel_tol=1e-9)  # geometric mean
     assert math.isclose(expon_lr(500, 1e-2, 1e-4, 100), 1e-4)
+
+
+def test_expon_lr_without_steps_is_the_final_rate_and_a_flat_schedule_is_exact():
+    assert expon_lr(5, 1e-2, 1e-4, 0) == 1e-4 and expon_lr(0, 1e-2, 1e-4, -3) == 1e-4
+    for step in (0, 7, 50, 100, 250):  # equal ends: exactly that rate, not exp(log(rate)) rounded
+        assert expon_lr(step, 1.6e-4 * 2.3, 1.6e-4 * 2.3, 100) == 1.6e-4 * 2.3
