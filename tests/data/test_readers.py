@@ -21,7 +21,7 @@ from omg4.data.normalize import official_normalization
 from omg4.errors import DataError
 
 
-# ----------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------------- shared functions
 
 
 def raw_frames(video: Path, count: int) -> np.ndarray:

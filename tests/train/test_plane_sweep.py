@@ -71,6 +71,26 @@ def test_points_lie_on_the_synthetic_surfaces(synth_scene, surface_error):
     assert np.median(np.abs(colour - pc.rgb).mean(1)) < 0.05
     rays, _ = surface_error(synth_scene, ray_initial_points(synth_scene, 500, seed=1).xyz)
     assert np.median(rays) > 0.1  # the control: points at random depths along the same kind of rays
+    # at most one point per voxel of 1/1000 of the far plane (far = 2.3 × the largest camera distance)
+    far = 2.3 * max(float(np.linalg.norm(v.camera.center)) for v in synth_scene.train_views)
+    cells = np.floor(pc.xyz / (1e-3 * far)).astype(np.int64)
+    assert len(np.unique(cells, axis=0)) == len(cells)
+
+
+def test_only_pixels_with_a_depth_become_points():
+    from omg4.train.plane_sweep import DepthMap, _unproject
+
+    cam = _plane_camera(0.0, w=8, h=6)
+    depth = torch.zeros(6, 8)
+    depth[1, 2], depth[4, 7] = 2.0, 3.5
+    points, idx = _unproject(DepthMap(camera=cam, depth=depth))
+    assert idx.tolist() == [1 * 8 + 2, 4 * 8 + 7]
+    # each point lies on its pixel's ray at that z-depth: back in the camera frame, z is the depth
+    R, t = cam.viewmat[:3, :3], cam.viewmat[:3, 3]
+    in_camera = points.numpy() @ R.T + t
+    np.testing.assert_allclose(in_camera[:, 2], [2.0, 3.5], rtol=1e-6)
+    np.testing.assert_allclose(in_camera[:, :2] / in_camera[:, 2:] * cam.K[0, 0] + cam.K[:2, 2],
+                               [[2.5, 1.5], [7.5, 4.5]], rtol=1e-6)
 
 
 def test_basketball_points_match_the_held_out_camera(n3dv_basketball):

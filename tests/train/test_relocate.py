@@ -140,3 +140,20 @@ def test_copies_are_spread_by_the_targets_scale_rotation_and_duration():
     assert float((ratio - 1).abs().max()) < 0.06, ratio
     assert bool((spatial.mean(0).abs() < 4 * scales / math.sqrt(n_dead)).all())  # centred on the trajectory
     torch.testing.assert_close(after["scaling"][moved], (scales.log() - math.log(1.6)).expand(n_dead + 1, 3))
+
+
+def test_the_freetimegs_regularizer_weighs_in_until_densification_ends():
+    from omg4.gaussians.freetime import opacity_regularizer
+    from omg4.train import make_config
+    from omg4.train.relocate import Relocation
+
+    model = _model(10, [])
+    cfg = make_config("cpu-small", backbone="freetimegs", densify_until=100, lambda_reg=0.25)
+    times = torch.tensor([0.2, 0.7], dtype=torch.float64)
+    p = model.params
+    expected = 0.25 * opacity_regularizer(p["opacity"], p["t"], p["duration"], times)
+    torch.testing.assert_close(Relocation().regularizer(p, cfg, times, 99), expected)
+    assert Relocation().regularizer(p, cfg, times, 100) is None
+    from dataclasses import replace
+
+    assert Relocation().regularizer(p, replace(cfg, lambda_reg=0.0), times, 5) is None
