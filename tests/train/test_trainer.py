@@ -105,3 +105,13 @@ def test_cli_train_writes_a_model_and_resumes_without_reinitializing(tiny_scene_
     assert summary["gaussians_per_pixel"] == pytest.approx(summary["num_gaussians"] / (w * h))
     assert summary["gaussians_per_pixel"] > 0
     assert "resuming from iteration 4" in capsys.readouterr().out
+
+
+def test_a_checkpoint_without_its_model_file_is_not_complete(tiny_scene, tmp_path):
+    from omg4.train.run_state import checkpoint_paths, latest_iteration
+
+    cfg = small_config(iterations=6, checkpoint_interval=2)
+    Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
+    assert latest_iteration(tmp_path / "run") == 6
+    checkpoint_paths(tmp_path / "run", 6)[0].unlink()  # the state file alone
+    assert latest_iteration(tmp_path / "run") == 4
