@@ -115,3 +115,17 @@ def test_a_checkpoint_without_its_model_file_is_not_complete(tiny_scene, tmp_pat
     assert latest_iteration(tmp_path / "run") == 6
     checkpoint_paths(tmp_path / "run", 6)[0].unlink()  # the state file alone
     assert latest_iteration(tmp_path / "run") == 4
+
+
+def test_one_initial_point_is_enough_and_none_is_an_error(tiny_scene):
+    import numpy as np
+
+    from omg4.data.scene import PointCloud
+    from omg4.errors import OMG4Error
+    from omg4.train.trainer import initial_model
+
+    cfg = small_config()
+    one = PointCloud(xyz=np.zeros((1, 3), np.float32), rgb=np.full((1, 3), 0.5, np.float32))
+    assert initial_model(tiny_scene, cfg, one).num_gaussians == 1
+    with pytest.raises(OMG4Error, match="empty"):
+        initial_model(tiny_scene, cfg, PointCloud(xyz=np.zeros((0, 3), np.float32), rgb=np.zeros((0, 3), np.float32)))
