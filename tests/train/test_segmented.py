@@ -76,3 +76,31 @@ def test_a_folder_holding_another_plan_is_refused_and_modes_are_checked(capture,
         write_plan(tmp_path / "run", other)
     with pytest.raises(OMG4Error, match="--parallel"):
         train_segments(tmp_path / "run", plan, CFG, None, None, parallel="frames")
+
+
+def test_a_segment_learns_its_shared_frames_from_the_segment_before(capture, tmp_path):
+    """The training views of the frames a segment shares with the one before show that segment's renders; the
+    others, and every test view, show the video."""
+    import numpy as np
+    import torch
+
+    from omg4.evaluate import load_model
+    from omg4.render.view import render_view
+    from omg4.train.segmented import taught_by
+
+    plan = segment_plan(plan_segments(12, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
+    _run(capture, tmp_path / "run", plan)
+    teacher = load_model(tmp_path / "run" / "segment_000" / "model.safetensors")
+    scene = load_scene(capture, frames=range(4, 10), progress=False)
+    taught = taught_by(scene, teacher, (4, 6), torch.zeros(3))
+    shared = [v for v in taught.train_views if v.frame_index < 6]
+    assert len(shared) == 2 * 3  # frames 4 and 5 of the 3 training cameras
+    for v in shared:
+        with torch.no_grad():
+            expected = render_view(teacher, v.camera, v.timestamp)[0].image.clamp(0, 1).numpy()
+        np.testing.assert_array_equal(v.image(), expected)
+    for plain, original in zip(taught.train_views, scene.train_views):
+        if plain.frame_index >= 6:
+            np.testing.assert_array_equal(plain.image(), original.image())
+    assert all(
+        np.array_equal(a.image(), b.image()) for a, b in zip(taught.test_views, scene.test_views))

@@ -63,6 +63,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                                "compress then writes one sequence file")
     segments.add_argument("--overlap", type=int_at_least(0), metavar="K",
                           help="frames neighbouring segments share, blended across (default: F/6, rounded)")
+    segments.add_argument("--independent-segments", action="store_true",
+                          help="each segment learns every frame from the video (by default a segment learns the frames "
+                               "it shares with the one before from that segment's renders, so they agree where they "
+                               "are blended)")
     segments.add_argument("--parallel", choices=("data", "segments"), default="data",
                           help="in a distributed run: every rank trains every segment together (data, the default) or "
                                "each rank trains whole segments on its own (segments)")
@@ -163,7 +167,8 @@ def _train_segments(args, cfg, world) -> int:
         return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
 
     summaries = train_segments(args.out, plan, cfg, load_segment, lambda scene: initial_points(scene, args.init, cfg),
-                               parallel=args.parallel, check_replicas=args.check_replicas)
+                               parallel=args.parallel, check_replicas=args.check_replicas,
+                               teach=not args.independent_segments)
     if not world.main:
         return 0
     print(f"trained {len(summaries)} segments of {args.segment_frames} frames (sharing {overlap}) -> {args.out}")

@@ -6,6 +6,11 @@ segment whose model exists is done; one with checkpoints resumes from its last; 
 segment by segment. Only one segment's frames, Gaussians and optimizer are held at a time. In a distributed
 job the ranks either train every segment together (data-parallel, the default) or each train whole segments
 on their own (``parallel="segments"``: rank r takes segments r, r + W, …).
+
+Neighbours agree where they are blended: a segment learns the frames it shares with the one before from that
+segment's renders (:func:`taught_by`), not from the video, so the crossfade between the two models across those
+frames shows no jump (beyond the paper; ``teach=False``, and ``parallel="segments"``, where the segment before
+may not be trained yet, learn every frame from the video).
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import contextlib
 import json
 from pathlib import Path
 from typing import Callable
+
+import torch
 
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
@@ -51,9 +58,35 @@ def write_plan(run_dir: Path, plan: dict) -> None:
         write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
 
 
+def taught_by(scene: Scene, teacher, frames: tuple[int, int], background, *, backend: str = "auto",
+              device="cpu") -> Scene:
+    """``scene`` whose training views of the frames ``[start, stop)`` show ``teacher``'s renders (rendered once,
+    when first asked for) instead of the video; test views keep the video."""
+    import dataclasses
+
+    from omg4.render.view import render_view
+
+    def render(view):
+        cache = {}
+
+        def image():
+            if "image" not in cache:
+                with torch.no_grad():
+                    rendered = render_view(teacher, view.camera, view.timestamp, background=background,
+                                           backend=backend, device=device)[0]
+                cache["image"] = rendered.image.clamp(0.0, 1.0).cpu().numpy()
+            return cache["image"]
+        return image
+
+    start, stop = frames
+    train = [dataclasses.replace(v, loader=render(v)) if start <= v.frame_index < stop else v
+             for v in scene.train_views]
+    return dataclasses.replace(scene, train_views=train)
+
+
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
                    initial_points: Callable[[Scene], object], *, parallel: str = "data", check_replicas: int = 0,
-                   log=print) -> list[dict]:
+                   teach: bool = True, log=print) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
     order; with ``parallel="segments"`` the others' segments are read from their folders)."""
     from omg4.gaussians.checkpoint import describe_checkpoint
@@ -71,6 +104,14 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
         with distributed.alone() if parallel == "segments" else contextlib.nullcontext():
             resume = latest_iteration(folder) is not None
             scene = load_scene(*seg["frames"])
+            before = plan["segments"][seg["index"] - 1] if seg["index"] else None
+            if teach and parallel != "segments" and before is not None and before["frames"][1] > seg["frames"][0]:
+                from omg4.evaluate import load_model
+
+                teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)
+                scene = taught_by(scene, teacher, (seg["frames"][0], before["frames"][1]),
+                                  torch.tensor(cfg.background, dtype=torch.float32, device=cfg.device),
+                                  backend=cfg.backend, device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
                 f"{' (resuming)' if resume else ''}")
             points = None if resume else initial_points(scene)
@@ -81,4 +122,4 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
              **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
 
 
-__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "train_segments"]
+__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "taught_by", "train_segments"]
