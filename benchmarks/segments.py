@@ -106,7 +106,8 @@ def quality(args) -> None:
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "omg4", "train", str(data), *reader, "--out", str(run_dir), "--preset",
                     "cpu-small", "--iterations", str(args.iterations), "--checkpoint-interval", "0",
-                    "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), "--resume"],
+                    "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), "--resume",
+                    *(["--independent-segments"] if args.independent_segments else [])],
                    env=ENV, check=True, stdout=subprocess.DEVNULL)
     train_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -140,6 +141,7 @@ def quality(args) -> None:
         "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
         "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
         "iterations_per_segment": args.iterations, "schedule": args.schedule, "segments": model.num_segments,
+        "shared_frames_learnt_from": "the video" if args.independent_segments else "the segment before",
         "psnr": result["psnr"], "ssim": result["ssim"], "boundary": result["boundary"],
         "interior": result["interior"], "flicker": summary,
         "flicker_ratio": summary["boundary"] / summary["interior"] if summary["interior"] else None,
@@ -165,6 +167,8 @@ def main() -> None:
     q.add_argument("--overlap", type=int, default=10)
     q.add_argument("--schedule", default="cpu")
     q.add_argument("--name", default="synthetic")
+    q.add_argument("--independent-segments", action="store_true",
+                   help="train each segment on the video alone (omg4 train --independent-segments)")
     for p in (s, q):
         p.add_argument("--cameras", type=int, default=6)
         p.add_argument("--width", type=int, default=96)
