@@ -24,6 +24,7 @@ from omg4.render.paths import PATHS
 from omg4.render.rendered import BACKENDS
 from omg4.train.config import PRESETS
 from omg4.train.init import INIT_MODES
+from omg4.train.segmented import PARALLEL_MODES
 
 SCENE = {"--format": READERS}
 DEVICE = {"--backend": BACKENDS}
@@ -31,7 +32,8 @@ TABLES: dict[str, dict[str, object]] = {
     "demo": {},
     "synth": {},
     "info": {**SCENE},
-    "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES},
+    "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES,
+              "--parallel": PARALLEL_MODES},
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},

@@ -14,6 +14,7 @@ from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_d
 from omg4.gaussians.backbone import BACKBONES
 from omg4.train.config import PRESETS, TrainConfig
 from omg4.train.init import INIT_MODES
+from omg4.train.segmented import PARALLEL_MODES
 
 #: the TrainConfig fields this command has its own flags for
 SHORTCUTS = ("iterations", "batch_size", "backbone", "max_gaussians", "densify_until", "densify_interval",
@@ -67,7 +68,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                           help="each segment learns every frame from the video (by default a segment learns the frames "
                                "it shares with the one before from that segment's renders, so they agree where they "
                                "are blended)")
-    segments.add_argument("--parallel", choices=("data", "segments"), default="data",
+    segments.add_argument("--parallel", choices=PARALLEL_MODES, default=PARALLEL_MODES[0],
                           help="in a distributed run: every rank trains every segment together (data, the default) or "
                                "each rank trains whole segments on its own (segments)")
     add_settings_arguments(p, TrainConfig, shortcuts=SHORTCUTS, section="train_config",
