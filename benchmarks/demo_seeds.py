@@ -7,7 +7,7 @@ their difference, SSIM, PSNR on the moving pixels, file sizes, the size ratio an
 two models timed together, frame by frame), so a reader can tell a real difference from the spread of
 seeds and processors.
 
-Usage: ``python benchmarks/demo_seeds.py [--seeds 0 1 2] [--work runs/demo_seeds]``; about 8 minutes a seed on
+Usage: ``python benchmarks/demo_seeds.py [--seeds 0 1 2] [--work runs/demo_seeds]``; about 15 minutes a seed on
 two cores.
 """
 

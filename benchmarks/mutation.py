@@ -5,7 +5,7 @@ of the package at a time: a comparison flipped (``<`` ↔ ``<=``, ``==`` ↔ ``!
 an arithmetic or bitwise operator swapped (``+`` ↔ ``-``, ``*`` ↔ ``/``, ``&`` ↔ ``|``, …), ``and`` ↔ ``or``,
 a ``not`` or a unary minus dropped, an integer off by one, ``True`` ↔ ``False``, ``min`` ↔ ``max``,
 ``break`` → ``continue``. A mutant is *killed* when a test of the package's folder fails (or the run
-exceeds its time limit), and *survives* when they all pass. The mutation score is killed / (all −
+exceeds its time limit, or a test process dies of a signal), and *survives* when they all pass. The mutation score is killed / (all −
 equivalent), where an equivalent mutant is one with no observable change, explained in
 ``benchmarks/mutation_equivalents.toml``.
 
@@ -19,9 +19,11 @@ first failure.
 
 Which mutants run: all of them with ``--fraction 1``, or the stable sample of the given fraction
 (a mutant is in it when the hash of its identity — file, function, operator, text and occurrence,
-not its line number — falls below the fraction), so an edit elsewhere does not reshuffle the sample.
+not its line number — falls below the fraction; at least the ``--min-mutants`` lowest of a package), so an
+edit elsewhere does not reshuffle the sample.
 
-Usage: ``python benchmarks/mutation.py [--packages compress train …] [--fraction 0.1] [--json OUT]``.
+Usage: ``python benchmarks/mutation.py [--packages compress train …] [--fraction 0.1] [--min-mutants 20]
+[--json OUT]``.
 Needs ``pytest-cov`` (``pip install pytest-cov``). Resumable: finished mutants are kept in
 ``--work``/outcomes.jsonl and skipped by a re-run of the same tree.
 """
@@ -54,8 +56,12 @@ TARGETS: dict[str, tuple[tuple[str, ...], str, bool]] = {
     "gaussians": (("src/omg4/gaussians",), "tests/gaussians", True),
     "render": (("src/omg4/render",), "tests/render", True),
     "distributed": (("src/omg4/distributed.py", "src/omg4/launch.py"), "tests/test_distributed.py", False),
+    "segments": (("src/omg4/data/segments.py",), "tests/data/test_segment_plans.py", True),
 }
 PACKAGES = tuple(TARGETS)
+#: outcomes that catch the mutant: a test failed, the run overran its time, or a test process died of a signal
+#: (the mutant made it run out of memory)
+CAUGHT = ("killed", "timeout", "crashed")
 EQUIVALENTS = Path(__file__).with_name("mutation_equivalents.toml")
 
 _COMPARE = {ast.Lt: "<=", ast.LtE: "<", ast.Gt: ">=", ast.GtE: ">", ast.Eq: "!=", ast.NotEq: "==",
@@ -91,9 +97,18 @@ class Mutant:
         """The identity that survives edits elsewhere in the file (no line number)."""
         return f"{self.path}::{self.function}::{self.operator}::{self.original}->{self.replacement}#{self.occurrence}"
 
-    def sampled(self, fraction: float) -> bool:
-        digest = hashlib.sha256(self.key.encode()).digest()
-        return int.from_bytes(digest[:8], "big") / 2**64 < fraction
+    @property
+    def draw(self) -> float:
+        """Where the hash of :attr:`key` falls in [0, 1): the mutant's place in every sample."""
+        return int.from_bytes(hashlib.sha256(self.key.encode()).digest()[:8], "big") / 2**64
+
+
+def sample(mutants: list[Mutant], fraction: float, at_least: int) -> list[Mutant]:
+    """The mutants whose :attr:`Mutant.draw` falls below ``fraction``, or the ``at_least`` lowest when those are
+    fewer (a small package still gets a sample that can tell a score), in their order in the package."""
+    ranked = sorted(mutants, key=lambda m: m.draw)
+    chosen = {m.key for m in ranked[:max(sum(m.draw < fraction for m in mutants), at_least)]}
+    return [m for m in mutants if m.key in chosen]
 
 
 class _Collector(ast.NodeVisitor):
@@ -402,7 +417,7 @@ def map_tests(workspace: Workspace, package: str, folder: Path) -> TestMap:
     by_module: dict[str, list[str]] = {}
     for measured in cov.measured_files():
         path = str(Path(measured).relative_to(workspace.root))
-        lines = {line: sorted({c.split("|")[0] for c in ctx if c}) for line, ctx in
+        lines = {line: sorted({c.rsplit("|", 1)[0] for c in ctx if c}) for line, ctx in
                  cov.contexts_by_lineno(measured).items()}
         by_line[path] = {line: tests for line, tests in lines.items() if tests}
         by_module[path] = sorted({t for tests in by_line[path].values() for t in tests})
@@ -417,7 +432,8 @@ def run_mutant(workspace: Workspace, tests: TestMap, mutant: Mutant) -> dict:
     budget = 60.0 + 3.0 * sum(tests.seconds.get(t, 5.0) for t in selected)
     with workspace.planted(mutant):
         rc, seconds = workspace.pytest(["-x", *selected], timeout=budget)
-    outcome = {0: "survived", 1: "killed", 2: "killed", -1: "timeout", 5: "no tests"}.get(rc, f"pytest exit {rc}")
+    outcome = {0: "survived", 1: "killed", 2: "killed", -1: "timeout", 5: "no tests"}.get(
+        rc, "crashed" if rc < 0 else f"pytest exit {rc}")
     return {"outcome": outcome, "seconds": round(seconds, 2), "selected": len(selected)}
 
 
@@ -429,10 +445,9 @@ def load_equivalents() -> dict[str, str]:
 
 
 def summarize(package: str, total: int, rows: list[dict], equivalents: dict[str, str]) -> dict:
-    killed = sum(r["outcome"] in ("killed", "timeout") for r in rows)
-    equivalent = [r for r in rows if r["outcome"] != "killed" and r["outcome"] != "timeout" and r["key"] in
-                  equivalents]
-    survivors = [r for r in rows if r["outcome"] not in ("killed", "timeout")]
+    killed = sum(r["outcome"] in CAUGHT for r in rows)
+    equivalent = [r for r in rows if r["outcome"] not in CAUGHT and r["key"] in equivalents]
+    survivors = [r for r in rows if r["outcome"] not in CAUGHT]
     counted = len(rows) - len(equivalent)
     return {
         "mutants": total,
@@ -451,6 +466,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--packages", nargs="+", default=list(PACKAGES), choices=PACKAGES)
     ap.add_argument("--fraction", type=float, default=0.1, help="the stable sample of mutants to run (1 = all)")
+    ap.add_argument("--min-mutants", type=int, default=20,
+                    help="run at least this many of each package (the lowest in the sample's order)")
     ap.add_argument("--work", type=Path, default=Path("runs/mutation"))
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "mutation.json")
     ap.add_argument("--count", action="store_true", help="only count the mutants of each package")
@@ -458,7 +475,7 @@ def main() -> None:
     if args.count:
         for package in args.packages:
             ms = package_mutants(package)
-            print(f"{package}: {len(ms)} mutants, {sum(m.sampled(args.fraction) for m in ms)} in the sample")
+            print(f"{package}: {len(ms)} mutants, {len(sample(ms, args.fraction, args.min_mutants))} in the sample")
         return
     args.work = args.work.resolve()
     args.work.mkdir(parents=True, exist_ok=True)
@@ -474,7 +491,7 @@ def main() -> None:
     t_start = time.perf_counter()
     for package in args.packages:
         mutants = package_mutants(package)
-        chosen = [m for m in mutants if m.sampled(args.fraction)]
+        chosen = sample(mutants, args.fraction, args.min_mutants)
         tests_hash = _fingerprint(sorted((workspace.root / "tests").rglob("*.py")), workspace.root)
         todo = [m for m in chosen if _reusable(done.get(m.key), m, tests_hash, workspace.root) is None]
         tests = map_tests(workspace, package, args.work) if todo else None
@@ -496,7 +513,7 @@ def main() -> None:
               flush=True)
     save_record(args.json, {
         "command": "python benchmarks/mutation.py " + " ".join(sys.argv[1:]),
-        "fraction": args.fraction,
+        "fraction": args.fraction, "min_mutants": args.min_mutants,
         "wall_time_s": round(time.perf_counter() - t_start, 1),
         "packages": packages,
     })
@@ -515,7 +532,7 @@ def _reusable(row: dict | None, mutant: Mutant, tests_hash: str, root: Path) -> 
     added) or run against the same tests."""
     if row is None or row["module"] != _fingerprint([root / mutant.path], root):
         return None
-    return row if row["outcome"] in ("killed", "timeout") or row["tests"] == tests_hash else None
+    return row if row["outcome"] in CAUGHT or row["tests"] == tests_hash else None
 
 
 if __name__ == "__main__":

@@ -112,7 +112,8 @@ def quality(args) -> None:
     train_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "omg4", "compress", str(data), *reader, "--model", str(run_dir), "--out",
-                    str(out), "--preset", "M", "--schedule", args.schedule, "--force"], env=ENV, check=True,
+                    str(out), "--preset", "M", "--schedule", args.schedule, "--force",
+                    *(["--independent-segments"] if args.independent_segments else [])], env=ENV, check=True,
                    stdout=subprocess.DEVNULL)
     compress_s = time.perf_counter() - t0
     scene = load_scene(data, downscale=args.downscale, progress=False)
@@ -168,7 +169,7 @@ def main() -> None:
     q.add_argument("--schedule", default="cpu")
     q.add_argument("--name", default="synthetic")
     q.add_argument("--independent-segments", action="store_true",
-                   help="train each segment on the video alone (omg4 train --independent-segments)")
+                   help="train and compress each segment on the video alone (--independent-segments)")
     for p in (s, q):
         p.add_argument("--cameras", type=int, default=6)
         p.add_argument("--width", type=int, default=96)

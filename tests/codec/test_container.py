@@ -212,3 +212,16 @@ def test_failed_write_keeps_the_old_file(written):
         write_container(path, {}, {"a": "not bytes"})
     assert path.read_bytes() == before
     assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
+
+
+def test_section_names_up_to_the_limit_are_written_and_read(tmp_path):
+    """A section name of MAX_SECTION_NAME characters is valid for the writer and the reader; one more is refused
+    before anything is written."""
+    from omg4.codec.container import MAX_SECTION_NAME
+
+    longest = "s" * MAX_SECTION_NAME
+    write_container(tmp_path / "ok.bin", {}, {longest: b"abc"})
+    assert read_container(tmp_path / "ok.bin")[1] == {longest: b"abc"}
+    with pytest.raises(OMG4Error):
+        write_container(tmp_path / "long.bin", {}, {longest + "s": b"abc"})
+    assert not (tmp_path / "long.bin").exists()

@@ -35,13 +35,22 @@ def segmented(tmp_path_factory):
     return root, plan
 
 
-def test_each_segment_is_the_file_compress_to_file_writes_for_it_alone(segmented, tmp_path):
+@pytest.mark.parametrize("teach", [False, True])
+def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_path, teach):
+    """Independent segments: each the file of its own scene; taught ones: segment 1's scene shows, for the shared
+    frames 4 and 5, the renders of segment 0 as decoded from the sequence."""
+    import torch
+
+    from omg4.codec.decoder import CompactModel
+    from omg4.codec.payload import decode_payload
+    from omg4.train.segmented import taught_by
+
     root, plan = segmented
     cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu")
     out = tmp_path / "seq.omg4"
     report = compress_segments(root / "run", lambda a, b: load_scene(root / "scene", frames=range(a, b),
                                                                       progress=False), cfg, out, progress=False,
-                               log=lambda *_: None)
+                               log=lambda *_: None, teach=teach)
     index = read_index(out)
     assert [e.frames for e in index.segments] == [(0, 6), (4, 10)]
     assert [e.time_range for e in index.segments] == [pytest.approx((0.0, 0.2)), pytest.approx((4 / 30, 10 / 30))]
@@ -50,10 +59,18 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it_alone(segmented
     assert not list(tmp_path.glob(".*"))  # the segments' working files are gone
     for k, seg in enumerate(plan["segments"]):
         baseline, _ = load_gaussians(root / "run" / seg["folder"] / "model.safetensors")
+        scene = load_scene(root / "scene", frames=range(*seg["frames"]), progress=False)
+        if teach and k:
+            before = CompactModel(decode_payload(read_segment(out, index.segments[k - 1])), "cpu")
+            scene = taught_by(scene, before, (4, 6), torch.zeros(3), backend="cpu")
         alone = tmp_path / f"alone{k}.omg4"
-        compress_to_file(baseline, load_scene(root / "scene", frames=range(*seg["frames"]), progress=False), cfg,
-                         alone, progress=False, log=lambda *_: None)
+        compress_to_file(baseline, scene, cfg, alone, progress=False, log=lambda *_: None)
         assert read_segment(out, index.segments[k]) == alone.read_bytes()
+    if teach:  # and the teaching changed what segment 1 learnt
+        plain = tmp_path / "plain1.omg4"
+        compress_to_file(baseline, load_scene(root / "scene", frames=range(4, 10), progress=False), cfg, plain,
+                         progress=False, log=lambda *_: None)
+        assert read_segment(out, index.segments[1]) != plain.read_bytes()
 
 
 def test_leftovers_of_an_interrupted_compression_do_not_block_the_next(segmented, tmp_path):

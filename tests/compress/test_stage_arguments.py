@@ -230,3 +230,18 @@ def test_stopping_after_a_stage_fine_tunes_until_the_next_event(tiny_scene, monk
     pipeline.run(stop_after="prune")
     assert [e[0] for e in rec.events] == ["sample", "prune"]
     assert steps == list(range(1, LENGTHS.sample + LENGTHS.prune + 1))
+
+
+def test_stopping_after_the_last_event_runs_the_whole_schedule(tiny_scene, monkeypatch):
+    """--stop-after the pipeline's last stage (sampling and pruning alone): every iteration runs, as without it."""
+    rec = Recorder(monkeypatch)
+    steps = []
+    original = pl.CompressionPipeline.finetune_step
+    monkeypatch.setattr(pl.CompressionPipeline, "finetune_step", lambda self, step: steps.append(step) or
+                        original(self, step))
+    cfg = CompressConfig(preset="M", lengths=LENGTHS, batch_size=1, backend="cpu", stages=("sample", "prune"))
+    pipeline = CompressionPipeline(baseline(tiny_scene, n=200), tiny_scene, cfg, scores=scores(200), progress=False,
+                                   log=lambda *_: None)
+    pipeline.run(stop_after="prune")
+    assert [e[0] for e in rec.events] == ["sample", "prune"]
+    assert steps == list(range(1, pipeline.total_iterations + 1)) and pipeline.total_iterations > 0

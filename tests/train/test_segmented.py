@@ -104,3 +104,70 @@ def test_a_segment_learns_its_shared_frames_from_the_segment_before(capture, tmp
             np.testing.assert_array_equal(plain.image(), original.image())
     assert all(
         np.array_equal(a.image(), b.image()) for a, b in zip(taught.test_views, scene.test_views))
+
+
+def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_live_in_its_time(capture):
+    """Carried: a time centre within three temporal standard deviations (exp of ``scaling_t`` with identity
+    rotations) of the segment's range; then fresh Gaussians up to the cap; over the cap, the most opaque carried."""
+    import dataclasses
+    import math
+
+    import torch
+
+    from omg4.gaussians.model import GaussianConfig, Gaussians4D
+    from omg4.gaussians.visibility import WindowedModel
+    from omg4.train.segmented import warm_start
+
+    scene = load_scene(capture, frames=range(4, 10), progress=False)  # times [4/30, 10/30)
+    t0, t1 = scene.time_range
+    centres = [t0 - 0.31, t0 - 0.29, t0 + 0.05, t1 + 0.29, t1 + 0.31, t0 - 2.9, t0 - 3.1]
+    sigmas = [0.1, 0.1, 0.1, 0.1, 0.1, 1.0, 1.0]
+    alive = [i for i, (t, s) in enumerate(zip(centres, sigmas)) if t + 3 * s >= t0 and t - 3 * s <= t1]
+    assert alive == [1, 2, 3, 5]
+    before = Gaussians4D.from_points(torch.rand(7, 3), torch.rand(7, 3),
+                                     GaussianConfig(time_range=(0.0, 0.2), backbone="rt4dgs"),
+                                     generator=torch.Generator().manual_seed(0))
+    before.params["t"] = torch.tensor(centres).reshape(-1, 1)
+    before.params["scaling_t"] = torch.tensor([math.log(s) for s in sigmas]).reshape(-1, 1)
+    before.params["opacity"] = torch.tensor([0.0, 0.5, -1.0, 2.0, 0.0, 1.0, 0.0]).reshape(-1, 1)
+    teacher = WindowedModel(before.params, before.config, 3, 1)
+    points = initial_points(scene, "random", CFG)
+
+    start = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=0), points)
+    assert start.config.time_range == pytest.approx((t0, t1))
+    assert start.num_gaussians == len(alive) + len(points.xyz)
+    for k, v in start.params.items():
+        torch.testing.assert_close(v[: len(alive)], before.params[k][alive], rtol=0, atol=0)
+    torch.testing.assert_close(start.params["xyz"][len(alive):], torch.as_tensor(points.xyz, dtype=torch.float32))
+
+    capped = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=6), points)
+    assert capped.num_gaussians == 6  # the four carried and two fresh
+    full = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=2), points)
+    torch.testing.assert_close(full.params["t"], before.params["t"][[3, 5]])  # opacities 2.0 and 1.0, in order
+
+
+def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypatch):
+    """With teaching, segments 1 and 2 start from the model of the segment before (its trained file), in their own
+    time range; independent segments start afresh."""
+    from omg4.train import segmented
+
+    plan = segment_plan(plan_segments(12, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
+    calls = []
+    original = segmented.warm_start
+
+    def spy(teacher, scene, cfg, points=None):
+        calls.append((teacher.num_gaussians, tuple(scene.time_range)))
+        return original(teacher, scene, cfg, points)
+
+    monkeypatch.setattr(segmented, "warm_start", spy)
+    _run(capture, tmp_path / "run", plan)
+    trained = [load_gaussians(tmp_path / "run" / s["folder"] / "model.safetensors")[0].num_gaussians
+               for s in plan["segments"]]
+    assert [n for n, _ in calls] == trained[:2]
+    assert [r for _, r in calls] == [pytest.approx((4 / 30, 10 / 30)), pytest.approx((8 / 30, 12 / 30))]
+    calls.clear()
+    independent = tmp_path / "independent"
+    write_plan(independent, plan)
+    train_segments(independent, plan, CFG, lambda a, b: load_scene(capture, frames=range(a, b), progress=False),
+                   lambda scene: initial_points(scene, "random", CFG), teach=False, log=lambda *_: None)
+    assert calls == []

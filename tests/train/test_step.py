@@ -45,3 +45,24 @@ def test_a_rank_back_propagates_its_share_of_the_batch_loss_and_regularizer(tiny
         own = [photometric_losses(render_view(model, views[i].camera, views[i].timestamp, backend="cpu")[0].image[None],
                                   view_image(views[i])[None], 0.2)[0] for i in (0, 5)]
     assert loss == pytest.approx(float(sum(own)) / 4 + 3.0 * 2 / 4, rel=1e-5)
+
+
+def test_one_process_adds_the_whole_regularizer_to_the_batch_loss(tiny_scene):
+    """A single process renders the whole batch: loss = mean of the views' losses + the regularizer, whose
+    gradient reaches its inputs at full weight."""
+    from omg4.evaluate import view_image
+    from omg4.render.view import render_view
+    from omg4.train.loss import photometric_losses
+
+    model = initial_model(tiny_scene, make_config("cpu-small", num_random_points=200, max_gaussians=200))
+    for p in model.params.values():
+        p.requires_grad_(True)
+    weight = torch.ones((), requires_grad=True)
+    views, batch = tiny_scene.train_views, torch.tensor([1, 4])
+    loss, _ = backward_batch(model, views, batch, background=torch.zeros(3), backend="cpu", lambda_dssim=0.2,
+                             what="test", step=1, regularizer=lambda times: weight * 3.0)
+    assert float(weight.grad) == 3.0
+    with torch.no_grad():
+        own = [photometric_losses(render_view(model, views[i].camera, views[i].timestamp, backend="cpu")[0].image[None],
+                                  view_image(views[i])[None], 0.2)[0] for i in (1, 4)]
+    assert loss == pytest.approx(float(sum(own)) / 2 + 3.0, rel=1e-5)

@@ -68,6 +68,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_device_arguments(p, from_settings=True)
     p.add_argument("--seed", type=seed, help=f"random seed (default {CompressConfig.seed})")
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
+    p.add_argument("--independent-segments", action="store_true",
+                   help="a segmented run: each segment learns every frame from the video (by default a segment "
+                        "learns the frames it shares with the one before from that segment's compressed renders)")
     add_force_argument(p)
     add_distributed_arguments(p)
     add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",
@@ -162,7 +165,7 @@ def _compress_segments(args, cfg, codec, precision, record, world) -> int:
         return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
 
     report = compress_segments(args.model, load_segment, cfg, args.out, codec=codec, precision=precision,
-                               check_replicas=args.check_replicas)
+                               check_replicas=args.check_replicas, teach=not args.independent_segments)
     if not world.main:
         return 0
     write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,

@@ -118,19 +118,27 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
 
 def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
                       codec: str = CODECS[0], precision: CompactGrids = CompactGrids(), progress: bool = True,
-                      log=print, check_replicas: int = 0) -> dict:
+                      log=print, check_replicas: int = 0, teach: bool = True) -> dict:
     """Compress every segment of a segmented training run (:mod:`omg4.train.segmented`) and write them as one
     sequence file (:mod:`omg4.codec.sequence`) at ``out``; ``load_scene(start, stop)`` gives a segment's scene.
 
-    One segment's scene and models are held at a time. Returns the report: per segment the
-    :func:`compress_to_file` report, and the file's bytes, duration and bitrate.
+    One segment's scene and models are held at a time, and the segment before's compressed model: with ``teach``
+    a segment's training views of the frames it shares with the one before show that model's renders
+    (:func:`omg4.train.segmented.taught_by`), so the two compressed models agree where playback blends them
+    (beyond the paper). Returns the report: per segment the :func:`compress_to_file` report, and the file's bytes,
+    duration and bitrate.
     """
     import shutil
 
+    import torch
+
     from omg4 import distributed
+    from omg4.codec.decoder import CompactModel
+    from omg4.codec.payload import decode_payload
     from omg4.codec.sequence import read_index, write_sequence
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.train.segmented import taught_by
 
     run_dir, out = Path(run_dir), Path(out)
     plan = read_run_plan(run_dir)
@@ -139,16 +147,24 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     if main:
         work.mkdir(parents=True, exist_ok=True)
     parts, reports, t0 = [], [], time.perf_counter()
+    teacher, before = None, None
     try:
         for seg in plan["segments"]:
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}")
             scene = load_scene(*seg["frames"])
+            if teacher is not None and before["frames"][1] > seg["frames"][0]:
+                scene = taught_by(scene, teacher, (seg["frames"][0], before["frames"][1]),
+                                  torch.tensor(cfg.background, dtype=torch.float32, device=cfg.device),
+                                  backend=cfg.backend, device=cfg.device)
             baseline, _ = load_gaussians(run_dir / seg["folder"] / "model.safetensors", cfg.device)
             path = work / f"segment_{seg['index']:03d}.omg4"
             reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
                                             progress=progress, log=log, check_replicas=check_replicas))
             if main:
                 parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
+            if teach:  # every rank decodes rank 0's file: the next segment's teacher
+                blob = distributed.gather_objects(parts[-1][2] if main else None, "sharing the segment")[0]
+                teacher, before = CompactModel(decode_payload(blob), cfg.device), seg
             del scene, baseline
         if main:
             write_sequence(out, parts, fps=plan["fps"], meta={"segment_frames": plan["segment_frames"],

@@ -7,10 +7,11 @@ segment by segment. Only one segment's frames, Gaussians and optimizer are held 
 job the ranks either train every segment together (data-parallel, the default) or each train whole segments
 on their own (``parallel="segments"``: rank r takes segments r, r + W, …).
 
-Neighbours agree where they are blended: a segment learns the frames it shares with the one before from that
-segment's renders (:func:`taught_by`), not from the video, so the crossfade between the two models across those
-frames shows no jump (beyond the paper; ``teach=False``, and ``parallel="segments"``, where the segment before
-may not be trained yet, learn every frame from the video).
+Neighbours agree where they are blended (beyond the paper): a segment starts from the Gaussians of the one
+before that live in its time range (:func:`warm_start`), so the two render the same shared frames at its first
+step, and it learns those frames from that segment's renders (:func:`taught_by`), not from the video, so the
+crossfade between the two models shows no jump. ``teach=False``, and ``parallel="segments"``, where the segment
+before may not be trained yet, start every segment afresh and learn every frame from the video.
 """
 
 from __future__ import annotations
@@ -84,6 +85,36 @@ def taught_by(scene: Scene, teacher, frames: tuple[int, int], background, *, bac
     return dataclasses.replace(scene, train_views=train)
 
 
+def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, *, reach: float = 3.0):
+    """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.evaluate.load_model`
+    gives its checkpoint) Gaussians whose time centre lies
+    within ``reach`` temporal standard deviations of ``scene``'s time range, joined by Gaussians made from
+    ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the segment before never showed — as many as
+    ``cfg.max_gaussians`` leaves room for (the most opaque carried Gaussians first when they alone exceed it)."""
+    import dataclasses
+
+    from omg4.gaussians.model import Gaussians4D
+    from omg4.train.trainer import initial_model
+
+    values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
+    sigma_t = teacher.config.schema.motion(values, teacher.config)[2].reshape(-1).clamp_min(0.0).sqrt()
+    t, (t0, t1) = values["t"].reshape(-1), scene.time_range
+    alive = torch.nonzero((t + reach * sigma_t >= t0) & (t - reach * sigma_t <= t1)).reshape(-1)
+    if cfg.max_gaussians and len(alive) > cfg.max_gaussians:
+        opacity = values["opacity"].reshape(-1)[alive]
+        alive = alive[torch.argsort(opacity, descending=True, stable=True)[: cfg.max_gaussians]].sort().values
+    room = cfg.max_gaussians - len(alive) if cfg.max_gaussians else 0
+    if cfg.max_gaussians and room == 0:
+        fresh = None
+    else:
+        fresh = initial_model(scene, dataclasses.replace(cfg, max_gaussians=room), points)
+    config = fresh.config if fresh is not None else dataclasses.replace(teacher.config,
+                                                                        time_range=tuple(scene.time_range))
+    params = {k: torch.cat([values[k][alive]] + ([fresh.params[k].detach()] if fresh is not None else []))
+              for k in config.schema.param_names}
+    return Gaussians4D(params, config, active_sh_degree=0, active_sh_degree_t=0)
+
+
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
                    initial_points: Callable[[Scene], object], *, parallel: str = "data", check_replicas: int = 0,
                    teach: bool = True, log=print) -> list[dict]:
@@ -105,21 +136,25 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             resume = latest_iteration(folder) is not None
             scene = load_scene(*seg["frames"])
             before = plan["segments"][seg["index"] - 1] if seg["index"] else None
+            start = None
             if teach and parallel != "segments" and before is not None and before["frames"][1] > seg["frames"][0]:
                 from omg4.evaluate import load_model
 
                 teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)
+                if not resume:
+                    start = warm_start(teacher, scene, cfg, initial_points(scene))
                 scene = taught_by(scene, teacher, (seg["frames"][0], before["frames"][1]),
                                   torch.tensor(cfg.background, dtype=torch.float32, device=cfg.device),
                                   backend=cfg.backend, device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
                 f"{' (resuming)' if resume else ''}")
-            points = None if resume else initial_points(scene)
-            Trainer(scene, cfg, folder, points=points, resume=resume, log=log, check_replicas=check_replicas).run()
+            points = None if resume or start is not None else initial_points(scene)
+            Trainer(scene, cfg, folder, points=points, start=start, resume=resume, log=log,
+                    check_replicas=check_replicas).run()
             del scene
     distributed.barrier("training the segments")
     return [{"index": seg["index"], "frames": seg["frames"],
              **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
 
 
-__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "taught_by", "train_segments"]
+__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "taught_by", "warm_start", "train_segments"]
