@@ -55,14 +55,22 @@ def lpips_calibration() -> Path:
 
 
 @pytest.fixture(scope="session")
-def tiny_scene_dir(tmp_path_factory):
-    """A tiny synthetic N3DV scene (5 cameras, 6 frames, 64×48) for training and compression tests."""
+def synthetic_scene(tmp_path_factory):
+    """``write(name, **sizes)``: a synthetic N3DV scene of those :class:`~omg4.data.synthetic.SynthConfig` sizes
+    in a new temporary folder; returns its path."""
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
 
-    out = tmp_path_factory.mktemp("tiny") / "scene"
-    write_synthetic_scene(out, SynthConfig(num_cameras=5, num_frames=6, width=64, height=48, num_points=600),
-                          progress=False)
-    return out
+    def write(name: str, **sizes):
+        out = tmp_path_factory.mktemp(name) / "scene"
+        write_synthetic_scene(out, SynthConfig(**sizes), progress=False)
+        return out
+    return write
+
+
+@pytest.fixture(scope="session")
+def tiny_scene_dir(synthetic_scene):
+    """A tiny synthetic N3DV scene (5 cameras, 6 frames, 64×48) for training and compression tests."""
+    return synthetic_scene("tiny", num_cameras=5, num_frames=6, width=64, height=48, num_points=600)
 
 
 @pytest.fixture(scope="session")

@@ -14,13 +14,8 @@ from omg4.data.segments import blend_weights
 
 
 @pytest.fixture(scope="module")
-def long_scene(tmp_path_factory):
-    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-
-    out = tmp_path_factory.mktemp("long") / "scene"
-    write_synthetic_scene(out, SynthConfig(num_cameras=5, num_frames=16, width=64, height=48, num_points=600),
-                          progress=False)
-    return out
+def long_scene(synthetic_scene):
+    return synthetic_scene("long", num_cameras=5, num_frames=16, width=64, height=48, num_points=600)
 
 
 TRAIN = ["--preset", "cpu-small", "--iterations", "12", "--batch-size", "2", "--backend", "cpu",

@@ -47,7 +47,7 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_
 
     root, plan = segmented
     cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu")
-    out = tmp_path / "seq.omg4"
+    out = tmp_path / "new" / "seq.omg4"  # into a folder that does not exist yet
     report = compress_segments(root / "run", lambda a, b: load_scene(root / "scene", frames=range(a, b),
                                                                       progress=False), cfg, out, progress=False,
                                log=lambda *_: None, teach=teach)
@@ -56,7 +56,7 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_
     assert [e.time_range for e in index.segments] == [pytest.approx((0.0, 0.2)), pytest.approx((4 / 30, 10 / 30))]
     assert report["file_bytes"] == out.stat().st_size and len(report["segments"]) == 2
     assert report["bitrate_mbps"] == pytest.approx(8 * out.stat().st_size / (10 / 30) / 1e6)
-    assert not list(tmp_path.glob(".*"))  # the segments' working files are gone
+    assert not list(out.parent.glob(".*"))  # the segments' working files are gone
     for k, seg in enumerate(plan["segments"]):
         baseline, _ = load_gaussians(root / "run" / seg["folder"] / "model.safetensors")
         scene = load_scene(root / "scene", frames=range(*seg["frames"]), progress=False)

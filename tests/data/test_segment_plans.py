@@ -66,13 +66,8 @@ def test_boundary_frames_are_those_within_half_the_shared_span():
 # ------------------------------------------------------------------------------ the sequence file
 
 @pytest.fixture(scope="module")
-def long_scene(tmp_path_factory):
-    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-
-    out = tmp_path_factory.mktemp("long") / "scene"
-    write_synthetic_scene(out, SynthConfig(num_cameras=3, num_frames=16, width=64, height=48, num_points=300),
-                          progress=False)
-    return out
+def long_scene(synthetic_scene):
+    return synthetic_scene("long", num_cameras=3, num_frames=16, width=64, height=48, num_points=300)
 
 
 def test_a_segment_keeps_only_its_own_frames_in_the_frame_cache(long_scene, tmp_path):

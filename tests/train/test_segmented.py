@@ -16,13 +16,8 @@ from omg4.train.segmented import segment_plan, train_segments, write_plan
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-
-    out = tmp_path_factory.mktemp("capture") / "scene"
-    write_synthetic_scene(out, SynthConfig(num_cameras=4, num_frames=12, width=48, height=32, num_points=300),
-                          progress=False)
-    return out
+def capture(synthetic_scene):
+    return synthetic_scene("capture", num_cameras=4, num_frames=12, width=48, height=32, num_points=300)
 
 
 CFG = make_config("cpu-small", iterations=6, batch_size=1, checkpoint_interval=0, backend="cpu",

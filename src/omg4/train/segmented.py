@@ -112,7 +112,7 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, *, reach: f
                                                                         time_range=tuple(scene.time_range))
     params = {k: torch.cat([values[k][alive]] + ([fresh.params[k].detach()] if fresh is not None else []))
               for k in config.schema.param_names}
-    return Gaussians4D(params, config, active_sh_degree=0, active_sh_degree_t=0)
+    return Gaussians4D(params, config)  # the trainer sets the active SH degrees of each step
 
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
