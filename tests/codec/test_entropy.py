@@ -206,3 +206,15 @@ def test_uints_damage_raises():
             decode_uints(data[:length], 1000)
     with pytest.raises(CorruptFileError):
         decode_uints(data + b"\x00", 1000)
+
+
+def test_symbol_weights_are_the_documented_powers_of_two():
+    """The ANS model's weights (docs/file-format.md §4): 2¹⁵·2^((q−1)/s) from an 8-entry mantissa table
+    round(2¹⁵·2^(j/8)), for the steps per octave s in {1, 2, 4, 8}; 0 for q = 0."""
+    from omg4.codec import entropy
+
+    assert entropy._MANTISSA.tolist() == [round(2**15 * 2 ** (j / 8)) for j in range(8)]
+    q = np.arange(0, 40)
+    for steps in (1, 2, 4, 8):
+        expected = np.where(q > 0, 2.0**15 * 2.0 ** ((q - 1) / steps), 0.0)
+        np.testing.assert_allclose(entropy._weights(q, steps), expected, rtol=2e-5)

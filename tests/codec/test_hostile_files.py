@@ -171,3 +171,13 @@ def test_info_refuses_what_the_decoder_refuses(tmp_path, capsys, codec):
     assert main(["info", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(decoder_error.value) in err
+
+
+def test_info_counts_bits_per_gaussian_from_the_file_size(tmp_path):
+    """bits per Gaussian = 8 × the file's bytes / its Gaussian count."""
+    from omg4.codec.summary import describe_file
+
+    path = tmp_path / "m.omg4"
+    forge.valid_file(path, 300, codec="compact")
+    summary = describe_file(path)
+    assert summary["bits_per_gaussian"] == pytest.approx(8 * path.stat().st_size / 300)

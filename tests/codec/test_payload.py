@@ -222,6 +222,9 @@ def _rewrite(path, edit_header=None, edit_sections=None):
     (None, lambda s: s.pop("svq.app.index2"), "section list"),
     (None, lambda s: s.__setitem__("extra", b""), "section list"),
     (None, lambda s: s.__setitem__("t", s["t"][:-1]), "section t"),
+    (lambda h: h.__setitem__("rotations", ["no_such_attribute"]), None, "rotation attributes"),
+    (lambda h: h["mlp"].update({f"extra.{i}": [1, 1] for i in range(65 - len(h["mlp"]))}), None,
+     "65 MLP weights"),
 ])
 def test_decode_validates_content_behind_valid_checksums(tmp_path, edit_header, edit_sections, match):
     path = tmp_path / "m.omg4"
@@ -272,3 +275,14 @@ def test_file_is_not_a_pickle(tmp_path, codec, version):
     assert zlib.crc32(data[20:20 + n]) == int.from_bytes(data[16:20], "little")
     text = zlib.decompress(data[20:20 + n], -15) if version >= 2 else data[20:20 + n]
     assert json.loads(text)["header"]["kind"] == "omg4-compressed-model"
+
+
+def test_up_to_64_mlp_weights_pass_the_header_limit(tmp_path):
+    """MAX_MLP_WEIGHTS is 64 (docs/file-format.md §5): a header listing 64 passes that check (and fails a later
+    one, its sections being missing)."""
+    path = tmp_path / "m.omg4"
+    encode_payload(make_payload(300), path, codec="paper")
+    _rewrite(path, lambda h: h["mlp"].update({f"extra.{i}": [1, 1] for i in range(64 - len(h["mlp"]))}))
+    with pytest.raises(CorruptFileError) as err:
+        decode_payload(path)
+    assert "MLP weights (limits" not in str(err.value)

@@ -106,6 +106,8 @@ def _forged(tmp_path, header_edit=None, sections_edit=None):
     lambda h: h.update(fps=0),
     lambda h: h["segments"][0].update(time_range=[0, "x"]),
     lambda h: h.update(layout="other"),
+    lambda h: h["segments"][1].update(frames=[0, 18]),             # starting with its neighbour, not after it
+    lambda h: h["segments"][1].update(time_range=[0.0, 1.8]),      # the same in time
 ])
 def test_a_forged_index_is_a_one_line_error(tmp_path, edit):
     forged = _forged(tmp_path, header_edit=edit)
@@ -154,3 +156,17 @@ def test_forged_sequence_files_end_as_one_line_errors_or_decode(tmp_path):
 
 
 # ---------------------------------------------------------------- rendering, training, evaluation
+
+
+def test_late_frames_and_the_whole_time_range(tmp_path):
+    """Frame numbers far into a capture are valid (below 2⁴⁰); a sequence spans its first segment's start to its
+    last one's end."""
+    parts = [((f0 + 1_000_000, f1 + 1_000_000), (t0 + 100_000.0, t1 + 100_000.0), data)
+             for (f0, f1), (t0, t1), data in _segments(tmp_path)]
+    path = tmp_path / "late.omg4"
+    sequence.write_sequence(path, parts, fps=10.0)
+    index = sequence.read_index(path)
+    assert [e.frames for e in index.segments] == [(1_000_000, 1_000_010), (1_000_008, 1_000_018),
+                                                  (1_000_016, 1_000_026)]
+    model = sequence.load_sequence(path)
+    assert model.config.time_range == pytest.approx((100_000.0, 100_002.6))

@@ -258,3 +258,12 @@ def test_fits_a_time_varying_colour():
     final = mean_loss()
     assert final < initial / 30, (initial, final)
     assert final < time_blind / 10, (time_blind, final)
+
+
+def test_a_decoded_network_declares_at_most_24_frequency_bands():
+    """2^24·π keeps float32 phases meaningful: 24 bands decode, 25 are refused (shapes from the file)."""
+    small = dict(num_rest=3, hidden=4, shared_dim=2)
+    assert AppearanceMLP.from_fp16_state(AppearanceMLP(num_freqs=24, **small).to_fp16_state()).shared[0].weight.shape \
+        == (4, 2 * 4 * 24)
+    with pytest.raises(CorruptFileError, match="invalid sizes"):
+        AppearanceMLP.from_fp16_state(AppearanceMLP(num_freqs=25, **small).to_fp16_state())
