@@ -326,10 +326,11 @@ class Workspace:
         self.root = folder / "tree"
         if self.root.exists():
             shutil.rmtree(self.root)
-        for part in ("src", "tests"):
+        for part in ("src", "tests", "benchmarks", "docs"):  # some tests read benchmark modules and the docs
             shutil.copytree(REPO / part, self.root / part, ignore=shutil.ignore_patterns("__pycache__", "*.nbi",
-                                                                                         "*.nbc"))
-        shutil.copy(REPO / "pyproject.toml", self.root / "pyproject.toml")
+                                                                                         "*.nbc", "results"))
+        for name in ("pyproject.toml", "README.md"):
+            shutil.copy(REPO / name, self.root / name)
         shared = Path(os.environ.get("OMG4_SHARED_DATA", REPO.parent / "shared" / "data")).resolve()
         self.env = {**os.environ, "PYTHONPATH": str(self.root / "src"), "PYTHONDONTWRITEBYTECODE": "1",
                     "NUMBA_CACHE_DIR": str(folder / "numba_cache"), "OMG4_SHARED_DATA": str(shared),
@@ -404,7 +405,8 @@ def map_tests(workspace: Workspace, package: str, folder: Path) -> TestMap:
     seconds = {}
     for case in ET.parse(report).iter("testcase"):
         file = case.get("classname", "").replace(".", "/") + ".py"
-        seconds[f"{file}::{case.get('name')}"] = float(case.get("time", 0))
+        test = f"{file}::{case.get('name').split('[', 1)[0]}"  # a function, all its parameter sets
+        seconds[test] = seconds.get(test, 0.0) + float(case.get("time", 0))
     if not mapped:
         every = sorted(seconds)
         return TestMap({}, {str(Path(s)): every for s in sources}, seconds, every)
@@ -417,7 +419,8 @@ def map_tests(workspace: Workspace, package: str, folder: Path) -> TestMap:
     by_module: dict[str, list[str]] = {}
     for measured in cov.measured_files():
         path = str(Path(measured).relative_to(workspace.root))
-        lines = {line: sorted({c.rsplit("|", 1)[0] for c in ctx if c}) for line, ctx in
+        # by test function (parameter ids may hold bytes that pytest cannot take back on its command line)
+        lines = {line: sorted({c.rsplit("|", 1)[0].split("[", 1)[0] for c in ctx if c}) for line, ctx in
                  cov.contexts_by_lineno(measured).items()}
         by_line[path] = {line: tests for line, tests in lines.items() if tests}
         by_module[path] = sorted({t for tests in by_line[path].values() for t in tests})

@@ -203,3 +203,25 @@ def test_moving_a_model_keeps_leaf_parameters():
         p.requires_grad_(False)
     same = model.to("cpu")
     assert all(same.params[k] is model.params[k] for k in model.params)
+
+
+@pytest.mark.parametrize("degrees", [(4, 0), (3, 3), (-1, 0), (3, -1)])
+def test_sh_degrees_outside_their_ranges_are_refused(degrees):
+    """Spatial SH degree in 0..3 and temporal in 0..2, each on its own."""
+    with pytest.raises(ValueError, match="SH degrees"):
+        GaussianConfig(time_range=(0.0, 1.0), sh_degree=degrees[0], sh_degree_t=degrees[1])
+
+
+def test_centre_colour_is_the_dc_summed_over_the_temporal_bands():
+    """At Δt = 0 every temporal cosine is 1 and the view average keeps the DC: colour = C0·Σ_n DC_n + 0.5 over the
+    active temporal bands n (band n's DC is coefficient 16·n), clamped to [0, 1]."""
+    from omg4.gaussians.model import centre_appearance
+
+    cfg = GaussianConfig(time_range=(0.0, 10.0))
+    params = {k: v.float() for k, v in random_params(5).items()}
+    coeffs = torch.cat([params["features_dc"], params["features_rest"]], dim=1).double()
+    for degree_t in (0, 1, 2):
+        rgb, opacity = centre_appearance(params, cfg, degree_t)
+        dc = sum(coeffs[:, 16 * n] for n in range(degree_t + 1))
+        torch.testing.assert_close(rgb.double(), (0.28209479177387814 * dc + 0.5).clamp(0, 1), rtol=0, atol=1e-5)
+        torch.testing.assert_close(opacity, torch.sigmoid(params["opacity"][:, 0]))
