@@ -194,3 +194,26 @@ def _env_of(pid: int) -> dict[str, str]:
     except OSError:
         return {}
     return dict(item.split("=", 1) for item in raw.decode(errors="replace").split("\0") if "=" in item)
+
+
+def test_densification_statistics_are_summed_and_radii_maximized(monkeypatch):
+    """Across ranks the gradient accumulators and view counts add up, and the screen radii take the largest: on
+    two simulated ranks, rank 1 holding twice rank 0's values."""
+    from omg4 import distributed
+    from omg4.train.densify import DensifyStats
+
+    stats = DensifyStats(3, "cpu")
+    stats.grad_sum += torch.tensor([[1.0], [2.0], [0.0]]).reshape(stats.grad_sum.shape)
+    stats.visible_views += 1
+    stats.max_radii += torch.tensor([3.0, 0.0, 5.0])
+
+    def all_reduce_(tensors, op="sum", what=""):
+        for t in tensors:  # rank 1's copy is twice this rank's
+            t.copy_(t + 2 * t if op == "sum" else torch.maximum(t, 2 * t))
+
+    monkeypatch.setattr(distributed, "world", lambda: distributed.World(rank=0, size=2))
+    monkeypatch.setattr(distributed, "all_reduce_", all_reduce_)
+    distributed.reduce_statistics(stats)
+    assert stats.grad_sum.flatten().tolist() == [3.0, 6.0, 0.0]
+    assert stats.visible_views.flatten().tolist() == [3.0, 3.0, 3.0]
+    assert stats.max_radii.tolist() == [6.0, 0.0, 10.0]
