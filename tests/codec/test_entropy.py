@@ -218,3 +218,18 @@ def test_symbol_weights_are_the_documented_powers_of_two():
     for steps in (1, 2, 4, 8):
         expected = np.where(q > 0, 2.0**15 * 2.0 ** ((q - 1) / steps), 0.0)
         np.testing.assert_allclose(entropy._weights(q, steps), expected, rtol=2e-5)
+
+
+@pytest.mark.parametrize("steps", [1, 2, 4, 8])
+def test_an_ans_stream_with_any_documented_octave_step_decodes(steps):
+    """docs/file-format.md §4: the model's steps per octave s is one of 1, 2, 4, 8, whichever the encoder found
+    shortest; a reader takes each (streams forced to each s here, laid out as the spec says)."""
+    from omg4.codec import entropy
+
+    idx = np.random.default_rng(steps).integers(0, 40, 500) ** 2 % 40
+    counts = np.bincount(idx, minlength=40)
+    q = np.where(counts > 0, 1 + np.rint(steps * np.log2(np.maximum(counts, 1))), 0).astype(np.uint8)
+    table = entropy.deflate_raw(q.tobytes())
+    stream = (bytes([entropy._TAG_ANS]) + pack_varints(np.array([idx.size])) + bytes([entropy._MODE_ANS, steps])
+              + pack_varints(np.array([len(table)])) + table + entropy._ans_body(idx, entropy._weights(q, steps)))
+    np.testing.assert_array_equal(decode_indices(stream, 40, idx.size, "ans"), idx)

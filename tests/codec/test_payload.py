@@ -286,3 +286,14 @@ def test_up_to_64_mlp_weights_pass_the_header_limit(tmp_path):
     with pytest.raises(CorruptFileError) as err:
         decode_payload(path)
     assert "MLP weights (limits" not in str(err.value)
+
+
+def test_up_to_32_rotation_names_pass_the_header_check(tmp_path):
+    """``rotations`` lists at most 32 names of stored attributes (docs/file-format.md §5): 32 pass, 33 do not."""
+    path = tmp_path / "m.omg4"
+    encode_payload(make_payload(300), path, codec="paper")
+    _rewrite(path, lambda h: h.__setitem__("rotations", [next(iter(h["attributes"]))] * 32))
+    decode_payload(path)
+    _rewrite(path, lambda h: h.__setitem__("rotations", [next(iter(h["attributes"]))] * 33))
+    with pytest.raises(CorruptFileError, match="rotation attributes"):
+        decode_payload(path)
