@@ -496,11 +496,11 @@ def main() -> None:
         mutants = package_mutants(package)
         chosen = sample(mutants, args.fraction, args.min_mutants)
         tests_hash = _fingerprint(sorted((workspace.root / "tests").rglob("*.py")), workspace.root)
-        todo = [m for m in chosen if _reusable(done.get(m.key), m, tests_hash, workspace.root) is None]
+        todo = [m for m in chosen if _reusable(done.get(m.key), m, tests_hash, workspace.root, equivalents) is None]
         tests = map_tests(workspace, package, args.work) if todo else None
         rows = []
         for i, m in enumerate(chosen):
-            row = _reusable(done.get(m.key), m, tests_hash, workspace.root)
+            row = _reusable(done.get(m.key), m, tests_hash, workspace.root, equivalents)
             if row is None:
                 row = {"key": m.key, "module": _fingerprint([workspace.root / m.path], workspace.root),
                        "tests": tests_hash, "line": m.line,
@@ -530,12 +530,13 @@ def _fingerprint(paths, root: Path) -> str:
     return h.hexdigest()[:16]
 
 
-def _reusable(row: dict | None, mutant: Mutant, tests_hash: str, root: Path) -> dict | None:
+def _reusable(row: dict | None, mutant: Mutant, tests_hash: str, root: Path, equivalents: dict[str, str]
+              ) -> dict | None:
     """An earlier outcome of ``mutant`` that still holds: same module source, and killed (tests are only
-    added) or run against the same tests."""
+    added), explained as equivalent (no test can see it), or run against the same tests."""
     if row is None or row["module"] != _fingerprint([root / mutant.path], root):
         return None
-    return row if row["outcome"] in CAUGHT or row["tests"] == tests_hash else None
+    return row if row["outcome"] in CAUGHT or row["tests"] == tests_hash or mutant.key in equivalents else None
 
 
 if __name__ == "__main__":
