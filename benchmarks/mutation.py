@@ -383,7 +383,9 @@ class TestMap:
             return self.every
         tests = [] if mutant.in_kernel else self.by_line.get(mutant.path, {}).get(mutant.line, [])
         if not tests and (mutant.in_kernel or mutant.function == "" or "." not in mutant.function):
-            tests = self.by_module.get(mutant.path, [])  # kernels, and values fixed at import
+            # kernels, and values fixed at import: the tests that run the module, or (a module of kernels alone,
+            # whose lines coverage never sees) every test of the target
+            tests = self.by_module.get(mutant.path) or list(self.seconds)
         return sorted(set(tests), key=lambda t: (self.seconds.get(t, 0.0), t))
 
 
@@ -535,6 +537,8 @@ def _reusable(row: dict | None, mutant: Mutant, tests_hash: str, root: Path, equ
     """An earlier outcome of ``mutant`` that still holds: same module source, and killed (tests are only
     added), explained as equivalent (no test can see it), or run against the same tests."""
     if row is None or row["module"] != _fingerprint([root / mutant.path], root):
+        return None
+    if row["outcome"] == "no tests":  # the mapping may find some now
         return None
     return row if row["outcome"] in CAUGHT or row["tests"] == tests_hash or mutant.key in equivalents else None
 
