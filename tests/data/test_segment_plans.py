@@ -79,3 +79,30 @@ def test_a_segment_keeps_only_its_own_frames_in_the_frame_cache(long_scene, tmp_
     whole = load_scene(long_scene, frames=range(0, 16), cameras=["cam01"], cache_dir=tmp_path / "p", progress=False)
     part = load_scene(long_scene, frames=range(8, 16), cameras=["cam01"], cache_dir=tmp_path, progress=False)
     np.testing.assert_array_equal(part.train_views[3].image(), whole.train_views[11].image())
+
+
+def test_boundary_frames_are_the_shared_ones():
+    """Segments of 60 frames sharing 10 at 30 fps: frames 50–59 and 100–109 are boundary frames, no others;
+    segments that only touch make the last frame of one and the first of the next boundary frames."""
+    from omg4.data.segments import near_boundary
+
+    shared = [(0.0, 2.0), (50 / 30, 110 / 30), (100 / 30, 160 / 30)]
+    assert [f for f in range(160) if near_boundary(f / 30, shared, 30.0)] == [*range(50, 60), *range(100, 110)]
+    touching = [(0.0, 2.0), (2.0, 4.0)]
+    assert [f for f in range(120) if near_boundary(f / 30, touching, 30.0)] == [59, 60]
+
+
+def test_a_run_plan_is_read_back_and_a_damaged_one_refused(tmp_path):
+    import json
+
+    from omg4.data.segments import is_segmented_run, read_run_plan
+
+    plan = {"fps": 30.0, "segment_frames": 6, "overlap": 2, "segments": [
+        {"index": 0, "frames": [0, 6], "time_range": [0.0, 0.2], "folder": "segment_000"}]}
+    assert not is_segmented_run(tmp_path)
+    (tmp_path / "segments.json").write_text(json.dumps(plan))
+    assert is_segmented_run(tmp_path) and read_run_plan(tmp_path) == plan
+    plan["segments"][0]["time_range"] = [0.0, 0.1, 0.2]
+    (tmp_path / "segments.json").write_text(json.dumps(plan))
+    with pytest.raises(OMG4Error):
+        read_run_plan(tmp_path)
