@@ -267,3 +267,11 @@ def test_a_decoded_network_declares_at_most_24_frequency_bands():
         == (4, 2 * 4 * 24)
     with pytest.raises(CorruptFileError, match="invalid sizes"):
         AppearanceMLP.from_fp16_state(AppearanceMLP(num_freqs=25, **small).to_fp16_state())
+
+
+def test_default_networks_have_the_documented_sizes():
+    """docs/file-format.md: by default hidden = 64, freqs = 16, shared_dim = 13, num_rest = 47 (4 inputs)."""
+    state = AppearanceMLP().to_fp16_state()
+    assert state["shared.0.weight"].shape == (64, 2 * 4 * 16)
+    assert state["shared.2.weight"].shape == (13, 64)
+    assert state["dc.0.weight"].shape == (64, 13 + 3) and state["rest.2.weight"].shape == (3 * 47, 64)
