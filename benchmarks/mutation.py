@@ -413,7 +413,7 @@ def map_tests(workspace: Workspace, package: str, folder: Path) -> TestMap:
         seconds[test] = seconds.get(test, 0.0) + float(case.get("time", 0))
     if not mapped:
         every = sorted(seconds)
-        return TestMap({}, {str(Path(s)): every for s in sources}, seconds, every)
+        return TestMap({}, {}, seconds, every)
     shutil.move(generated, data)
     import coverage
 
@@ -500,11 +500,11 @@ def main() -> None:
         mutants = package_mutants(package)
         chosen = sample(mutants, args.fraction, args.min_mutants)
         tests_hash = _fingerprint(sorted((workspace.root / "tests").rglob("*.py")), workspace.root)
-        todo = [m for m in chosen if _reusable(done.get(m.key), m, tests_hash, workspace.root, equivalents) is None]
-        tests = map_tests(workspace, package, args.work) if todo else None
+        earlier = {m.key: _reusable(done.get(m.key), m, tests_hash, workspace.root, equivalents) for m in chosen}
+        tests = map_tests(workspace, package, args.work) if None in earlier.values() else None
         rows = []
         for i, m in enumerate(chosen):
-            row = _reusable(done.get(m.key), m, tests_hash, workspace.root, equivalents)
+            row = earlier[m.key]
             if row is None:
                 row = {"key": m.key, "module": _fingerprint([workspace.root / m.path], workspace.root),
                        "tests": tests_hash, "line": m.line,

@@ -62,7 +62,7 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_
         scene = load_scene(root / "scene", frames=range(*seg["frames"]), progress=False)
         if teach and k:
             before = CompactModel(decode_payload(read_segment(out, index.segments[k - 1])), "cpu")
-            scene = taught_by(scene, before, (4, 6), torch.zeros(3), backend="cpu")
+            scene = taught_by(scene, before, (4, 6), backend="cpu")
         alone = tmp_path / f"alone{k}.omg4"
         compress_to_file(baseline, scene, cfg, alone, progress=False, log=lambda *_: None)
         assert read_segment(out, index.segments[k]) == alone.read_bytes()

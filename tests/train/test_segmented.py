@@ -87,7 +87,7 @@ def test_a_segment_learns_its_shared_frames_from_the_segment_before(capture, tmp
     _run(capture, tmp_path / "run", plan)
     teacher = load_model(tmp_path / "run" / "segment_000" / "model.safetensors")
     scene = load_scene(capture, frames=range(4, 10), progress=False)
-    taught = taught_by(scene, teacher, (4, 6), torch.zeros(3))
+    taught = taught_by(scene, teacher, (4, 6))
     shared = [v for v in taught.train_views if v.frame_index < 6]
     assert len(shared) == 2 * 3  # frames 4 and 5 of the 3 training cameras
     for v in shared:
@@ -166,3 +166,11 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
     train_segments(independent, plan, CFG, lambda a, b: load_scene(capture, frames=range(a, b), progress=False),
                    lambda scene: initial_points(scene, "random", CFG), teach=False, log=lambda *_: None)
     assert calls == []
+
+
+def test_the_frames_a_segment_shares_with_the_one_before():
+    from omg4.train.segmented import shared_frames
+
+    assert shared_frames(None, {"frames": [0, 6]}) is None
+    assert shared_frames({"frames": [0, 6]}, {"frames": [4, 10]}) == (4, 6)
+    assert shared_frames({"frames": [0, 6]}, {"frames": [6, 12]}) is None  # touching, nothing shared

@@ -130,15 +130,13 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     """
     import shutil
 
-    import torch
-
     from omg4 import distributed
     from omg4.codec.decoder import CompactModel
     from omg4.codec.payload import decode_payload
     from omg4.codec.sequence import read_index, write_sequence
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
-    from omg4.train.segmented import taught_by
+    from omg4.train.segmented import shared_frames, taught_by
 
     run_dir, out = Path(run_dir), Path(out)
     plan = read_run_plan(run_dir)
@@ -152,17 +150,17 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
         for seg in plan["segments"]:
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}")
             scene = load_scene(*seg["frames"])
-            if teacher is not None and before["frames"][1] > seg["frames"][0]:
-                scene = taught_by(scene, teacher, (seg["frames"][0], before["frames"][1]),
-                                  torch.tensor(cfg.background, dtype=torch.float32, device=cfg.device),
-                                  backend=cfg.backend, device=cfg.device)
+            shared = shared_frames(before, seg) if teacher is not None else None
+            if shared is not None:
+                scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
+                                  device=cfg.device)
             baseline, _ = load_gaussians(run_dir / seg["folder"] / "model.safetensors", cfg.device)
             path = work / f"segment_{seg['index']:03d}.omg4"
             reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
                                             progress=progress, log=log, check_replicas=check_replicas))
             if main:
                 parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
-            if teach:  # every rank decodes rank 0's file: the next segment's teacher
+            if teach and seg is not plan["segments"][-1]:  # every rank decodes rank 0's file: the next's teacher
                 blob = distributed.gather_objects(parts[-1][2] if main else None, "sharing the segment")[0]
                 teacher, before = CompactModel(decode_payload(blob), cfg.device), seg
             del scene, baseline

@@ -59,13 +59,26 @@ def write_plan(run_dir: Path, plan: dict) -> None:
         write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
 
 
-def taught_by(scene: Scene, teacher, frames: tuple[int, int], background, *, backend: str = "auto",
-              device="cpu") -> Scene:
-    """``scene`` whose training views of the frames ``[start, stop)`` show ``teacher``'s renders (rendered once,
-    when first asked for) instead of the video; test views keep the video."""
+def shared_frames(before: dict | None, seg: dict) -> tuple[int, int] | None:
+    """The frames ``[start, stop)`` that the plan's segment ``seg`` shares with ``before`` (the plan's entry of the
+    segment before it, None for the first), or None when they share none."""
+    if before is None or before["frames"][1] <= seg["frames"][0]:
+        return None
+    return seg["frames"][0], before["frames"][1]
+
+
+def taught_by(scene: Scene, teacher, frames: tuple[int, int], *,
+              background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto",
+              device: str | torch.device = "cpu") -> Scene:
+    """``scene`` whose training views of the frames ``[start, stop)`` show ``teacher``'s renders (on
+    ``background``, rendered once, when first asked for) instead of the video; test views keep the video."""
     import dataclasses
 
+    from omg4.device import resolve_device
     from omg4.render.view import render_view
+
+    device = resolve_device(device)
+    background = torch.tensor(background, dtype=torch.float32, device=device)
 
     def render(view):
         cache = {}
@@ -103,16 +116,13 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, *, reach: f
     if cfg.max_gaussians and len(alive) > cfg.max_gaussians:
         opacity = values["opacity"].reshape(-1)[alive]
         alive = alive[torch.argsort(opacity, descending=True, stable=True)[: cfg.max_gaussians]].sort().values
-    room = cfg.max_gaussians - len(alive) if cfg.max_gaussians else 0
-    if cfg.max_gaussians and room == 0:
-        fresh = None
-    else:
-        fresh = initial_model(scene, dataclasses.replace(cfg, max_gaussians=room), points)
-    config = fresh.config if fresh is not None else dataclasses.replace(teacher.config,
-                                                                        time_range=tuple(scene.time_range))
-    params = {k: torch.cat([values[k][alive]] + ([fresh.params[k].detach()] if fresh is not None else []))
-              for k in config.schema.param_names}
-    return Gaussians4D(params, config)  # the trainer sets the active SH degrees of each step
+    config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
+    parts = [{k: values[k][alive] for k in config.schema.param_names}]
+    if not cfg.max_gaussians or len(alive) < cfg.max_gaussians:
+        room = cfg.max_gaussians - len(alive) if cfg.max_gaussians else 0  # 0: no cap
+        parts.append(initial_model(scene, dataclasses.replace(cfg, max_gaussians=room), points).params)
+    return Gaussians4D({k: torch.cat([part[k].detach() for part in parts]) for k in config.schema.param_names},
+                       config)  # the trainer sets the active SH degrees of each step
 
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
@@ -135,21 +145,21 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
         with distributed.alone() if parallel == "segments" else contextlib.nullcontext():
             resume = latest_iteration(folder) is not None
             scene = load_scene(*seg["frames"])
+            points = None if resume else initial_points(scene)
             before = plan["segments"][seg["index"] - 1] if seg["index"] else None
+            shared = shared_frames(before, seg) if teach and parallel != "segments" else None
             start = None
-            if teach and parallel != "segments" and before is not None and before["frames"][1] > seg["frames"][0]:
+            if shared is not None:
                 from omg4.evaluate import load_model
 
                 teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)
                 if not resume:
-                    start = warm_start(teacher, scene, cfg, initial_points(scene))
-                scene = taught_by(scene, teacher, (seg["frames"][0], before["frames"][1]),
-                                  torch.tensor(cfg.background, dtype=torch.float32, device=cfg.device),
-                                  backend=cfg.backend, device=cfg.device)
+                    start = warm_start(teacher, scene, cfg, points)
+                scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
+                                  device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
                 f"{' (resuming)' if resume else ''}")
-            points = None if resume or start is not None else initial_points(scene)
-            Trainer(scene, cfg, folder, points=points, start=start, resume=resume, log=log,
+            Trainer(scene, cfg, folder, points=points, model=start, resume=resume, log=log,
                     check_replicas=check_replicas).run()
             del scene
     distributed.barrier("training the segments")
@@ -157,4 +167,4 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
              **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
 
 
-__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "taught_by", "warm_start", "train_segments"]
+__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "shared_frames", "taught_by", "warm_start", "train_segments"]

@@ -99,15 +99,15 @@ class Trainer:
     """Trains a :class:`Gaussians4D` on a :class:`Scene` and writes checkpoints into ``run_dir``.
 
     In a distributed job (:mod:`omg4.distributed`) every rank trains a replica on its share of each batch;
-    rank 0 alone logs, shows progress and writes files. It starts from ``start`` when given (a model on the
-    CPU), else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
+    rank 0 alone logs, shows progress and writes files. It starts from ``model`` when given (on the CPU),
+    else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
     every that many steps and stops with a one-line error when they differ.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, run_dir: str | Path, *, points: PointCloud | None = None,
-                 start: Gaussians4D | None = None, resume: bool = False, log: Callable[[str], None] = print, progress: bool = True,
-                 check_replicas: int = 0):
+                 model: Gaussians4D | None = None, resume: bool = False, log: Callable[[str], None] = print,
+                 progress: bool = True, check_replicas: int = 0):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         self.world = distributed.world()
@@ -139,7 +139,7 @@ class Trainer:
             self.start = int(state["iteration"])
             self.log(f"resuming from iteration {self.start} ({self.model.num_gaussians} Gaussians)")
         else:
-            self.model = (start if start is not None else initial_model(scene, cfg, points)).to(self.device)
+            self.model = (model if model is not None else initial_model(scene, cfg, points)).to(self.device)
             self.optimizer = self._make_optimizer()
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
         distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
