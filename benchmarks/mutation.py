@@ -14,8 +14,8 @@ forked from one that has already run torch's and numba's thread pools (neither i
 cannot place its trampolines inside ``@njit`` kernels; cosmic-ray runs the whole test command for
 every mutant. Here each mutant runs in a fresh interpreter, only the tests that execute the mutated
 line (from one coverage run per package with per-test contexts; for lines coverage cannot see —
-numba kernels and code run at import — every test that executes the module) and they stop at the
-first failure.
+numba kernels, which their callers in other modules run: every test of the target; code run at import:
+every test that executes the module), fastest first, and they stop at the first failure.
 
 Which mutants run: all of them with ``--fraction 1``, or the stable sample of the given fraction
 (a mutant is in it when the hash of its identity — file, function, operator, text and occurrence,
@@ -383,10 +383,11 @@ class TestMap:
     def tests_for(self, mutant: Mutant) -> list[str]:
         if self.every is not None:
             return self.every
-        tests = [] if mutant.in_kernel else self.by_line.get(mutant.path, {}).get(mutant.line, [])
-        if not tests and (mutant.in_kernel or mutant.function == "" or "." not in mutant.function):
-            # kernels, and values fixed at import: the tests that run the module, or (a module of kernels alone,
-            # whose lines coverage never sees) every test of the target
+        if mutant.in_kernel:  # coverage never sees a kernel's lines, and its callers live in other modules
+            return sorted(self.seconds, key=lambda t: (self.seconds[t], t))
+        tests = self.by_line.get(mutant.path, {}).get(mutant.line, [])
+        if not tests and (mutant.function == "" or "." not in mutant.function):
+            # values fixed at import: the tests that run the module, or every test of the target
             tests = self.by_module.get(mutant.path) or list(self.seconds)
         return sorted(set(tests), key=lambda t: (self.seconds.get(t, 0.0), t))
 

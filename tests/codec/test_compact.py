@@ -609,3 +609,45 @@ def test_rotation_declared_but_not_a_quaternion_stays_lossless(tmp_path):
     ref = p.to_fp16()
     ref = ref.permuted(position_order(ref.xyz))
     np.testing.assert_array_equal(d.attributes["rotation"].reconstruct(), ref.attributes["rotation"].reconstruct())
+
+
+def test_a_rotation_codebook_longer_than_the_symbol_limit_is_stored_as_quaternions(tmp_path):
+    """A decoded compact file holds one rotation row per Gaussian; with more Gaussians than the 65,536 symbols an
+    index may take, re-encoding it must store that rotation as unit quaternions (its other slot being short
+    does not make the long one codable)."""
+    from omg4.codec.entropy import MAX_SYMBOLS
+
+    rng = np.random.default_rng(21)
+    n = MAX_SYMBOLS + 8
+    grid = np.stack(np.meshgrid(np.linspace(-0.7, 0.7, 256), np.linspace(-0.7, 0.7, 257)), -1).reshape(-1, 2)[:n]
+    assert len(np.unique(grid.astype(np.float16), axis=0)) == n  # every row its own fp16 codeword
+    attrs = {"rotation": QuantizedAttribute([grid, rng.normal(size=(4, 2))], [np.arange(n), rng.integers(0, 4, n)])}
+    p = CompressedPayload(rng.normal(size=(n, 3)), rng.uniform(size=n), attrs, {}, {}, ("rotation",))
+    encode_payload(p, tmp_path / "m.omg4", codec="compact")
+    header, sections = read_container(tmp_path / "m.omg4")
+    assert header["quaternions"] == ["rotation"] and "svq.rotation.codebook0" not in sections
+    d = decode_payload(tmp_path / "m.omg4")
+    assert d.attributes["rotation"].reconstruct().shape == (n, 4)
+
+
+def test_the_declared_values_bound_is_the_documented_sum(tmp_path):
+    """docs/file-format.md §5: declared values = 8N (xyz, t, corrections) + 8N per quaternion-stored rotation
+    + per attribute Σ K·s + N·slots + N·Σ s + the MLP elements, at most 64·B + 2²⁰ for B section bytes. An MLP
+    weight declared large puts the sum past 2²⁰; the file's bytes then decide, one byte either side of the bound."""
+    from omg4.codec.payload import _check_header
+
+    import forge
+
+    forge.valid_file(tmp_path / "m.omg4", 50, codec="compact")
+    header, _ = read_container(tmp_path / "m.omg4")
+    header["mlp"]["declared.w"] = [1 << 21]
+    n, quats = header["num_gaussians"], header["quaternions"]
+    assert quats and n == 50
+    declared = 8 * n + 8 * n * len(quats)
+    for shapes in header["attributes"].values():
+        declared += sum(k * s for k, s in shapes) + n * len(shapes) + n * sum(s for _, s in shapes)
+    declared += sum(int(np.prod(shape)) for shape in header["mlp"].values())
+    enough = -(-(declared - (1 << 20)) // 64)  # the fewest section bytes that may declare that many values
+    _check_header(header, enough)
+    with pytest.raises(CorruptFileError, match=f"declares {declared} values"):
+        _check_header(header, enough - 1)

@@ -233,3 +233,18 @@ def test_an_ans_stream_with_any_documented_octave_step_decodes(steps):
     stream = (bytes([entropy._TAG_ANS]) + pack_varints(np.array([idx.size])) + bytes([entropy._MODE_ANS, steps])
               + pack_varints(np.array([len(table)])) + table + entropy._ans_body(idx, entropy._weights(q, steps)))
     np.testing.assert_array_equal(decode_indices(stream, 40, idx.size, "ans"), idx)
+
+
+def test_a_code_table_that_is_no_prefix_code_is_refused_by_the_walk():
+    """The prefix-code walk builds its tree from the code table before reading a bit: a table that needs more
+    than the 2·m nodes a prefix code of m symbols fills (one symbol of 2 bits; two symbols of 1 and 4 bits) is −1,
+    whatever the stream."""
+    from omg4.codec.entropy import _walk_prefix_code
+
+    out = np.zeros(4, np.int64)
+    for lengths, values in (([2], [0]), ([1, 4], [0, 0b1111])):
+        assert _walk_prefix_code(np.array(lengths, np.int64), np.array(values, np.uint64),
+                                 np.zeros(1, np.uint8), out) == -1
+    # a valid code (0 → symbol 0, 1 → the end): "0 0 1" is two symbols, then the end
+    assert _walk_prefix_code(np.array([1, 1], np.int64), np.array([0, 1], np.uint64),
+                             np.array([0b00100000], np.uint8), out) == 2

@@ -170,3 +170,40 @@ def test_late_frames_and_the_whole_time_range(tmp_path):
                                                   (1_000_016, 1_000_026)]
     model = sequence.load_sequence(path)
     assert model.config.time_range == pytest.approx((100_000.0, 100_002.6))
+
+
+def test_showing_a_segment_decodes_the_next_one_ahead_and_only_that(tmp_path):
+    """``parts_at(t)`` returns the segments to blend at t and starts decoding the segment after the last of them
+    in the background, so playback finds it decoded; the last segment starts nothing."""
+    import dataclasses
+    import threading
+
+    @dataclasses.dataclass
+    class Config:
+        time_range: tuple
+
+    class Segment:
+        def __init__(self, k):
+            self.k, self.config, self.meta, self.num_gaussians = k, Config((k, k + 1)), {}, 10 + k
+            self.active_sh_degree = self.active_sh_degree_t = 0
+
+    loads, loaded = [], threading.Condition()
+
+    def load(k):
+        with loaded:
+            loads.append(k)
+            loaded.notify_all()
+        return Segment(k)
+
+    model = sequence.SequenceModel([(0.0, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0)], load)
+    assert loads == [0]
+    parts = model.parts_at(0.5)
+    assert [(seg.k, w) for seg, w in parts] == [(0, 1.0)]
+    with loaded:
+        assert loaded.wait_for(lambda: len(loads) == 2, timeout=10)
+    assert loads == [0, 1]
+    assert model.segment(1).k == 1 and loads == [0, 1]  # taken from the look-ahead, not decoded again
+    model.parts_at(3.5)
+    with loaded:
+        assert loaded.wait_for(lambda: len(loads) == 3, timeout=10)
+    assert loads == [0, 1, 3]  # segment 3 on demand; nothing after the last

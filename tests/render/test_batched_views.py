@@ -30,9 +30,9 @@ def _weights(shape, seed, dtype):
     return torch.randn(*shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_rasterize_views_equals_per_view_calls(dtype):
-    scenes = [random_scene(seed, n, WIDTH, HEIGHT) for seed, n in ((0, 90), (1, 140), (2, 60))]
+@pytest.mark.parametrize("dtype, count", [(torch.float64, 3), (torch.float32, 3), (torch.float64, 2)])
+def test_rasterize_views_equals_per_view_calls(dtype, count):
+    scenes = [random_scene(seed, n, WIDTH, HEIGHT) for seed, n in ((0, 90), (1, 140), (2, 60))][:count]
     background = torch.tensor([0.2, 0.4, 0.1], dtype=dtype)
     singles = []
     for i, sc in enumerate(scenes):
@@ -50,9 +50,9 @@ def test_rasterize_views_equals_per_view_calls(dtype):
                           torch.stack([sc.viewmat for sc in scenes]).to(dtype),
                           torch.stack([sc.K for sc in scenes]).to(dtype), WIDTH, HEIGHT, background=background,
                           backend="cpu")
-    assert out.image.shape == (3, HEIGHT, WIDTH, 3) and out.alpha.shape == (3, HEIGHT, WIDTH, 1)
+    assert out.image.shape == (count, HEIGHT, WIDTH, 3) and out.alpha.shape == (count, HEIGHT, WIDTH, 1)
     loss = sum((out.image[i] * _weights(out.image[i].shape, i, dtype)).sum()
-               + (out.depth[i] * _weights(out.depth[i].shape, 9 + i, dtype)).sum() for i in range(3))
+               + (out.depth[i] * _weights(out.depth[i].shape, 9 + i, dtype)).sum() for i in range(count))
     loss.backward()
     tol = dict(rtol=1e-10, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-4, atol=1e-5)
     start = 0

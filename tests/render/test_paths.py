@@ -101,3 +101,15 @@ def test_render_path_writes_a_moving_video(tmp_path):
     assert np.abs(frames[0] - frames[3]).mean() > 1.0  # half an orbit later the view differs
     assert main(["render", "--model", str(model), "--camera", str(tmp_path / "cam.json"), "--path", "orbit",
                  "--out", str(tmp_path / "x.png")]) == 2
+
+
+@pytest.mark.parametrize("name", ["orbit", "spiral", "dataset"])
+def test_every_path_keeps_the_first_cameras_intrinsics_and_size(name):
+    """The module's rule: a path's cameras take the first reference camera's K and resolution, whatever the others'."""
+    cams = rig()
+    for i, c in enumerate(cams[1:], start=1):
+        cams[i] = Camera(K=np.diag([40.0 + i, 50.0 + i, 1.0]) + np.array([[0, 0, 11.0 + i], [0, 0, 7.0 + i], [0, 0, 0]]),
+                         viewmat=c.viewmat, width=64 + i, height=48 + i, name=c.name)
+    path = camera_path(name, cams, 7)
+    assert len(path) == 7
+    assert all(np.array_equal(c.K, K) and (c.width, c.height) == (80, 60) for c in path)

@@ -327,3 +327,17 @@ def test_box_exp_recurrence_matches_exp_and_falls_back_beyond_its_range():
     assert not _box_exp(1.0, 2.0, 1.0, 1.0, -1.0, 0.5, -0.5)[-1]  # b² > a·c
     assert not _box_exp(1.0, 0.0, 1.0, 40.0, 0.0, 0.0, 0.0)[-1]  # σ = 800 at a corner
     assert _box_exp(1.0, 0.0, 1.0, 30.0, 0.0, 0.0, 0.0)[-1]  # σ ≤ 450
+
+
+def test_no_views_and_an_alpha_limit_at_the_threshold_are_refused():
+    from omg4.render.api import rasterize_views
+    from omg4.render.projection import ALPHA_THRESHOLD
+
+    t = random_scene(15, 10, 16, 12).tensors(torch.float32, requires_grad=False)
+    views = torch.zeros(10, dtype=torch.int64)
+    with pytest.raises(ValueError, match=r"viewmats must be \[V, 4, 4\]"):
+        rasterize_views(t["means"], t["covars"], t["colors"], t["opacities"], views, torch.zeros(0, 4, 4),
+                        torch.zeros(0, 3, 3), 16, 12)
+    with pytest.raises(ValueError, match="alpha_max must lie in"):
+        rasterize(**t, alpha_max=ALPHA_THRESHOLD)  # the interval (1/255, 1) is open at both ends
+    assert float(rasterize(**t, alpha_max=2 * ALPHA_THRESHOLD).alpha.max()) > 0

@@ -100,3 +100,33 @@ def test_opacity_aware_radii():
     assert torch.equal(p.radii[keep], expected[keep].int())
     assert torch.all(p.radii[keep] < radii_g[keep] + 1)  # never larger than the 3.33σ box
     assert torch.equal(max_radius(p.radii), p.radii.max(-1).values)
+
+
+@pytest.mark.parametrize("grad", [True, False], ids=["torch projection", "numba projection"])
+def test_a_box_that_ends_exactly_at_an_image_edge_is_culled(grad):
+    """gsplat's rule, written out: a Gaussian is culled when mean ± radius lies at or beyond an image edge, i.e.
+    it is kept only while mean + radius > 0 and mean − radius < size on both axes. Positions are exact binary
+    fractions, so the projected means land exactly on the edges (K: f = 64, principal point at the origin)."""
+    from omg4.render import rasterize
+
+    width, height, step = 32, 24, 2.0 ** -6
+    K = torch.tensor([[64.0, 0.0, 0.0], [0.0, 64.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    covar = 1e-6 * torch.eye(3, dtype=torch.float64)  # the 0.3 px² dilation dominates: a box of radius 2 anywhere
+    radius = 2.0
+    inside = {"x": 16.0, "y": 12.0}
+    cases = []
+    for axis, size in (("x", width), ("y", height)):
+        for edge, outward in ((-radius, -1.0), (size + radius, 1.0)):
+            for shift, kept in ((0.0, False), (-outward * step, True)):  # on the edge; a 64th of a pixel inside
+                pixel = dict(inside, **{axis: edge + shift})
+                cases.append(([pixel["x"] / 64.0, pixel["y"] / 64.0, 1.0], kept))
+    means = torch.tensor([c for c, _ in cases], dtype=torch.float64)
+    covars = covar.expand(len(cases), 3, 3).clone()
+    if grad:
+        radii = project_gaussians(means, covars, viewmat, K, width, height).radii.amax(-1)
+    else:  # no gradient: the rasterizer projects in numba and reports the larger radius of each box
+        radii = rasterize(means, covars, torch.ones(len(cases), 3, dtype=torch.float64),
+                          torch.full((len(cases),), 0.9, dtype=torch.float64), viewmat, K, width, height,
+                          backend="cpu").radii
+    assert radii.tolist() == [2 if kept else 0 for _, kept in cases]
