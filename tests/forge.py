@@ -25,9 +25,9 @@ from typing import Iterator
 import numpy as np
 
 from omg4.codec.container import crc32, read_container, stored_json
+from omg4.codec.rig import rig_json
 from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttribute, container_version,
                                 encode_payload)
-from omg4.gaussians.backbone import RT4DGS
 
 #: stand-ins for JSON numbers that ``json.dumps`` refuses to write (overflowing to ±inf when parsed)
 _RAW_NUMBERS = {"__forge_inf__": "1e400", "__forge_ninf__": "-1e400", "__forge_tiny__": "1e-400"}
@@ -37,40 +37,60 @@ _HOSTILE = [None, True, False, -1, 0, 1, 2, 3, 99, 2**24, 2**31 - 1, 2**31, 2**5
             {"a": 1}, [None], ["1", "2"]]
 
 
-def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0) -> CompressedPayload:
+def _rig() -> list:
+    """Three cameras on a circle of radius 4 around the origin, looking at it (a forged file's camera rig)."""
+    from omg4.data.scene import Camera, look_at_viewmat
+
+    K = np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
+    return [Camera(K=K, viewmat=look_at_viewmat(np.array([4 * np.sin(a), -4 * np.cos(a), 1.0]), np.zeros(3)),
+                   width=64, height=48, name=f"cam{i:02d}") for i, a in enumerate((0.0, 0.5, -0.5))]
+
+
+#: the log-space offset of a forged attribute's codebook (scales of about e^-4, time scales and durations about e^0.5)
+_OFFSETS = {"scale": -4.0, "scale_t": 0.5, "duration": 0.5}
+
+
+def valid_payload(num_gaussians: int, seed: int = 0, codebook_scale: float = 1.0,
+                  backbone: str = "rt4dgs") -> CompressedPayload:
     """A fully specified compressed model of ``num_gaussians`` Gaussians with random (but well-formed) values:
-    the M preset's SVQ layout (codebooks scaled by ``codebook_scale``), default appearance MLPs, and the
-    metadata the decoder reads."""
+    the SVQ layout of ``backbone``'s default preset (M for Real-Time4DGS; codebooks scaled by ``codebook_scale``),
+    default appearance MLPs, and the metadata the decoder reads."""
     from omg4.gaussians.appearance import AppearanceMLP
+    from omg4.gaussians.backbone import BACKBONES
     from omg4.gaussians.model import GaussianConfig
 
     import torch
 
+    schema = BACKBONES[backbone]
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
     n = num_gaussians
     xyz = rng.normal(size=(n, 3)) * 0.8
     attributes = {}
-    for group in RT4DGS.svq_groups:
+    for group in schema.svq_groups:
         name, sub = group.name, group.sub_length
-        width = sum(w for _, w in RT4DGS.svq_widths(name))
-        k = max(2, int(RT4DGS.size_presets["M"].codebook_sizes[name] * codebook_scale))
-        offset = 0.5 if name == "scale_t" else (-4.0 if name == "scale" else 0.0)
-        attributes[name] = QuantizedAttribute([offset + 0.3 * rng.normal(size=(k, sub)) for _ in range(width // sub)],
-                                              [rng.integers(0, k, n) for _ in range(width // sub)])
-    meta = {"preset": "M", "scene": "forge", "time_range": [0.0, 1.0],
-            "gaussian_config": GaussianConfig(time_range=(0.0, 1.0)).to_json(),
-            "active_sh_degree": 3, "active_sh_degree_t": 2,
-            "normalization": {"scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]}}
-    return CompressedPayload(xyz, rng.uniform(0, 1, n), attributes, AppearanceMLP().to_fp16_state(), meta,
-                             RT4DGS.quaternion_groups(), RT4DGS.log_scaled_groups())
+        width = sum(w for _, w in schema.svq_widths(name))
+        k = max(2, int(schema.size_presets[schema.default_preset].codebook_sizes[name] * codebook_scale))
+        attributes[name] = QuantizedAttribute(
+            [_OFFSETS.get(name, 0.0) + 0.3 * rng.normal(size=(k, sub)) for _ in range(width // sub)],
+            [rng.integers(0, k, n) for _ in range(width // sub)])
+    config = GaussianConfig(time_range=(0.0, 1.0), backbone=backbone,
+                            **({} if schema.sh_degree_t is None else {"sh_degree_t": schema.sh_degree_t}))
+    meta = {"preset": "M", "scene": "forge", "time_range": [0.0, 1.0], "gaussian_config": config.to_json(),
+            "active_sh_degree": config.sh_degree, "active_sh_degree_t": config.sh_degree_t,
+            "normalization": {"scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]},
+            "rig": rig_json(_rig(), 1)}
+    mlp = AppearanceMLP(num_rest=config.num_coeffs - 1, num_inputs=schema.mlp_inputs).to_fp16_state()
+    return CompressedPayload(xyz, rng.uniform(0, 1, n), attributes, mlp, meta, schema.quaternion_groups(),
+                             schema.log_scaled_groups())
 
 
 def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: int = 0,
-               codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids()) -> bytes:
+               codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids(), backbone: str = "rt4dgs") -> bytes:
     """Write :func:`valid_payload` to ``path`` with ``codec`` (at ``precision``, the compact codec's grids); returns
     the file's bytes."""
-    encode_payload(valid_payload(num_gaussians, seed, codebook_scale), path, codec=codec, precision=precision)
+    encode_payload(valid_payload(num_gaussians, seed, codebook_scale, backbone), path, codec=codec,
+                   precision=precision)
     return Path(path).read_bytes()
 
 

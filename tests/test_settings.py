@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -122,3 +123,15 @@ def test_compress_records_its_settings_and_the_record_reproduces_them(tiny_scene
     assert main(["compress", *common, "--out", str(again), "--config", str(out.with_name("m.omg4.config.json"))]) == 0
     assert json.loads(again.with_name("again.omg4.config.json").read_text()) == record
     assert again.read_bytes() == out.read_bytes()
+    # the file records the capture's cameras, test cameras first, for viewers without the dataset
+    from omg4.codec.payload import decode_payload
+    from omg4.codec.rig import rig_cameras
+    from omg4.data import load_scene
+
+    scene = load_scene(tiny_scene_dir, decode=False, progress=False)
+    meta = decode_payload(out).meta
+    rig = rig_cameras(meta)
+    assert [c.name for c in rig] == [c.name for c in scene.cameras()] and meta["rig"]["test"] == len(scene.test_cameras())
+    for recorded, camera in zip(rig, scene.cameras()):
+        np.testing.assert_allclose(recorded.viewmat, camera.viewmat, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(recorded.K, camera.K, rtol=1e-6)

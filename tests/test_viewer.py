@@ -4,79 +4,20 @@ Chromium or viser is missing (``.ci/run`` installs Debian's ``chromium``)."""
 
 from __future__ import annotations
 
-import base64
-import io
-import json
-import shutil
 import socket
-import subprocess
-import time
-import urllib.request
 
 import numpy as np
 import pytest
+from browser import CHROMIUM, Browser, free_port, wait
 from PIL import Image
 
 from omg4.cli import main
 import forge
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-TIMEOUT_S = 60
-
 
 @pytest.fixture
 def viser():
     return pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(condition, what: str, timeout: float = TIMEOUT_S) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.1)
-
-
-class Browser:
-    """Headless Chromium driven over the DevTools protocol (navigate, screenshot)."""
-
-    def __init__(self, profile):
-        from websockets.sync.client import connect
-
-        self.proc = subprocess.Popen(
-            [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-             "--enable-unsafe-swiftshader", "--no-first-run", "--disable-background-networking",
-             "--disable-component-update", "--disable-sync", "--disable-quic", f"--user-data-dir={profile}",
-             "--remote-debugging-port=0", "--window-size=960,540", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        active = profile / "DevToolsActivePort"
-        _wait(active.exists, "Chromium's DevTools port")
-        port = int(active.read_text().split()[0])
-        pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
-        self.ws = connect(next(p for p in pages if p["type"] == "page")["webSocketDebuggerUrl"], max_size=None)
-        self.calls = 0
-
-    def call(self, method: str, **params) -> dict:
-        self.calls += 1
-        self.ws.send(json.dumps({"id": self.calls, "method": method, "params": params}))
-        while True:
-            message = json.loads(self.ws.recv(timeout=TIMEOUT_S))
-            if message.get("id") == self.calls:
-                return message["result"]
-
-    def screenshot(self) -> Image.Image:
-        return Image.open(io.BytesIO(base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])))
-
-    def close(self) -> None:
-        self.ws.close()
-        self.proc.terminate()
-        self.proc.wait(timeout=10)
 
 
 @pytest.fixture
@@ -99,20 +40,20 @@ def test_the_page_shows_frames_and_follows_the_time_slider(viser, model_file, tm
     from omg4.viewer import Viewer, ViewerSettings, view_presets
 
     model = load_model(model_file)
-    port = _free_port()
+    port = free_port()
     viewer = Viewer(model, view_presets(model, None), file_bytes=model_file.stat().st_size,
                     settings=ViewerSettings(port=port, long_side=320, moving_long_side=160))
     browser = Browser(tmp_path / "profile")
     try:
         browser.call("Page.navigate", url=f"http://127.0.0.1:{port}")
-        _wait(lambda: viewer.frames_sent > 0, "the first frame")
-        _wait(lambda: _scene_pixels(browser.screenshot()).std() > 10, "a frame on the page")
+        wait(lambda: viewer.frames_sent > 0, "the first frame")
+        wait(lambda: _scene_pixels(browser.screenshot()).std() > 10, "a frame on the page")
         first = browser.screenshot()
         t0, t1 = viewer.time_range
         sent = viewer.frames_sent
         viewer.time_slider.value = t0 + 0.8 * (t1 - t0)
-        _wait(lambda: viewer.frames_sent > sent, "a frame at the new time")
-        _wait(lambda: np.abs(_scene_pixels(browser.screenshot()) - _scene_pixels(first)).mean() > 2,
+        wait(lambda: viewer.frames_sent > sent, "a frame at the new time")
+        wait(lambda: np.abs(_scene_pixels(browser.screenshot()) - _scene_pixels(first)).mean() > 2,
               "the page to change with time")
         assert f"{model.num_gaussians:,}" in viewer.stats.content
     finally:
@@ -131,7 +72,7 @@ def test_a_busy_port_is_a_one_line_error(viser, model_file, capsys):
 
 
 def test_a_missing_model_is_a_one_line_error(viser, tmp_path, capsys):
-    assert main(["view", str(tmp_path / "none.omg4"), "--port", str(_free_port())]) == 2
+    assert main(["view", str(tmp_path / "none.omg4"), "--port", str(free_port())]) == 2
     err = capsys.readouterr().err
     assert "does not exist" in err and err.count("\n") == 1
 

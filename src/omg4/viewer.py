@@ -240,9 +240,12 @@ class Viewer:
 
 
 def view_presets(model, cameras: list[Camera] | None, width: int = 640, height: int = 360) -> list[Camera]:
-    """The preset list: the dataset's ``cameras``, else an orbit of 8 views around the model's bounds."""
+    """The preset list: the dataset's ``cameras``, else the camera rig the file records (:mod:`omg4.codec.rig`),
+    else an orbit of 8 views around the model's bounds."""
+    from omg4.codec.rig import rig_cameras
     from omg4.render.paths import bounds_camera, orbit_path
 
+    cameras = cameras or rig_cameras(getattr(model, "meta", None) or {})
     if cameras:
         return list(cameras)
     xyz = model.values["xyz"].cpu().numpy()

@@ -94,6 +94,23 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
 
     Section order is the dict's order; versions 2 to 5 deflate the JSON. Returns the file size in bytes.
     """
+    head = _head(header, sections, version)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(head)
+        for data in sections.values():
+            f.write(data)
+        size = f.tell()
+    return size
+
+
+def container_bytes(header: dict, sections: dict[str, bytes], version: int = 1) -> bytes:
+    """The bytes :func:`write_container` writes (for a file held in memory, such as a segment of a sequence)."""
+    return _head(header, sections, version) + b"".join(sections.values())
+
+
+def _head(header: dict, sections: dict[str, bytes], version: int) -> bytes:
+    """The prefix and stored JSON of a container of ``header`` and ``sections`` (checked as :func:`write_container`
+    documents)."""
     if version not in READABLE_VERSIONS:
         raise OMG4Error(f"unknown container version {version}")
     table = []
@@ -110,12 +127,7 @@ def write_container(path: str | os.PathLike, header: dict, sections: dict[str, b
     if version in DEFLATED_VERSIONS and len(blob) > max_inflated_json(len(head) - PREFIX.size):
         raise OMG4Error(f"container header compresses {len(blob)} → {len(head) - PREFIX.size} bytes, beyond what a "
                         "reader accepts; write it with version 1")
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(head)
-        for data in sections.values():
-            f.write(data)
-        size = f.tell()
-    return size
+    return head
 
 
 class _Source:

@@ -49,6 +49,7 @@ from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebo
                                   encode_codewords, encode_sorted_codes, interleave, keys_to_fp16, ordered_keys)
 from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, read_container, write_container
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices, pack_varints, unpack_varints
+from omg4.codec.rig import check_rig
 from omg4.errors import CorruptFileError, OMG4Error
 
 KIND = "omg4-compressed-model"
@@ -519,6 +520,8 @@ def _check_header(h: dict, section_bytes: int) -> None:
           and isinstance(h.get("encodings"), dict) and _is_int(n, 1, MAX_GAUSSIANS))
     if not ok:
         raise CorruptFileError("not an OMG4 compressed model (header fields missing or invalid)")
+    if "rig" in h["meta"]:
+        check_rig(h["meta"]["rig"])
     rotations = h.get("quaternions", [])
     if (("quaternions" in h) != (h["codec"] == "compact") or not isinstance(rotations, list)
             or len(rotations) > MAX_ATTRIBUTES or len(set(map(str, rotations))) != len(rotations)

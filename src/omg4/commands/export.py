@@ -1,10 +1,12 @@
-"""``omg4 export MODEL --out FILE [--time T | --times A:B:N] [--format ply|splatv] [--original-world]``.
+"""``omg4 export MODEL --out FILE [--time T | --times A:B:N] [--format ply|splatv|web] [--original-world]``.
 
 ``ply``: the standard 3DGS ``.ply`` of one time slice (or ``--times A:B:N``: N slices from A to
 B, written as ``<stem>_0000.ply``, ``<stem>_0001.ply``, … beside ``--out``) for the 3DGS viewers
 users already have (SuperSplat, PlayCanvas, …): :func:`omg4.io.ply_export.export_ply`.
 ``splatv``: the whole 4D model for the splaTV web viewer (:mod:`omg4.io.splatv`), with the
 dataset's cameras as presets when ``--data`` is given. MODEL is a checkpoint or an ``.omg4`` file.
+``web``: a static folder (``--out DIR``) that plays the ``.omg4`` file in any browser, decoded and rendered on
+the client (:mod:`omg4.io.web_player`), the dataset's cameras as presets when ``--data`` is given.
 """
 
 from __future__ import annotations
@@ -22,16 +24,18 @@ MAX_SLICES = 100_000
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
-    p.add_argument("--out", required=True, type=Path, help="output file: .ply (a time slice) or .splatv (the 4D model)")
-    p.add_argument("--format", choices=sorted(set(EXPORT_FORMATS.values())),
-                   help="output format (default: from --out's suffix)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="output: .ply (a time slice), .splatv (the 4D model) or, with --format web, a folder")
+    p.add_argument("--format", choices=sorted({*EXPORT_FORMATS.values(), "web"}),
+                   help="output format (default: from --out's suffix); web: a folder that plays the .omg4 file in a "
+                        "browser")
     when = p.add_mutually_exclusive_group()
     when.add_argument("--time", type=finite_float, help="ply: the slice's time (default: the start of the time range)")
     when.add_argument("--times", metavar="A:B:N", help="ply: N slices at evenly spaced times from A to B (inclusive)")
     p.add_argument("--original-world", action="store_true",
                    help="ply: write in the dataset's original world (the model file's normalization) instead of "
                         "the normalized one")
-    p.add_argument("--data", type=Path, help="splatv: dataset folder whose cameras become the viewer's presets "
+    p.add_argument("--data", type=Path, help="splatv, web: dataset folder whose cameras become the viewer's presets "
                                              "(default: one camera framing the model)")
     add_force_argument(p)
 
@@ -80,9 +84,11 @@ def run(args) -> int:
     fmt = args.format or EXPORT_FORMATS.get(args.out.suffix.lower())
     if fmt is None:
         raise OMG4Error(f"--out must end in .ply or .splatv (or give --format), got '{args.out.name}'")
-    if fmt == "splatv" and (args.time is not None or args.times or args.original_world):
-        raise OMG4Error("--time, --times and --original-world apply to ply slices; a .splatv holds the whole 4D "
-                        "model in the normalized world")
+    if fmt in ("splatv", "web") and (args.time is not None or args.times or args.original_world):
+        raise OMG4Error(f"--time, --times and --original-world apply to ply slices; a {fmt} export holds the whole "
+                        "4D model in the normalized world")
+    if fmt == "web":
+        return _export_web(args)
     if fmt == "ply" and args.data is not None:
         raise OMG4Error("--data gives a .splatv its camera presets; a ply slice needs none")
     requested = _requested_times(args)
@@ -141,4 +147,35 @@ def _export_splatv(args, model) -> int:
     count = export_splatv(args.out, model, cameras)
     print(f"wrote {args.out} ({count} Gaussians, {len(cameras)} camera preset{'s' if len(cameras) > 1 else ''}; "
           "open it in the splaTV viewer)")
+    return 0
+
+
+def _export_web(args) -> int:
+    from omg4.codec.container import has_magic
+    from omg4.codec.sequence import is_sequence
+    from omg4.errors import OMG4Error
+    from omg4.io.web_player import check_export_folder, export_web
+    from omg4.outputs import check_outputs
+
+    if not args.model.is_file():
+        raise OMG4Error(f"{args.model} does not exist or is not a file")
+    if not has_magic(args.model):
+        raise OMG4Error(f"{args.model} is not an .omg4 file: the web player plays compressed models (omg4 compress "
+                        "writes one)")
+    if is_sequence(args.model):
+        raise OMG4Error(f"{args.model} is a sequence of segments; the web player plays single models (export one "
+                        "segment's time range with omg4 compress, or view the sequence with omg4 view)")
+    check_outputs({"--out": args.out}, inputs=[args.model, args.data], datasets=[args.data] if args.data else [],
+                  folders=["--out"], force=args.force)
+    check_export_folder(args.out)
+    cameras, held_out = None, 0
+    if args.data is not None:
+        from omg4.data import load_scene
+
+        scene = load_scene(args.data, decode=False, progress=False)
+        cameras, held_out = scene.cameras(), len(scene.test_cameras())
+    manifest = export_web(args.out, args.model, cameras, held_out)
+    rewritten = " (rewritten losslessly for the browser)" if manifest["rewritten"] else ""
+    print(f"wrote {args.out}/ ({manifest['model_bytes']:,} B model{rewritten}; serve it with "
+          f"python -m http.server -d {args.out} and open http://localhost:8000)")
     return 0

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from omg4.codec.payload import CODECS, CompactGrids, CompressedPayload, check_codec, encode_payload
+from omg4.codec.rig import rig_json
 from omg4.compress.model import CompressibleModel
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
@@ -80,7 +81,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
             unsaved = None
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
-            "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
+            "time_range": list(scene.time_range), "normalization": scene.normalization.to_json(),
+            "rig": rig_json(scene.cameras(), len(scene.test_cameras()))}
     if cfg.rate_weight:  # provenance of entropy-constrained codebooks; paper-faithful files stay as they were
         meta["rate_weight"] = cfg.rate_weight
     paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written

@@ -1,0 +1,79 @@
+"""``omg4 export MODEL --format web --out DIR``: a static folder that plays an ``.omg4`` file in any browser.
+
+The folder holds ``index.html``, the player's ES modules (``src/omg4/web/``: the decoder, the WebGL2 renderer,
+the page; no build step, nothing fetched from the network), ``model.omg4`` — the model file itself, rewritten
+losslessly where it holds sections the browser has no decoder for (:func:`omg4.codec.browser.browser_decodable`)
+— ``cameras.json`` with the dataset's cameras (test cameras first) when ``--data`` is given, and
+``omg4-web.json``, the list of what the export wrote. Any static file server serves it
+(``python -m http.server -d DIR``).
+
+An export only ever replaces an earlier export: a folder that holds anything the list does not name is
+refused before anything is written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from omg4.atomic import atomic_path
+from omg4.codec.browser import browser_decodable
+from omg4.errors import OMG4Error
+
+PLAYER_ROOT = Path(__file__).resolve().parent.parent / "web"
+PLAYER_SUFFIXES = (".html", ".js", ".css")
+MANIFEST = "omg4-web.json"
+MODEL = "model.omg4"
+CAMERAS = "cameras.json"
+
+
+def player_files() -> list[Path]:
+    """The player's files, relative to :data:`PLAYER_ROOT`."""
+    return sorted(p.relative_to(PLAYER_ROOT) for p in PLAYER_ROOT.rglob("*")
+                  if p.is_file() and p.suffix in PLAYER_SUFFIXES)
+
+
+def check_export_folder(out: Path) -> None:
+    """Refuse (one-line :class:`OMG4Error`) a folder that holds anything but an earlier export's files."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise OMG4Error(f"--out {out} exists and is not a folder")
+    present = {p.relative_to(out).as_posix() for p in out.rglob("*") if not p.is_dir()}
+    if not present:
+        return
+    try:
+        written = set(json.loads((out / MANIFEST).read_text())["files"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise OMG4Error(f"--out {out} holds files and is not an omg4 web export; choose an empty or new folder") \
+            from None
+    extra = sorted(present - written - {MANIFEST})
+    if extra:
+        raise OMG4Error(f"--out {out} holds {extra[0]}, which no omg4 web export wrote; choose an empty or new folder")
+
+
+def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list | None = None,
+               test_cameras: int = 0) -> dict:
+    """Write the player folder ``out`` for the ``.omg4`` file ``model``; ``cameras`` (:class:`~omg4.data.scene.
+    Camera`, the first ``test_cameras`` of them held out) become the page's presets. Returns the manifest."""
+    out = Path(out)
+    check_export_folder(out)
+    data = browser_decodable(model)
+    files = {str(p.as_posix()): (PLAYER_ROOT / p).read_bytes() for p in player_files()}
+    files[MODEL] = data
+    if cameras:
+        presets = [{**c.to_json(), "test": i < test_cameras} for i, c in enumerate(cameras)]
+        files[CAMERAS] = json.dumps({"cameras": presets}, indent=1).encode()
+    for name, content in files.items():
+        path = out / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            Path(tmp).write_bytes(content)
+    manifest = {"files": sorted(files), "model_bytes": len(data), "rewritten": data != Path(model).read_bytes()}
+    with atomic_path(out / MANIFEST) as tmp:
+        Path(tmp).write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+__all__ = ["CAMERAS", "MANIFEST", "MODEL", "check_export_folder", "export_web", "player_files"]

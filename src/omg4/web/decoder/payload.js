@@ -1,0 +1,258 @@
+// The .omg4 container and payload (docs/file-format.md §1, §2, §5; omg4/codec/container.py, payload.py): the
+// checks a reader makes before decoding anything — magic, version, checksums, bounded header inflation, the
+// section table, the header's limits and its declared values against the file's size — then every section.
+
+import { decodeIndices, MAX_SYMBOLS } from "./entropy.js";
+import {
+  decodeFirstUseIndices, decodeFloats, decodeMorton, decodePositions, decodeQuaternions, decodeSortedCodebook, decodeTimes,
+  decodeWeights, quaternionBits, weightEncoding,
+} from "./sections.js";
+import { CorruptFileError, crc32, inflateRaw } from "./streams.js";
+
+const MAGIC = [0x89, 0x4f, 0x4d, 0x47, 0x34, 0x0d, 0x0a, 0x1a];
+const READABLE_VERSIONS = [1, 2, 3, 4, 5, 6];
+export const SEQUENCE_VERSION = 6;
+const MAX_JSON_BYTES = 16 * 1024 * 1024;
+const MAX_SECTION_NAME = 200;
+const KIND = "omg4-compressed-model";
+const CODECS = ["compact", "ans", "paper"];
+const MAX_GAUSSIANS = 2 ** 27;
+const MAX_SUB_LEN = 64;
+const MAX_MLP_ELEMENTS = 2 ** 24;
+const MAX_MLP_DIMS = 4;
+const MAX_MLP_WEIGHTS = 64;
+const MAX_ATTRIBUTES = 32;
+const MAX_SLOTS = 64;
+const MIN_BYTES_PER_GAUSSIAN = 4;
+const GAUSSIANS_ALWAYS_ALLOWED = 4096;
+const MAX_VALUES_PER_BYTE = 64;
+const VALUES_SLACK = 2 ** 20;
+const NAME = /^[A-Za-z0-9_]{1,64}$/;
+const MLP_NAME = /^[A-Za-z0-9_.]{1,128}$/;
+
+const isInt = (v, lo, hi) => Number.isInteger(v) && v >= lo && v <= hi;
+const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v);
+
+/** Verify a container (bytes: Uint8Array): {version, header, sections: Map name → Uint8Array}. */
+export async function readContainer(bytes) {
+  if (bytes.length < 20) {
+    const start = bytes.subarray(0, 8);
+    if (!start.every((b, i) => b === MAGIC[i])) throw new CorruptFileError("not an .omg4 file (wrong magic bytes)");
+    throw new CorruptFileError(`truncated (${bytes.length} bytes, shorter than the fixed header)`);
+  }
+  if (!MAGIC.every((b, i) => bytes[i] === b)) throw new CorruptFileError("not an .omg4 file (wrong magic bytes)");
+  const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const version = view.getUint16(8, true);
+  const flags = view.getUint16(10, true);
+  const jsonLength = view.getUint32(12, true);
+  const jsonCrc = view.getUint32(16, true);
+  if (!READABLE_VERSIONS.includes(version)) {
+    throw new CorruptFileError(`.omg4 format version ${version} is not one this player reads (${READABLE_VERSIONS.join(", ")})`);
+  }
+  if (flags !== 0) throw new CorruptFileError(`unknown container flags 0x${flags.toString(16).padStart(4, "0")}`);
+  if (jsonLength > MAX_JSON_BYTES || jsonLength > bytes.length - 20) {
+    throw new CorruptFileError(`header length ${jsonLength} exceeds the file size or limit (truncated or damaged)`);
+  }
+  let blob = bytes.subarray(20, 20 + jsonLength);
+  if (crc32(blob) !== jsonCrc) throw new CorruptFileError("header checksum mismatch (file is damaged)");
+  if (version >= 2) blob = await inflateRaw(blob, Math.min(MAX_JSON_BYTES, 65536 + 32 * jsonLength), "compressed header");
+  let doc;
+  try {
+    doc = JSON.parse(new TextDecoder("utf-8", { fatal: true }).decode(blob));
+  } catch (err) {
+    throw new CorruptFileError(`header is not valid JSON (${err.name})`);
+  }
+  if (!(isObject(doc) && isObject(doc.header) && Array.isArray(doc.sections))) {
+    throw new CorruptFileError("container header is not an object with 'header' and 'sections'");
+  }
+  const sections = new Map();
+  let offset = 20 + jsonLength;
+  const table = [];
+  for (const entry of doc.sections) {
+    const ok = Array.isArray(entry) && entry.length === 3 && typeof entry[0] === "string" && entry[0].length > 0
+      && entry[0].length <= MAX_SECTION_NAME && isInt(entry[1], 0, Number.MAX_SAFE_INTEGER)
+      && isInt(entry[2], 0, 0xffffffff);
+    if (!ok) throw new CorruptFileError("malformed section table entry");
+    if (table.some((e) => e[0] === entry[0])) throw new CorruptFileError(`duplicate section '${entry[0]}'`);
+    table.push(entry);
+  }
+  const expected = table.reduce((sum, e) => sum + e[1], offset);
+  if (expected !== bytes.length) {
+    const state = expected > bytes.length ? "truncated" : "has trailing bytes";
+    throw new CorruptFileError(`file ${state} (${bytes.length} bytes, the section table needs ${expected})`);
+  }
+  for (const [name, size, crc] of table) {
+    const data = bytes.subarray(offset, offset + size);
+    if (crc32(data) !== crc) throw new CorruptFileError(`checksum mismatch in section '${name}' (file is damaged)`);
+    sections.set(name, data);
+    offset += size;
+  }
+  return { version, header: doc.header, sections };
+}
+
+const MAX_CAMERAS = 1024;
+const MAX_IMAGE_SIDE = 16384;
+
+/** The capture's camera rig, meta.rig (omg4/codec/rig.py check_rig). */
+function checkRig(rig) {
+  const cameras = isObject(rig) ? rig.cameras : null;
+  if (!(Array.isArray(cameras) && cameras.length >= 1 && cameras.length <= MAX_CAMERAS
+    && isInt(rig.test, 0, cameras.length))) {
+    throw new CorruptFileError(`invalid camera rig (1 to ${MAX_CAMERAS} cameras and a test count)`);
+  }
+  cameras.forEach((c, i) => {
+    const ok = isObject(c) && typeof c.name === "string" && c.name.length <= 64
+      && isInt(c.width, 1, MAX_IMAGE_SIDE) && isInt(c.height, 1, MAX_IMAGE_SIDE)
+      && Array.isArray(c.K) && c.K.length === 4 && c.K.every(Number.isFinite) && c.K[0] > 0 && c.K[1] > 0
+      && Array.isArray(c.pose) && c.pose.length === 12 && c.pose.every(Number.isFinite);
+    if (!ok) throw new CorruptFileError(`invalid camera ${i} in the camera rig`);
+    for (let a = 0; a < 3; a++) {
+      for (let b = 0; b < 3; b++) {
+        let dot = 0;
+        for (let k = 0; k < 3; k++) dot += c.pose[4 * a + k] * c.pose[4 * b + k];
+        if (Math.abs(dot - (a === b)) > 1e-3 + 1e-5 * (a === b)) {  // numpy.allclose(atol=1e-3)
+          throw new CorruptFileError(`camera ${i} of the camera rig has no rotation in its pose`);
+        }
+      }
+    }
+  });
+}
+
+/** The payload header's structure and limits (payload.py: _check_header). */
+function checkHeader(h, sectionBytes) {
+  const n = h.num_gaussians;
+  if (!(h.kind === KIND && CODECS.includes(h.codec) && isObject(h.meta) && isObject(h.attributes)
+    && isObject(h.mlp) && isObject(h.encodings) && isInt(n, 1, MAX_GAUSSIANS))) {
+    throw new CorruptFileError("not an OMG4 compressed model (header fields missing or invalid)");
+  }
+  if ("rig" in h.meta) checkRig(h.meta.rig);
+  const rotations = h.quaternions ?? [];
+  if (("quaternions" in h) !== (h.codec === "compact") || !Array.isArray(rotations) || rotations.length > MAX_ATTRIBUTES
+    || new Set(rotations.map(String)).size !== rotations.length
+    || !rotations.every((a) => typeof a === "string" && NAME.test(a) && !(a in h.attributes))) {
+    throw new CorruptFileError("invalid list of quaternion attributes");
+  }
+  const named = h.rotations ?? [];
+  if (!(Array.isArray(named) && named.length <= MAX_ATTRIBUTES
+    && named.every((a) => typeof a === "string" && (a in h.attributes || rotations.includes(a))))) {
+    throw new CorruptFileError("invalid list of rotation attributes");
+  }
+  if (n > GAUSSIANS_ALWAYS_ALLOWED && n * MIN_BYTES_PER_GAUSSIAN > sectionBytes) {
+    throw new CorruptFileError(`header claims ${n} Gaussians, more than the file's ${sectionBytes} data bytes can hold`);
+  }
+  const attributes = Object.entries(h.attributes);
+  const mlp = Object.entries(h.mlp);
+  if (attributes.length > MAX_ATTRIBUTES || mlp.length > MAX_MLP_WEIGHTS) {
+    throw new CorruptFileError(`header lists ${attributes.length} attributes and ${mlp.length} MLP weights `
+      + `(limits ${MAX_ATTRIBUTES} and ${MAX_MLP_WEIGHTS})`);
+  }
+  let values = 8 * n + 8 * n * rotations.length;
+  for (const [attr, shapes] of attributes) {
+    if (!(NAME.test(attr) && Array.isArray(shapes) && shapes.length >= 1 && shapes.length <= MAX_SLOTS
+      && shapes.every((s) => Array.isArray(s) && s.length === 2 && isInt(s[0], 1, MAX_SYMBOLS) && isInt(s[1], 1, MAX_SUB_LEN)))) {
+      throw new CorruptFileError(`invalid codebook shapes for attribute '${attr}'`);
+    }
+    for (const [k, d] of shapes) values += k * d + n + n * d;
+  }
+  const logs = h.log_scaled ?? [];
+  if (!(Array.isArray(logs) && logs.length <= MAX_ATTRIBUTES && logs.every((a) => typeof a === "string" && a in h.attributes))) {
+    throw new CorruptFileError("invalid list of log-scale attributes");
+  }
+  for (const [name, shape] of mlp) {
+    const ok = MLP_NAME.test(name) && Array.isArray(shape) && shape.length <= MAX_MLP_DIMS
+      && shape.every((s) => isInt(s, 0, MAX_MLP_ELEMENTS)) && shape.reduce((a, b) => a * b, 1) <= MAX_MLP_ELEMENTS;
+    if (!ok) throw new CorruptFileError(`invalid shape for MLP weight '${name}'`);
+    values += shape.reduce((a, b) => a * b, 1);
+  }
+  if (values > MAX_VALUES_PER_BYTE * sectionBytes + VALUES_SLACK) {
+    throw new CorruptFileError(`header declares ${values} values, more than ${sectionBytes} data bytes can encode`);
+  }
+  const expected = ["xyz", "t"];
+  for (const [attr, shapes] of attributes) {
+    for (const kind of ["codebook", "index"]) shapes.forEach((_, j) => expected.push(`svq.${attr}.${kind}${j}`));
+  }
+  for (const [name] of mlp) expected.push(`mlp.${name}`);
+  for (const attr of rotations) expected.push(`quat.${attr}`);
+  return expected.sort();
+}
+
+/** Decode a single-model .omg4 file (bytes: Uint8Array) into fp16 bit patterns and int32 indices:
+ * {numGaussians, xyz [3N], t [N], attributes: {name: {codebooks: [{rows, sub, values}], indices: [Int32Array]}},
+ *  quaternions: {name: Uint16Array [4N]}, mlp: {name: {shape, values}}, meta, rotations, logScaled, codec}. */
+export async function decodePayload(bytes) {
+  const { version, header, sections } = await readContainer(bytes);
+  if (version === SEQUENCE_VERSION || header.layout !== undefined) {
+    throw new CorruptFileError("a sequence of segments, not one model (open it as a sequence)");
+  }
+  const sectionBytes = [...sections.values()].reduce((sum, d) => sum + d.length, 0);
+  const expected = checkHeader(header, sectionBytes);
+  const names = [...sections.keys()].sort();
+  const encodings = header.encodings;
+  if (JSON.stringify(expected) !== JSON.stringify(names) || JSON.stringify(expected) !== JSON.stringify(Object.keys(encodings).sort())
+    || !Object.values(encodings).every((e) => typeof e === "string")) {
+    throw new CorruptFileError("section list does not match the header");
+  }
+  const n = header.num_gaussians;
+  if (header.codec === "paper") {
+    throw new CorruptFileError("the 'paper' codec's Huffman+LZMA streams are not decoded in the browser (re-export with omg4 export --format web)");
+  }
+  const compact = header.codec === "compact";
+  const indexEncodings = compact ? ["ranks", "first-use"] : ["ans"];
+
+  async function decode(name, count, shape = null, numSymbols = 0) {
+    const data = sections.get(name);
+    const encoding = encodings[name];
+    try {
+      if (numSymbols) {
+        if (!indexEncodings.includes(encoding)) {
+          throw new CorruptFileError(`encoding '${encoding}' is not an index encoding of the codec '${header.codec}'`);
+        }
+        if (encoding === "first-use") return await decodeFirstUseIndices(data, numSymbols, count);
+        return await decodeIndices(data, numSymbols, count);
+      }
+      const kind = name.split(".")[0];
+      if (kind === "quat") {
+        const bits = quaternionBits(encoding);
+        if (bits === null) throw new CorruptFileError(`encoding '${encoding}' is not a quaternion encoding`);
+        return await decodeQuaternions(data, count, bits);
+      }
+      if (compact && encoding === "sorted" && kind === "svq") return await decodeSortedCodebook(data, shape[0], shape[1]);
+      if (compact && weightEncoding(encoding) && kind === "mlp" && shape.length === 2) {
+        return await decodeWeights(data, shape[0], shape[1], encoding);
+      }
+      if (encoding === "morton" && name === "xyz") return await decodeMorton(data, count);
+      if (compact && (encoding === "grid-morton" || encoding === "grid-morton-exact") && name === "xyz") {
+        return await decodePositions(data, count, encoding === "grid-morton-exact");
+      }
+      if (compact && encoding === "grid" && name === "t") return await decodeTimes(data, count);
+      return await decodeFloats(data, encoding, count);
+    } catch (err) {
+      if (err instanceof CorruptFileError) throw new CorruptFileError(`section ${name}: ${err.message}`);
+      throw err;
+    }
+  }
+
+  const perGaussian = ["morton", "grid-morton", "grid-morton-exact"].includes(encodings.xyz);
+  const xyz = await decode("xyz", perGaussian ? n : 3 * n);
+  const t = await decode("t", n);
+  const attributes = {};
+  for (const [attr, shapes] of Object.entries(header.attributes)) {
+    const codebooks = [];
+    for (const [j, [k, s]] of shapes.entries()) {
+      codebooks.push({ rows: k, sub: s, values: await decode(`svq.${attr}.codebook${j}`, k * s, [k, s]) });
+    }
+    const indices = [];
+    for (const [j, [k]] of shapes.entries()) indices.push(await decode(`svq.${attr}.index${j}`, n, null, k));
+    attributes[attr] = { codebooks, indices };
+  }
+  const quaternions = {};
+  for (const attr of header.quaternions ?? []) quaternions[attr] = await decode(`quat.${attr}`, n);
+  const mlp = {};
+  for (const [name, shape] of Object.entries(header.mlp)) {
+    mlp[name] = { shape, values: await decode(`mlp.${name}`, shape.reduce((a, b) => a * b, 1), shape) };
+  }
+  return {
+    numGaussians: n, codec: header.codec, xyz, t, attributes, quaternions, mlp, meta: header.meta,
+    rotations: header.rotations ?? [], logScaled: header.log_scaled ?? [],
+  };
+}

@@ -1,0 +1,282 @@
+// The WebGL2 renderer of one model: static per-Gaussian textures and weight blocks at load; per frame the slice
+// pass (transform feedback, read back), a depth sort on the CPU, the splat pass onto a float image cleared to the
+// background, and the present pass. Matches omg4's CPU renderer (omg4/render/view.py render_view) up to float
+// rounding and its early stop at transmittance 1e-4.
+
+import { timeTerm } from "../model.js";
+import {
+  FULL_VIEWPORT, NOTHING, PRESENT_FRAGMENT, SPLAT_FRAGMENT, SPLAT_VERTEX, sliceShader, weightLayout,
+} from "./shaders.js";
+
+const TEXTURE_WIDTH = 2048;
+
+function compile(gl, vertex, fragment, varyings = null) {
+  const program = gl.createProgram();
+  for (const [type, source] of [[gl.VERTEX_SHADER, vertex], [gl.FRAGMENT_SHADER, fragment]]) {
+    const shader = gl.createShader(type);
+    gl.shaderSource(shader, source);
+    gl.compileShader(shader);
+    if (!gl.getShaderParameter(shader, gl.COMPILE_STATUS)) {
+      throw new Error(`shader does not compile: ${gl.getShaderInfoLog(shader)}`);
+    }
+    gl.attachShader(program, shader);
+  }
+  if (varyings) gl.transformFeedbackVaryings(program, varyings, gl.INTERLEAVED_ATTRIBS);
+  gl.linkProgram(program);
+  if (!gl.getProgramParameter(program, gl.LINK_STATUS)) throw new Error(`shaders do not link: ${gl.getProgramInfoLog(program)}`);
+  return program;
+}
+
+/** An RGBA32F texture of `texelsPerItem` texels per item from `values` (`channels` floats per item). */
+function floatTexture(gl, values, count, channels, texelsPerItem = 1) {
+  const texels = count * texelsPerItem;
+  const rows = Math.max(1, Math.ceil(texels / TEXTURE_WIDTH));
+  const data = new Float32Array(TEXTURE_WIDTH * rows * 4);
+  const perItem = 4 * texelsPerItem;
+  for (let i = 0; i < count; i++) {
+    for (let c = 0; c < channels; c++) data[i * perItem + c] = values[i * channels + c];
+  }
+  const texture = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, texture);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, TEXTURE_WIDTH, rows, 0, gl.RGBA, gl.FLOAT, data);
+  for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+  return texture;
+}
+
+function interleave(n, parts) {
+  // parts: [[array, width]] → one array of Σ width floats per item
+  const width = parts.reduce((sum, [, w]) => sum + w, 0);
+  const out = new Float32Array(n * width);
+  for (let i = 0; i < n; i++) {
+    let o = 0;
+    for (const [a, w] of parts) {
+      for (let c = 0; c < w; c++) out[i * width + o + c] = a[i * w + c];
+      o += w;
+    }
+  }
+  return [out, width];
+}
+
+export class Renderer {
+  constructor(canvas, model) {
+    const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true, alpha: false });
+    if (!gl) throw new Error("this browser has no WebGL2");
+    if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float images");
+    this.floatBlend = !!gl.getExtension("EXT_float_blend");
+    this.gl = gl;
+    this.model = model;
+    const n = model.numGaussians;
+    const blockVec4 = Math.floor(gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) / 16);
+    this.layout = weightLayout(model.net, blockVec4);
+    if (this.layout.blocks > gl.getParameter(gl.MAX_VERTEX_UNIFORM_BLOCKS)) {
+      throw new Error("the model's networks do not fit this browser's uniform blocks");
+    }
+    this.slice = compile(gl, sliceShader(model, this.layout), NOTHING, ["v_mean", "v_color"]);
+    this.splat = compile(gl, SPLAT_VERTEX, SPLAT_FRAGMENT);
+    this.present = compile(gl, FULL_VIEWPORT, PRESENT_FRAGMENT);
+
+    const [base] = interleave(n, [[model.xyz, 3], [model.t, 1]]);
+    const [motion] = interleave(n, [[model.gain, 3], [model.varT, 1]]);
+    const feat0 = new Float32Array(4 * n);
+    const feat1 = new Float32Array(4 * n);
+    const covA = new Float32Array(4 * n);
+    const covB = new Float32Array(4 * n);
+    for (let g = 0; g < n; g++) {
+      feat0.set(model.appearance.subarray(6 * g, 6 * g + 4), 4 * g);
+      feat1.set(model.appearance.subarray(6 * g + 4, 6 * g + 6), 4 * g);
+      covA.set(model.cov.subarray(6 * g, 6 * g + 4), 4 * g);
+      covB.set(model.cov.subarray(6 * g + 4, 6 * g + 6), 4 * g);
+    }
+    const h4 = Math.ceil(model.net.hidden / 4);
+    this.textures = {
+      u_base: floatTexture(gl, base, n, 4), u_motion: floatTexture(gl, motion, n, 4),
+      u_feat0: floatTexture(gl, feat0, n, 4), u_feat1: floatTexture(gl, feat1, n, 4),
+      u_covA: floatTexture(gl, covA, n, 4), u_covB: floatTexture(gl, covB, n, 4),
+    };
+    if (model.positionTerm) {
+      const padded = new Float32Array(n * h4 * 4);
+      for (let g = 0; g < n; g++) {
+        padded.set(model.positionTerm.subarray(g * model.net.hidden, (g + 1) * model.net.hidden), g * h4 * 4);
+      }
+      this.textures.u_pos = floatTexture(gl, padded, n * h4, 4);
+    } else {
+      this.textures.u_pos = floatTexture(gl, new Float32Array(4), 1, 4);
+    }
+    this.weightBuffers = [];
+    for (let b = 0; b < this.layout.blocks; b++) {
+      const start = b * this.layout.blockVec4 * 4;
+      const end = Math.min(this.layout.data.length, start + this.layout.blockVec4 * 4);
+      const buffer = gl.createBuffer();
+      gl.bindBuffer(gl.UNIFORM_BUFFER, buffer);
+      gl.bufferData(gl.UNIFORM_BUFFER, this.layout.data.subarray(start, end), gl.STATIC_DRAW);
+      gl.uniformBlockBinding(this.slice, gl.getUniformBlockIndex(this.slice, `Weights${b}`), b);
+      gl.bindBufferBase(gl.UNIFORM_BUFFER, b, buffer);
+      this.weightBuffers.push(buffer);
+    }
+    this._bindTextures();
+    this.feedback = gl.createBuffer();
+    gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, this.feedback);
+    gl.bufferData(gl.TRANSFORM_FEEDBACK_BUFFER, n * 32, gl.DYNAMIC_READ);
+    gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, null);
+    this.sliced = new Float32Array(n * 8);  // per Gaussian: μ at τ, opacity, rgb, 0
+    // quads as plain indexed triangles, four vertices per Gaussian (software GL draws instances one by one)
+    this.corners = gl.createBuffer();
+    this.cornerIndex = gl.createBuffer();
+    this.emptyVao = gl.createVertexArray();
+    this.splatVao = gl.createVertexArray();
+    gl.bindVertexArray(this.splatVao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.corners);
+    for (const [location, offset] of [[0, 0], [1, 16]]) {
+      gl.enableVertexAttribArray(location);
+      gl.vertexAttribPointer(location, 4, gl.FLOAT, false, 32, offset);
+    }
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.cornerIndex);
+    gl.enableVertexAttribArray(2);
+    gl.vertexAttribIPointer(2, 1, gl.INT, 4, 0);
+    const triangles = new Uint32Array(6 * n);
+    for (let q = 0; q < n; q++) triangles.set([4 * q, 4 * q + 1, 4 * q + 2, 4 * q + 2, 4 * q + 1, 4 * q + 3], 6 * q);
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
+    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, triangles, gl.STATIC_DRAW);
+    gl.bindVertexArray(null);
+    this.target = null;
+    this.visible = 0;
+  }
+
+  /** Each texture on its own unit for good: switching units between passes makes software GL re-specialize. */
+  _bindTextures() {
+    const gl = this.gl;
+    this.units = {};
+    Object.entries(this.textures).forEach(([name, texture], unit) => {
+      gl.activeTexture(gl.TEXTURE0 + unit);
+      gl.bindTexture(gl.TEXTURE_2D, texture);
+      this.units[name] = unit;
+    });
+    this.units.u_image = Object.keys(this.textures).length;
+    for (const program of [this.slice, this.splat, this.present]) {
+      gl.useProgram(program);
+      for (const [name, unit] of Object.entries(this.units)) {
+        const location = gl.getUniformLocation(program, name);
+        if (location !== null) gl.uniform1i(location, unit);
+      }
+      const width = gl.getUniformLocation(program, "u_width");
+      if (width !== null) gl.uniform1i(width, TEXTURE_WIDTH);
+    }
+  }
+
+  _ensureTarget(width, height) {
+    const gl = this.gl;
+    if (this.target && this.target.width === width && this.target.height === height) return;
+    const texture = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, texture);
+    gl.texImage2D(gl.TEXTURE_2D, 0, this.floatBlend ? gl.RGBA32F : gl.RGBA16F, width, height, 0, gl.RGBA,
+      this.floatBlend ? gl.FLOAT : gl.HALF_FLOAT, null);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+    const framebuffer = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, framebuffer);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, texture, 0);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.activeTexture(gl.TEXTURE0 + this.units.u_image);
+    gl.bindTexture(gl.TEXTURE_2D, texture);
+    this.target = { texture, framebuffer, width, height };
+  }
+
+  /** The Gaussians at time `tau` from `camera` ({viewmat: 16 row-major, K: 9 row-major, width, height, center}). */
+  _sliceAt(tau, camera) {
+    const gl = this.gl;
+    const model = this.model;
+    const [t0, t1] = model.timeRange;
+    gl.useProgram(this.slice);
+    const u = (name) => gl.getUniformLocation(this.slice, name);
+    gl.uniform1f(u("u_tau"), tau);
+    gl.uniform1f(u("u_period"), t1 - t0);
+    gl.uniform1f(u("u_timeCull"), model.config.time_cull);
+    gl.uniform3fv(u("u_camera"), camera.center);
+    gl.uniform1i(u("u_degree"), model.activeSh[0]);
+    gl.uniform1i(u("u_degreeT"), model.activeSh[1]);
+    gl.uniform1i(u("u_conditioned"), model.config.sh_direction !== "canonical" ? 1 : 0);
+    const h4 = Math.ceil(model.net.hidden / 4);
+    const term = new Float32Array(4 * h4);
+    if (model.positionTerm) term.set(timeTerm(model, (tau - t0) / (t1 - t0)));
+    gl.uniform4fv(u("u_timeTerm"), term);
+    gl.bindVertexArray(this.emptyVao);
+    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, this.feedback);
+    gl.enable(gl.RASTERIZER_DISCARD);
+    gl.beginTransformFeedback(gl.POINTS);
+    gl.drawArrays(gl.POINTS, 0, model.numGaussians);
+    gl.endTransformFeedback();
+    gl.disable(gl.RASTERIZER_DISCARD);
+    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
+    gl.bindVertexArray(null);
+    gl.bindBuffer(gl.COPY_READ_BUFFER, this.feedback);
+    gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, this.sliced);
+    gl.bindBuffer(gl.COPY_READ_BUFFER, null);
+  }
+
+  /** Visible Gaussians back to front (descending view depth; ties: descending index, the reverse of the
+   * reference's front-to-back order) → the four corner vertices of each. */
+  _sort(camera) {
+    const n = this.model.numGaussians;
+    const v = camera.viewmat;
+    const depth = new Float32Array(n);
+    const order = [];
+    const m = this.sliced;
+    for (let g = 0; g < n; g++) {
+      const o = 8 * g;
+      if (!(m[o + 3] >= 1 / 255)) continue;
+      depth[g] = v[8] * m[o] + v[9] * m[o + 1] + v[10] * m[o + 2] + v[11];
+      if (depth[g] >= 0.2) order.push(g);
+    }
+    order.sort((a, b) => depth[b] - depth[a] || b - a);
+    const vertices = new Float32Array(32 * order.length);
+    const index = new Int32Array(4 * order.length);
+    order.forEach((g, i) => {
+      const values = m.subarray(8 * g, 8 * g + 8);
+      for (let c = 0; c < 4; c++) {
+        vertices.set(values, 32 * i + 8 * c);
+        index[4 * i + c] = g;
+      }
+    });
+    return { vertices, index, count: order.length };
+  }
+
+  /** Render the model at time `tau` from `camera` onto the canvas (of the camera's size) over `background`. */
+  render(tau, camera, background) {
+    const gl = this.gl;
+    const { width, height } = camera;
+    this._sliceAt(tau, camera);
+    const { vertices, index, count } = this._sort(camera);
+    this.visible = count;
+    this._ensureTarget(width, height);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.target.framebuffer);
+    gl.viewport(0, 0, width, height);
+    gl.clearColor(background[0], background[1], background[2], 1);
+    gl.clear(gl.COLOR_BUFFER_BIT);
+    if (count) {
+      gl.useProgram(this.splat);
+      const u = (name) => gl.getUniformLocation(this.splat, name);
+      const v = camera.viewmat;
+      // column-major upload of the row-major world → camera matrix
+      gl.uniformMatrix4fv(u("u_view"), false, [v[0], v[4], v[8], v[12], v[1], v[5], v[9], v[13], v[2], v[6], v[10],
+        v[14], v[3], v[7], v[11], v[15]]);
+      const K = camera.K;
+      gl.uniform4f(u("u_K"), K[0], K[4], K[2], K[5]);
+      gl.uniform2f(u("u_size"), width, height);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.corners);
+      gl.bufferData(gl.ARRAY_BUFFER, vertices, gl.STREAM_DRAW);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.cornerIndex);
+      gl.bufferData(gl.ARRAY_BUFFER, index, gl.STREAM_DRAW);
+      gl.bindVertexArray(this.splatVao);
+      gl.enable(gl.BLEND);
+      gl.blendFunc(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA);
+      gl.drawElements(gl.TRIANGLES, 6 * count, gl.UNSIGNED_INT, 0);
+      gl.disable(gl.BLEND);
+      gl.bindVertexArray(null);
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.viewport(0, 0, width, height);
+    gl.useProgram(this.present);
+    gl.bindVertexArray(this.emptyVao);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    gl.bindVertexArray(null);
+  }
+}

@@ -1,0 +1,148 @@
+"""The .omg4 web player (``omg4 export --format web``) in headless Chromium: its decoder against the Python decoder
+bit for bit, its WebGL2 renders against ``omg4 render``, forged files, and the export folder rule."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import io
+import json
+
+import numpy as np
+import pytest
+from browser import open_player, served
+from PIL import Image
+
+import forge
+from omg4.cli import main
+from omg4.codec.container import read_container
+from omg4.codec.payload import CompactGrids, decode_payload
+from omg4.io.web_player import MANIFEST, export_web
+
+# the page's decoder, every decoded array as the SHA-256 of its bytes (fp16 bit patterns, int32 indices)
+DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {
+  const bytes = new Uint8Array(await (await fetch('model.omg4', { cache: 'no-store' })).arrayBuffer());
+  const p = await decodePayload(bytes);
+  const hex = async (a) => Array.from(new Uint8Array(await crypto.subtle.digest('SHA-256', a))).map(
+    (b) => b.toString(16).padStart(2, '0')).join('');
+  const out = { xyz: await hex(p.xyz), t: await hex(p.t) };
+  for (const [k, a] of Object.entries(p.attributes)) {
+    for (const [j, c] of a.codebooks.entries()) out[`${k}.codebook${j}`] = await hex(c.values);
+    for (const [j, c] of a.indices.entries()) out[`${k}.index${j}`] = await hex(c);
+  }
+  for (const [k, q] of Object.entries(p.quaternions)) out[`quat.${k}`] = await hex(q);
+  for (const [k, m] of Object.entries(p.mlp)) out[`mlp.${k}`] = await hex(m.values);
+  return out;
+})"""
+
+
+def _python_digests(path) -> dict[str, str]:
+    """The same digests of the Python decoder's arrays."""
+    header, _ = read_container(path)
+    payload = decode_payload(path)
+    digest = lambda a: hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()  # noqa: E731
+    fp16 = lambda a: digest(np.asarray(a, np.float16).view(np.uint16))  # noqa: E731
+    out = {"xyz": fp16(payload.xyz), "t": fp16(payload.t)}
+    for name, qa in payload.attributes.items():
+        if name in header.get("quaternions", []):
+            out[f"quat.{name}"] = fp16(qa.codebooks[0])
+            continue
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            out[f"{name}.codebook{j}"], out[f"{name}.index{j}"] = fp16(cb), digest(np.asarray(ix, np.int32))
+    out.update({f"mlp.{name}": fp16(w) for name, w in payload.mlp.items()})
+    return out
+
+
+@pytest.mark.parametrize("backbone, codec, count, grids", [
+    ("rt4dgs", "compact", 4000, CompactGrids()),  # the demo's size and coder
+    ("freetimegs", "compact", 1500, CompactGrids()),
+    ("rt4dgs", "compact", 300, CompactGrids(weights=4, rotations=12, exact=100)),  # n-bit weights, other grids
+    ("rt4dgs", "ans", 600, CompactGrids()),  # fp16 Morton positions; LZMA floats rewritten for the browser
+    ("rt4dgs", "paper", 300, CompactGrids()),  # Huffman+LZMA streams rewritten as ANS
+], ids=["demo-size", "freetimegs", "other-grids", "ans-codec", "paper-codec"])
+def test_the_page_decodes_every_value_as_the_python_decoder(chromium, tmp_path, backbone, codec, count, grids):
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, count, codec=codec, seed=count, codebook_scale=0.25, precision=grids, backbone=backbone)
+    export_web(tmp_path / "web", model)
+    expected = _python_digests(model)
+    with served(tmp_path / "web") as url:
+        open_player(chromium, f"{url}/index.html?ui=0&time=0")  # paused: no frames compete with the decoding
+        decoded = chromium.evaluate(DIGESTS)
+    assert decoded == expected
+
+
+def _canvas(browser) -> np.ndarray:
+    url = browser.evaluate("document.getElementById('view').toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), np.float64)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(255.0 ** 2 / max(((a - b) ** 2).mean(), 1e-12)))
+
+
+@pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])
+def test_the_page_renders_the_test_camera_as_omg4_render(chromium, tmp_path, tiny_scene_dir, backbone):
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, 1200, codec="compact", seed=7, codebook_scale=0.25, backbone=backbone)
+    assert main(["export", str(model), "--format", "web", "--data", str(tiny_scene_dir), "--out",
+                 str(tmp_path / "web")]) == 0
+    with served(tmp_path / "web") as url:
+        for time in (0.0, 0.45, 1.0):
+            assert main(["render", "--model", str(model), "--data", str(tiny_scene_dir), "--time", str(time), "--out",
+                         str(tmp_path / "ref.png")]) == 0
+            reference = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64)
+            result = open_player(chromium, f"{url}/index.html?ui=0&time={time}")
+            assert result["ready"]["camera"] == "cam00"  # the first test camera, as omg4 render --data picks
+            page = _canvas(chromium)
+            assert page.shape == reference.shape and reference.std() > 10  # a picture, not an empty frame
+            assert _psnr(page, reference) >= 30, time
+
+
+def test_forged_files_end_as_a_one_line_message_and_the_page_stays_responsive(chromium, tmp_path):
+    base = forge.valid_file(tmp_path / "m.omg4", 300, codec="compact", seed=5, codebook_scale=0.25)
+    export_web(tmp_path / "web", tmp_path / "m.omg4")
+    refused = 0
+    with served(tmp_path / "web") as url:
+        for i, (kind, data) in enumerate(forge.forged_files(base, 24, seed=11)):
+            (tmp_path / "web" / "model.omg4").write_bytes(data)
+            result = open_player(chromium, f"{url}/index.html?ui=0&time=0&case={i}")
+            if "error" in result:
+                refused += 1
+                message = result["message"]
+                assert result["error"] in ("CorruptFileError", "Error") and message and "\n" not in message, kind
+            assert chromium.evaluate("1 + 1") == 2
+    assert refused >= 12
+
+
+def test_export_replaces_only_an_earlier_export(tmp_path, capsys):
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, 300, codec="compact", seed=2)
+    out = tmp_path / "web"
+    assert main(["export", str(model), "--format", "web", "--out", str(out)]) == 0
+    written = json.loads((out / MANIFEST).read_text())["files"]
+    assert {"index.html", "player.js", "model.omg4"} <= set(written)
+    assert (out / "model.omg4").read_bytes() == model.read_bytes()  # a compact file needs no rewrite
+    assert main(["export", str(model), "--format", "web", "--out", str(out)]) == 0  # over an earlier export
+    capsys.readouterr()
+    (out / "notes.txt").write_text("mine")
+    assert main(["export", str(model), "--format", "web", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "notes.txt" in err and err.count("\n") == 1
+    assert (out / "notes.txt").read_text() == "mine"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "photo.png").write_bytes(b"x")
+    assert main(["export", str(model), "--format", "web", "--out", str(other)]) == 2
+    assert sorted(p.name for p in other.iterdir()) == ["photo.png"]
+    assert main(["export", str(model), "--format", "web", "--out", str(model)]) == 2  # the input itself
+
+
+def test_export_web_refuses_what_the_player_cannot_play(tmp_path, capsys):
+    checkpoint = tmp_path / "model.safetensors"
+    checkpoint.write_bytes(b"not a model")
+    assert main(["export", str(checkpoint), "--format", "web", "--out", str(tmp_path / "web")]) == 2
+    assert "not an .omg4 file" in capsys.readouterr().err
+    forge.valid_sequence(tmp_path / "seq.omg4", 2, 200)
+    assert main(["export", str(tmp_path / "seq.omg4"), "--format", "web", "--out", str(tmp_path / "web")]) == 2
+    assert "sequence" in capsys.readouterr().err
+    assert not (tmp_path / "web").exists()
