@@ -19,7 +19,7 @@ from omg4.data.readers import READERS
 from omg4.data.scene import SPLITS
 from omg4.gaussians.backbone import BACKBONES
 from omg4.gaussians.model import SH_DIRECTIONS
-from omg4.io import EXPORT_FORMATS
+from omg4.io import EXPORT_FOLDERS, EXPORT_FORMATS
 from omg4.render.paths import PATHS
 from omg4.render.rendered import BACKENDS
 from omg4.train.config import PRESETS
@@ -39,7 +39,7 @@ TABLES: dict[str, dict[str, object]] = {
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE, "--path": PATHS},
-    "export": {"--format": set(EXPORT_FORMATS.values())},
+    "export": {"--format": set(EXPORT_FORMATS.values()) | set(EXPORT_FOLDERS)},
     "view": {**SCENE, **DEVICE},
     "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": CODECS},
 }

@@ -130,7 +130,9 @@ def test_compress_records_its_settings_and_the_record_reproduces_them(tiny_scene
 
     scene = load_scene(tiny_scene_dir, decode=False, progress=False)
     meta = decode_payload(out).meta
-    rig = rig_cameras(meta)
+    from omg4.data.scene import Camera
+
+    rig = [Camera.from_json(c) for c in rig_cameras(meta)]
     assert [c.name for c in rig] == [c.name for c in scene.cameras()] and meta["rig"]["test"] == len(scene.test_cameras())
     for recorded, camera in zip(rig, scene.cameras()):
         np.testing.assert_allclose(recorded.viewmat, camera.viewmat, rtol=1e-6, atol=1e-6)

@@ -245,7 +245,7 @@ def view_presets(model, cameras: list[Camera] | None, width: int = 640, height: 
     from omg4.codec.rig import rig_cameras
     from omg4.render.paths import bounds_camera, orbit_path
 
-    cameras = cameras or rig_cameras(getattr(model, "meta", None) or {})
+    cameras = cameras or [Camera.from_json(c) for c in rig_cameras(getattr(model, "meta", None) or {}) or []]
     if cameras:
         return list(cameras)
     xyz = model.values["xyz"].cpu().numpy()

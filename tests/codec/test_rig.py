@@ -25,7 +25,7 @@ def test_a_rig_keeps_every_camera_to_seven_digits_and_which_are_held_out():
     cameras = _cameras()
     rig = rig_json(cameras, 2)
     assert rig["test"] == 2 and len(rig["cameras"]) == 5
-    back = rig_cameras({"rig": rig})
+    back = [Camera.from_json(c) for c in rig_cameras({"rig": rig})]
     for c, d in zip(cameras, back):
         assert (d.name, d.width, d.height) == (c.name, c.width, c.height)
         np.testing.assert_allclose(d.K, c.K, rtol=1e-6)

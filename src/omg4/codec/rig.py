@@ -12,7 +12,7 @@ orders them). Numbers keep 7 significant digits: 21 N3DV cameras take about 2 KB
 once the header is deflated. Files without a rig keep the older fallback.
 
 A reader validates a rig like every part of the header (:func:`check_rig`): at most :data:`MAX_CAMERAS`
-cameras, names of at most 64 characters, whole image sizes in [1, MAX_IMAGE_SIDE], finite intrinsics with
+cameras, names of at most 64 characters, whole image sizes in [1, 16384], finite intrinsics with
 positive focal lengths, a finite pose whose rotation is orthonormal within 10⁻³ — anything else is a one-line
 :class:`~omg4.errors.CorruptFileError`.
 """
@@ -23,11 +23,11 @@ import math
 
 import numpy as np
 
-from omg4.data.scene import MAX_IMAGE_SIDE
 from omg4.errors import CorruptFileError
 
 MAX_CAMERAS = 1024
 MAX_NAME = 64
+MAX_SIDE = 16384  # pixels, omg4.data.scene.MAX_IMAGE_SIDE
 DIGITS = 7
 
 
@@ -36,7 +36,8 @@ def _rounded(values) -> list[float]:
 
 
 def rig_json(cameras: list, test: int) -> dict:
-    """The ``meta.rig`` of ``cameras`` (:class:`~omg4.data.scene.Camera`, the first ``test`` held out)."""
+    """The ``meta.rig`` of ``cameras`` (anything with ``name``, ``K``, ``viewmat``, ``width`` and ``height``, such as
+    :class:`~omg4.data.scene.Camera`; the first ``test`` held out)."""
     return {"cameras": [{"name": c.name[:MAX_NAME], "width": int(c.width), "height": int(c.height),
                          "K": _rounded([c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]]),
                          "pose": _rounded(np.asarray(c.viewmat)[:3].ravel())} for c in cameras[:MAX_CAMERAS]],
@@ -55,7 +56,7 @@ def check_rig(rig: object) -> None:
         raise CorruptFileError(f"invalid camera rig (1 to {MAX_CAMERAS} cameras and a test count)")
     for i, c in enumerate(cameras):
         ok = (isinstance(c, dict) and isinstance(c.get("name"), str) and len(c["name"]) <= MAX_NAME
-              and all(type(c.get(k)) is int and 1 <= c[k] <= MAX_IMAGE_SIDE for k in ("width", "height"))
+              and all(type(c.get(k)) is int and 1 <= c[k] <= MAX_SIDE for k in ("width", "height"))
               and isinstance(c.get("K"), list) and len(c["K"]) == 4 and all(map(_number, c["K"]))
               and c["K"][0] > 0 and c["K"][1] > 0
               and isinstance(c.get("pose"), list) and len(c["pose"]) == 12 and all(map(_number, c["pose"])))
@@ -68,11 +69,10 @@ def check_rig(rig: object) -> None:
             raise CorruptFileError(f"camera {i} of the camera rig has no rotation in its pose")
 
 
-def rig_cameras(meta: dict) -> list | None:
-    """The rig's cameras (:class:`~omg4.data.scene.Camera`, test cameras first) of a file's ``meta``, or None for
-    a file without one."""
-    from omg4.data.scene import Camera
-
+def rig_cameras(meta: dict) -> list[dict] | None:
+    """The rig's cameras in the ``CAM.json`` layout (``{name, K 3×3, viewmat 4×4, width, height}``, what
+    :meth:`omg4.data.scene.Camera.from_json` reads; test cameras first) of a file's ``meta``, or None for a file
+    without one."""
     rig = meta.get("rig") if isinstance(meta, dict) else None
     if rig is None:
         return None
@@ -82,8 +82,8 @@ def rig_cameras(meta: dict) -> list | None:
         fx, fy, cx, cy = c["K"]
         viewmat = np.eye(4)
         viewmat[:3] = np.asarray(c["pose"], np.float64).reshape(3, 4)
-        cameras.append(Camera(K=np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), viewmat=viewmat,
-                              width=c["width"], height=c["height"], name=c["name"]))
+        cameras.append({"name": c["name"], "K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]],
+                        "viewmat": viewmat.tolist(), "width": c["width"], "height": c["height"]})
     return cameras
 
 

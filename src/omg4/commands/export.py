@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from omg4.commands.common import add_force_argument, finite_float
-from omg4.io import EXPORT_FORMATS
+from omg4.io import EXPORT_FOLDERS, EXPORT_FORMATS
 
 MAX_SLICES = 100_000
 
@@ -26,7 +26,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
     p.add_argument("--out", required=True, type=Path,
                    help="output: .ply (a time slice), .splatv (the 4D model) or, with --format web, a folder")
-    p.add_argument("--format", choices=sorted({*EXPORT_FORMATS.values(), "web"}),
+    p.add_argument("--format", choices=sorted({*EXPORT_FORMATS.values(), *EXPORT_FOLDERS}),
                    help="output format (default: from --out's suffix); web: a folder that plays the .omg4 file in a "
                         "browser")
     when = p.add_mutually_exclusive_group()

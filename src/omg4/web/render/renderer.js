@@ -1,7 +1,7 @@
-// The WebGL2 renderer of one model: static per-Gaussian textures and weight blocks at load; per frame the slice
-// pass (transform feedback, read back), a depth sort on the CPU, the splat pass onto a float image cleared to the
-// background, and the present pass. Matches omg4's CPU renderer (omg4/render/view.py render_view) up to float
-// rounding and its early stop at transmittance 1e-4.
+// The WebGL2 renderer of one model: static per-Gaussian textures and weight blocks at load; per new time the slice
+// pass (transform feedback, read back); per frame the view's colours and a depth sort on the CPU, the splat pass
+// onto a float image cleared to the background, and the present pass. Matches omg4's CPU renderer
+// (omg4/render/view.py render_view) up to float rounding and its early stop at transmittance 1e-4.
 
 import { timeTerm } from "../model.js";
 import {
@@ -9,6 +9,36 @@ import {
 } from "./shaders.js";
 
 const TEXTURE_WIDTH = 2048;
+const SLICED = 52; // floats the slice pass writes per Gaussian
+
+// real spherical harmonics up to degree 3 (3DGS eval_sh; omg4/gaussians/sh.py)
+const C0 = 0.28209479177387814;
+const C1 = 0.4886025119029199;
+const C2 = [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396];
+const C3 = [-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+  1.445305721320277, -0.5900435899266435];
+
+/** Y_0..Y_15 of the unit direction (x, y, z), zero beyond the active degree's (degree + 1)² terms. */
+function basis(x, y, z, degree, out) {
+  const xx = x * x;
+  const yy = y * y;
+  const zz = z * z;
+  out.fill(0);
+  out[0] = C0;
+  if (degree >= 1) {
+    out[1] = -C1 * y; out[2] = C1 * z; out[3] = -C1 * x;
+  }
+  if (degree >= 2) {
+    out[4] = C2[0] * x * y; out[5] = C2[1] * y * z; out[6] = C2[2] * (2 * zz - xx - yy); out[7] = C2[3] * x * z;
+    out[8] = C2[4] * (xx - yy);
+  }
+  if (degree >= 3) {
+    out[9] = C3[0] * y * (3 * xx - yy); out[10] = C3[1] * x * y * z; out[11] = C3[2] * y * (4 * zz - xx - yy);
+    out[12] = C3[3] * z * (2 * zz - 3 * xx - 3 * yy); out[13] = C3[4] * x * (4 * zz - xx - yy);
+    out[14] = C3[5] * z * (xx - yy); out[15] = C3[6] * x * (xx - 3 * yy);
+  }
+  return out;
+}
 
 function compile(gl, vertex, fragment, varyings = null) {
   const program = gl.createProgram();
@@ -71,7 +101,7 @@ export class Renderer {
     if (this.layout.blocks > gl.getParameter(gl.MAX_VERTEX_UNIFORM_BLOCKS)) {
       throw new Error("the model's networks do not fit this browser's uniform blocks");
     }
-    this.slice = compile(gl, sliceShader(model, this.layout), NOTHING, ["v_mean", "v_color"]);
+    this.slice = compile(gl, sliceShader(model, this.layout), NOTHING, ["v_mean", ...Array.from({ length: 12 }, (_, i) => `v_q${i}`)]);
     this.splat = compile(gl, SPLAT_VERTEX, SPLAT_FRAGMENT);
     this.present = compile(gl, FULL_VIEWPORT, PRESENT_FRAGMENT);
 
@@ -116,9 +146,10 @@ export class Renderer {
     this._bindTextures();
     this.feedback = gl.createBuffer();
     gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, this.feedback);
-    gl.bufferData(gl.TRANSFORM_FEEDBACK_BUFFER, n * 32, gl.DYNAMIC_READ);
+    gl.bufferData(gl.TRANSFORM_FEEDBACK_BUFFER, n * 4 * SLICED, gl.DYNAMIC_READ);
     gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, null);
-    this.sliced = new Float32Array(n * 8);  // per Gaussian: μ at τ, opacity, rgb, 0
+    this.sliced = new Float32Array(n * SLICED);  // per Gaussian: μ at τ, opacity, then Q_0..Q_15 (rgb each)
+    this.slicedAt = null;
     // quads as plain indexed triangles, four vertices per Gaussian (software GL draws instances one by one)
     this.corners = gl.createBuffer();
     this.cornerIndex = gl.createBuffer();
@@ -180,8 +211,8 @@ export class Renderer {
     this.target = { texture, framebuffer, width, height };
   }
 
-  /** The Gaussians at time `tau` from `camera` ({viewmat: 16 row-major, K: 9 row-major, width, height, center}). */
-  _sliceAt(tau, camera) {
+  /** The Gaussians at time `tau`: their means, opacities and colour coefficients (for any view). */
+  _sliceAt(tau) {
     const gl = this.gl;
     const model = this.model;
     const [t0, t1] = model.timeRange;
@@ -190,10 +221,8 @@ export class Renderer {
     gl.uniform1f(u("u_tau"), tau);
     gl.uniform1f(u("u_period"), t1 - t0);
     gl.uniform1f(u("u_timeCull"), model.config.time_cull);
-    gl.uniform3fv(u("u_camera"), camera.center);
     gl.uniform1i(u("u_degree"), model.activeSh[0]);
     gl.uniform1i(u("u_degreeT"), model.activeSh[1]);
-    gl.uniform1i(u("u_conditioned"), model.config.sh_direction !== "canonical" ? 1 : 0);
     const h4 = Math.ceil(model.net.hidden / 4);
     const term = new Float32Array(4 * h4);
     if (model.positionTerm) term.set(timeTerm(model, (tau - t0) / (t1 - t0)));
@@ -213,26 +242,49 @@ export class Renderer {
   }
 
   /** Visible Gaussians back to front (descending view depth; ties: descending index, the reverse of the
-   * reference's front-to-back order) → the four corner vertices of each. */
+   * reference's front-to-back order), with their colour for this view, max(Σ_k Y_k(d)·Q_k + 0.5, 0) where d runs
+   * from the camera to the mean at τ (or the canonical mean) → the four corner vertices of each. */
   _sort(camera) {
     const n = this.model.numGaussians;
     const v = camera.viewmat;
+    const s = this.sliced;
     const depth = new Float32Array(n);
     const order = [];
-    const m = this.sliced;
     for (let g = 0; g < n; g++) {
-      const o = 8 * g;
-      if (!(m[o + 3] >= 1 / 255)) continue;
-      depth[g] = v[8] * m[o] + v[9] * m[o + 1] + v[10] * m[o + 2] + v[11];
+      const o = SLICED * g;
+      if (!(s[o + 3] >= 1 / 255)) continue;
+      depth[g] = v[8] * s[o] + v[9] * s[o + 1] + v[10] * s[o + 2] + v[11];
       if (depth[g] >= 0.2) order.push(g);
     }
     order.sort((a, b) => depth[b] - depth[a] || b - a);
+    const conditioned = this.model.config.sh_direction !== "canonical";
+    const xyz = this.model.xyz;
+    const [cx, cy, cz] = camera.center;
+    const y = new Float64Array(16);
     const vertices = new Float32Array(32 * order.length);
     const index = new Int32Array(4 * order.length);
     order.forEach((g, i) => {
-      const values = m.subarray(8 * g, 8 * g + 8);
+      const o = SLICED * g;
+      const origin = conditioned ? [s[o], s[o + 1], s[o + 2]] : [xyz[3 * g], xyz[3 * g + 1], xyz[3 * g + 2]];
+      const dx = origin[0] - cx;
+      const dy = origin[1] - cy;
+      const dz = origin[2] - cz;
+      const length = Math.max(Math.hypot(dx, dy, dz), 1e-12);
+      basis(dx / length, dy / length, dz / length, this.model.activeSh[0], y);
+      const rgb = [0.5, 0.5, 0.5];
+      for (let k = 0; k < 16; k++) {
+        if (y[k] === 0) continue;
+        for (let c = 0; c < 3; c++) rgb[c] += y[k] * s[o + 4 + 3 * k + c];
+      }
       for (let c = 0; c < 4; c++) {
-        vertices.set(values, 32 * i + 8 * c);
+        const at = 32 * i + 8 * c;
+        vertices[at] = s[o];
+        vertices[at + 1] = s[o + 1];
+        vertices[at + 2] = s[o + 2];
+        vertices[at + 3] = s[o + 3];
+        vertices[at + 4] = Math.max(rgb[0], 0);
+        vertices[at + 5] = Math.max(rgb[1], 0);
+        vertices[at + 6] = Math.max(rgb[2], 0);
         index[4 * i + c] = g;
       }
     });
@@ -243,7 +295,10 @@ export class Renderer {
   render(tau, camera, background) {
     const gl = this.gl;
     const { width, height } = camera;
-    this._sliceAt(tau, camera);
+    if (this.slicedAt !== tau) {  // a new time; a new view alone reuses the slice
+      this._sliceAt(tau);
+      this.slicedAt = tau;
+    }
     const { vertices, index, count } = this._sort(camera);
     this.visible = count;
     this._ensureTarget(width, height);

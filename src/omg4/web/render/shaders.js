@@ -3,18 +3,13 @@
 // slice: one vertex per Gaussian, run with transform feedback: the Gaussian at the frame's time (conditional mean
 //   and temporal opacity, Real-Time4DGS §3.2 / FreeTimeGS motion; omg4/gaussians/covariance.py, freetime.py), its
 //   appearance from the time-conditioned MLPs (paper §4.4, omg4/gaussians/appearance.py; weights in uniform
-//   blocks) and its colour from the 4D spherical harmonics for this view (omg4/gaussians/sh.py).
+//   blocks) and its 4D spherical harmonics summed over the temporal bands at that time (omg4/gaussians/sh.py): 16
+//   RGB coefficients, so any view's colour is one dot product with the view's basis (renderer.js), and a camera
+//   that moves while time stands still needs no new slice.
 // splat: one quad per visible Gaussian (two triangles), back to front: EWA projection with the 0.3 px² dilation, the
 //   opacity-aware box and α = min(0.999, o·e^{−σ}) ≥ 1/255 of omg4/render/projection.py and cpu_kernels.py.
 // present: the float image clamped to [0, 1] on the canvas.
 
-const SH_C = `
-const float C0 = 0.28209479177387814;
-const float C1 = 0.4886025119029199;
-const float C2[5] = float[5](1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-                             0.5462742152960396);
-const float C3[7] = float[7](-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-                             -0.4570457994644658, 1.445305721320277, -0.5900435899266435);`;
 
 /** The weights of every network as one vec4 store split over uniform blocks of at most `blockVec4` vec4s. */
 export function weightLayout(net, blockVec4) {
@@ -54,7 +49,7 @@ function weightStore(layout) {
 }
 
 /** The slice pass (one vertex per Gaussian, with transform feedback): out v_mean = (μ at τ, opacity; 0 when
- * culled), v_color = (rgb, 0). */
+ * culled) and v_q, the colour's coefficients at τ for any view (the view's colour is Σ_k Y_k(d)·Q_k + 0.5). */
 export function sliceShader(model, layout) {
   const { net, config } = model;
   const h4 = Math.ceil(net.hidden / 4);
@@ -75,15 +70,12 @@ uniform int u_width;
 uniform float u_tau;
 uniform float u_period;
 uniform float u_timeCull;
-uniform vec3 u_camera;
 uniform int u_degree;
 uniform int u_degreeT;
-uniform bool u_conditioned;
 uniform vec4 u_timeTerm[${h4}];
 out vec4 v_mean;
-out vec4 v_color;
+${Array.from({ length: 12 }, (_, i) => `out vec4 v_q${i};`).join("\n")}  // Q_0..Q_15 (rgb each), four floats a vec4
 ${weightStore(layout)}
-${SH_C}
 const int H4 = ${h4};
 const int S4 = ${s4};
 const int SHARED = ${net.shared};
@@ -127,9 +119,9 @@ void main() {
   float delta = u_tau - base.w;
   float pt = exp(-0.5 * delta * delta / motion.w);
   vec3 mean = base.xyz + motion.xyz * delta;
+${Array.from({ length: 12 }, (_, i) => `  v_q${i} = vec4(0.0);`).join("\n")}
   if (!(pt > u_timeCull)) {
     v_mean = vec4(mean, 0.0);
-    v_color = vec4(0.0);
     return;
   }
   vec4 h[H4];
@@ -178,37 +170,29 @@ ${rt ? `  for (int i = 0; i < H4; i++) h[i] = max(texelFetch(u_pos, texel(g * H4
   float logit = rowH(${o["opacity.2.weight"].offset}, 0, a);
   hidden(${o["rest.0.weight"].offset}, sv, a);
 
-  vec3 origin = u_conditioned ? mean : base.xyz;
-  vec3 d = origin - u_camera;
-  d /= max(length(d), 1e-12);
-  float x = d.x, y = d.y, z = d.z;
-  float xx = x * x, yy = y * y, zz = z * z;
-  float Y[16];
-  Y[0] = C0;
-  Y[1] = -C1 * y; Y[2] = C1 * z; Y[3] = -C1 * x;
-  Y[4] = C2[0] * x * y; Y[5] = C2[1] * y * z; Y[6] = C2[2] * (2.0 * zz - xx - yy); Y[7] = C2[3] * x * z;
-  Y[8] = C2[4] * (xx - yy);
-  Y[9] = C3[0] * y * (3.0 * xx - yy); Y[10] = C3[1] * x * y * z; Y[11] = C3[2] * y * (4.0 * zz - xx - yy);
-  Y[12] = C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy); Y[13] = C3[4] * x * (4.0 * zz - xx - yy);
-  Y[14] = C3[5] * z * (xx - yy); Y[15] = C3[6] * x * (xx - 3.0 * yy);
+  // Q_k = Σ_n cos(2πn·(t − τ)/T)·(the rest head's coefficient band·n + k), Q_0 with the dc term
+  float q[48];
+  for (int i = 0; i < 48; i++) q[i] = 0.0;
+  q[0] = dc.r; q[1] = dc.g; q[2] = dc.b;
   int spatial = (u_degree + 1) * (u_degree + 1);
-  vec3 rgb = dc * C0;
   for (int n = 0; n <= u_degreeT; n++) {
     float tw = cos(6.283185307179586 * float(n) * (base.w - u_tau) / u_period);
     for (int k = 0; k < spatial; k++) {
       if (n == 0 && k == 0) continue;
-      // coefficient 16·n + k is the rest head's rows 3·(coefficient − 1) + channel
+      // coefficient band·n + k is the rest head's rows 3·(coefficient − 1) + channel
       int row = ${o["rest.2.weight"].offset} + 3 * (${band} * n + k - 1) * H4;
       vec3 sum = vec3(0.0);
       for (int j = 0; j < H4; j++) {
         vec4 x = a[j];
         sum += vec3(dot(W(row + j), x), dot(W(row + H4 + j), x), dot(W(row + 2 * H4 + j), x));
       }
-      rgb += tw * Y[k] * sum;
+      q[3 * k] += tw * sum.r;
+      q[3 * k + 1] += tw * sum.g;
+      q[3 * k + 2] += tw * sum.b;
     }
   }
+${Array.from({ length: 12 }, (_, i) => `  v_q${i} = vec4(q[${4 * i}], q[${4 * i + 1}], q[${4 * i + 2}], q[${4 * i + 3}]);`).join("\n")}
   v_mean = vec4(mean, pt / (1.0 + exp(-logit)));
-  v_color = vec4(max(rgb + 0.5, 0.0), 0.0);
 }
 `;
 }
