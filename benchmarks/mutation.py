@@ -151,11 +151,11 @@ class _Collector(ast.NodeVisitor):
     # -- scopes
     def _visit_scope(self, node, name: str, body_fields: tuple[str, ...]) -> None:
         kernel = any(_decorator_name(d) in _NUMBA_DECORATORS for d in getattr(node, "decorator_list", ()))
-        self.scope.append(name)
-        self.kernel_depth += kernel
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):  # evaluated where the function is defined
             for default in (*node.args.defaults, *(d for d in node.args.kw_defaults if d is not None)):
                 self.visit(default)
+        self.scope.append(name)
+        self.kernel_depth += kernel
         body = node.body
         if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) and isinstance(
                 body[0].value.value, str):
@@ -353,6 +353,12 @@ class Workspace:
         except subprocess.TimeoutExpired:
             return -1, time.perf_counter() - t0
 
+    def collects(self, tests: list[str]) -> bool:
+        """Whether pytest collects the files of ``tests`` in the copy (a mutant that breaks importing the package
+        or building a test's parameters makes their ids unknown to pytest, exit 4)."""
+        rc, _ = self.pytest(["--collect-only", *sorted({t.split("::")[0] for t in tests})], timeout=600)
+        return rc == 0
+
     def planted(self, mutant: Mutant):
         return _Planted(self.root / mutant.path, mutant)
 
@@ -440,6 +446,8 @@ def run_mutant(workspace: Workspace, tests: TestMap, mutant: Mutant) -> dict:
     budget = 60.0 + 3.0 * sum(tests.seconds.get(t, 5.0) for t in selected)
     with workspace.planted(mutant):
         rc, seconds = workspace.pytest(["-x", *selected], timeout=budget)
+        if rc in (3, 4) and not workspace.collects(selected):  # its tests no longer import or collect: caught
+            rc = 1
     outcome = {0: "survived", 1: "killed", 2: "killed", -1: "timeout", 5: "no tests"}.get(
         rc, "crashed" if rc < 0 else f"pytest exit {rc}")
     return {"outcome": outcome, "seconds": round(seconds, 2), "selected": len(selected)}

@@ -34,7 +34,7 @@ from browser import Browser, open_player, served  # noqa: E402
 
 # time paused, the camera orbiting the focus a degree a frame: each frame drawn and read back (a finished frame)
 ORBIT = """import('./camera.js').then(({ lookAt }) => {
-  const p = window.omg4Player, r = p.renderer, gl = r.gl, cam = p.state.camera, pixel = new Uint8Array(4);
+  const p = window.omg4Player, gl = p.gl, cam = p.state.camera, pixel = new Uint8Array(4);
   const v = cam.viewmat, focus = [0, 1, 2].map((k) => cam.center[k] + p.state.distance * v[8 + k]);
   const ms = [];
   for (let i = 1; i <= FRAMES; i++) {
@@ -42,7 +42,7 @@ ORBIT = """import('./camera.js').then(({ lookAt }) => {
     const eye = [focus[0] + o[0] * Math.cos(a) - o[1] * Math.sin(a), focus[1] + o[0] * Math.sin(a) + o[1] * Math.cos(a), cam.center[2]];
     const view = { ...cam, viewmat: lookAt(eye, focus), center: eye };
     const start = performance.now();
-    r.render(p.state.time, view, [0, 0, 0]);
+    p.playback.frame(p.state.time, view, [0, 0, 0]);
     gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
     ms.push(performance.now() - start);
   }
@@ -72,6 +72,31 @@ def measure(browser: Browser, folder: Path, width: int, height: int, seconds: fl
             "load_to_first_frame_ms": load_ms, "measured_at_ms": ready_ms, "size": [width, height],
             "fps": (frames1 - frames0) / seconds, "orbit_ms_per_frame": statistics.median(orbit),
             "orbit_fps": 1000 / statistics.median(orbit), "camera": ready["camera"]}
+
+
+def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path) -> dict:
+    """PSNR of the page's frame against ``omg4 render`` of the same test camera and time (mid-clip)."""
+    import base64
+    import io
+    import subprocess
+
+    import numpy as np
+    from PIL import Image
+
+    from omg4.evaluate import load_model
+
+    t0, t1 = load_model(model).config.time_range
+    time_ = round((t0 + t1) / 2, 3)
+    subprocess.run([sys.executable, "-m", "omg4", "render", "--model", str(model), "--data", str(data), "--time",
+                    str(time_), "--out", str(tmp / "reference.png")], check=True, capture_output=True)
+    reference = np.asarray(Image.open(tmp / "reference.png").convert("RGB"), np.float64)
+    with served(folder) as url:
+        open_player(browser, f"{url}/index.html?ui=0&time={time_}")
+        png = browser.evaluate("document.getElementById('view').toDataURL('image/png')")
+    page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
+    mse = float(((page - reference) ** 2).mean())
+    return {"psnr_vs_omg4_render_db": 10 * np.log10(255.0 ** 2 / max(mse, 1e-12)), "psnr_time": time_,
+            "psnr_size": list(reference.shape[1::-1])}
 
 
 def main() -> None:
@@ -107,6 +132,9 @@ def main() -> None:
                 folder = tmp / f"web_{len(rows)}"
                 export_web(folder, path, cameras if not label.startswith("forged") else None, held_out)
                 row = {"model": label, **measure(browser, folder, width, height, args.seconds)}
+                if cameras is not None and not label.startswith("forged"):
+                    row.update(fidelity(browser, folder, path, args.data, tmp))
+                    print(f"{label}: {row['psnr_vs_omg4_render_db']:.1f} dB PSNR against omg4 render", flush=True)
                 print(f"{label}: {row['num_gaussians']:,} Gaussians, {row['file_bytes']:,} B file, "
                       f"{row['bytes_transferred']:,} B transferred, first frame after {row['load_to_first_frame_ms']:.0f} ms, "
                       f"playing {row['fps']:.1f} FPS, orbiting a paused frame {row['orbit_fps']:.1f} FPS at "

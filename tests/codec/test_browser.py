@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 
 import forge
-from omg4.codec.browser import BROWSER_FLOATS, browser_decodable
+from omg4.codec.browser import BROWSER_FLOATS, _float_count, browser_decodable
 from omg4.codec.container import container_bytes, read_container, write_container
-from omg4.codec.payload import CompactGrids, decode_payload
+from omg4.codec.payload import CompactGrids, _decode_f16, _encode_f16, decode_payload
 from omg4.codec.sequence import read_sequence
 
 from tests.codec.test_payload import assert_payload_equal
@@ -32,8 +32,12 @@ def test_the_rewrite_keeps_every_value_and_leaves_no_lzma_or_huffman(tmp_path, c
                                                  "grid", "grid-morton", "grid-morton-exact", "smallest-three-9",
                                                  "int8-cols"}
     assert_payload_equal(decode_payload(path), decode_payload(data))
-    kept = [name for name, e in before["encodings"].items() if e not in ("f16-lzma", "paper")]
     original = read_container(path)[1]
+    for name, encoding in before["encodings"].items():  # each LZMA section as the smaller browser encoding
+        if encoding == "f16-lzma":
+            values = _decode_f16(original[name], "f16-lzma", _float_count(before, name))
+            assert len(sections[name]) == min(len(_encode_f16(values, e)) for e in BROWSER_FLOATS), name
+    kept = [name for name, e in before["encodings"].items() if e not in ("f16-lzma", "paper")]
     assert (kept or codec == "paper") and all(sections[name] == original[name] for name in kept)  # byte for byte
 
 
@@ -60,3 +64,6 @@ def test_container_bytes_are_the_file_write_container_writes(tmp_path):
         write_container(tmp_path / "f.bin", header, sections, version=version)
         assert container_bytes(header, sections, version) == (tmp_path / "f.bin").read_bytes()
         assert read_container(container_bytes(header, sections, version)) == (header, sections)
+    write_container(tmp_path / "plain.bin", header, sections)  # both default to version 1, the plain JSON
+    assert container_bytes(header, sections) == (tmp_path / "plain.bin").read_bytes()
+    assert container_bytes(header, sections)[8:10] == b"\x01\x00"

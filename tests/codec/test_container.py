@@ -225,3 +225,26 @@ def test_section_names_up_to_the_limit_are_written_and_read(tmp_path):
     with pytest.raises(OMG4Error):
         write_container(tmp_path / "long.bin", {}, {longest + "s": b"abc"})
     assert not (tmp_path / "long.bin").exists()
+
+
+def test_the_writer_refuses_exactly_the_headers_a_reader_would_not_inflate(tmp_path):
+    """A deflated header may inflate to at most 65,536 + 32 × its stored size (docs/file-format.md §1): a header
+    one to a few hundred bytes past that bound is refused by the writer, one just inside it is written and read."""
+    def sizes(text):
+        blob = json.dumps({"header": {"pad": text}, "sections": []}, separators=(",", ":")).encode()
+        packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+        stored = len(packer.compress(blob) + packer.flush())
+        return len(blob), 65536 + 32 * stored
+
+    lo, hi = 1000, 400_000  # the smallest run of one letter whose header passes the bound
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        length, limit = sizes("a" * mid)
+        lo, hi = (mid, hi) if length <= limit else (lo, mid)
+    inside, outside = "a" * lo, "a" * hi
+    assert sizes(inside)[0] <= sizes(inside)[1] and 0 < sizes(outside)[0] - sizes(outside)[1] <= 64
+    write_container(tmp_path / "in.omg4", {"pad": inside}, {}, version=FORMAT_VERSION)
+    assert read_container(tmp_path / "in.omg4")[0] == {"pad": inside}
+    with pytest.raises(OMG4Error, match="compresses"):
+        write_container(tmp_path / "out.omg4", {"pad": outside}, {}, version=FORMAT_VERSION)
+    assert not (tmp_path / "out.omg4").exists()

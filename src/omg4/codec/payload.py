@@ -47,7 +47,7 @@ import numpy as np
 from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, decode_sorted_codes, deinterleave,
                                   encode_codewords, encode_sorted_codes, interleave, keys_to_fp16, ordered_keys)
-from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, read_container, write_container
+from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, write_container
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices, pack_varints, unpack_varints
 from omg4.codec.rig import check_rig
 from omg4.errors import CorruptFileError, OMG4Error

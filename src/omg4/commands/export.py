@@ -152,7 +152,6 @@ def _export_splatv(args, model) -> int:
 
 def _export_web(args) -> int:
     from omg4.codec.container import has_magic
-    from omg4.codec.sequence import is_sequence
     from omg4.errors import OMG4Error
     from omg4.io.web_player import check_export_folder, export_web
     from omg4.outputs import check_outputs
@@ -162,9 +161,6 @@ def _export_web(args) -> int:
     if not has_magic(args.model):
         raise OMG4Error(f"{args.model} is not an .omg4 file: the web player plays compressed models (omg4 compress "
                         "writes one)")
-    if is_sequence(args.model):
-        raise OMG4Error(f"{args.model} is a sequence of segments; the web player plays single models (export one "
-                        "segment's time range with omg4 compress, or view the sequence with omg4 view)")
     check_outputs({"--out": args.out}, inputs=[args.model, args.data], datasets=[args.data] if args.data else [],
                   folders=["--out"], force=args.force)
     check_export_folder(args.out)

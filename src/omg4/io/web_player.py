@@ -2,8 +2,9 @@
 
 The folder holds ``index.html``, the player's ES modules (``src/omg4/web/``: the decoder, the WebGL2 renderer,
 the page; no build step, nothing fetched from the network), ``model.omg4`` — the model file itself, rewritten
-losslessly where it holds sections the browser has no decoder for (:func:`omg4.codec.browser.browser_decodable`)
-— ``cameras.json`` with the dataset's cameras (test cameras first) when ``--data`` is given, and
+losslessly where it holds sections the browser has no decoder for (:func:`omg4.codec.browser.browser_decodable`);
+for a long capture's sequence, ``sequence.json`` and each segment's file in ``segments/``, fetched as playback
+reaches it — ``cameras.json`` with the dataset's cameras (test cameras first) when ``--data`` is given, and
 ``omg4-web.json``, the list of what the export wrote. Any static file server serves it
 (``python -m http.server -d DIR``).
 
@@ -26,6 +27,8 @@ PLAYER_SUFFIXES = (".html", ".js", ".css")
 MANIFEST = "omg4-web.json"
 MODEL = "model.omg4"
 CAMERAS = "cameras.json"
+SEQUENCE = "sequence.json"
+SEGMENTS = "segments"
 
 
 def player_files() -> list[Path]:
@@ -55,25 +58,47 @@ def check_export_folder(out: Path) -> None:
 
 def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list | None = None,
                test_cameras: int = 0) -> dict:
-    """Write the player folder ``out`` for the ``.omg4`` file ``model``; ``cameras`` (:class:`~omg4.data.scene.
-    Camera`, the first ``test_cameras`` of them held out) become the page's presets. Returns the manifest."""
+    """Write the player folder ``out`` for the ``.omg4`` file ``model`` (a single model, or a sequence: then
+    ``sequence.json`` and one file per segment in ``segments/``, which the page fetches as playback reaches them);
+    ``cameras`` (:class:`~omg4.data.scene.Camera`, the first ``test_cameras`` of them held out) become the page's
+    presets. Returns the manifest."""
+    from omg4.codec.sequence import is_sequence, read_index, read_segment
+
     out = Path(out)
     check_export_folder(out)
-    data = browser_decodable(model)
-    files = {str(p.as_posix()): (PLAYER_ROOT / p).read_bytes() for p in player_files()}
-    files[MODEL] = data
-    if cameras:
-        presets = [{**c.to_json(), "test": i < test_cameras} for i, c in enumerate(cameras)]
-        files[CAMERAS] = json.dumps({"cameras": presets}, indent=1).encode()
-    for name, content in files.items():
+    written, total, rewritten = [], 0, False
+
+    def write(name: str, content: bytes) -> None:
         path = out / name
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             Path(tmp).write_bytes(content)
-    manifest = {"files": sorted(files), "model_bytes": len(data), "rewritten": data != Path(model).read_bytes()}
+        written.append(name)
+
+    for p in player_files():
+        write(p.as_posix(), (PLAYER_ROOT / p).read_bytes())
+    if is_sequence(model):
+        index, segments = read_index(model), []
+        for entry in index.segments:
+            original = read_segment(model, entry)
+            data = browser_decodable(original)
+            name = f"{SEGMENTS}/{entry.index:03d}.omg4"
+            write(name, data)
+            segments.append({"file": name, "time_range": list(entry.time_range), "frames": list(entry.frames),
+                             "bytes": len(data)})
+            total, rewritten = total + len(data), rewritten or data != original
+        write(SEQUENCE, json.dumps({"fps": index.fps, "segments": segments}, indent=1).encode())
+    else:
+        data = browser_decodable(model)
+        write(MODEL, data)
+        total, rewritten = len(data), data != Path(model).read_bytes()
+    if cameras:
+        presets = [{**c.to_json(), "test": i < test_cameras} for i, c in enumerate(cameras)]
+        write(CAMERAS, json.dumps({"cameras": presets}, indent=1).encode())
+    manifest = {"files": sorted(written), "model_bytes": total, "rewritten": rewritten}
     with atomic_path(out / MANIFEST) as tmp:
         Path(tmp).write_text(json.dumps(manifest, indent=1))
     return manifest
 
 
-__all__ = ["CAMERAS", "MANIFEST", "MODEL", "check_export_folder", "export_web", "player_files"]
+__all__ = ["CAMERAS", "MANIFEST", "MODEL", "SEGMENTS", "SEQUENCE", "check_export_folder", "export_web", "player_files"]

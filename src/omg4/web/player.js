@@ -1,5 +1,5 @@
-// The omg4 player page: fetches model.omg4 (and cameras.json when the export had a dataset), decodes and renders
-// it with WebGL2, and plays it. URL parameters: ?camera=<name>&time=<T>&width=<W>&height=<H>&ui=0 (a reproducible
+// The omg4 player page: fetches model.omg4 — or, for a long capture, sequence.json and its segments one by one —
+// (and cameras.json when the export had a dataset), decodes and renders it with WebGL2, and plays it. URL parameters: ?camera=<name>&time=<T>&width=<W>&height=<H>&ui=0 (a reproducible
 // view: no camera → the first test camera, as `omg4 render --data` picks; a time → paused there; ui=0 → only the
 // canvas, at the page's top left). window.omg4Ready resolves after the first complete frame (rejects with the
 // one-line message a damaged file gets).
@@ -7,7 +7,8 @@
 import { boundsCamera, cameraFromJson, orbitControls, resized, rigCameras } from "./camera.js";
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
-import { Renderer } from "./render/renderer.js";
+import { Compositor, context } from "./render/renderer.js";
+import { Playback } from "./sequence.js";
 
 const params = new URLSearchParams(location.search);
 const $ = (id) => document.getElementById(id);
@@ -57,18 +58,24 @@ async function main() {
   const bare = params.get("ui") === "0";
   if (bare) document.body.classList.add("bare");
   const started = performance.now();
-  const bytes = await fetchBytes(params.get("model") ?? "model.omg4");
+  const index = await fetch("sequence.json", { cache: "no-store" });
+  const segments = index.ok ? (await index.json()).segments.map((s) => ({ url: s.file, range: s.time_range, bytes: s.bytes }))
+    : [{ url: params.get("model") ?? "model.omg4", range: null, bytes: null }];
+  const bytes = await fetchBytes(segments[0].url);
+  const fileBytes = index.ok ? segments.reduce((sum, s) => sum + s.bytes, 0) : bytes.length;
   const payload = await decodePayload(bytes);
-  const model = buildModel(payload);
+  const model = buildModel(payload);  // the first segment: its cameras, and where to look
   const exported = await presets();
   const cameras = exported.length ? exported : rigCameras(payload.meta);  // the export's dataset, else the file's rig
-  const [t0, t1] = model.timeRange;
+  segments[0].range ??= model.timeRange;
+  const [t0, t1] = [segments[0].range[0], segments.at(-1).range[1]];
   const named = params.get("camera");
   let preset = named !== null ? cameras.find((c) => c.name === named) : cameras.find((c) => c.test) ?? cameras[0];
   if (named !== null && !preset) throw new Error(`no camera named '${named}' (the export's cameras: ${cameras.map((c) => c.name).join(", ") || "none"})`);
   if (!preset) preset = boundsCamera(model.xyz, 960, 540);
   const canvas = $("view");
-  const renderer = new Renderer(canvas, model);
+  const gl = context(canvas);
+  const playback = new Playback(gl, new Compositor(gl), segments, payload, fetchBytes);
   const background = (params.get("background") ?? "0,0,0").split(",").map(Number);
   const state = { camera: fitted(preset, bare), distance: 1, time: t0, playing: true, dirty: true };
   const time = params.get("time");
@@ -126,7 +133,11 @@ async function main() {
         canvas.style.width = `${width}px`;
         canvas.style.height = `${height}px`;
       }
-      renderer.render(state.time, state.camera, background);
+      if (!playback.ready(state.time)) {  // a segment still on its way: the last frame stays
+        requestAnimationFrame(frame);
+        return;
+      }
+      const drawn = playback.frame(state.time, state.camera, background);
       window.omg4Player.frames += 1;
       // the measured rate: frames drawn in the last two seconds of drawing (not the first, which compiles shaders)
       if (!settle) stamps.push(now);
@@ -135,19 +146,21 @@ async function main() {
       slider.value = String(state.time);
       $("clock").textContent = `${state.time.toFixed(2)} s`;
       const rate = stamps.length > 1 ? `${((1000 * (stamps.length - 1)) / (stamps.at(-1) - stamps[0])).toFixed(1)} FPS` : "– FPS";
-      $("stats").textContent = `${(bytes.length / 1024).toFixed(1)} KB · ${model.numGaussians.toLocaleString()} Gaussians\n`
-        + `${renderer.visible.toLocaleString()} drawn · ${rate}`;
+      const shown = segments.length > 1 ? ` (segment ${playback.shown.map((k) => k + 1).join(" + ")} of ${segments.length})` : "";
+      $("stats").textContent = `${(fileBytes / 1024).toFixed(1)} KB · ${playback.gaussians.toLocaleString()} Gaussians${shown}\n`
+        + `${drawn.toLocaleString()} drawn · ${rate}`;
       if (settle) {
-        renderer.gl.finish();
+        gl.finish();
         window.omg4FirstFrameMs = performance.now();  // since navigation started
-        settle.resolve({ gaussians: model.numGaussians, bytes: bytes.length, loadMs: performance.now() - started, camera: state.camera.name });
+        settle.resolve({ gaussians: playback.gaussians, bytes: fileBytes, segments: segments.length,
+          loadMs: performance.now() - started, camera: state.camera.name });
         settle = null;
       }
     }
     play.textContent = state.playing ? "pause" : "play";
     requestAnimationFrame(frame);
   };
-  window.omg4Player = { state, renderer, model, frames: 0 };
+  window.omg4Player = { state, playback, gl, frames: 0 };
   requestAnimationFrame(frame);
 }
 

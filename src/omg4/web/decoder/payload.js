@@ -118,8 +118,9 @@ function checkRig(rig) {
   });
 }
 
-/** The payload header's structure and limits (payload.py: _check_header). */
-function checkHeader(h, sectionBytes) {
+/** The payload header's structure and limits (payload.py: _check_header), given the file's section bytes; returns the
+ * section names it implies, sorted. */
+export function checkHeader(h, sectionBytes) {
   const n = h.num_gaussians;
   if (!(h.kind === KIND && CODECS.includes(h.codec) && isObject(h.meta) && isObject(h.attributes)
     && isObject(h.mlp) && isObject(h.encodings) && isInt(n, 1, MAX_GAUSSIANS))) {

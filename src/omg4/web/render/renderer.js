@@ -10,6 +10,7 @@ import {
 
 const TEXTURE_WIDTH = 2048;
 const SLICED = 52; // floats the slice pass writes per Gaussian
+const PRESENT_UNIT = 14; // the present pass's two texture units, above every renderer's own
 
 // real spherical harmonics up to degree 3 (3DGS eval_sh; omg4/gaussians/sh.py)
 const C0 = 0.28209479177387814;
@@ -87,11 +88,16 @@ function interleave(n, parts) {
   return [out, width];
 }
 
+/** The canvas's WebGL2 context with float render targets (one per page: every renderer and the compositor use it). */
+export function context(canvas) {
+  const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true, alpha: false });
+  if (!gl) throw new Error("this browser has no WebGL2");
+  if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float images");
+  return gl;
+}
+
 export class Renderer {
-  constructor(canvas, model) {
-    const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true, alpha: false });
-    if (!gl) throw new Error("this browser has no WebGL2");
-    if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("this browser cannot render to float images");
+  constructor(gl, model) {
     this.floatBlend = !!gl.getExtension("EXT_float_blend");
     this.gl = gl;
     this.model = model;
@@ -103,7 +109,6 @@ export class Renderer {
     }
     this.slice = compile(gl, sliceShader(model, this.layout), NOTHING, ["v_mean", ...Array.from({ length: 12 }, (_, i) => `v_q${i}`)]);
     this.splat = compile(gl, SPLAT_VERTEX, SPLAT_FRAGMENT);
-    this.present = compile(gl, FULL_VIEWPORT, PRESENT_FRAGMENT);
 
     const [base] = interleave(n, [[model.xyz, 3], [model.t, 1]]);
     const [motion] = interleave(n, [[model.gain, 3], [model.varT, 1]]);
@@ -143,7 +148,7 @@ export class Renderer {
       gl.bindBufferBase(gl.UNIFORM_BUFFER, b, buffer);
       this.weightBuffers.push(buffer);
     }
-    this._bindTextures();
+    this._setSamplers();
     this.feedback = gl.createBuffer();
     gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, this.feedback);
     gl.bufferData(gl.TRANSFORM_FEEDBACK_BUFFER, n * 4 * SLICED, gl.DYNAMIC_READ);
@@ -173,22 +178,25 @@ export class Renderer {
     this.visible = 0;
   }
 
-  /** Each texture on its own unit for good: switching units between passes makes software GL re-specialize. */
-  _bindTextures() {
+  /** This model's textures on units 0… and weight blocks on binding points 0… (several renderers share one
+   * context: each binds its own before drawing). */
+  _bind() {
     const gl = this.gl;
-    this.units = {};
-    Object.entries(this.textures).forEach(([name, texture], unit) => {
+    Object.values(this.textures).forEach((texture, unit) => {
       gl.activeTexture(gl.TEXTURE0 + unit);
       gl.bindTexture(gl.TEXTURE_2D, texture);
-      this.units[name] = unit;
     });
-    this.units.u_image = Object.keys(this.textures).length;
-    for (const program of [this.slice, this.splat, this.present]) {
+    this.weightBuffers.forEach((buffer, b) => gl.bindBufferBase(gl.UNIFORM_BUFFER, b, buffer));
+  }
+
+  _setSamplers() {
+    const gl = this.gl;
+    for (const program of [this.slice, this.splat]) {
       gl.useProgram(program);
-      for (const [name, unit] of Object.entries(this.units)) {
+      Object.keys(this.textures).forEach((name, unit) => {
         const location = gl.getUniformLocation(program, name);
         if (location !== null) gl.uniform1i(location, unit);
-      }
+      });
       const width = gl.getUniformLocation(program, "u_width");
       if (width !== null) gl.uniform1i(width, TEXTURE_WIDTH);
     }
@@ -206,8 +214,10 @@ export class Renderer {
     gl.bindFramebuffer(gl.FRAMEBUFFER, framebuffer);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, texture, 0);
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    gl.activeTexture(gl.TEXTURE0 + this.units.u_image);
-    gl.bindTexture(gl.TEXTURE_2D, texture);
+    if (this.target) {
+      gl.deleteFramebuffer(this.target.framebuffer);
+      gl.deleteTexture(this.target.texture);
+    }
     this.target = { texture, framebuffer, width, height };
   }
 
@@ -291,10 +301,12 @@ export class Renderer {
     return { vertices, index, count: order.length };
   }
 
-  /** Render the model at time `tau` from `camera` onto the canvas (of the camera's size) over `background`. */
-  render(tau, camera, background) {
+  /** Draw the model at time `tau` from `camera` into this renderer's float image, over `background` (not yet on
+   * the canvas: see Compositor); returns that image. */
+  draw(tau, camera, background) {
     const gl = this.gl;
     const { width, height } = camera;
+    this._bind();
     if (this.slicedAt !== tau) {  // a new time; a new view alone reuses the slice
       this._sliceAt(tau);
       this.slicedAt = tau;
@@ -328,9 +340,46 @@ export class Renderer {
       gl.bindVertexArray(null);
     }
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    return this.target.texture;
+  }
+
+  /** Free the model's GL resources (a sequence keeps only the segments it shows). */
+  dispose() {
+    const gl = this.gl;
+    for (const texture of Object.values(this.textures)) gl.deleteTexture(texture);
+    for (const buffer of [...this.weightBuffers, this.feedback, this.corners, this.cornerIndex]) gl.deleteBuffer(buffer);
+    for (const program of [this.slice, this.splat]) gl.deleteProgram(program);
+    gl.deleteVertexArray(this.splatVao);
+    gl.deleteVertexArray(this.emptyVao);
+    if (this.target) {
+      gl.deleteFramebuffer(this.target.framebuffer);
+      gl.deleteTexture(this.target.texture);
+    }
+  }
+}
+
+/** Puts a frame on the canvas: one renderer's float image, or two crossfaded. */
+export class Compositor {
+  constructor(gl) {
+    this.gl = gl;
+    this.program = compile(gl, FULL_VIEWPORT, PRESENT_FRAGMENT);
+    this.vao = gl.createVertexArray();
+  }
+
+  /** `parts`: [[image, weight], …] (one or two, weights summing to 1) of `width` × `height`. */
+  present(parts, width, height) {
+    const gl = this.gl;
+    const [[first], second] = [parts[0], parts[1] ?? [parts[0][0], 0]];
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, width, height);
-    gl.useProgram(this.present);
-    gl.bindVertexArray(this.emptyVao);
+    gl.useProgram(this.program);
+    [first, second[0]].forEach((texture, i) => {
+      gl.activeTexture(gl.TEXTURE0 + PRESENT_UNIT + i);
+      gl.bindTexture(gl.TEXTURE_2D, texture);
+      gl.uniform1i(gl.getUniformLocation(this.program, i ? "u_second" : "u_first"), PRESENT_UNIT + i);
+    });
+    gl.uniform1f(gl.getUniformLocation(this.program, "u_weight"), second[1]);
+    gl.bindVertexArray(this.vao);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     gl.bindVertexArray(null);
   }

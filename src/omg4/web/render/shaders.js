@@ -8,7 +8,7 @@
 //   that moves while time stands still needs no new slice.
 // splat: one quad per visible Gaussian (two triangles), back to front: EWA projection with the 0.3 px² dilation, the
 //   opacity-aware box and α = min(0.999, o·e^{−σ}) ≥ 1/255 of omg4/render/projection.py and cpu_kernels.py.
-// present: the float image clamped to [0, 1] on the canvas.
+// present: the float image (or two, crossfaded) clamped to [0, 1] on the canvas.
 
 
 /** The weights of every network as one vec4 store split over uniform blocks of at most `blockVec4` vec4s. */
@@ -288,11 +288,17 @@ void main() {
 }
 `;
 
+/** The frame: one float image, or two crossfaded (the two segments of a sequence across their shared frames,
+ * (1 − w)·first + w·second, as omg4/render/view.py blends them), clamped to [0, 1]. */
 export const PRESENT_FRAGMENT = `#version 300 es
 precision highp float;
-uniform sampler2D u_image;
+uniform sampler2D u_first;
+uniform sampler2D u_second;
+uniform float u_weight;
 out vec4 color;
 void main() {
-  color = vec4(clamp(texelFetch(u_image, ivec2(gl_FragCoord.xy), 0).rgb, 0.0, 1.0), 1.0);
+  ivec2 p = ivec2(gl_FragCoord.xy);
+  vec3 rgb = (1.0 - u_weight) * texelFetch(u_first, p, 0).rgb + u_weight * texelFetch(u_second, p, 0).rgb;
+  color = vec4(clamp(rgb, 0.0, 1.0), 1.0);
 }
 `;
