@@ -84,6 +84,7 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
     from PIL import Image
 
     from omg4.evaluate import load_model
+    from omg4.metrics import psnr
 
     t0, t1 = load_model(model).config.time_range
     time_ = round((t0 + t1) / 2, 3)
@@ -94,8 +95,7 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
         open_player(browser, f"{url}/index.html?ui=0&time={time_}")
         png = browser.evaluate("document.getElementById('view').toDataURL('image/png')")
     page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
-    mse = float(((page - reference) ** 2).mean())
-    return {"psnr_vs_omg4_render_db": 10 * np.log10(255.0 ** 2 / max(mse, 1e-12)), "psnr_time": time_,
+    return {"psnr_vs_omg4_render_db": psnr(page / 255.0, reference / 255.0), "psnr_time": time_,
             "psnr_size": list(reference.shape[1::-1])}
 
 

@@ -18,6 +18,7 @@ from omg4.cli import main
 from omg4.codec.container import read_container
 from omg4.codec.payload import CompactGrids, decode_payload
 from omg4.io.web_player import MANIFEST, export_web
+from omg4.metrics import psnr
 
 # the page's decoder, every decoded array as the SHA-256 of its bytes (fp16 bit patterns, int32 indices)
 DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {
@@ -77,7 +78,7 @@ def _canvas(browser) -> np.ndarray:
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(10 * np.log10(255.0 ** 2 / max(((a - b) ** 2).mean(), 1e-12)))
+    return psnr(a / 255.0, b / 255.0)
 
 
 @pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 
 from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, container_bytes
 from omg4.codec.entropy import decode_indices, encode_indices
@@ -24,25 +25,17 @@ BROWSER_FLOATS = ("f16", "f16-planes")
 
 
 def browser_decodable(source: str | os.PathLike | bytes) -> bytes:
-    """The bytes of ``source`` (a single-model or sequence ``.omg4`` file) with every section the browser cannot
-    decode re-encoded losslessly; the file's own bytes when it has none."""
-    version, header, sections = _read_versioned(source)
+    """The bytes of ``source`` (a single-model or sequence ``.omg4`` file, or its bytes) with every section the
+    browser cannot decode re-encoded losslessly; the file's own bytes when it has none."""
+    data = bytes(source) if isinstance(source, (bytes, bytearray, memoryview)) else Path(source).read_bytes()
+    version, header, sections = _read_versioned(data)
     if version == SEQUENCE_VERSION:
-        segments = {name: browser_decodable(data) for name, data in sections.items()}
-        if segments == sections:
-            return _original(source)
-        return container_bytes(header, segments, SEQUENCE_VERSION)
+        segments = {name: browser_decodable(segment) for name, segment in sections.items()}
+        return data if segments == sections else container_bytes(header, segments, SEQUENCE_VERSION)
     rewritten, out = _single_model(header, sections)
     if out == sections:
-        return _original(source)
+        return data
     return container_bytes(rewritten, out, container_version(rewritten["codec"], rewritten["encodings"]))
-
-
-def _original(source) -> bytes:
-    if isinstance(source, (bytes, bytearray, memoryview)):
-        return bytes(source)
-    with open(source, "rb") as f:
-        return f.read()
 
 
 def _single_model(header: dict, sections: dict[str, bytes]) -> tuple[dict, dict[str, bytes]]:

@@ -89,9 +89,10 @@ def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list |
             total, rewritten = total + len(data), rewritten or data != original
         write(SEQUENCE, json.dumps({"fps": index.fps, "segments": segments}, indent=1).encode())
     else:
-        data = browser_decodable(model)
+        original = Path(model).read_bytes()
+        data = browser_decodable(original)
         write(MODEL, data)
-        total, rewritten = len(data), data != Path(model).read_bytes()
+        total, rewritten = len(data), data != original
     if cameras:
         presets = [{**c.to_json(), "test": i < test_cameras} for i, c in enumerate(cameras)]
         write(CAMERAS, json.dumps({"cameras": presets}, indent=1).encode())

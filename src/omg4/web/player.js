@@ -75,7 +75,7 @@ async function main() {
   if (!preset) preset = boundsCamera(model.xyz, 960, 540);
   const canvas = $("view");
   const gl = context(canvas);
-  const playback = new Playback(gl, new Compositor(gl), segments, payload, fetchBytes);
+  const playback = new Playback(gl, new Compositor(gl), segments, model, fetchBytes);
   const background = (params.get("background") ?? "0,0,0").split(",").map(Number);
   const state = { camera: fitted(preset, bare), distance: 1, time: t0, playing: true, dirty: true };
   const time = params.get("time");

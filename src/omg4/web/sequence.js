@@ -27,14 +27,14 @@ export function blendWeights(time, ranges) {
 }
 
 export class Playback {
-  /** `segments`: [{url, range: [t0, t1), bytes}] in order; `first`: the first segment's decoded payload. */
+  /** `segments`: [{url, range: [t0, t1), bytes}] in order; `first`: the first segment's model (buildModel). */
   constructor(gl, compositor, segments, first, fetchBytes) {
     this.gl = gl;
     this.compositor = compositor;
     this.segments = segments;
     this.fetchBytes = fetchBytes;
     this.ranges = segments.map((s) => s.range);
-    this.loaded = new Map([[0, this._renderer(buildModel(first))]]);
+    this.loaded = new Map([[0, this._renderer(first)]]);
     this.loading = new Map();
     this.error = null;
     this.shown = [0];
@@ -42,10 +42,6 @@ export class Playback {
 
   _renderer(model) {
     return { model, renderer: new Renderer(this.gl, model) };
-  }
-
-  get first() {
-    return this.loaded.get(0)?.model ?? [...this.loaded.values()][0].model;
   }
 
   _load(k) {

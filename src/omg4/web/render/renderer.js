@@ -74,8 +74,8 @@ function floatTexture(gl, values, count, channels, texelsPerItem = 1) {
   return texture;
 }
 
+/** `parts` ([[array, width]]) side by side: one array of Σ width floats per item. */
 function interleave(n, parts) {
-  // parts: [[array, width]] → one array of Σ width floats per item
   const width = parts.reduce((sum, [, w]) => sum + w, 0);
   const out = new Float32Array(n * width);
   for (let i = 0; i < n; i++) {
@@ -85,7 +85,7 @@ function interleave(n, parts) {
       o += w;
     }
   }
-  return [out, width];
+  return out;
 }
 
 /** The canvas's WebGL2 context with float render targets (one per page: every renderer and the compositor use it). */
@@ -110,33 +110,15 @@ export class Renderer {
     this.slice = compile(gl, sliceShader(model, this.layout), NOTHING, ["v_mean", ...Array.from({ length: 12 }, (_, i) => `v_q${i}`)]);
     this.splat = compile(gl, SPLAT_VERTEX, SPLAT_FRAGMENT);
 
-    const [base] = interleave(n, [[model.xyz, 3], [model.t, 1]]);
-    const [motion] = interleave(n, [[model.gain, 3], [model.varT, 1]]);
-    const feat0 = new Float32Array(4 * n);
-    const feat1 = new Float32Array(4 * n);
-    const covA = new Float32Array(4 * n);
-    const covB = new Float32Array(4 * n);
-    for (let g = 0; g < n; g++) {
-      feat0.set(model.appearance.subarray(6 * g, 6 * g + 4), 4 * g);
-      feat1.set(model.appearance.subarray(6 * g + 4, 6 * g + 6), 4 * g);
-      covA.set(model.cov.subarray(6 * g, 6 * g + 4), 4 * g);
-      covB.set(model.cov.subarray(6 * g + 4, 6 * g + 6), 4 * g);
-    }
+    const base = interleave(n, [[model.xyz, 3], [model.t, 1]]);
+    const motion = interleave(n, [[model.gain, 3], [model.varT, 1]]);
     const h4 = Math.ceil(model.net.hidden / 4);
     this.textures = {
       u_base: floatTexture(gl, base, n, 4), u_motion: floatTexture(gl, motion, n, 4),
-      u_feat0: floatTexture(gl, feat0, n, 4), u_feat1: floatTexture(gl, feat1, n, 4),
-      u_covA: floatTexture(gl, covA, n, 4), u_covB: floatTexture(gl, covB, n, 4),
+      u_feat: floatTexture(gl, model.appearance, n, 6, 2), u_cov: floatTexture(gl, model.cov, n, 6, 2),
+      u_pos: model.positionTerm ? floatTexture(gl, model.positionTerm, n, model.net.hidden, h4)
+        : floatTexture(gl, new Float32Array(4), 1, 4),
     };
-    if (model.positionTerm) {
-      const padded = new Float32Array(n * h4 * 4);
-      for (let g = 0; g < n; g++) {
-        padded.set(model.positionTerm.subarray(g * model.net.hidden, (g + 1) * model.net.hidden), g * h4 * 4);
-      }
-      this.textures.u_pos = floatTexture(gl, padded, n * h4, 4);
-    } else {
-      this.textures.u_pos = floatTexture(gl, new Float32Array(4), 1, 4);
-    }
     this.weightBuffers = [];
     for (let b = 0; b < this.layout.blocks; b++) {
       const start = b * this.layout.blockVec4 * 4;

@@ -63,8 +63,7 @@ precision highp int;
 precision highp sampler2D;
 uniform sampler2D u_base;    // xyz, t
 uniform sampler2D u_motion;  // gain (mean shift per unit time), time variance
-uniform sampler2D u_feat0;   // f_static, f_view.x
-uniform sampler2D u_feat1;   // f_view.yz
+uniform sampler2D u_feat;    // f_static, f_view.x | f_view.yz: two texels per Gaussian
 uniform sampler2D u_pos;     // position term of the first layer, ${h4} texels per Gaussian
 uniform int u_width;
 uniform float u_tau;
@@ -154,8 +153,8 @@ ${rt ? `  for (int i = 0; i < H4; i++) h[i] = max(texelFetch(u_pos, texel(g * H4
     s[r / 4][r % 4] = x;
     sv[r / 4][r % 4] = x;
   }
-  vec4 f0 = texelFetch(u_feat0, texel(g), 0);
-  vec4 f1 = texelFetch(u_feat1, texel(g), 0);
+  vec4 f0 = texelFetch(u_feat, texel(2 * g), 0);
+  vec4 f1 = texelFetch(u_feat, texel(2 * g + 1), 0);
   vec3 fs = f0.xyz;
   vec3 fv = vec3(f0.w, f1.xy);
   for (int c = 0; c < 3; c++) {
@@ -203,9 +202,8 @@ precision highp int;
 precision highp sampler2D;
 layout(location = 0) in vec4 a_mean;    // μ at τ, opacity (the same at the quad's four corners)
 layout(location = 1) in vec4 a_color;   // rgb
-layout(location = 2) in int a_index;    // the Gaussian (its covariance in u_covA, u_covB)
-uniform sampler2D u_covA;  // xx, xy, xz, yy
-uniform sampler2D u_covB;  // yz, zz
+layout(location = 2) in int a_index;    // the Gaussian (its covariance in u_cov)
+uniform sampler2D u_cov;   // xx, xy, xz, yy | yz, zz: two texels per Gaussian
 uniform int u_width;
 uniform mat4 u_view;       // world → camera (OpenCV: x right, y down, z forward)
 uniform vec4 u_K;          // fx, fy, cx, cy in pixels
@@ -218,9 +216,9 @@ void main() {
   float opacity = a_mean.w;
   vec3 m = (u_view * vec4(a_mean.xyz, 1.0)).xyz;
   if (opacity < 1.0 / 255.0 || m.z < 0.2 || m.z > 1e10) { cull(); return; }
-  ivec2 t = ivec2(a_index % u_width, a_index / u_width);
-  vec4 ca = texelFetch(u_covA, t, 0);
-  vec2 cb = texelFetch(u_covB, t, 0).xy;
+  int first = 2 * a_index;
+  vec4 ca = texelFetch(u_cov, ivec2(first % u_width, first / u_width), 0);
+  vec2 cb = texelFetch(u_cov, ivec2((first + 1) % u_width, (first + 1) / u_width), 0).xy;
   mat3 sigma = mat3(ca.x, ca.y, ca.z, ca.y, ca.w, cb.x, ca.z, cb.x, cb.y);
   float fx = u_K.x, fy = u_K.y, cx = u_K.z, cy = u_K.w;
   float tanx = 0.5 * u_size.x / fx, tany = 0.5 * u_size.y / fy;
