@@ -17,6 +17,11 @@ Usage::
     python benchmarks/segments.py quality DATA [--downscale 2] [--segment-frames 50] [--overlap 10]
         [--iterations 1500] [--schedule cpu] [--name basketball]
     python benchmarks/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
+        [--whole-clip]
+
+``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
+together and compressed alike, scored on the same boundary and interior frames; the segmented run's trained
+models (before compression) are scored the same way.
 """
 
 from __future__ import annotations
@@ -86,14 +91,50 @@ def scaling(args) -> None:
         "cameras": args.cameras, "size": [args.width, args.height], "iterations": args.iterations, "rows": rows})
 
 
-def quality(args) -> None:
+def frame_split(model, views, ranges: list, fps: float, rows: list[dict] | None = None) -> dict:
+    """``model``'s PSNR/SSIM on the boundary frames of a sequence with segment ``ranges`` (any model: a whole-clip
+    one is scored on the same frames) and on the others, and its flicker there: the mean absolute difference
+    between consecutive rendered frames of a test camera minus that of the ground truth, over the pairs touching
+    a boundary frame and over the others, and their ratio. ``rows``: :func:`omg4.evaluate.evaluate`'s
+    ``per_view`` of ``model`` when already computed."""
     import numpy as np
     import torch
 
-    from omg4.data import load_scene
     from omg4.data.segments import near_boundary
-    from omg4.evaluate import evaluate, load_model
+    from omg4.evaluate import evaluate
     from omg4.render.view import render_view
+
+    if rows is None:
+        rows = evaluate(model, views, lpips_nets=(), progress=False)["per_view"]
+    near = {(r["camera"], r["frame"]): near_boundary(r["time"], ranges, fps) for r in rows}
+    split = {name: {"num_views": len(chosen), "psnr": float(np.mean([r["psnr"] for r in chosen])),
+                    "ssim": float(np.mean([r["ssim"] for r in chosen]))}
+             for name, chosen in (("boundary", [r for r in rows if near[r["camera"], r["frame"]]]),
+                                  ("interior", [r for r in rows if not near[r["camera"], r["frame"]]]))}
+    by_camera: dict[str, list] = {}
+    for v in views:
+        by_camera.setdefault(v.camera.name, []).append(v)
+    flicker = {"boundary": [], "interior": []}
+    for camera_views in by_camera.values():
+        previous = None
+        for v in sorted(camera_views, key=lambda v: v.timestamp):
+            with torch.no_grad():
+                image = render_view(model, v.camera, v.timestamp)[0].image.clamp(0, 1).numpy()
+            truth = np.moveaxis(v.image(), -1, 0)
+            if previous is not None:
+                excess = float(np.abs(image - previous[0]).mean()) - float(np.abs(truth - previous[1]).mean())
+                touching = near[v.camera.name, v.frame_index] or near[v.camera.name, previous[2]]
+                flicker["boundary" if touching else "interior"].append(excess)
+            previous = (image, truth, v.frame_index)
+    split["flicker"] = {k: float(np.mean(v)) if v else None for k, v in flicker.items()}
+    b, i = split["flicker"]["boundary"], split["flicker"]["interior"]
+    split["flicker_ratio"] = b / i if b is not None and i else None
+    return split
+
+
+def quality(args) -> None:
+    from omg4.data import load_scene
+    from omg4.evaluate import evaluate, load_model
 
     work = Path(args.work) / args.name
     data = Path(args.data) if args.data else work / "scene"
@@ -102,55 +143,52 @@ def quality(args) -> None:
                         str(args.synthetic), "--width", str(args.width), "--height", str(args.height)], env=ENV,
                        check=True, stdout=subprocess.DEVNULL)
     reader = ["--downscale", str(args.downscale)]
+    independent = ["--independent-segments"] if args.independent_segments else []
+    segmented = ["--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), *independent]
+
+    def train_and_compress(run_dir: Path, out: Path, extra: list[str], model: Path, compress_extra: list[str],
+                           iterations: int = args.iterations):
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "omg4", "train", str(data), *reader, "--out", str(run_dir), "--preset",
+                        "cpu-small", "--iterations", str(iterations), "--checkpoint-interval", "0", "--resume",
+                        *extra], env=ENV, check=True, stdout=subprocess.DEVNULL)
+        train_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "omg4", "compress", str(data), *reader, "--model", str(model), "--out",
+                        str(out), "--preset", "M", "--schedule", args.schedule, "--force", *compress_extra], env=ENV,
+                       check=True, stdout=subprocess.DEVNULL)
+        return round(train_s, 1), round(time.perf_counter() - t0, 1)
+
     run_dir, out = work / "run", work / "sequence_M.omg4"
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "omg4", "train", str(data), *reader, "--out", str(run_dir), "--preset",
-                    "cpu-small", "--iterations", str(args.iterations), "--checkpoint-interval", "0",
-                    "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), "--resume",
-                    *(["--independent-segments"] if args.independent_segments else [])],
-                   env=ENV, check=True, stdout=subprocess.DEVNULL)
-    train_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "omg4", "compress", str(data), *reader, "--model", str(run_dir), "--out",
-                    str(out), "--preset", "M", "--schedule", args.schedule, "--force",
-                    *(["--independent-segments"] if args.independent_segments else [])], env=ENV, check=True,
-                   stdout=subprocess.DEVNULL)
-    compress_s = time.perf_counter() - t0
+    train_s, compress_s = train_and_compress(run_dir, out, segmented, run_dir, independent)
     scene = load_scene(data, downscale=args.downscale, progress=False)
     model = load_model(out)
     result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)
-    fps = model.meta["fps"]
-    by_camera: dict[str, list] = {}
-    for v in scene.test_views:
-        by_camera.setdefault(v.camera.name, []).append(v)
-    flicker = {"boundary": [], "interior": []}
-    for views in by_camera.values():
-        views = sorted(views, key=lambda v: v.timestamp)
-        previous = None
-        for v in views:
-            with torch.no_grad():
-                image = render_view(model, v.camera, v.timestamp)[0].image.clamp(0, 1).numpy()
-            truth = v.image()
-            if previous is not None:
-                rendered_change = float(np.abs(image - previous[0]).mean())
-                true_change = float(np.abs(truth - previous[1]).mean())
-                near = near_boundary(v.timestamp, model.ranges, fps) or near_boundary(previous[2], model.ranges, fps)
-                flicker["boundary" if near else "interior"].append(rendered_change - true_change)
-            previous = (image, truth, v.timestamp)
-    summary = {k: float(np.mean(v)) if v else None for k, v in flicker.items()}
+    ranges, fps = model.ranges, model.meta["fps"]
+    compressed = frame_split(model, scene.test_views, ranges, fps, result["per_view"])
     record = {
         "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
         "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
         "iterations_per_segment": args.iterations, "schedule": args.schedule, "segments": model.num_segments,
         "shared_frames_learnt_from": "the video" if args.independent_segments else "the segment before",
         "psnr": result["psnr"], "ssim": result["ssim"], "boundary": result["boundary"],
-        "interior": result["interior"], "flicker": summary,
-        "flicker_ratio": summary["boundary"] / summary["interior"] if summary["interior"] else None,
+        "interior": result["interior"], "flicker": compressed["flicker"], "flicker_ratio": compressed["flicker_ratio"],
         "file_bytes": out.stat().st_size, "bitrate_mbps": result["bitrate_mbps"],
-        "num_gaussians": result["num_gaussians"], "train_s": round(train_s, 1), "compress_s": round(compress_s, 1)}
+        "num_gaussians": result["num_gaussians"], "train_s": train_s, "compress_s": compress_s,
+        "trained": frame_split(load_model(run_dir), scene.test_views, ranges, fps)}
+    if args.whole_clip:  # the control: one model of the whole capture, scored on the same frames
+        whole_dir, whole_out = work / "whole", work / "whole_M.omg4"
+        iterations = args.iterations * model.num_segments  # the segments' training steps, all in one model
+        whole_train_s, whole_compress_s = train_and_compress(whole_dir, whole_out, [],
+                                                             whole_dir / "model.safetensors", [], iterations)
+        record["whole_clip"] = {"iterations": iterations,
+            "trained": frame_split(load_model(whole_dir / "model.safetensors"), scene.test_views, ranges, fps),
+            "compressed": frame_split(load_model(whole_out), scene.test_views, ranges, fps),
+            "file_bytes": whole_out.stat().st_size, "train_s": whole_train_s, "compress_s": whole_compress_s}
     b, i = result["boundary"], result["interior"]
     print(f"{model.num_segments} segments: boundary PSNR {b['psnr']:.2f} / interior {i['psnr']:.2f} dB; flicker "
-          f"{summary['boundary']:.4f} / {summary['interior']:.4f}; {record['bitrate_mbps']:.2f} Mbit/s")
+          f"{compressed['flicker']['boundary']:.4f} / {compressed['flicker']['interior']:.4f}; "
+          f"{record['bitrate_mbps']:.2f} Mbit/s")
     save_record(args.json or RESULTS / f"segments_quality_{args.name}.json", record)
 
 
@@ -170,6 +208,10 @@ def main() -> None:
     q.add_argument("--name", default="synthetic")
     q.add_argument("--independent-segments", action="store_true",
                    help="train and compress each segment on the video alone (--independent-segments)")
+    q.add_argument("--whole-clip", action="store_true",
+                   help="also train (for as many steps as all segments together) and compress one model of the whole "
+                        "capture and score it on the same boundary and interior frames (a control: how much harder "
+                        "those frames are)")
     for p in (s, q):
         p.add_argument("--cameras", type=int, default=6)
         p.add_argument("--width", type=int, default=96)

@@ -101,9 +101,10 @@ def test_a_segment_learns_its_shared_frames_from_the_segment_before(capture, tmp
         np.array_equal(a.image(), b.image()) for a, b in zip(taught.test_views, scene.test_views))
 
 
-def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_live_in_its_time(capture):
-    """Carried: a time centre within three temporal standard deviations (exp of ``scaling_t`` with identity
-    rotations) of the segment's range; then fresh Gaussians up to the cap; over the cap, the most opaque carried."""
+def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_can_be_drawn_in_its_time(capture):
+    """Carried: opacity × exp(−½ gap² / σ_t²) ≥ 1/255, the gap from the time centre to the segment's range (σ_t:
+    exp of ``scaling_t`` with identity rotations); then fresh Gaussians up to the cap; over the cap, the most
+    opaque carried."""
     import dataclasses
     import math
 
@@ -115,16 +116,22 @@ def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_live_in_
 
     scene = load_scene(capture, frames=range(4, 10), progress=False)  # times [4/30, 10/30)
     t0, t1 = scene.time_range
-    centres = [t0 - 0.31, t0 - 0.29, t0 + 0.05, t1 + 0.29, t1 + 0.31, t0 - 2.9, t0 - 3.1]
+    centres = [t0 - 0.5, t0 - 0.32, t0 + 0.05, t1 + 0.2, t1 + 0.31, t0 - 2.9, t0 - 3.6]
     sigmas = [0.1, 0.1, 0.1, 0.1, 0.1, 1.0, 1.0]
-    alive = [i for i, (t, s) in enumerate(zip(centres, sigmas)) if t + 3 * s >= t0 and t - 3 * s <= t1]
-    assert alive == [1, 2, 3, 5]
+    logits = [3.0, 5.0, -1.0, -4.0, 0.0, 1.0, 0.0]
+
+    def peak(t, s, o):
+        gap = max(t0 - t, t - t1, 0.0)
+        return math.exp(-0.5 * (gap / s) ** 2) / (1.0 + math.exp(-o))
+
+    alive = [i for i, args in enumerate(zip(centres, sigmas, logits)) if peak(*args) >= 1 / 255]
+    assert alive == [1, 2, 4, 5]  # 1 and 4 beyond three σ but opaque enough; 3 within two σ but too faint
     before = Gaussians4D.from_points(torch.rand(7, 3), torch.rand(7, 3),
                                      GaussianConfig(time_range=(0.0, 0.2), backbone="rt4dgs"),
                                      generator=torch.Generator().manual_seed(0))
     before.params["t"] = torch.tensor(centres).reshape(-1, 1)
     before.params["scaling_t"] = torch.tensor([math.log(s) for s in sigmas]).reshape(-1, 1)
-    before.params["opacity"] = torch.tensor([0.0, 0.5, -1.0, 2.0, 0.0, 1.0, 0.0]).reshape(-1, 1)
+    before.params["opacity"] = torch.tensor(logits).reshape(-1, 1)
     teacher = WindowedModel(before.params, before.config, 3, 1)
     points = initial_points(scene, "random", CFG)
 
@@ -138,7 +145,17 @@ def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_live_in_
     capped = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=6), points)
     assert capped.num_gaussians == 6  # the four carried and two fresh
     full = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=2), points)
-    torch.testing.assert_close(full.params["t"], before.params["t"][[3, 5]])  # opacities 2.0 and 1.0, in order
+    torch.testing.assert_close(full.params["t"], before.params["t"][[1, 5]])  # logits 5.0 and 1.0, in order
+
+
+def test_a_warm_started_segment_holds_at_most_the_first_segments_gaussians():
+    import dataclasses
+
+    from omg4.train.segmented import segment_budget
+
+    assert segment_budget(dataclasses.replace(CFG, max_gaussians=0), 150).max_gaussians == 150
+    assert segment_budget(dataclasses.replace(CFG, max_gaussians=100), 150).max_gaussians == 100
+    assert segment_budget(dataclasses.replace(CFG, max_gaussians=1000), 150).max_gaussians == 150
 
 
 def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypatch):
@@ -151,15 +168,17 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
     original = segmented.warm_start
 
     def spy(teacher, scene, cfg, points=None):
-        calls.append((teacher.num_gaussians, tuple(scene.time_range)))
+        calls.append((teacher.num_gaussians, tuple(scene.time_range), cfg.max_gaussians))
         return original(teacher, scene, cfg, points)
 
     monkeypatch.setattr(segmented, "warm_start", spy)
     _run(capture, tmp_path / "run", plan)
     trained = [load_gaussians(tmp_path / "run" / s["folder"] / "model.safetensors")[0].num_gaussians
                for s in plan["segments"]]
-    assert [n for n, _ in calls] == trained[:2]
-    assert [r for _, r in calls] == [pytest.approx((4 / 30, 10 / 30)), pytest.approx((8 / 30, 12 / 30))]
+    assert [n for n, _, _ in calls] == trained[:2]
+    assert [r for _, r, _ in calls] == [pytest.approx((4 / 30, 10 / 30)), pytest.approx((8 / 30, 12 / 30))]
+    assert [cap for _, _, cap in calls] == [trained[0]] * 2  # the first segment's count, below CFG's cap
+    assert trained[0] < CFG.max_gaussians and max(trained[1:]) <= trained[0]
     calls.clear()
     independent = tmp_path / "independent"
     write_plan(independent, plan)

@@ -66,9 +66,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                           help="frames neighbouring segments share, blended across (default: F/6, rounded)")
     segments.add_argument("--independent-segments", action="store_true",
                           help="each segment starts afresh and learns every frame from the video (by default a segment "
-                               "starts from the Gaussians of the one before that live in its frames and learns the "
-                               "frames it shares with it from that segment's renders, so they agree where they are "
-                               "blended)")
+                               "starts from the Gaussians of the one before that show in its frames, holds at most as many "
+                               "Gaussians as the first segment, and learns the frames it shares with the one before "
+                               "from that segment's renders, so they agree where they are blended)")
     segments.add_argument("--parallel", choices=PARALLEL_MODES, default=PARALLEL_MODES[0],
                           help="in a distributed run: every rank trains every segment together (data, the default) or "
                                "each rank trains whole segments on its own (segments)")

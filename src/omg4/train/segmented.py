@@ -8,10 +8,12 @@ job the ranks either train every segment together (data-parallel, the default) o
 on their own (``parallel="segments"``: rank r takes segments r, r + W, …).
 
 Neighbours agree where they are blended (beyond the paper): a segment starts from the Gaussians of the one
-before that live in its time range (:func:`warm_start`), so the two render the same shared frames at its first
-step, and it learns those frames from that segment's renders (:func:`taught_by`), not from the video, so the
-crossfade between the two models shows no jump. ``teach=False``, and ``parallel="segments"``, where the segment
-before may not be trained yet, start every segment afresh and learn every frame from the video.
+before that can be drawn in its time range (:func:`warm_start`), so the two render the same shared frames at its
+first step, and it learns those frames from that segment's renders (:func:`taught_by`), not from the video, so the
+crossfade between the two models shows no jump. Such a segment holds at most as many Gaussians as the first one
+(:func:`segment_budget`), so memory stays flat however long the capture. ``teach=False``, and
+``parallel="segments"``, where the segment before may not be trained yet, start every segment afresh and learn
+every frame from the video.
 """
 
 from __future__ import annotations
@@ -98,24 +100,28 @@ def taught_by(scene: Scene, teacher, frames: tuple[int, int], *,
     return dataclasses.replace(scene, train_views=train)
 
 
-def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, *, reach: float = 3.0):
+def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
     """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.evaluate.load_model`
-    gives its checkpoint) Gaussians whose time centre lies
-    within ``reach`` temporal standard deviations of ``scene``'s time range, joined by Gaussians made from
-    ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the segment before never showed — as many as
-    ``cfg.max_gaussians`` leaves room for (the most opaque carried Gaussians first when they alone exceed it)."""
+    gives its checkpoint) Gaussians that can be drawn somewhere in ``scene``'s time range — opacity times the
+    temporal marginal at the time of the range nearest their centre (rt4dgs §1.4) at least the rasterizer's
+    :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a frame — joined
+    by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the segment before
+    never showed, as many as ``cfg.max_gaussians`` leaves room for (the most opaque carried Gaussians first when
+    they alone exceed it)."""
     import dataclasses
 
     from omg4.gaussians.model import Gaussians4D
+    from omg4.render.projection import ALPHA_THRESHOLD
     from omg4.train.trainer import initial_model
 
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
-    sigma_t = teacher.config.schema.motion(values, teacher.config)[2].reshape(-1).clamp_min(0.0).sqrt()
-    t, (t0, t1) = values["t"].reshape(-1), scene.time_range
-    alive = torch.nonzero((t + reach * sigma_t >= t0) & (t - reach * sigma_t <= t1)).reshape(-1)
+    var_t = teacher.config.schema.motion(values, teacher.config)[2].reshape(-1).double()
+    t, (t0, t1) = values["t"].reshape(-1).double(), scene.time_range
+    gap = t - t.clamp(t0, t1)
+    opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
+    alive = torch.nonzero(opacity * torch.exp(-0.5 * gap * gap / var_t) >= ALPHA_THRESHOLD).reshape(-1)
     if cfg.max_gaussians and len(alive) > cfg.max_gaussians:
-        opacity = values["opacity"].reshape(-1)[alive]
-        alive = alive[torch.argsort(opacity, descending=True, stable=True)[: cfg.max_gaussians]].sort().values
+        alive = alive[torch.argsort(opacity[alive], descending=True, stable=True)[: cfg.max_gaussians]].sort().values
     config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
     parts = [{k: values[k][alive] for k in config.schema.param_names}]
     if not cfg.max_gaussians or len(alive) < cfg.max_gaussians:
@@ -123,6 +129,17 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, *, reach: f
         parts.append(initial_model(scene, dataclasses.replace(cfg, max_gaussians=room), points).params)
     return Gaussians4D({k: torch.cat([part[k].detach() for part in parts]) for k in config.schema.param_names},
                        config)  # the trainer sets the active SH degrees of each step
+
+
+def segment_budget(cfg: TrainConfig, first_count: int) -> TrainConfig:
+    """The training settings of a segment that starts from the one before (:func:`warm_start`): at most as many
+    Gaussians as the first segment, which learnt from the video alone, holds (``first_count``), or
+    ``cfg.max_gaussians`` when that is smaller. Without it the carried Gaussians stay and densification adds a
+    fresh segment's worth on top, so every segment would be larger than the one before."""
+    import dataclasses
+
+    cap = min(cfg.max_gaussians, first_count) if cfg.max_gaussians else first_count
+    return dataclasses.replace(cfg, max_gaussians=cap)
 
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
@@ -148,18 +165,20 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             points = None if resume else initial_points(scene)
             before = plan["segments"][seg["index"] - 1] if seg["index"] else None
             shared = shared_frames(before, seg) if teach and parallel != "segments" else None
-            start = None
+            start, seg_cfg = None, cfg
             if shared is not None:
                 from omg4.evaluate import load_model
 
+                first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
+                seg_cfg = segment_budget(cfg, describe_checkpoint(first)["num_gaussians"])
                 teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)
                 if not resume:
-                    start = warm_start(teacher, scene, cfg, points)
+                    start = warm_start(teacher, scene, seg_cfg, points)
                 scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
                                   device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
                 f"{' (resuming)' if resume else ''}")
-            Trainer(scene, cfg, folder, points=points, model=start, resume=resume, log=log,
+            Trainer(scene, seg_cfg, folder, points=points, model=start, resume=resume, log=log,
                     check_replicas=check_replicas).run()
             del scene
     distributed.barrier("training the segments")
@@ -167,4 +186,5 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
              **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
 
 
-__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "shared_frames", "taught_by", "warm_start", "train_segments"]
+__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "shared_frames", "taught_by", "warm_start", "segment_budget",
+           "train_segments"]
