@@ -91,41 +91,39 @@ def scaling(args) -> None:
         "cameras": args.cameras, "size": [args.width, args.height], "iterations": args.iterations, "rows": rows})
 
 
-def frame_split(model, views, ranges: list, fps: float, rows: list[dict] | None = None) -> dict:
+def frame_split(model, views, ranges: list, fps: float) -> dict:
     """``model``'s PSNR/SSIM on the boundary frames of a sequence with segment ``ranges`` (any model: a whole-clip
     one is scored on the same frames) and on the others, and its flicker there: the mean absolute difference
     between consecutive rendered frames of a test camera minus that of the ground truth, over the pairs touching
-    a boundary frame and over the others, and their ratio. ``rows``: :func:`omg4.evaluate.evaluate`'s
-    ``per_view`` of ``model`` when already computed."""
+    a boundary frame and over the others, and their ratio. Each view is rendered once and scored as
+    :func:`omg4.evaluate.evaluate` scores it."""
     import numpy as np
     import torch
 
     from omg4.data.segments import near_boundary
-    from omg4.evaluate import evaluate
+    from omg4.evaluate import view_image
+    from omg4.metrics import psnr, ssim
     from omg4.render.view import render_view
 
-    if rows is None:
-        rows = evaluate(model, views, lpips_nets=(), progress=False)["per_view"]
-    near = {(r["camera"], r["frame"]): near_boundary(r["time"], ranges, fps) for r in rows}
-    split = {name: {"num_views": len(chosen), "psnr": float(np.mean([r["psnr"] for r in chosen])),
-                    "ssim": float(np.mean([r["ssim"] for r in chosen]))}
-             for name, chosen in (("boundary", [r for r in rows if near[r["camera"], r["frame"]]]),
-                                  ("interior", [r for r in rows if not near[r["camera"], r["frame"]]]))}
     by_camera: dict[str, list] = {}
     for v in views:
         by_camera.setdefault(v.camera.name, []).append(v)
+    scores = {"boundary": [], "interior": []}
     flicker = {"boundary": [], "interior": []}
     for camera_views in by_camera.values():
         previous = None
         for v in sorted(camera_views, key=lambda v: v.timestamp):
             with torch.no_grad():
-                image = render_view(model, v.camera, v.timestamp)[0].image.clamp(0, 1).numpy()
-            truth = np.moveaxis(v.image(), -1, 0)
+                image = render_view(model, v.camera, v.timestamp)[0].image.clamp(0, 1)
+            truth = view_image(v)
+            near = near_boundary(v.timestamp, ranges, fps)
+            scores["boundary" if near else "interior"].append((psnr(image, truth), float(ssim(image, truth))))
             if previous is not None:
-                excess = float(np.abs(image - previous[0]).mean()) - float(np.abs(truth - previous[1]).mean())
-                touching = near[v.camera.name, v.frame_index] or near[v.camera.name, previous[2]]
-                flicker["boundary" if touching else "interior"].append(excess)
-            previous = (image, truth, v.frame_index)
+                excess = float((image - previous[0]).abs().mean()) - float((truth - previous[1]).abs().mean())
+                flicker["boundary" if near or previous[2] else "interior"].append(excess)
+            previous = (image, truth, near)
+    split = {name: {"num_views": len(rows), "psnr": float(np.mean([p for p, _ in rows])),
+                    "ssim": float(np.mean([q for _, q in rows]))} for name, rows in scores.items()}
     split["flicker"] = {k: float(np.mean(v)) if v else None for k, v in flicker.items()}
     b, i = split["flicker"]["boundary"], split["flicker"]["interior"]
     split["flicker_ratio"] = b / i if b is not None and i else None
@@ -165,7 +163,7 @@ def quality(args) -> None:
     model = load_model(out)
     result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)
     ranges, fps = model.ranges, model.meta["fps"]
-    compressed = frame_split(model, scene.test_views, ranges, fps, result["per_view"])
+    compressed = frame_split(model, scene.test_views, ranges, fps)
     record = {
         "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
         "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,

@@ -31,6 +31,14 @@ MAX_CACHED_TERMS = 2**27
 """Largest cached MLP position part (N × hidden floats, 512 MiB); a bigger model encodes its rows per frame."""
 
 
+def peak_marginal(t: torch.Tensor, var_t: torch.Tensor, a: float, b: float) -> torch.Tensor:
+    """[N] float64: the largest temporal marginal exp(−½ (τ − μ_t)² / Σtt) over τ ∈ [a, b] of Gaussians with time
+    centres ``t`` and temporal variances ``var_t`` — at τ* = clamp(μ_t, a, b) (rt4dgs §1.4)."""
+    mu = t.detach().double().reshape(-1)
+    gap = mu - mu.clamp(a, b)
+    return torch.exp(-0.5 * gap * gap / var_t.detach().double().reshape(-1))
+
+
 @dataclass
 class VisibilityIndex:
     """Candidate rows per time window.
@@ -48,13 +56,8 @@ class VisibilityIndex:
               windows: int = DEFAULT_WINDOWS) -> "VisibilityIndex":
         """The index of Gaussians with time centres ``t`` [N] and temporal variances ``var_t`` [N]."""
         edges = torch.linspace(time_range[0], time_range[1], windows + 1, dtype=torch.float64, device="cpu")
-        mu = t.detach().double().reshape(-1)
-        var = var_t.detach().double().reshape(-1)
-        rows = []
-        for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
-            gap = mu - mu.clamp(a, b)
-            peak = torch.exp(-0.5 * gap * gap / var)
-            rows.append((peak > 0.5 * time_cull).nonzero().squeeze(1).to(t.device))
+        rows = [(peak_marginal(t, var_t, a, b) > 0.5 * time_cull).nonzero().squeeze(1).to(t.device)
+                for a, b in zip(edges[:-1].tolist(), edges[1:].tolist())]
         return VisibilityIndex(edges, rows)
 
     def __post_init__(self):

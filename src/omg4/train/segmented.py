@@ -103,23 +103,23 @@ def taught_by(scene: Scene, teacher, frames: tuple[int, int], *,
 def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
     """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.evaluate.load_model`
     gives its checkpoint) Gaussians that can be drawn somewhere in ``scene``'s time range — opacity times the
-    temporal marginal at the time of the range nearest their centre (rt4dgs §1.4) at least the rasterizer's
-    :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a frame — joined
-    by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the segment before
-    never showed, as many as ``cfg.max_gaussians`` leaves room for (the most opaque carried Gaussians first when
-    they alone exceed it)."""
+    peak temporal marginal over the range (:func:`~omg4.gaussians.visibility.peak_marginal`) at least the
+    rasterizer's :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a
+    frame — joined by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the
+    segment before never showed, as many as ``cfg.max_gaussians`` leaves room for (the most opaque carried
+    Gaussians first when they alone exceed it)."""
     import dataclasses
 
     from omg4.gaussians.model import Gaussians4D
+    from omg4.gaussians.visibility import peak_marginal
     from omg4.render.projection import ALPHA_THRESHOLD
     from omg4.train.trainer import initial_model
 
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
-    var_t = teacher.config.schema.motion(values, teacher.config)[2].reshape(-1).double()
-    t, (t0, t1) = values["t"].reshape(-1).double(), scene.time_range
-    gap = t - t.clamp(t0, t1)
+    var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
-    alive = torch.nonzero(opacity * torch.exp(-0.5 * gap * gap / var_t) >= ALPHA_THRESHOLD).reshape(-1)
+    peak = opacity * peak_marginal(values["t"], var_t, *scene.time_range)
+    alive = torch.nonzero(peak >= ALPHA_THRESHOLD).reshape(-1)
     if cfg.max_gaussians and len(alive) > cfg.max_gaussians:
         alive = alive[torch.argsort(opacity[alive], descending=True, stable=True)[: cfg.max_gaussians]].sort().values
     config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
