@@ -17,8 +17,9 @@ Usage::
     python benchmarks/segments.py quality DATA [--downscale 2] [--segment-frames 50] [--overlap 10]
         [--iterations 1500] [--schedule cpu] [--name basketball]
     python benchmarks/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
-        [--whole-clip]
+        [--whole-clip] [--compress-from-video]
 
+``--compress-from-video`` compresses segments trained as usual (from the segment before) from the video alone.
 ``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
 together and compressed alike, scored on the same boundary and interior frames; the segmented run's trained
 models (before compression) are scored the same way.
@@ -143,6 +144,7 @@ def quality(args) -> None:
     reader = ["--downscale", str(args.downscale)]
     independent = ["--independent-segments"] if args.independent_segments else []
     segmented = ["--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), *independent]
+    compress_independent = ["--independent-segments"] if args.independent_segments or args.compress_from_video else []
 
     def train_and_compress(run_dir: Path, out: Path, extra: list[str], model: Path, compress_extra: list[str],
                            iterations: int = args.iterations):
@@ -158,7 +160,7 @@ def quality(args) -> None:
         return round(train_s, 1), round(time.perf_counter() - t0, 1)
 
     run_dir, out = work / "run", work / "sequence_M.omg4"
-    train_s, compress_s = train_and_compress(run_dir, out, segmented, run_dir, independent)
+    train_s, compress_s = train_and_compress(run_dir, out, segmented, run_dir, compress_independent)
     scene = load_scene(data, downscale=args.downscale, progress=False)
     model = load_model(out)
     result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)
@@ -169,6 +171,7 @@ def quality(args) -> None:
         "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
         "iterations_per_segment": args.iterations, "schedule": args.schedule, "segments": model.num_segments,
         "shared_frames_learnt_from": "the video" if args.independent_segments else "the segment before",
+        "compression_shared_frames_learnt_from": "the video" if compress_independent else "the segment before",
         "psnr": result["psnr"], "ssim": result["ssim"], "boundary": result["boundary"],
         "interior": result["interior"], "flicker": compressed["flicker"], "flicker_ratio": compressed["flicker_ratio"],
         "file_bytes": out.stat().st_size, "bitrate_mbps": result["bitrate_mbps"],
@@ -206,6 +209,8 @@ def main() -> None:
     q.add_argument("--name", default="synthetic")
     q.add_argument("--independent-segments", action="store_true",
                    help="train and compress each segment on the video alone (--independent-segments)")
+    q.add_argument("--compress-from-video", action="store_true",
+                   help="segments trained from the segment before, compressed from the video alone")
     q.add_argument("--whole-clip", action="store_true",
                    help="also train (for as many steps as all segments together) and compress one model of the whole "
                         "capture and score it on the same boundary and interior frames (a control: how much harder "
