@@ -144,7 +144,7 @@ def quality(args) -> None:
     reader = ["--downscale", str(args.downscale)]
     independent = ["--independent-segments"] if args.independent_segments else []
     segmented = ["--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), *independent]
-    compress_independent = ["--independent-segments"] if args.independent_segments or args.compress_from_video else []
+    compress_independent = independent or (["--independent-segments"] if args.compress_from_video else [])
 
     def train_and_compress(run_dir: Path, out: Path, extra: list[str], model: Path, compress_extra: list[str],
                            iterations: int = args.iterations):

@@ -56,7 +56,8 @@ class VisibilityIndex:
               windows: int = DEFAULT_WINDOWS) -> "VisibilityIndex":
         """The index of Gaussians with time centres ``t`` [N] and temporal variances ``var_t`` [N]."""
         edges = torch.linspace(time_range[0], time_range[1], windows + 1, dtype=torch.float64, device="cpu")
-        rows = [(peak_marginal(t, var_t, a, b) > 0.5 * time_cull).nonzero().squeeze(1).to(t.device)
+        mu, var = t.detach().double().reshape(-1), var_t.detach().double().reshape(-1)  # converted once, not per window
+        rows = [(peak_marginal(mu, var, a, b) > 0.5 * time_cull).nonzero().squeeze(1).to(t.device)
                 for a, b in zip(edges[:-1].tolist(), edges[1:].tolist())]
         return VisibilityIndex(edges, rows)
 
