@@ -19,7 +19,7 @@ Usage::
     python benchmarks/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
         [--whole-clip] [--compress-from-video]
 
-``--compress-from-video`` compresses segments trained as usual (from the segment before) from the video alone.
+``--compress-from-video`` compresses segments trained as usual (taught by the segment before) from the video alone.
 ``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
 together and compressed alike, scored on the same boundary and interior frames; the segmented run's trained
 models (before compression) are scored the same way.
@@ -41,6 +41,7 @@ from environment import save_record
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+TAUGHT = "the crossfade from the segment before into the video"  # omg4.train.segmented.taught_by
 
 
 def run(args: list[str]) -> dict:
@@ -170,8 +171,8 @@ def quality(args) -> None:
         "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
         "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
         "iterations_per_segment": args.iterations, "schedule": args.schedule, "segments": model.num_segments,
-        "shared_frames_learnt_from": "the video" if args.independent_segments else "the segment before",
-        "compression_shared_frames_learnt_from": "the video" if compress_independent else "the segment before",
+        "shared_frames_learnt_from": "the video" if args.independent_segments else TAUGHT,
+        "compression_shared_frames_learnt_from": "the video" if compress_independent else TAUGHT,
         "psnr": result["psnr"], "ssim": result["ssim"], "boundary": result["boundary"],
         "interior": result["interior"], "flicker": compressed["flicker"], "flicker_ratio": compressed["flicker_ratio"],
         "file_bytes": out.stat().st_size, "bitrate_mbps": result["bitrate_mbps"],

@@ -38,7 +38,7 @@ def segmented(tmp_path_factory):
 @pytest.mark.parametrize("teach", [False, True])
 def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_path, teach):
     """Independent segments: each the file of its own scene; taught ones: segment 1's scene shows, for the shared
-    frames 4 and 5, the renders of segment 0 as decoded from the sequence."""
+    frames 4 and 5, the crossfade from the renders of segment 0, as decoded from the sequence, into the video."""
     import torch
 
     from omg4.codec.decoder import CompactModel

@@ -73,9 +73,10 @@ def test_a_folder_holding_another_plan_is_refused_and_modes_are_checked(capture,
         train_segments(tmp_path / "run", plan, CFG, None, None, parallel="frames")
 
 
-def test_a_segment_learns_its_shared_frames_from_the_segment_before(capture, tmp_path):
-    """The training views of the frames a segment shares with the one before show that segment's renders; the
-    others, and every test view, show the video."""
+def test_a_segment_learns_its_shared_frames_as_the_crossfade_from_the_segment_before_into_the_video(capture, tmp_path):
+    """The training views of the frames 4 and 5 a segment shares with the one before show (1 − w)·that segment's
+    render + w·video, w the weight playback gives the new segment there (0 at frame 4, ½ at frame 5: linear over
+    the two shared frames); the others, and every test view, show the video."""
     import numpy as np
     import torch
 
@@ -88,15 +89,16 @@ def test_a_segment_learns_its_shared_frames_from_the_segment_before(capture, tmp
     teacher = load_model(tmp_path / "run" / "segment_000" / "model.safetensors")
     scene = load_scene(capture, frames=range(4, 10), progress=False)
     taught = taught_by(scene, teacher, (4, 6))
-    shared = [v for v in taught.train_views if v.frame_index < 6]
-    assert len(shared) == 2 * 3  # frames 4 and 5 of the 3 training cameras
-    for v in shared:
+    assert sum(v.frame_index < 6 for v in taught.train_views) == 2 * 3  # frames 4 and 5 of the 3 training cameras
+    for v, original in zip(taught.train_views, scene.train_views):
+        if v.frame_index >= 6:
+            np.testing.assert_array_equal(v.image(), original.image())
+            continue
+        w = {4: 0.0, 5: 0.5}[v.frame_index]
         with torch.no_grad():
-            expected = render_view(teacher, v.camera, v.timestamp)[0].image.clamp(0, 1).numpy()
-        np.testing.assert_array_equal(v.image(), expected)
-    for plain, original in zip(taught.train_views, scene.train_views):
-        if plain.frame_index >= 6:
-            np.testing.assert_array_equal(plain.image(), original.image())
+            render = render_view(teacher, v.camera, v.timestamp)[0].image.clamp(0, 1).double().numpy()
+        np.testing.assert_allclose(v.image(), (1 - w) * render + w * original.image(), atol=1e-6)
+        assert v.frame_index == 5 or not np.allclose(v.image(), original.image(), atol=1e-2)  # frame 4: the render
     assert all(
         np.array_equal(a.image(), b.image()) for a, b in zip(taught.test_views, scene.test_views))
 

@@ -68,7 +68,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                           help="each segment starts afresh and learns every frame from the video (by default a segment "
                                "starts from the Gaussians of the one before that show in its frames, holds at most as many "
                                "Gaussians as the first segment, and learns the frames it shares with the one before "
-                               "from that segment's renders, so they agree where they are blended)")
+                               "as the crossfade from that segment's renders into the video, so the blend of the two "
+                               "has no jump)")
     segments.add_argument("--parallel", choices=PARALLEL_MODES, default=PARALLEL_MODES[0],
                           help="in a distributed run: every rank trains every segment together (data, the default) or "
                                "each rank trains whole segments on its own (segments)")

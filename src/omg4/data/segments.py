@@ -53,6 +53,12 @@ def plan_segments(num_frames: int, segment_frames: int | None, overlap: int = 0)
             for i, s in enumerate(range(0, num_frames - overlap, step))]
 
 
+def crossfade_weight(position: float, shared_start: float, shared_stop: float) -> float:
+    """The later segment's weight at ``position`` (a time, or a frame) in the span ``[shared_start, shared_stop)`` two
+    neighbouring segments share: rising linearly from 0 at its start towards 1 at its end."""
+    return (position - shared_start) / (shared_stop - shared_start)
+
+
 def blend_weights(time: float, ranges: list[tuple[float, float]]) -> list[tuple[int, float]]:
     """(segment, weight) pairs, weights summing to 1, for a frame at ``time``, given each segment's time range
     ``[t0, t1)`` in order (a frame at ``f / fps`` belongs to the segment holding frame ``f``).
@@ -65,7 +71,7 @@ def blend_weights(time: float, ranges: list[tuple[float, float]]) -> list[tuple[
     for a in range(len(ranges) - 1):
         shared_start, shared_stop = ranges[a + 1][0], ranges[a][1]
         if shared_start <= time < shared_stop:
-            w = (time - shared_start) / (shared_stop - shared_start)
+            w = crossfade_weight(time, shared_start, shared_stop)
             return [(a, 1.0 - w), (a + 1, w)] if w > 0.0 else [(a, 1.0)]
     holding = [a for a, (t0, t1) in enumerate(ranges) if t0 <= time < t1]
     if holding:
@@ -114,5 +120,5 @@ def read_run_plan(run_dir: Path) -> dict:
     return plan
 
 
-__all__ = ["PLAN_FILE", "Segment", "plan_segments", "blend_weights", "near_boundary", "segment_folder", "is_segmented_run",
-           "read_run_plan"]
+__all__ = ["PLAN_FILE", "Segment", "plan_segments", "crossfade_weight", "blend_weights", "near_boundary",
+           "segment_folder", "is_segmented_run", "read_run_plan"]

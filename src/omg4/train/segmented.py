@@ -9,9 +9,10 @@ on their own (``parallel="segments"``: rank r takes segments r, r + W, …).
 
 Neighbours agree where they are blended (beyond the paper): a segment starts from the Gaussians of the one
 before that can be drawn in its time range (:func:`warm_start`), so the two render the same shared frames at its
-first step, and it learns those frames from that segment's renders (:func:`taught_by`), not from the video, so the
-crossfade between the two models shows no jump. Such a segment holds at most as many Gaussians as the first one
-(:func:`segment_budget`), so memory stays flat however long the capture. ``teach=False``, and
+first step, and it learns those frames as the crossfade from that segment's renders into the video
+(:func:`taught_by`), so the blend of the two models moves from one to the other without a jump. Such a segment
+holds at most as many Gaussians as the first one (:func:`segment_budget`), so memory stays flat however long the
+capture. ``teach=False``, and
 ``parallel="segments"``, where the segment before may not be trained yet, start every segment afresh and learn
 every frame from the video.
 """
@@ -23,6 +24,7 @@ import json
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 
 from omg4 import distributed
@@ -72,30 +74,36 @@ def shared_frames(before: dict | None, seg: dict) -> tuple[int, int] | None:
 def taught_by(scene: Scene, teacher, frames: tuple[int, int], *,
               background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto",
               device: str | torch.device = "cpu") -> Scene:
-    """``scene`` whose training views of the frames ``[start, stop)`` show ``teacher``'s renders (on
-    ``background``, rendered once, when first asked for) instead of the video; test views keep the video."""
+    """``scene`` whose training views of the frames ``[start, stop)`` it shares with the segment before show the
+    crossfade of ``teacher``'s render (that segment's, on ``background``, rendered once, when first asked for) into
+    the video, at the weights playback blends the two segments with (:func:`~omg4.data.segments.crossfade_weight`):
+    the segment learns to agree with the one before where playback shows mostly that one, and the video where it
+    shows mostly itself, so the blend moves from one to the other without a jump. Test views keep the video."""
     import dataclasses
 
+    from omg4.data.segments import crossfade_weight
     from omg4.device import resolve_device
     from omg4.render.view import render_view
 
     device = resolve_device(device)
     background = torch.tensor(background, dtype=torch.float32, device=device)
+    start, stop = frames
 
-    def render(view):
+    def target(view):
         cache = {}
+        weight = crossfade_weight(view.frame_index, start, stop)
 
         def image():
             if "image" not in cache:
                 with torch.no_grad():
                     rendered = render_view(teacher, view.camera, view.timestamp, background=background,
                                            backend=backend, device=device)[0]
-                cache["image"] = rendered.image.clamp(0.0, 1.0).cpu().numpy()
+                taught = rendered.image.clamp(0.0, 1.0).cpu().numpy()
+                cache["image"] = ((1.0 - weight) * taught + weight * view.image()).astype(np.float32)
             return cache["image"]
         return image
 
-    start, stop = frames
-    train = [dataclasses.replace(v, loader=render(v)) if start <= v.frame_index < stop else v
+    train = [dataclasses.replace(v, loader=target(v)) if start <= v.frame_index < stop else v
              for v in scene.train_views]
     return dataclasses.replace(scene, train_views=train)
 
