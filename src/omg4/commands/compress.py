@@ -70,8 +70,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, help="write the stage log and sizes as JSON")
     p.add_argument("--independent-segments", action="store_true",
                    help="a segmented run: each segment learns every frame from the video (by default a segment "
-                        "learns the frames it shares with the one before as the crossfade from that segment's compressed "
-                        "renders into the video)")
+                        "learns the frames it shares with the one before as the crossfade from that segment's "
+                        "compressed renders into the video)")
     add_force_argument(p)
     add_distributed_arguments(p)
     add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",

@@ -127,8 +127,8 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     One segment's scene and models are held at a time, and the segment before's compressed model: with ``teach``
     a segment's training views of the frames it shares with the one before show the crossfade from that model's
     renders into the video (:func:`omg4.train.segmented.taught_by`), so the two compressed models agree where
-    playback shows mostly the one before (beyond the paper). Returns the report: per segment the :func:`compress_to_file` report, and the file's bytes,
-    duration and bitrate.
+    playback shows mostly the one before (beyond the paper). Returns the report: per segment the
+    :func:`compress_to_file` report, and the file's bytes, duration and bitrate.
     """
     import shutil
 

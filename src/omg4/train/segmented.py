@@ -12,9 +12,8 @@ before that can be drawn in its time range (:func:`warm_start`), so the two rend
 first step, and it learns those frames as the crossfade from that segment's renders into the video
 (:func:`taught_by`), so the blend of the two models moves from one to the other without a jump. Such a segment
 holds at most as many Gaussians as the first one (:func:`segment_budget`), so memory stays flat however long the
-capture. ``teach=False``, and
-``parallel="segments"``, where the segment before may not be trained yet, start every segment afresh and learn
-every frame from the video.
+capture. ``teach=False``, and ``parallel="segments"``, where the segment before may not be trained yet, start every
+segment afresh and learn every frame from the video.
 """
 
 from __future__ import annotations
