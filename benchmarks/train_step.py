@@ -1,4 +1,4 @@
-"""Benchmark: one training step and one compression step — wall time and aten operations (the CPU proxy of GPU kernel launches).
+"""Benchmark: one training step and one compression step — wall time and aten operations (the CPU proxy of GPU kernel launches); on CUDA also the kernels launched and the GPU busy share (torch profiler).
 
 On a GPU a step is bound by kernel launches and Python, not by the rasterizer; the number
 of aten operations a step dispatches (forward, backward and optimizer together) is the
@@ -135,8 +135,34 @@ def measure(step_fn, device: str, warmup: int, steps: int) -> dict:
     with counter:
         step_fn(i + 1)
     top = counter.ops.most_common(8)
-    return {"ms_per_step": 1000 * statistics.median(times), "ms_min": 1000 * min(times),
-            "aten_ops_per_step": sum(counter.ops.values()), "top_ops": dict(top)}
+    row = {"ms_per_step": 1000 * statistics.median(times), "ms_min": 1000 * min(times),
+           "aten_ops_per_step": sum(counter.ops.values()), "top_ops": dict(top)}
+    if device.startswith("cuda"):
+        row.update(gpu_profile(step_fn, i + 2, row["ms_per_step"]))
+    return row
+
+
+def gpu_profile(step_fn, i: int, ms_per_step: float) -> dict:
+    """One step under ``torch.profiler``: the device operations it launches (kernels, copies, fills), the GPU time
+    they take (overlaps merged) and that time's share of the median step — the GPU busy share."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        step_fn(i)
+        torch.cuda.synchronize()
+    device_ops = [e for e in prof.events() if e.device_type == DeviceType.CUDA]
+    spans = sorted((e.time_range.start, e.time_range.end) for e in device_ops)
+    busy_us, end = 0.0, float("-inf")
+    for start, stop in spans:  # union of the intervals
+        busy_us += max(0.0, stop - max(start, end))
+        end = max(end, stop)
+    copies = sum(e.name.startswith(("Memcpy", "Memset")) for e in device_ops)
+    top = Counter(e.name[:60] for e in device_ops).most_common(6)
+    return {"gpu_launches_per_step": len(device_ops) - copies, "gpu_copies_per_step": copies,
+            "gpu_busy_ms": busy_us / 1000, "gpu_busy_share": busy_us / 1000 / ms_per_step,
+            "top_kernels": dict(top)}
 
 
 def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, model_path: Path | None = None) -> dict:
@@ -193,6 +219,12 @@ def main(argv: list[str] | None = None) -> int:
                   f"train {row['train']['ms_per_step']:8.1f} ms {row['train']['aten_ops_per_step']:6d} ops | "
                   f"compress {row['compress']['ms_per_step']:8.1f} ms {row['compress']['aten_ops_per_step']:6d} ops",
                   flush=True)
+            if kind == "cuda":
+                for part in ("train", "compress"):
+                    r = row[part]
+                    print(f"  {part}: {r['gpu_launches_per_step']} kernels + {r['gpu_copies_per_step']} copies/fills "
+                          f"per step, GPU busy {r['gpu_busy_ms']:.1f} ms ({100 * r['gpu_busy_share']:.0f}%); "
+                          f"top {r['top_kernels']}", flush=True)
     result = {"command": shlex.join(["python", "benchmarks/train_step.py", *(sys.argv[1:] if argv is None else argv)]),
               **code_under_test(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     if kind == "cuda":

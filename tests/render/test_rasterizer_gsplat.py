@@ -22,19 +22,26 @@ def rel_err(a, b):
 
 
 def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, calls=None, **kw):
-    """A CPU stand-in for ``gsplat.rasterization``: our projection and a differentiable toy render."""
+    """A CPU stand-in for ``gsplat.rasterization`` with its batch axis (``means [B, M, 3]``, one camera per batch
+    entry): our projection and a differentiable toy render of the Gaussians it keeps."""
     if calls is not None:
-        calls.update(kw, quats=quats, scales=scales, viewmats=viewmats.shape, Ks=Ks.shape)
-    p = project_gaussians(means, kw["covars"], viewmats[0], Ks[0], width, height, opacities=opacities)
-    means2d = p.means2d[None]  # [1, N, 2] non-leaf, as gsplat's info["means2d"]
-    radii = p.radii[None]
-    feats = torch.cat([colors, p.depths[:, None]], -1)  # [N, C+1]
-    w = torch.exp(-((means2d[0] - 3.0) ** 2).sum(-1))  # any differentiable function of means2d
-    render = (w[:, None] * feats).sum(0).expand(1, height, width, feats.shape[1])
-    if kw["backgrounds"] is not None:
-        render = render + torch.cat([kw["backgrounds"], torch.zeros(1, 1)], -1)[:, None, None]
-    alphas = w.sum().clamp(max=1).expand(1, height, width, 1)
-    return render, alphas, {"means2d": means2d, "radii": radii}
+        calls.update(kw, quats=quats, scales=scales, viewmats=viewmats.shape, Ks=Ks.shape, means=means.shape)
+    projected = [project_gaussians(means[b], kw["covars"][b], viewmats[b, 0], Ks[b, 0], width, height,
+                                   opacities=opacities[b]) for b in range(means.shape[0])]
+    means2d = torch.stack([p.means2d for p in projected])[:, None]  # [B, 1, M, 2] non-leaf, as info["means2d"]
+    radii = torch.stack([p.radii for p in projected])[:, None]
+    renders, alphas = [], []
+    for b, p in enumerate(projected):
+        kept = (p.radii > 0).all(-1)
+        m = torch.where(kept[:, None], means2d[b, 0], 0.0)
+        feats = torch.cat([colors[b], p.depths[:, None]], -1)  # [M, C+1]
+        w = torch.where(kept, torch.exp(-((m - 3.0) ** 2).sum(-1)), 0.0)  # any differentiable function of means2d
+        render = (w[:, None] * feats).sum(0).expand(height, width, feats.shape[1])
+        if kw["backgrounds"] is not None:
+            render = render + torch.cat([kw["backgrounds"][b, 0], torch.zeros(1)])
+        renders.append(render)
+        alphas.append(w.sum().clamp(max=1).expand(height, width, 1))
+    return torch.stack(renders)[:, None], torch.stack(alphas)[:, None], {"means2d": means2d, "radii": radii}
 
 
 def test_adapter_maps_gsplat_outputs(monkeypatch):
@@ -44,9 +51,9 @@ def test_adapter_maps_gsplat_outputs(monkeypatch):
     sc = random_scene(0, 12, 10, 8, scale=0.2)
     t = sc.tensors(torch.float32)
     r = rasterize(**t, backend="gsplat")
-    assert calls["quats"] is None and calls["scales"] is None and calls["covars"].shape == (12, 3, 3)
+    assert calls["quats"] is None and calls["scales"] is None and calls["covars"].shape == (1, 12, 3, 3)
     assert calls["render_mode"] == "RGB+D" and calls["packed"] is False and calls["eps2d"] == 0.3
-    assert calls["near_plane"] == 0.2 and calls["viewmats"] == (1, 4, 4) and calls["backgrounds"].shape == (1, 3)
+    assert calls["near_plane"] == 0.2 and calls["viewmats"] == (1, 1, 4, 4) and calls["backgrounds"].shape == (1, 1, 3)
     assert r.image.shape == (8, 10, 3) and r.depth.shape == (8, 10, 1) and r.alpha.shape == (8, 10, 1)
     p = project_gaussians(t["means"], t["covars"], t["viewmat"], t["K"], 10, 8, opacities=t["opacities"])
     assert torch.equal(r.radii, p.radii.max(-1).values) and r.radii.dtype == torch.int32
@@ -63,11 +70,13 @@ def test_adapter_maps_gsplat_outputs(monkeypatch):
 
 
 def test_batched_adapter_renders_each_view_and_routes_gradients(monkeypatch):
-    """rasterize_views on gsplat: one call per view with that view's rows (given interleaved), images
-    stacked, projected means, radii and ∂L/∂means2d back at the right rows."""
+    """rasterize_views on gsplat: one call whose batch entries hold each view's rows (given interleaved) padded to
+    the largest view; images, projected means, radii and ∂L/∂means2d back at the right rows, as view by view."""
     from omg4.render.api import rasterize_views
 
-    monkeypatch.setattr(gsplat, "rasterization", fake_rasterization)
+    calls = []
+    monkeypatch.setattr(gsplat, "rasterization",
+                        lambda *a, **kw: calls.append(kw["covars"].shape) or fake_rasterization(*a, **kw))
     scenes = [random_scene(seed, n, 10, 8, scale=0.2) for seed, n in ((0, 12), (1, 9), (2, 15))]
     tensors = [sc.tensors(torch.float32) for sc in scenes]
     singles = []
@@ -83,6 +92,7 @@ def test_batched_adapter_renders_each_view_and_routes_gradients(monkeypatch):
                           torch.stack([t["viewmat"] for t in tensors]), torch.stack([t["K"] for t in tensors]), 10, 8,
                           backend="gsplat")
     (out.image.sum() + out.depth.sum()).backward()
+    assert calls[-1] == (3, 15, 3, 3) and len(calls) == len(tensors) + 1  # one call for the batch
     assert out.image.shape == (3, 8, 10, 3)
     inverse = torch.argsort(perm)
     start = 0
@@ -128,3 +138,33 @@ def test_auto_picks_gsplat_on_cuda():
     from omg4.render.api import resolve_backend
 
     assert resolve_backend("auto", torch.device("cuda")) == "gsplat"
+
+
+@needs_cuda
+@pytest.mark.gpu
+def test_gsplat_batch_matches_cpu_backend():
+    """Three views of different row counts, rows interleaved, in one padded gsplat call: images, depths, radii
+    and gradients as the CPU backend's."""
+    from omg4.render.api import rasterize_views
+
+    scenes = [random_scene(seed, n, 96, 64, scale=0.1, opacity=(0.1, 0.99)) for seed, n in ((4, 300), (5, 120), (6, 500))]
+    tensors = [sc.tensors(torch.float32) for sc in scenes]
+    views = torch.tensor([v for v, t in enumerate(tensors) for _ in range(t["means"].shape[0])])
+    perm = torch.randperm(len(views), generator=torch.Generator().manual_seed(1))
+    cams = {"viewmats": torch.stack([t["viewmat"] for t in tensors]), "Ks": torch.stack([t["K"] for t in tensors])}
+    out, leaves = {}, {}
+    for device, backend in (("cpu", "cpu"), ("cuda", "gsplat")):
+        leaves[backend] = {k: torch.cat([t[k].detach() for t in tensors])[perm].to(device).requires_grad_()
+                          for k in ("means", "covars", "colors", "opacities")}
+        r = rasterize_views(*leaves[backend].values(), views[perm].to(device), cams["viewmats"].to(device),
+                            cams["Ks"].to(device), 96, 64, backend=backend)
+        g = torch.Generator().manual_seed(2)
+        weights = [torch.randn(r.image.shape, generator=g).to(device), torch.randn(r.depth.shape, generator=g).to(device)]
+        ((r.image * weights[0]).sum() + (r.depth * weights[1]).sum()).backward()
+        out[backend] = r
+    assert rel_err(out["gsplat"].image, out["cpu"].image) < 1e-4
+    assert rel_err(out["gsplat"].depth, out["cpu"].depth) < 1e-4
+    assert torch.equal(out["gsplat"].radii.cpu() > 0, out["cpu"].radii > 0)
+    assert rel_err(out["gsplat"].means2d.grad, out["cpu"].means2d.grad) < 1e-3
+    for k in ("means", "colors", "opacities"):
+        assert rel_err(leaves["gsplat"][k].grad, leaves["cpu"][k].grad) < 1e-3, k

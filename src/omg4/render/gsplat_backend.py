@@ -1,10 +1,15 @@
-"""GPU backend of :func:`omg4.render.rasterize`: ``gsplat.rasterization`` (gsplat 1.5.3, CUDA).
+"""GPU backend of :func:`omg4.render.rasterize_views`: ``gsplat.rasterization`` (gsplat 1.5.3, CUDA).
 
 As in docs/paper-map.md "Rasterizer backends" (and rt4dgs §8): the Gaussians go in with
-``covars=`` (no quaternions/scales), one camera, ``packed=False`` so per-Gaussian outputs
-keep the input order, and ``render_mode="RGB+D"`` so the extra channel is the
-alpha-weighted depth Σ z·α·T (not the alpha-normalized "ED"). gsplat caps alpha at 0.999
-inside its CUDA kernel, so this backend only accepts ``alpha_max=0.999``.
+``covars=`` (no quaternions/scales), ``packed=False`` so per-Gaussian outputs keep the
+input order, and ``render_mode="RGB+D"`` so the extra channel is the alpha-weighted depth
+Σ z·α·T (not the alpha-normalized "ED"). gsplat caps alpha at 0.999 inside its CUDA
+kernel, so this backend only accepts ``alpha_max=0.999``.
+
+A batch of views renders in one gsplat call: each view's Gaussian rows (its own time slice)
+are padded to the largest view's count along gsplat's leading batch axis, one camera per
+batch entry. Padding rows have opacity 0 and sit one unit behind their camera, so gsplat's
+projection culls them (behind the near plane, below the alpha threshold).
 """
 
 from __future__ import annotations
@@ -17,14 +22,13 @@ GSPLAT_ALPHA_MAX = 0.999
 """The alpha cap hard-coded in gsplat's rasterization kernels."""
 
 
-def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height, *, background=None, near=0.2,
-                     far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16, grad_into=None):
-    """gsplat backend of :func:`omg4.render.rasterize` for one view (same arguments; computes in float32).
+def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks, width, height, *, background=None,
+                           near=0.2, far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
+    """gsplat backend of :func:`omg4.render.api.rasterize_views` (same arguments; computes in float32).
 
     Returns an :class:`omg4.render.Rendered` whose ``means2d [N, 2]`` receives gsplat's
-    ``info["means2d"]`` gradient (pixels) through a hook — or, with ``grad_into=(target,
-    rows)``, rows ``rows`` of ``target.grad`` do — and whose ``radii [N]`` is the larger of
-    gsplat's two box half-widths.
+    ``info["means2d"]`` gradient (pixels) through a hook and whose ``radii [N]`` is the
+    larger of gsplat's two box half-widths.
 
     Raises:
         ValueError: ``alpha_max`` is not 0.999.
@@ -37,54 +41,70 @@ def rasterize_gsplat(means, covars, colors, opacities, viewmat, K, width, height
     from omg4.render.projection import max_radius
 
     like = dict(dtype=torch.float32, device=means.device)
-    n_colors = colors.shape[1]
-    backgrounds = None if background is None else background.to(**like)[None]
+    num_views, n_colors = viewmats.shape[0], colors.shape[1]
+    viewmats, Ks = viewmats.to(**like), Ks.to(**like)
+    slots = ViewSlots(views, means.shape[0], num_views, means.device)
+    rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3:]
+    behind = -(rotations.transpose(1, 2) @ translations)[..., 0] - rotations[:, 2]  # [V, 3]: view depth −1
+    padded_means = torch.where(slots.valid[..., None], slots.pad(means.to(**like)), behind[:, None, :])
+    padded_opacities = torch.where(slots.valid, slots.pad(opacities.to(**like)), 0.0)
+    backgrounds = None if background is None else background.to(**like).expand(num_views, 1, n_colors)
     render, alphas, info = gsplat.rasterization(
-        means.to(**like), None, None, opacities.to(**like), colors.to(**like), viewmat.to(**like)[None],
-        K.to(**like)[None], width, height, near_plane=near, far_plane=far, eps2d=eps2d, backgrounds=backgrounds,
-        packed=False, tile_size=tile_size, render_mode="RGB+D", covars=covars.to(**like), rasterize_mode="classic")
-    radii = info["radii"][0]  # [N, 2] in gsplat 1.5.3
+        padded_means, None, None, padded_opacities, slots.pad(colors.to(**like)), viewmats[:, None], Ks[:, None],
+        width, height, near_plane=near, far_plane=far, eps2d=eps2d, backgrounds=backgrounds, packed=False,
+        tile_size=tile_size, render_mode="RGB+D", covars=slots.pad(covars.to(**like)), rasterize_mode="classic")
+    radii = slots.unpad(info["radii"])  # [N, 2] in gsplat 1.5.3
     visible = (radii > 0).all(dim=-1)
-    means2d = torch.where(visible[:, None], info["means2d"][0].detach(), 0.0)
-    _forward_grad(info["means2d"], *(grad_into or (means2d,)))
-    return Rendered(image=render[0, ..., :n_colors], alpha=alphas[0], depth=render[0, ..., n_colors:],
+    means2d = torch.where(visible[:, None], slots.unpad(info["means2d"]).detach(), 0.0)
+    _forward_grad(info["means2d"], means2d, slots.flat)
+    return Rendered(image=render[:, 0, ..., :n_colors], alpha=alphas[:, 0], depth=render[:, 0, ..., n_colors:],
                     means2d=means2d, radii=max_radius(radii))
 
 
-def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks, width, height, **kwargs):
-    """gsplat backend of :func:`omg4.render.api.rasterize_views`: one ``gsplat.rasterization`` call per view.
+class ViewSlots:
+    """Where each Gaussian row sits in the padded ``[V, M]`` batch, ``M`` being the largest view's row count.
 
-    The views' Gaussian sets differ (each is its own time slice), so they cannot share gsplat's
-    leading camera axis; ``means2d [N, 2]`` gathers every view's rows and their gradients.
+    ``flat [N]`` is each row's index into the flattened batch (no two rows share one); ``valid [V, M]`` marks the
+    slots that hold a row.
     """
 
-    num_views = viewmats.shape[0]
-    if num_views == 1:
-        rows = [torch.arange(means.shape[0], device=means.device)]
-    else:  # one host synchronization for the views' row counts
+    def __init__(self, views: torch.Tensor | None, num_rows: int, num_views: int, device: torch.device):
+        if views is None or num_views == 1:
+            self.shape = (1, num_rows)
+            self.flat = torch.arange(num_rows, device=device)
+            self.valid = torch.ones(self.shape, dtype=torch.bool, device=device)
+            return
+        counts = torch.bincount(views, minlength=num_views)
+        self.shape = (num_views, max(int(counts.max()), 1))  # one host synchronization for the padded width
         order = torch.argsort(views, stable=True)
-        rows = list(order.split(torch.bincount(views, minlength=num_views).tolist()))
-    means2d = torch.zeros(means.shape[0], 2, dtype=torch.float32, device=means.device)
-    parts = [rasterize_gsplat(means[r], covars[r], colors[r], opacities[r], viewmats[v], Ks[v], width, height,
-                              grad_into=(means2d, r), **kwargs) for v, r in enumerate(rows)]
-    radii = torch.zeros(means.shape[0], dtype=torch.int32, device=means.device)
-    for r, part in zip(rows, parts):
-        means2d[r] = part.means2d.detach()
-        radii[r] = part.radii
-    return Rendered(image=torch.stack([p.image for p in parts]), alpha=torch.stack([p.alpha for p in parts]),
-                    depth=torch.stack([p.depth for p in parts]), means2d=means2d, radii=radii)
+        starts = torch.cumsum(counts, 0) - counts
+        rank = torch.empty_like(order)
+        rank[order] = torch.arange(num_rows, device=device) - starts[views[order]]
+        self.flat = views * self.shape[1] + rank
+        self.valid = torch.arange(self.shape[1], device=device)[None, :] < counts[:, None]
+
+    def pad(self, rows: torch.Tensor) -> torch.Tensor:
+        """``rows [N, ...]`` → ``[V, M, ...]``, empty slots zero. Differentiable, and its backward is a gather: a
+        scatter into unique slots, where indexing from the slots would accumulate every empty slot's gradient into
+        one row (a serial reduction on CUDA)."""
+        if self.shape[0] == 1:  # one view: every row in order, no padding
+            return rows[None]
+        batch = rows.new_zeros((self.shape[0] * self.shape[1], *rows.shape[1:]))
+        return batch.index_copy(0, self.flat, rows).reshape(*self.shape, *rows.shape[1:])
+
+    def unpad(self, batch: torch.Tensor) -> torch.Tensor:
+        """gsplat's per-Gaussian output ``[V, 1, M, ...]`` → ``[N, ...]`` in row order."""
+        return batch.reshape(-1, *batch.shape[3:])[self.flat]
 
 
-def _forward_grad(source: torch.Tensor, target: torch.Tensor, rows: torch.Tensor | None = None) -> None:
-    """Accumulate ``source [1, M, 2]``'s gradient into ``target.grad`` (like ``retain_grad``), at ``rows`` of it
-    when given."""
+def _forward_grad(source: torch.Tensor, target: torch.Tensor, flat: torch.Tensor) -> None:
+    """Accumulate ``source [V, 1, M, 2]``'s gradient, at the rows' slots ``flat``, into ``target.grad`` (like
+    ``retain_grad``)."""
     if not source.requires_grad:
         return
 
     def hook(grad: torch.Tensor) -> None:
-        g = grad[0].detach()
-        if rows is not None:
-            g = torch.zeros_like(target).index_add_(0, rows, g)
-        target.grad = g.clone() if target.grad is None else target.grad + g
+        g = grad.reshape(-1, grad.shape[-1])[flat]
+        target.grad = g if target.grad is None else target.grad + g
 
     source.register_hook(hook)
