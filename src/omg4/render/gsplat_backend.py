@@ -46,8 +46,8 @@ def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks
     slots = ViewSlots(views, means.shape[0], num_views, means.device)
     rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3:]
     behind = -(rotations.transpose(1, 2) @ translations)[..., 0] - rotations[:, 2]  # [V, 3]: view depth −1
-    padded_means = torch.where(slots.valid[..., None], slots.pad(means.to(**like)), behind[:, None, :])
-    padded_opacities = torch.where(slots.valid, slots.pad(opacities.to(**like)), 0.0)
+    padded_means = slots.pad(means.to(**like), filler=behind)
+    padded_opacities = slots.pad(opacities.to(**like))
     backgrounds = None if background is None else background.to(**like).expand(num_views, 1, n_colors)
     render, alphas, info = gsplat.rasterization(
         padded_means, None, None, padded_opacities, slots.pad(colors.to(**like)), viewmats[:, None], Ks[:, None],
@@ -64,15 +64,13 @@ def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks
 class ViewSlots:
     """Where each Gaussian row sits in the padded ``[V, M]`` batch, ``M`` being the largest view's row count.
 
-    ``flat [N]`` is each row's index into the flattened batch (no two rows share one); ``valid [V, M]`` marks the
-    slots that hold a row.
+    ``flat [N]`` is each row's index into the flattened batch (no two rows share one).
     """
 
     def __init__(self, views: torch.Tensor | None, num_rows: int, num_views: int, device: torch.device):
         if views is None or num_views == 1:
             self.shape = (1, num_rows)
             self.flat = torch.arange(num_rows, device=device)
-            self.valid = torch.ones(self.shape, dtype=torch.bool, device=device)
             return
         counts = torch.bincount(views, minlength=num_views)
         self.shape = (num_views, max(int(counts.max()), 1))  # one host synchronization for the padded width
@@ -81,16 +79,19 @@ class ViewSlots:
         rank = torch.empty_like(order)
         rank[order] = torch.arange(num_rows, device=device) - starts[views[order]]
         self.flat = views * self.shape[1] + rank
-        self.valid = torch.arange(self.shape[1], device=device)[None, :] < counts[:, None]
 
-    def pad(self, rows: torch.Tensor) -> torch.Tensor:
-        """``rows [N, ...]`` → ``[V, M, ...]``, empty slots zero. Differentiable, and its backward is a gather: a
-        scatter into unique slots, where indexing from the slots would accumulate every empty slot's gradient into
-        one row (a serial reduction on CUDA)."""
+    def pad(self, rows: torch.Tensor, filler: torch.Tensor | None = None) -> torch.Tensor:
+        """``rows [N, ...]`` → ``[V, M, ...]``, the empty slots of view v holding ``filler[v]`` (default zero).
+        Differentiable, and its backward is a gather: a scatter into unique slots, where indexing from the slots
+        would accumulate every empty slot's gradient into one row (a serial reduction on CUDA)."""
         if self.shape[0] == 1:  # one view: every row in order, no padding
             return rows[None]
-        batch = rows.new_zeros((self.shape[0] * self.shape[1], *rows.shape[1:]))
-        return batch.index_copy(0, self.flat, rows).reshape(*self.shape, *rows.shape[1:])
+        tail = rows.shape[1:]
+        if filler is None:
+            batch = rows.new_zeros((self.shape[0] * self.shape[1], *tail))
+        else:
+            batch = filler.to(rows.dtype)[:, None].expand(*self.shape, *tail).reshape(-1, *tail)
+        return batch.index_copy(0, self.flat, rows).reshape(*self.shape, *tail)
 
     def unpad(self, batch: torch.Tensor) -> torch.Tensor:
         """gsplat's per-Gaussian output ``[V, 1, M, ...]`` → ``[N, ...]`` in row order."""
