@@ -1,4 +1,4 @@
-"""Benchmark: one training step and one compression step — wall time and aten operations (the CPU proxy of GPU kernel launches); on CUDA also the kernels launched and the GPU busy share (torch profiler).
+"""Benchmark: one training step and one compression step — wall time and aten operations (the CPU proxy of GPU kernel launches); on CUDA also the kernels launched, their GPU time, the host synchronizations and the GPU busy share (torch profiler).
 
 On a GPU a step is bound by kernel launches and Python, not by the rasterizer; the number
 of aten operations a step dispatches (forward, backward and optimizer together) is the
@@ -12,7 +12,8 @@ steady-state one):
   trained checkpoint given instead, e.g. the demo's baseline ``omg4_demo/baseline/model.safetensors``);
 * ``basketball``: ``../shared/data/n3dv_basketball`` at 320×180 (``--downscale 2``),
   60,000 Gaussians, batch 4;
-* with ``--device cuda``: basketball at 200k and 1M Gaussians, batch 4.
+* with ``--device cuda``: basketball at 200k Gaussians (320×180) and at 1M Gaussians (its full 640×360),
+  batch 4.
 
 "train" is :meth:`omg4.train.Trainer.train_step`; "compress" is
 :meth:`omg4.compress.pipeline.CompressionPipeline.finetune_step` after the appearance,
@@ -95,20 +96,20 @@ def demo_scene(tmp: Path):
     return load_scene(tmp / "demo", progress=False)
 
 
-def basketball_scene():
+def basketball_scene(downscale: int = 2):
     from omg4.data import load_scene
 
     path = SHARED / "n3dv_basketball"
     if not path.is_dir():
         raise SystemExit(f"basketball needs {path} (set OMG4_SHARED_DATA)")
-    return load_scene(path, downscale=2, progress=False)
+    return load_scene(path, downscale=downscale, progress=False)
 
 
 WORKLOADS = {  # name → (scene factory, Gaussians, batch, devices)
     "demo": (demo_scene, 19_000, 2, ("cpu", "cuda")),
     "basketball": (lambda tmp: basketball_scene(), 60_000, 4, ("cpu", "cuda")),
     "basketball-200k": (lambda tmp: basketball_scene(), 200_000, 4, ("cuda",)),
-    "basketball-1m": (lambda tmp: basketball_scene(), 1_000_000, 4, ("cuda",)),
+    "basketball-1m": (lambda tmp: basketball_scene(downscale=1), 1_000_000, 4, ("cuda",)),
 }
 
 
@@ -160,9 +161,30 @@ def gpu_profile(step_fn, i: int, ms_per_step: float) -> dict:
         end = max(end, stop)
     copies = sum(e.name.startswith(("Memcpy", "Memset")) for e in device_ops)
     top = Counter(e.name[:60] for e in device_ops).most_common(6)
+    kernel_us: Counter = Counter()
+    for e in device_ops:
+        kernel_us[e.name[:60]] += e.time_range.end - e.time_range.start
     return {"gpu_launches_per_step": len(device_ops) - copies, "gpu_copies_per_step": copies,
             "gpu_busy_ms": busy_us / 1000, "gpu_busy_share": busy_us / 1000 / ms_per_step,
-            "top_kernels": dict(top)}
+            "host_syncs_per_step": host_synchronizations(step_fn, i + 1),
+            "top_kernels": dict(top), "top_kernels_ms": {k: v / 1000 for k, v in kernel_us.most_common(8)}}
+
+
+def host_synchronizations(step_fn, i: int) -> int:
+    """How often one step makes the host wait for the GPU (a read of a device value, a ``nonzero``, a copy from
+    pageable memory): the warnings of torch's CUDA sync debug mode. Each one drains the GPU's queue, which stays
+    idle until the host has launched the next kernels."""
+    import warnings
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            step_fn(i)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return sum("synchroniz" in str(w.message) for w in caught)
 
 
 def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, model_path: Path | None = None) -> dict:
@@ -223,8 +245,9 @@ def main(argv: list[str] | None = None) -> int:
                 for part in ("train", "compress"):
                     r = row[part]
                     print(f"  {part}: {r['gpu_launches_per_step']} kernels + {r['gpu_copies_per_step']} copies/fills "
-                          f"per step, GPU busy {r['gpu_busy_ms']:.1f} ms ({100 * r['gpu_busy_share']:.0f}%); "
-                          f"top {r['top_kernels']}", flush=True)
+                          f"per step, {r['host_syncs_per_step']} host synchronizations, "
+                          f"GPU busy {r['gpu_busy_ms']:.1f} ms ({100 * r['gpu_busy_share']:.0f}%); "
+                          f"top {r['top_kernels']}; GPU ms {r['top_kernels_ms']}", flush=True)
     result = {"command": shlex.join(["python", "benchmarks/train_step.py", *(sys.argv[1:] if argv is None else argv)]),
               **code_under_test(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     if kind == "cuda":

@@ -19,6 +19,11 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("OMG4_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
 
 
+# Several tests compare the numba kernels with the torch forms bit for bit in float32. Torch's CPU matrix
+# products run in MKL, whose kernels pick their instruction set per processor (AVX-512 on recent Intel chips) and
+# round differently with each; its conditional numerical reproducibility mode makes them round alike everywhere.
+os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+
 # Keep frame caches and converted weights of a test session out of the user's cache folder,
 # in a folder of the session's own that is removed when the session ends.
 if "OMG4_CACHE_DIR" not in os.environ:

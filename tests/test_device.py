@@ -93,3 +93,34 @@ def test_cli_help_lists_the_device_option(capsys):
     with pytest.raises(SystemExit):
         main(["train", "--help"])
     assert "--device DEVICE" in capsys.readouterr().out
+
+
+def test_to_device_on_the_cpu_keeps_the_values():
+    from omg4.device import to_device
+
+    x = torch.arange(6.0).reshape(2, 3)
+    moved = to_device(x, "cpu")
+    assert moved.device.type == "cpu" and torch.equal(moved, x)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.gpu
+def test_a_steps_cameras_times_and_images_reach_the_gpu_without_a_host_synchronization(tiny_scene):
+    """In CUDA's sync debug mode "error" any copy that makes the host wait for the GPU raises; the values that
+    arrive equal the CPU ones."""
+    from omg4.device import to_device
+    from omg4.evaluate import view_image
+    from omg4.render.view import camera_tensors
+
+    view = tiny_scene.train_views[0]
+    expected = [*camera_tensors(view.camera), view_image(view), torch.tensor([view.timestamp], dtype=torch.float64)]
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        got = [*camera_tensors(view.camera, "cuda"), view_image(view, "cuda"),
+               to_device(torch.tensor([view.timestamp], dtype=torch.float64), "cuda")]
+        doubled = [g * 2 for g in got]  # kernels queued behind the copies
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    for g, d, e in zip(got, doubled, expected):
+        assert g.is_cuda and torch.equal(g.cpu(), e) and torch.equal(d.cpu(), 2 * e)

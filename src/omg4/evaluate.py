@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 
 from omg4.data.scene import View
 from omg4.data.segments import near_boundary
+from omg4.device import to_device
 from omg4.errors import OMG4Error
 from omg4.render.view import render_view
 
@@ -97,7 +98,7 @@ def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
     img = view.image()
     if not np.isfinite(img).all():
         raise OMG4Error(f"image of camera {view.camera.name} frame {view.frame_index} contains NaN or Inf")
-    return torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)).to(device)
+    return to_device(torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)), device)
 
 
 def render_image(model, view: View, background: torch.Tensor | None = None, backend: str = "auto",

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from omg4.data.scene import Camera
+from omg4.device import to_device
 
 
 @dataclass
@@ -70,10 +71,8 @@ class BatchSlicedModel(SlicedModel, Protocol):
 
 def camera_tensors(camera: Camera, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(viewmat [4, 4], K [3, 3], centre [3]) as float32 tensors on ``device``."""
-    viewmat = torch.as_tensor(np.asarray(camera.viewmat), dtype=torch.float32, device=device)
-    K = torch.as_tensor(np.asarray(camera.K), dtype=torch.float32, device=device)
-    center = torch.as_tensor(np.asarray(camera.center), dtype=torch.float32, device=device)
-    return viewmat, K, center
+    return tuple(to_device(torch.as_tensor(np.asarray(value), dtype=torch.float32, device="cpu"), device)
+                 for value in (camera.viewmat, camera.K, camera.center))
 
 
 def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, background: torch.Tensor | None = None,
@@ -130,9 +129,9 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
-    tensors = [camera_tensors(c, device) for c in cameras]
-    viewmats, Ks, centers = (torch.stack(parts) for parts in zip(*tensors))
-    times = torch.tensor(timestamps, dtype=torch.float64, device=device)
+    tensors = [camera_tensors(c) for c in cameras]
+    viewmats, Ks, centers = (to_device(torch.stack(parts), device) for parts in zip(*tensors))
+    times = to_device(torch.tensor(timestamps, dtype=torch.float64, device="cpu"), device)
     sl = model.slice_views(times, centers)
     width, height = sizes.pop()
     views = sl.views if len(cameras) > 1 else None
