@@ -92,7 +92,8 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
                     str(time_), "--out", str(tmp / "reference.png")], check=True, capture_output=True)
     reference = np.asarray(Image.open(tmp / "reference.png").convert("RGB"), np.float64)
     with served(folder) as url:
-        open_player(browser, f"{url}/index.html?ui=0&time={time_}")
+        height, width = reference.shape[:2]
+        open_player(browser, f"{url}/index.html?ui=0&width={width}&height={height}&time={time_}")
         png = browser.evaluate("document.getElementById('view').toDataURL('image/png')")
     page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
     return {"psnr_vs_omg4_render_db": psnr(page / 255.0, reference / 255.0), "psnr_time": time_,

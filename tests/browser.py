@@ -83,14 +83,22 @@ class Browser:
 
 
 class _Quiet(http.server.SimpleHTTPRequestHandler):
+    requests: list | None = None
+
     def log_message(self, *args):
         pass
 
+    def log_request(self, code="-", size="-"):
+        if self.requests is not None:
+            self.requests.append((self.path, int(code)))
+
 
 @contextmanager
-def served(folder):
-    """A static file server of ``folder`` on a free local port; yields its base URL."""
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Quiet, directory=str(folder)))
+def served(folder, requests: list | None = None):
+    """A static file server of ``folder`` on a free local port; yields its base URL. With ``requests``, each request's
+    ``(path, status)`` is appended to it."""
+    handler = type("_Recording", (_Quiet,), {"requests": requests})
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(folder)))
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:

@@ -38,7 +38,7 @@ TABLES: dict[str, dict[str, object]] = {
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
-    "render": {**SCENE, **DEVICE, "--path": PATHS},
+    "render": {**SCENE, **DEVICE},  # --path: a name of PATHS or a camera path file (test_render_path_names)
     "export": {"--format": set(EXPORT_FORMATS.values()) | set(EXPORT_FOLDERS)},
     "view": {**SCENE, **DEVICE},
     "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": CODECS},
@@ -73,7 +73,7 @@ def test_fine_tuning_defaults_are_the_library_defaults(command):
     assert actions["--schedule"].default is None  # omg4.compress.schedule.default_schedule decides, per device
     if command == "bench":
         assert actions["--batch-size"].default == CompressConfig.batch_size
-        assert actions["--baseline-iterations"].default == CompressConfig.baseline_iterations
+        assert actions["--baseline-iterations"].default is None  # the checkpoint's, else the library's
         assert actions["--codec"].default == CODECS[0]
         assert actions["--rate-weights"].default == (CompressConfig.rate_weight,)
         return
@@ -119,3 +119,12 @@ def test_white_background_reaches_the_reader(argv, monkeypatch):
         args = parser.parse_args(argv + extra)
         load_scene_from_args(args)
         assert seen["background"] == colour == background_from_args(args)
+
+
+def test_render_path_names_are_the_library_table():
+    from omg4.commands.render import camera_path_source
+
+    assert all(camera_path_source(name) == name for name in PATHS)
+    assert camera_path_source("tour.json") == "tour.json"
+    with pytest.raises(argparse.ArgumentTypeError, match=", ".join(PATHS)):
+        camera_path_source("helix")

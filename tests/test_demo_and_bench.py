@@ -13,7 +13,7 @@ from PIL import Image
 from omg4.bench import rate_distortion_curves, row_file, run_bench
 from omg4.codec.container import read_container
 from omg4.codec.payload import CompactGrids
-from omg4.demo import QUICK, run_demo
+from omg4.demo import QUICK, SMOKE_CHECK_NOTE, run_demo
 from omg4.train import Trainer, make_config
 
 COARSE = CompactGrids(positions=12, rotations=7, times=7)
@@ -33,7 +33,7 @@ def _recording_evaluate(monkeypatch) -> list:
     return kinds
 
 
-def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch):
+def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, capsys):
     from omg4.gaussians.visibility import WindowedModel
 
     import omg4.demo
@@ -88,6 +88,8 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch):
     assert len(frames) == len(results["per_view"]["OMG4-M"])  # one frame per test view
     assert frames[0].width == 3 * QUICK.width  # ground truth | baseline | OMG4
     assert "| OMG4-M |" in saved["table"]
+    # a smoke check says so, last, under its numbers, and records it
+    assert saved["smoke_check"] is True and capsys.readouterr().out.rstrip().endswith(SMOKE_CHECK_NOTE)
 
 
 def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):

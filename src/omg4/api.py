@@ -52,7 +52,7 @@ def train_config(preset: str = "official", **settings) -> TrainConfig:
 
 
 def train_baseline(scene: Scene, config: TrainConfig | None = None, run_dir: str | os.PathLike = "run", *,
-                   resume: bool = False, progress: bool = True, log=print) -> TrainResult:
+                   resume: bool = False, progress: bool = False, log=None) -> TrainResult:
     """Train the baseline of ``config.backbone`` on ``scene`` into ``run_dir`` (checkpoints, ``config.json`` and
     the final ``model.safetensors``); ``resume`` continues the folder's last checkpoint. Initial points: the
     scene's ``points3d.ply``, else random points in the common view volume (``omg4 train --init`` has more)."""

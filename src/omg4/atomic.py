@@ -37,12 +37,45 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise OMG4Error(f"cannot write {target}: {exc.strerror or exc}") from None
     os.close(fd)
     tmp = Path(tmp_name)
-    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; outputs get the usual permissions
     try:
         yield tmp
+        # mkstemp creates 0600, and writers that replace the file (safetensors) keep a private mode: outputs get
+        # the usual permissions
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, target)
     except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise OMG4Error(f"cannot write {target}: {exc.strerror or exc}") from None
+        raise
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield an empty temporary folder beside ``path``; when the block ends without an exception it replaces
+    ``path`` (an existing folder there is moved aside first and deleted only after the rename), else it is
+    deleted and ``path`` is left as it was. An interrupted write never leaves a half-written folder; an
+    operating-system error becomes a one-line :class:`OMG4Error`."""
+    target = Path(os.path.abspath(path))
+    remove_stale_temporaries(target.parent, f".{target.name}.tmp-")
+    remove_stale_temporaries(target.parent, f".{target.name}.old.")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-{os.getpid()}-", dir=target.parent))
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp creates 0700
+    except OSError as exc:
+        raise OMG4Error(f"cannot write {target}: {exc.strerror or exc}") from None
+    try:
+        yield tmp
+        old = None
+        if target.exists() or target.is_symlink():
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.{os.getpid()}-", dir=target.parent))
+            os.replace(target, old / "x")
+        os.replace(tmp, target)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
         if isinstance(exc, OSError):
             raise OMG4Error(f"cannot write {target}: {exc.strerror or exc}") from None
         raise

@@ -116,7 +116,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
                              rate_weight=beta)
         paper_copy = path.with_name(path.stem + "_paper_codec.omg4")
         report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path,
-                                  paper_copy=paper_copy, precision=grids[0], log=log)
+                                  paper_copy=paper_copy, precision=grids[0], log=log, progress=True)
         paper_r = None if codec == "paper" else evaluate(load_omg4(paper_copy, device), scene.test_views,
                                                          lpips_nets=(), backend=backend, device=device, masks=masks,
                                                          fps_views=1, progress=False)

@@ -9,9 +9,12 @@ Each subcommand lives in ``omg4.commands.<module>`` with two functions,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
 import os
 import sys
+from typing import Iterator
 
 # Idle OpenMP threads must not spin: on small machines shared with other work, torch's default busy-waiting
 # makes small-image ops many times slower (benchmarks/metrics.py; docs/results.md).
@@ -75,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         parser, modules = _build_parser(command)
     except ModuleNotFoundError as e:  # an optional dependency of the command is not installed
-        print(f"omg4: error: command '{command}' is not available ({e})", file=sys.stderr)
+        hint = install_hint(e.name or "")
+        print(f"omg4: error: command '{command}' is not available ({e}{'; ' + hint if hint else ''})", file=sys.stderr)
         return 2
     args = parser.parse_args(argv)
     if args.command is None:
@@ -91,19 +95,68 @@ def main(argv: list[str] | None = None) -> int:
 
     keep_freed_memory()
     try:
-        status = int(modules[args.command].run(args) or 0)
+        with library_messages_shown():
+            status = int(modules[args.command].run(args) or 0)
         distributed.finish()
         return status
     except OMG4Error as e:
         return _fail(args.command, printable(e), e)
     except MemoryError as e:
         return _fail(args.command, "out of memory (a smaller scene, model or image size may fit)", e)
+    except ModuleNotFoundError as e:  # an optional dependency of what was asked for
+        hint = install_hint(e.name or "")
+        if hint is None:
+            raise
+        return _fail(args.command, f"this needs {e.name}, which is not installed: {hint}", e)
     except KeyboardInterrupt:
         print(f"omg4 {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into a pager or `head` that closed early
         sys.stderr.close()
         return 0
+
+
+class _AboveProgressBars(logging.Handler):
+    """Writes each message on its own line of standard output, above any progress bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm.auto import tqdm
+
+        tqdm.write(self.format(record), file=sys.stdout)
+
+
+@contextlib.contextmanager
+def library_messages_shown() -> Iterator[None]:
+    """Inside, the library's messages (its ``omg4.*`` loggers, from INFO) are printed as the command runs; the
+    library itself is quiet unless its caller asks (Python's logging)."""
+    logger, handler = logging.getLogger("omg4"), _AboveProgressBars()
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def install_hint(module: str) -> str | None:
+    """The pip command that installs the optional dependency ``module`` (an extra of this package, read from its
+    own metadata), or None when it is no optional dependency."""
+    import importlib.metadata
+    import re
+
+    try:
+        requirements = importlib.metadata.requires("omg4") or []
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    for requirement in requirements:
+        match = re.fullmatch(r"([A-Za-z0-9_.-]+)([^;]*);\s*extra\s*==\s*[\"']([a-z]+)[\"']", requirement.strip())
+        if match and match.group(1).lower().replace("-", "_") == module.split(".")[0].lower() \
+                and match.group(3) != "dev":
+            spec = match.group(1) + match.group(2).replace(" ", "")
+            return f"pip install '{spec}' (the package's '{match.group(3)}' extra)"
+    return None
 
 
 def _fail(command: str, message: str, exc: BaseException) -> int:

@@ -22,12 +22,13 @@ from tqdm.auto import tqdm
 from omg4.data.scene import View
 from omg4.data.segments import near_boundary
 from omg4.device import to_device
-from omg4.errors import OMG4Error
+from omg4.errors import CorruptFileError, OMG4Error
 from omg4.render.view import render_view
 
 def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
     """A render-only model on ``device`` from a checkpoint (``.safetensors``), a compressed ``.omg4`` file, an
-    ``.omg4`` sequence of segments, or a segmented training run's folder (``segments.json``).
+    ``.omg4`` sequence of segments, a training run's folder (its ``model.safetensors``) or a segmented training
+    run's folder (``segments.json``).
 
     Single models come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`)
     and the file's metadata as ``.meta`` (scene name, time range, normalization); sequences and segmented runs
@@ -38,6 +39,9 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
 
     if is_segmented_run(path):
         return load_segmented_run(path, device)
+    from omg4.train.run_state import run_model
+
+    path = run_model(path)
     if not path.is_file():
         raise OMG4Error(f"model file {path} does not exist")
     from omg4.codec.container import has_magic
@@ -51,6 +55,8 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
         from omg4.codec.decoder import load_omg4
 
         return load_omg4(path, device)
+    if path.suffix.lower() == ".omg4":
+        raise CorruptFileError(f"{path}: not an .omg4 file (wrong magic bytes)")
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.gaussians.visibility import WindowedModel
 

@@ -98,7 +98,7 @@ def test_cli_train_writes_a_model_and_resumes_without_reinitializing(tiny_scene_
         raise AssertionError("a resumed run must not compute initial points")
 
     monkeypatch.setattr(init, "initial_points", no_init)
-    assert main(["train", *common, "--iterations", "6", "--resume", "--json", str(tmp_path / "s.json")]) == 0
+    assert main(["train", *common, "--set", "iterations=6", "--resume", "--json", str(tmp_path / "s.json")]) == 0
     summary = json.loads((tmp_path / "s.json").read_text())
     assert summary["iterations"] == 6
     w, h = summary["image_size"]

@@ -7,6 +7,7 @@ import base64
 import hashlib
 import io
 import json
+import time
 
 import numpy as np
 import pytest
@@ -92,7 +93,7 @@ def test_the_page_renders_the_test_camera_as_omg4_render(chromium, tmp_path, tin
             assert main(["render", "--model", str(model), "--data", str(tiny_scene_dir), "--time", str(time), "--out",
                          str(tmp_path / "ref.png")]) == 0
             reference = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64)
-            result = open_player(chromium, f"{url}/index.html?ui=0&time={time}")
+            result = open_player(chromium, f"{url}/index.html?ui=0&width=64&height=48&time={time}")
             assert result["ready"]["camera"] == "cam00"  # the first test camera, as omg4 render --data picks
             page = _canvas(chromium)
             assert page.shape == reference.shape and reference.std() > 10  # a picture, not an empty frame
@@ -163,7 +164,7 @@ def test_a_sequence_plays_segment_by_segment_crossfading_at_boundaries(chromium,
             assert main(["render", "--model", str(sequence), "--data", str(tiny_scene_dir), "--time", str(time),
                          "--out", str(tmp_path / "ref.png")]) == 0
             reference = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64)
-            result = open_player(chromium, f"{url}/index.html?ui=0&time={time}")
+            result = open_player(chromium, f"{url}/index.html?ui=0&width=64&height=48&time={time}")
             assert result["ready"]["segments"] == 3
             assert _psnr(_canvas(chromium), reference) >= 30, time
             assert set(chromium.evaluate(fetched)) <= shown, time  # the first, those shown and the next one only
@@ -191,3 +192,65 @@ def test_the_pages_header_bounds_are_the_python_decoders(chromium, tmp_path):
                    for h, b in ((header, enough), (header, enough - 1), (many, 20000 + 10**7), (many, 19999))]
     assert results[0] == "ok" and results[1] == f"header declares {declared} values, more than {enough - 1} data bytes can encode"
     assert results[2] == "ok" and results[3].startswith("header claims 5000 Gaussians")
+
+
+def test_the_bare_page_fills_the_window_with_the_cameras_view_and_more(chromium, tmp_path, tiny_scene_dir):
+    """?ui=0 without a size: the canvas is the window; the test camera's view sits centred at the largest scale
+    that keeps it whole, the margins show more of the scene — as omg4 render draws that framed camera."""
+    from omg4.data import load_scene
+
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, 1200, codec="compact", seed=7, codebook_scale=0.25)
+    assert main(["export", str(model), "--format", "web", "--data", str(tiny_scene_dir), "--out",
+                 str(tmp_path / "web")]) == 0
+    with served(tmp_path / "web") as url:
+        open_player(chromium, f"{url}/index.html?ui=0&time=0.45")
+        width, height = chromium.evaluate("[window.innerWidth, window.innerHeight]")
+        page = _canvas(chromium)
+    assert page.shape == (height, width, 3) and width > 64 and height > 48
+    camera = load_scene(tiny_scene_dir, decode=False, progress=False).test_cameras()[0]
+    s = min(width / camera.width, height / camera.height)
+    K = camera.K * np.array([[s, s, s], [s, s, s], [1, 1, 1]])
+    K[0, 2] += (width - camera.width * s) / 2
+    K[1, 2] += (height - camera.height * s) / 2
+    (tmp_path / "framed.json").write_text(json.dumps({"K": K.tolist(), "viewmat": camera.viewmat.tolist(),
+                                                      "width": width, "height": height}))
+    assert main(["render", "--model", str(model), "--camera", str(tmp_path / "framed.json"), "--time", "0.45",
+                 "--out", str(tmp_path / "ref.png")]) == 0
+    reference = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64)
+    assert reference.std() > 10 and _psnr(page, reference) >= 30
+
+
+@pytest.mark.parametrize("sequence", [False, True], ids=["one-model", "sequence"])
+def test_loading_asks_only_for_files_the_export_wrote(chromium, tmp_path, sequence):
+    """No 404 on load: the page reads the export's list (omg4-web.json) before asking for sequence.json or
+    cameras.json; every request it makes succeeds, and the stats show no rate before the clock advances."""
+    model = tmp_path / "m.omg4"
+    if sequence:
+        forge.valid_sequence(model, 2, 300, codec="compact", codebook_scale=0.25)
+    else:
+        forge.valid_file(model, 300, codec="compact", seed=3, codebook_scale=0.25)
+    export_web(tmp_path / "web", model)  # no dataset: no cameras.json
+    requests = []
+    with served(tmp_path / "web", requests) as url:
+        result = open_player(chromium, f"{url}/index.html?ui=0&time=0")
+        stats = chromium.evaluate("document.getElementById('stats').textContent")
+    assert "ready" in result
+    assert requests and all(status == 200 for _, status in requests), [r for r in requests if r[1] != 200]
+    asked = {path.split("?")[0].rsplit("/", 1)[-1] for path, _ in requests}
+    assert ("sequence.json" in asked) == sequence and "cameras.json" not in asked
+    assert "– FPS" in stats and "Infinity" not in stats
+
+
+def test_a_page_opened_from_disk_says_how_to_open_it(chromium, tmp_path):
+    forge.valid_file(tmp_path / "m.omg4", 300, codec="compact", seed=4)
+    export_web(tmp_path / "web", tmp_path / "m.omg4")
+    url = (tmp_path / "web" / "index.html").resolve().as_uri()
+    chromium.call("Page.navigate", url=url)
+    shown = "(() => { const m = document.getElementById('message'); return m && !m.hidden ? m.textContent : null; })()"
+    for _ in range(100):
+        message = chromium.evaluate(shown)
+        if message:
+            break
+        time.sleep(0.05)
+    assert message and "http.server" in message and "http://localhost:8000" in message

@@ -27,8 +27,9 @@ BROWSER_FLOATS = ("f16", "f16-planes")
 def browser_decodable(source: str | os.PathLike | bytes) -> bytes:
     """The bytes of ``source`` (a single-model or sequence ``.omg4`` file, or its bytes) with every section the
     browser cannot decode re-encoded losslessly; the file's own bytes when it has none."""
-    data = bytes(source) if isinstance(source, (bytes, bytearray, memoryview)) else Path(source).read_bytes()
-    version, header, sections = _read_versioned(data)
+    in_memory = isinstance(source, (bytes, bytearray, memoryview))
+    data = bytes(source) if in_memory else Path(source).read_bytes()
+    version, header, sections = _read_versioned(data if in_memory else source)  # a file's errors name the file
     if version == SEQUENCE_VERSION:
         segments = {name: browser_decodable(segment) for name, segment in sections.items()}
         return data if segments == sections else container_bytes(header, segments, SEQUENCE_VERSION)

@@ -21,8 +21,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="fine-tuning lengths (see omg4 compress --help; default: official on cuda, cpu elsewhere)")
     p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), default=CompressConfig.batch_size,
                    help=f"views per fine-tuning step (at most {MAX_BATCH_SIZE})")
-    p.add_argument("--baseline-iterations", type=int_at_least(1), default=CompressConfig.baseline_iterations,
-                   help="iterations the baseline was trained for (the position learning rate continues its decay)")
+    p.add_argument("--baseline-iterations", type=int_at_least(1),
+                   help="iterations the baseline was trained for (the position learning rate continues its decay; "
+                        "default: what its checkpoint records, else "
+                        f"{CompressConfig.baseline_iterations})")
     p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "
                    + "; ".join(f"{b}: {', '.join(rows)}" for b, rows in _row_names().items()))
     add_codec_argument(p)
@@ -49,7 +51,7 @@ def run(args) -> int:
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
-    from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.compress.api import read_baseline, trained_iterations
     from omg4.outputs import check_outputs
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
@@ -57,7 +59,8 @@ def run(args) -> int:
         check_codec(args.codec, g)
     check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
     world, device = distributed.init(device_from_args(args))
-    baseline, _ = load_gaussians(args.model, device)
+    baseline, metadata = read_baseline(args.model, device)
+    iterations = args.baseline_iterations or trained_iterations(metadata) or CompressConfig.baseline_iterations
     known = baseline.config.schema.paper_rows
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
     unknown = [r for r in rows or [] if r not in known]
@@ -66,6 +69,6 @@ def run(args) -> int:
                         f"{', '.join(known)}")
     scene = distributed.main_first(lambda: load_scene_from_args(args))
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
-              baseline_iterations=args.baseline_iterations, rows=rows, codec=args.codec, backend=args.backend,
+              baseline_iterations=iterations, rows=rows, codec=args.codec, backend=args.backend,
               device=device, rate_weights=args.rate_weights, grids=grids)
     return 0

@@ -63,7 +63,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="accumulate the time gradient without zeroing, as the official release does")
     p.add_argument("--baseline-iterations", type=int_at_least(1),
                    help="iterations the baseline was trained for (the position learning rate continues its decay; "
-                        f"default {CompressConfig.baseline_iterations})")
+                        "default: what the baseline's checkpoint records, else "
+                        f"{CompressConfig.baseline_iterations})")
     add_background_argument(p)
     add_device_arguments(p, from_settings=True)
     p.add_argument("--seed", type=seed, help=f"random seed (default {CompressConfig.seed})")
@@ -83,9 +84,8 @@ def run(args) -> int:
     from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CODECS, CompactGrids, check_codec
-    from omg4.compress.api import compress_to_file
+    from omg4.compress.api import compress_to_file, read_baseline, trained_iterations
     from omg4.errors import OMG4Error
-    from omg4.gaussians.checkpoint import load_gaussians
     from omg4.data.segments import is_segmented_run
     from omg4.outputs import check_outputs
     from omg4.settings import config_dict
@@ -107,17 +107,23 @@ def run(args) -> int:
                   inputs=[args.data, args.model, args.scores, args.config], datasets=[args.data], force=args.force)
     if is_segmented_run(args.model):
         return _compress_segments(args, cfg, codec, precision, record, world)
+    baseline, metadata = read_baseline(args.model, device)
+    if "baseline_iterations" not in settings and args.baseline_iterations is None:
+        recorded = trained_iterations(metadata)
+        if recorded is not None:
+            cfg = replace(cfg, baseline_iterations=recorded)
+        elif world.main:
+            print(f"{args.model} does not record how long it trained: assuming {cfg.baseline_iterations} iterations "
+                  "(--baseline-iterations sets it)")
     scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
-    baseline, _ = load_gaussians(args.model, device)
     report = compress_to_file(baseline, scene, cfg, args.out, codec=codec, stop_after=args.stop_after,
-                              scores_path=args.scores, precision=precision, check_replicas=args.check_replicas)
+                              scores_path=args.scores, precision=precision, check_replicas=args.check_replicas,
+                              progress=True)
     if not world.main:
         return 0
     report["world_size"] = world.size
     write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
                                           "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
-    for r in report["stages"]:
-        print(f"  {r['stage']:<13} at iteration {r['iteration']:>6}: {r['num_gaussians']:>8} Gaussians")
     print(f"wrote {args.out} ({report['file_bytes'] / 2**20:.3f} MB, {report['num_gaussians']} Gaussians, "
           f"{report['wall_time_s']:.0f} s) and its settings {record}")
     if args.json:
@@ -166,7 +172,8 @@ def _compress_segments(args, cfg, codec, precision, record, world) -> int:
         return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
 
     report = compress_segments(args.model, load_segment, cfg, args.out, codec=codec, precision=precision,
-                               check_replicas=args.check_replicas, teach=not args.independent_segments)
+                               check_replicas=args.check_replicas, teach=not args.independent_segments,
+                               progress=True)
     if not world.main:
         return 0
     write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,

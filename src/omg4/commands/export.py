@@ -159,8 +159,8 @@ def _export_web(args) -> int:
     if not args.model.is_file():
         raise OMG4Error(f"{args.model} does not exist or is not a file")
     if not has_magic(args.model):
-        raise OMG4Error(f"{args.model} is not an .omg4 file: the web player plays compressed models (omg4 compress "
-                        "writes one)")
+        raise OMG4Error(f"{args.model} is not an .omg4 file (wrong magic bytes): the web player plays compressed "
+                        "models (omg4 compress writes one)")
     check_outputs({"--out": args.out}, inputs=[args.model, args.data], datasets=[args.data] if args.data else [],
                   folders=["--out"], force=args.force)
     check_export_folder(args.out)

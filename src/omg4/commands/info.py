@@ -57,6 +57,7 @@ def dataset_summary(path: Path, format: str | None = None) -> tuple[dict, str]:
     ``[{name, split, K, viewmat, width, height}]`` in the normalized world.
     """
     from omg4.data import load_scene
+    from omg4.train.init import auto_initialization
 
     scene = load_scene(path, format=format, decode=False, progress=False)
     cameras = [{**cam.to_json(), "split": split}
@@ -73,6 +74,7 @@ def dataset_summary(path: Path, format: str | None = None) -> tuple[dict, str]:
         "extent": scene.extent if scene.train_views else None,
         "normalization": scene.normalization.to_json(),
         "initial_points": None if scene.initial_points is None else int(len(scene.initial_points.xyz)),
+        "auto_initialization": auto_initialization(scene) if scene.train_views else None,
         "cameras": cameras,
     }
     return summary, _dataset_text(summary)
@@ -92,9 +94,16 @@ def _dataset_text(s: dict) -> str:
         f"normalized   scale {norm['scale']:.6g}, translation "
         f"[{', '.join(f'{x:.4g}' for x in norm['translation'])}]"
         + (f", extent {s['extent']:.4g}" if s["extent"] is not None else ""),
-        f"init points  {s['initial_points'] if s['initial_points'] is not None else 'none (random initialization)'}",
+        f"init points  {_initialization_text(s)}",
     ]
     return "\n".join(lines)
+
+
+def _initialization_text(summary: dict) -> str:
+    if summary["initial_points"] is not None:
+        return f"{summary['initial_points']} (points3d.ply)"
+    made = {"mvs": "plane-sweep stereo of the first frame", "random": "random points in the cameras' common view"}
+    return f"none: omg4 train --init auto makes them by {made.get(summary['auto_initialization'], 'no method')}"
 
 
 def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:

@@ -1,8 +1,10 @@
-"""``omg4 render --model M (--data DATA | --camera CAM.json) --time T --out PNG|NPY|MP4 [--path orbit|spiral|dataset]``.
+"""``omg4 render --model M (--data DATA | --camera CAM.json) --time T --out PNG|NPY|MP4 [--path orbit|spiral|dataset]``
+or ``omg4 render --model M --path camera_path.json --out MP4``.
 
 An ``.mp4`` plays the model's time range from one camera, or, with ``--path``, from a camera
 that moves along a path around the reference cameras while time advances (a free-viewpoint
-video; :mod:`omg4.render.paths`).
+video; :mod:`omg4.render.paths`), or along the cameras of a nerfstudio camera path file
+(:mod:`omg4.io.camera_path`). ``--width``/``--height`` set the image size of any of them.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from omg4.render.paths import PATHS
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
-    src = p.add_mutually_exclusive_group(required=True)
+    src = p.add_mutually_exclusive_group()
     src.add_argument("--data", type=Path, help="dataset folder: render one of its cameras")
     src.add_argument("--camera", type=Path, help='CAM.json: {"K": 3x3, "viewmat": 4x4, "width": W, "height": H}')
     add_scene_arguments(p, positional=False)
@@ -29,15 +31,40 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                            "over the whole time range")
     p.add_argument("--num-frames", type=int_at_least(1),
                    help="frames of an .mp4 (default: the dataset's frame count, or 60)")
-    p.add_argument("--fps", type=float_in(0.0, 1000.0), default=30.0, help="frame rate of an .mp4, in (0, 1000]")
-    p.add_argument("--path", choices=list(PATHS),
-                   help="free-viewpoint .mp4: the camera moves while time advances — orbit (a circle around the "
-                        "scene), spiral (forward-facing, around the cameras) or dataset (through the dataset's "
-                        "cameras); reference cameras from --data, or the one --camera")
+    p.add_argument("--fps", type=float_in(0.0, 1000.0),
+                   help="frame rate of an .mp4, in (0, 1000] (default: a camera path file's, else 30)")
+    p.add_argument("--path", type=camera_path_source, metavar="{" + ",".join(PATHS) + "} or FILE.json",
+                   help="free-viewpoint .mp4: the camera moves while time advances — orbit (a circle that frames the "
+                        "scene: around it for cameras on every side, around the cameras for a forward-facing rig), "
+                        "spiral (forward-facing, around the cameras), dataset (through the dataset's cameras), with "
+                        "reference cameras from --data or the one --camera; or a nerfstudio camera_path.json in the "
+                        "model's normalized world (its cameras, sizes, frame rate and render times)")
+    p.add_argument("--width", type=int_at_least(1), help="image width in pixels (default: the camera's; alone, "
+                                                          "the height follows the camera's aspect ratio)")
+    p.add_argument("--height", type=int_at_least(1), help="image height in pixels (default: the camera's; alone, "
+                                                           "the width follows the camera's aspect ratio)")
     p.add_argument("--time-range", metavar="A:B", help="clip of an .mp4: times from A to B (default: the model's range)")
     add_background_argument(p)
     add_device_arguments(p)
     add_force_argument(p)
+
+
+def camera_path_source(text: str) -> str:
+    """An argparse type: a path name of :data:`~omg4.render.paths.PATHS`, or a ``.json`` camera path file."""
+    if text in PATHS or text.lower().endswith(".json"):
+        return text
+    raise argparse.ArgumentTypeError(f"expected one of {', '.join(PATHS)} or a camera_path.json file, got '{text}'")
+
+
+def _sized(camera, width: int | None, height: int | None):
+    """``camera`` at ``--width``/``--height`` (one of them alone keeps its aspect ratio)."""
+    if width is None and height is None:
+        return camera
+    if width is None:
+        width = max(1, round(camera.width * height / camera.height))
+    if height is None:
+        height = max(1, round(camera.height * width / camera.width))
+    return camera.resized(width, height)
 
 
 def _cameras(args):
@@ -46,6 +73,8 @@ def _cameras(args):
     from omg4.data.scene import Camera
     from omg4.errors import OMG4Error
 
+    if args.camera is None and args.data is None:  # a camera path file gives every camera
+        return None, [], None
     if args.camera is not None:
         try:
             camera = Camera.from_json(json.loads(args.camera.read_text())).check_renderable()
@@ -92,10 +121,15 @@ def run(args) -> int:
     from omg4.outputs import check_outputs
     from omg4.render.view import render_view
 
+    args.fps_given = args.fps is not None
+    args.fps = args.fps if args.fps_given else 30.0
     suffix = args.out.suffix.lower()
     if suffix not in (".png", ".npy", ".mp4"):
         raise OMG4Error(f"--out must end in .png, .npy or .mp4, got '{args.out.name}'")
-    check_outputs({"--out": args.out}, inputs=[args.model, args.data, args.camera], datasets=[args.data],
+    path_file = Path(args.path) if args.path and args.path not in PATHS else None
+    if args.data is None and args.camera is None and (path_file is None or suffix != ".mp4"):
+        raise OMG4Error("give the camera: --data DATA or --camera CAM.json (or, for an .mp4, --path camera_path.json)")
+    check_outputs({"--out": args.out}, inputs=[args.model, args.data, args.camera, path_file], datasets=[args.data],
                   force=args.force)
     device = device_from_args(args)
     model = load_model(args.model, device)
@@ -118,15 +152,30 @@ def run(args) -> int:
 
         from omg4.render.paths import camera_path
 
-        n = args.num_frames or (scene.num_frames if scene is not None and scene.num_frames else 60)
-        times = [start + (end - start) * i / n for i in range(n)]
-        cameras = camera_path(args.path, references, n) if args.path else [camera] * n
+        fps = args.fps
+        if args.path and args.path not in PATHS:  # a camera_path.json: its cameras, times and frame rate
+            from omg4.io.camera_path import read_camera_path
+
+            if args.num_frames:
+                raise OMG4Error("--num-frames applies to the built-in paths; a camera path file has its own frames")
+            read = read_camera_path(args.path)
+            cameras, n = read.cameras, len(read.cameras)
+            fractions = read.times or [i / n for i in range(n)]
+            times = [start + (end - start) * f for f in fractions]
+            fps = args.fps if args.fps_given else (read.fps or args.fps)
+        else:
+            n = args.num_frames or (scene.num_frames if scene is not None and scene.num_frames else 60)
+            times = [start + (end - start) * i / n for i in range(n)]
+            cameras = camera_path(args.path, references, n) if args.path else [camera] * n
+        cameras = [_sized(c, args.width, args.height) for c in cameras]
         frames = (frame(c, t) for c, t in tqdm(list(zip(cameras, times)), desc="render"))
-        count = write_video(args.out, frames, fps=args.fps)
+        count = write_video(args.out, frames, fps=fps)
         what = f"{args.path} path" if args.path else f"camera {camera.name or 'custom'}"
-        print(f"wrote {args.out} ({count} frames, {camera.width}x{camera.height}, {what}, t {start:g} to {end:g})")
+        print(f"wrote {args.out} ({count} frames, {cameras[0].width}x{cameras[0].height}, {what}, t {start:g} to "
+              f"{end:g})")
         return 0
     t = t0 if args.time is None else args.time
+    camera = _sized(camera, args.width, args.height)
     img = frame(camera, t)
     (save_png if suffix == ".png" else save_npy)(args.out, img)
     print(f"wrote {args.out} ({camera.width}x{camera.height}, camera {camera.name or 'custom'}, t={t:g})")

@@ -24,8 +24,9 @@ SHORTCUTS = ("iterations", "batch_size", "backbone", "max_gaussians", "densify_u
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--out", required=True, type=Path, help="run folder (checkpoints, config, final model.safetensors)")
-    p.add_argument("--preset", default="official", choices=list(PRESETS),
-                   help="training schedule: official (30k iterations) or cpu-small")
+    p.add_argument("--preset", choices=list(PRESETS),
+                   help="training schedule: official (the Real-Time4DGS N3DV schedule, 30k iterations; the default on "
+                        "cuda) or cpu-small (3k iterations, at most 60k Gaussians; the default on the CPU)")
     p.add_argument("--iterations", type=int_at_least(1), help="optimizer steps (overrides the preset)")
     p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), help=f"views per step (at most {MAX_BATCH_SIZE})")
     p.add_argument("--backbone", choices=list(BACKBONES),
@@ -82,8 +83,11 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
     from omg4.outputs import check_outputs
+    from omg4.settings import check_settings, parse_assignments
     from omg4.train import make_config
+    from omg4.train.config import default_preset
     from omg4.train.init import initial_points
+    from omg4.train.resume import finished, recorded_config, recorded_preset, resumed_config
     from omg4.train.run_state import RUN_FILES, clear_run, holds_files, latest_iteration
     from omg4.train.trainer import Trainer, evaluate_psnr
 
@@ -93,17 +97,49 @@ def run(args) -> int:
         raise OMG4Error(f"{args.out} already holds a training run: add --resume to continue it or --force to "
                         "start afresh (its checkpoints and model are deleted)")
     settings = settings_from_args(args, TrainConfig, section="train_config")
+    recorded = recorded_config(args.out) if args.resume else None
+    device_named = args.device is not None or "device" in settings
+    if recorded is not None:  # where the run computed, unless this command says otherwise
+        for name in ("device", "backend"):
+            if getattr(args, name) is None and name not in settings:
+                setattr(args, name, getattr(recorded, name))
     fill_device_arguments(args, settings)
-    world, device = distributed.init(device_from_args(args))
+    try:
+        world, device = distributed.init(device_from_args(args))
+    except OMG4Error as exc:
+        if recorded is None or device_named:
+            raise
+        raise OMG4Error(f"{exc}; the run trained on {recorded.device}: add --device cpu to resume it here") from None
     flags = dict(iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
                  backbone=args.backbone, densify_until=args.densify_until, densify_interval=args.densify_interval,
                  test_interval=args.test_interval, checkpoint_interval=args.checkpoint_interval,
                  num_random_points=args.num_random_points, seed=args.seed,
                  background=(1.0, 1.0, 1.0) if args.white_background else None)
-    cfg = make_config(args.preset, **{**settings, **{k: v for k, v in flags.items() if v is not None}},
-                      backend=args.backend, device=str(device))
+    asked = {**settings, **{k: v for k, v in flags.items() if v is not None}}
+    if recorded is not None:
+        overrides = check_settings(TrainConfig, parse_assignments(args.settings))
+        given = {k: v for k, v in asked.items() if k not in overrides}
+        preset = recorded_preset(args.out)
+        cfg = resumed_config(recorded, asked={**given, "device": str(device), "backend": args.backend},
+                             preset=args.preset, recorded_preset=preset, overrides=overrides)
+        if world.main:
+            changed = f"; changed by --set: {', '.join(f'{k}={v!r}' for k, v in overrides.items())}" if overrides else ""
+            print(f"resuming {args.out} with its recorded settings ({cfg.iterations:,} iterations of {cfg.batch_size} "
+                  f"views{changed})")
+        if not args.segment_frames and finished(args.out, cfg):
+            if world.main:
+                print(f"{args.out} is finished ({cfg.iterations:,} of {cfg.iterations:,} iterations, "
+                      f"{args.out / 'model.safetensors'}): nothing to resume")
+            return 0
+    else:
+        preset = args.preset or default_preset(device)
+        cfg = make_config(preset, **asked, backend=args.backend, device=str(device))
+        if world.main:
+            origin = "" if args.preset else f" (the default on {device.type}; --preset chooses)"
+            cap = f"at most {cfg.max_gaussians:,} Gaussians" if cfg.max_gaussians else "no cap on the Gaussian count"
+            print(f"preset {preset}{origin}: {cfg.iterations:,} iterations of {cfg.batch_size} views, {cap}")
     if args.segment_frames:
-        return _train_segments(args, cfg, world)
+        return _train_segments(args, cfg, world, preset)
     if args.overlap is not None:
         raise OMG4Error("--overlap needs --segment-frames")
     scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
@@ -112,7 +148,8 @@ def run(args) -> int:
     if args.force and world.main:  # only once the initial points exist: a failing initialization keeps the old run
         clear_run(args.out)
     distributed.barrier()
-    trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume, check_replicas=args.check_replicas)
+    trainer = Trainer(scene, cfg, args.out, points=points, resume=args.resume, check_replicas=args.check_replicas,
+                      preset=preset)
     result = trainer.run()
     test_psnr = evaluate_psnr(result.model, scene.test_views, trainer.background, cfg.backend, device)
     camera = scene.train_views[0].camera
@@ -131,7 +168,7 @@ def run(args) -> int:
     return 0
 
 
-def _train_segments(args, cfg, world) -> int:
+def _train_segments(args, cfg, world, preset: str | None) -> int:
     """``--segment-frames``: plan the segments of the capture and train one model per segment (resumable)."""
     import argparse
 
@@ -171,7 +208,7 @@ def _train_segments(args, cfg, world) -> int:
 
     summaries = train_segments(args.out, plan, cfg, load_segment, lambda scene: initial_points(scene, args.init, cfg),
                                parallel=args.parallel, check_replicas=args.check_replicas,
-                               teach=not args.independent_segments)
+                               teach=not args.independent_segments, preset=preset)
     if not world.main:
         return 0
     print(f"trained {len(summaries)} segments of {args.segment_frames} frames (sharing {overlap}) -> {args.out}")

@@ -6,6 +6,7 @@ fp16 positions, time centres, codebooks and MLP weights (paper §4.4; omg4 §8).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -21,6 +22,29 @@ from omg4.data.scene import Scene
 from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import save_gaussians
+
+logger = logging.getLogger(__name__)
+
+
+def read_baseline(path: str | Path, device="cpu") -> tuple[Gaussians4D, dict]:
+    """The trained baseline to compress and its file's metadata (``iteration``: the steps it was trained for),
+    from a checkpoint (``model.safetensors``) or a training run's folder; an ``.omg4`` file (already compressed)
+    is a one-line error that says so."""
+    from omg4.codec.container import has_magic
+    from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.train.run_state import run_model
+
+    path = run_model(path)
+    if path.is_file() and has_magic(path):
+        raise OMG4Error(f"{path} is a compressed .omg4 file: compression starts from the trained baseline "
+                        "(its model.safetensors or its run folder)")
+    return load_gaussians(path, device)
+
+
+def trained_iterations(metadata: dict) -> int | None:
+    """The steps a baseline was trained for, as its checkpoint records them (None when it does not)."""
+    value = metadata.get("iteration")
+    return value if isinstance(value, int) and not isinstance(value, bool) and value > 0 else None
 
 
 def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
@@ -49,7 +73,7 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
 def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, out: str | Path, *,
                      codec: str = CODECS[0], stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
-                     progress: bool = True, log=print, check_replicas: int = 0) -> dict:
+                     progress: bool = False, log=None, check_replicas: int = 0) -> dict:
     """Run OMG4 on ``baseline`` and write ``out`` (``precision``: the compact codec's grids); returns a JSON-ready
     report.
 
@@ -119,8 +143,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
 
 
 def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
-                      codec: str = CODECS[0], precision: CompactGrids = CompactGrids(), progress: bool = True,
-                      log=print, check_replicas: int = 0, teach: bool = True) -> dict:
+                      codec: str = CODECS[0], precision: CompactGrids = CompactGrids(), progress: bool = False,
+                      log=None, check_replicas: int = 0, teach: bool = True) -> dict:
     """Compress every segment of a segmented training run (:mod:`omg4.train.segmented`) and write them as one
     sequence file (:mod:`omg4.codec.sequence`) at ``out``; ``load_scene(start, stop)`` gives a segment's scene.
 
@@ -139,6 +163,8 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.train.segmented import shared_frames, taught_by
+
+    log = log or logger.info
 
     run_dir, out = Path(run_dir), Path(out)
     plan = read_run_plan(run_dir)

@@ -13,6 +13,7 @@ trainer uses (:mod:`omg4.train.step`, :mod:`omg4.train.optim`).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -40,6 +41,8 @@ from omg4.settings import knob
 from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
                               step_optimizers)
 from omg4.train.step import backward_batch, step_generator
+
+logger = logging.getLogger(__name__)
 
 FULL_STAGES = ("sample", "prune", "merge", "appearance", "svq3d", "svq4d")
 
@@ -108,14 +111,14 @@ class CompressionPipeline:
     """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
-                 progress: bool = True, log=print, check_replicas: int = 0):
+                 progress: bool = True, log=None, check_replicas: int = 0):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
         self.scene, self.cfg = scene, cfg
-        self.progress, self.log = progress and self.world.main, log if self.world.main else (lambda *_: None)
+        self.progress, self.log = progress and self.world.main, (log or logger.info) if self.world.main else (lambda *_: None)
         self.check_replicas = check_replicas
         self.schema: Backbone = baseline.config.schema
         self.size = cfg.size(baseline.config.backbone)
@@ -133,6 +136,10 @@ class CompressionPipeline:
         self.mlp_scheduler = None
         self.codebook_optimizer = None
         self.events, self.total_iterations = build_events(cfg.stages, cfg.stage_lengths(), cfg.num_merge)
+        if cfg.stage_lengths() == SCHEDULES["tiny"] and self.world.main:
+            logger.warning("the tiny schedule is a smoke test: a few fine-tuning steps per stage leave the model far "
+                           "below its baseline, so its quality means nothing (schedule short, cpu or official for "
+                           "figures)")
 
     # ----------------------------------------------------------------- optimizers
     def _lrs(self) -> dict[str, float]:
@@ -252,7 +259,7 @@ class CompressionPipeline:
          }.get(name, lambda: self.stage_merge(round_index))()
         label = f"merge{round_index + 1}" if name == "merge" else name
         self.records.append(StageRecord(label, iteration, self.model.num_gaussians, time.perf_counter() - t0))
-        self.log(f"{label}: {self.model.num_gaussians} Gaussians")
+        self.log(f"{label} (iteration {iteration}): {self.model.num_gaussians:,} Gaussians")
 
     # -------------------------------------------------------------------- training
     def finetune_step(self, step: int) -> float:

@@ -57,7 +57,8 @@ def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
             meta = f.metadata() or {}
             shapes = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
     except Exception as e:  # safetensors raises several kinds on damaged files
-        raise CorruptFileError(f"{path}: not a readable safetensors checkpoint ({type(e).__name__})") from None
+        raise CorruptFileError(f"{path}: not an omg4 model file (no .omg4 magic bytes, and not a readable "
+                               f"safetensors checkpoint: {type(e).__name__})") from None
     try:
         header = json.loads(meta[_META_KEY])
     except (KeyError, ValueError):

@@ -9,7 +9,8 @@ reaches it — ``cameras.json`` with the dataset's cameras (test cameras first) 
 (``python -m http.server -d DIR``).
 
 An export only ever replaces an earlier export: a folder that holds anything the list does not name is
-refused before anything is written.
+refused before anything is written. The folder is built beside ``--out`` and renamed into place when complete, so
+a failed export (a damaged file, say) leaves what was there before.
 """
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ import json
 import os
 from pathlib import Path
 
-from omg4.atomic import atomic_path
+from omg4.atomic import atomic_folder
 from omg4.codec.browser import browser_decodable
-from omg4.errors import OMG4Error
+from omg4.errors import CorruptFileError, OMG4Error
 
 PLAYER_ROOT = Path(__file__).resolve().parent.parent / "web"
 PLAYER_SUFFIXES = (".html", ".js", ".css")
@@ -67,38 +68,40 @@ def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list |
     out = Path(out)
     check_export_folder(out)
     written, total, rewritten = [], 0, False
+    with atomic_folder(out) as folder:  # a failure leaves the folder as it was, never half an export
 
-    def write(name: str, content: bytes) -> None:
-        path = out / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
-            Path(tmp).write_bytes(content)
-        written.append(name)
+        def write(name: str, content: bytes) -> None:
+            path = folder / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(content)
+            written.append(name)
 
-    for p in player_files():
-        write(p.as_posix(), (PLAYER_ROOT / p).read_bytes())
-    if is_sequence(model):
-        index, segments = read_index(model), []
-        for entry in index.segments:
-            original = read_segment(model, entry)
-            data = browser_decodable(original)
-            name = f"{SEGMENTS}/{entry.index:03d}.omg4"
-            write(name, data)
-            segments.append({"file": name, "time_range": list(entry.time_range), "frames": list(entry.frames),
-                             "bytes": len(data)})
-            total, rewritten = total + len(data), rewritten or data != original
-        write(SEQUENCE, json.dumps({"fps": index.fps, "segments": segments}, indent=1).encode())
-    else:
-        original = Path(model).read_bytes()
-        data = browser_decodable(original)
-        write(MODEL, data)
-        total, rewritten = len(data), data != original
-    if cameras:
-        presets = [{**c.to_json(), "test": i < test_cameras} for i, c in enumerate(cameras)]
-        write(CAMERAS, json.dumps({"cameras": presets}, indent=1).encode())
-    manifest = {"files": sorted(written), "model_bytes": total, "rewritten": rewritten}
-    with atomic_path(out / MANIFEST) as tmp:
-        Path(tmp).write_text(json.dumps(manifest, indent=1))
+        for p in player_files():
+            write(p.as_posix(), (PLAYER_ROOT / p).read_bytes())
+        if is_sequence(model):
+            index, segments = read_index(model), []
+            for entry in index.segments:
+                original = read_segment(model, entry)
+                try:
+                    data = browser_decodable(original)
+                except CorruptFileError as exc:
+                    raise CorruptFileError(f"{model}: segment {entry.index}: {str(exc).removeprefix('data: ')}") \
+                        from None
+                name = f"{SEGMENTS}/{entry.index:03d}.omg4"
+                write(name, data)
+                segments.append({"file": name, "time_range": list(entry.time_range), "frames": list(entry.frames),
+                                 "bytes": len(data)})
+                total, rewritten = total + len(data), rewritten or data != original
+            write(SEQUENCE, json.dumps({"fps": index.fps, "segments": segments}, indent=1).encode())
+        else:
+            data = browser_decodable(model)
+            write(MODEL, data)
+            total, rewritten = len(data), data != Path(model).read_bytes()
+        if cameras:
+            presets = [{**c.to_json(), "test": i < test_cameras} for i, c in enumerate(cameras)]
+            write(CAMERAS, json.dumps({"cameras": presets}, indent=1).encode())
+        manifest = {"files": sorted(written), "model_bytes": total, "rewritten": rewritten}
+        (folder / MANIFEST).write_text(json.dumps(manifest, indent=1))
     return manifest
 
 

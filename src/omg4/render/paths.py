@@ -3,10 +3,11 @@
 Every path is built from reference cameras (a dataset's, or one given camera) in the model's
 normalized world and keeps the first reference camera's intrinsics and resolution:
 
-* ``orbit``: a full circle around the vertical through the point the cameras look at
-  (:func:`omg4.data.normalize.axes_focus`), at the cameras' mean horizontal distance and
-  height, always looking at that point — for inward-facing rigs (Panoptic, D-NeRF) and a tour
-  of any scene;
+* ``orbit``: for an inward-facing rig (Panoptic, D-NeRF: cameras on every side of the point they look at,
+  :func:`omg4.data.normalize.axes_focus`) a full circle around the vertical through that point, at the
+  cameras' mean horizontal distance and height; for a forward-facing rig (N3DV: every camera on one side,
+  :func:`faces_forward`) one turn of a circle around the rig's mean centre, as wide as the rig's spread, so every
+  view shows what the cameras saw — both always looking at that point;
 * ``spiral``: the forward-facing spiral of NeRF's LLFF renders — around the mean camera
   centre in the plane of its right and up axes, two turns, radii from the spread of the
   camera centres, looking at the focus — for forward-facing rigs (N3DV);
@@ -57,9 +58,29 @@ def _looking_at(template: Camera, position: np.ndarray, focus: np.ndarray, up: n
                   height=template.height, name=name)
 
 
+FORWARD_FACING_GAP_DEG = 180.0
+"""A rig whose cameras leave a gap wider than this in their azimuths around the focus faces forward."""
+
+
+def faces_forward(cameras: list[Camera], focus: np.ndarray | None = None) -> bool:
+    """Whether the cameras all stand on one side of the point they look at: their azimuths around the vertical
+    through it leave a gap wider than :data:`FORWARD_FACING_GAP_DEG` (one camera always does)."""
+    if len(cameras) < 2:
+        return True
+    centres, focus, up = _frame(cameras, focus)
+    offsets = centres - focus
+    side = np.cross(up, offsets[0])
+    azimuth = np.sort(np.degrees(np.arctan2(offsets @ side, offsets @ np.cross(side, up))))
+    gaps = np.diff(np.concatenate([azimuth, azimuth[:1] + 360.0]))
+    return float(gaps.max()) > FORWARD_FACING_GAP_DEG
+
+
 def orbit_path(cameras: list[Camera], num_frames: int, focus: np.ndarray | None = None) -> list[Camera]:
-    """``num_frames`` cameras on a full circle around the vertical through the focus (see the module docstring;
-    ``focus`` overrides the point the cameras look at)."""
+    """``num_frames`` cameras on a circle that frames the scene (see the module docstring; ``focus`` overrides the
+    point the cameras look at): around the focus for an inward-facing rig, around the rig for a forward-facing
+    one."""
+    if len(cameras) > 1 and faces_forward(cameras, focus):
+        return _rig_circle(cameras, num_frames, turns=1, focus=focus, name="orbit", radii_of=_mean_spread)
     centres, focus, up = _frame(cameras, focus)
     offsets = centres - focus
     heights = offsets @ up
@@ -77,7 +98,24 @@ def spiral_path(cameras: list[Camera], num_frames: int, turns: int = SPIRAL_TURN
     """``num_frames`` cameras on NeRF's forward-facing spiral around the mean camera centre."""
     if len(cameras) < 2:
         raise OMG4Error("--path spiral needs at least two cameras to size the spiral (use --data)")
-    centres, focus, up = _frame(cameras)
+    return _rig_circle(cameras, num_frames, turns=turns, name="spiral", radii_of=_percentile_spread)
+
+
+def _percentile_spread(spread: np.ndarray) -> np.ndarray:
+    """The spiral's radii: :data:`SPIRAL_PERCENTILE` of the centres' spread along each axis."""
+    return np.percentile(spread, SPIRAL_PERCENTILE, axis=0)
+
+
+def _mean_spread(spread: np.ndarray) -> np.ndarray:
+    """A circle's radius on both axes: the centres' mean distance from their mean."""
+    return np.full(2, float(np.linalg.norm(spread, axis=1).mean()))
+
+
+def _rig_circle(cameras: list[Camera], num_frames: int, *, turns: int, name: str, radii_of,
+                focus: np.ndarray | None = None) -> list[Camera]:
+    """``num_frames`` cameras on ``turns`` turns of an ellipse around the mean camera centre in the plane of its
+    right and up axes (radii ``radii_of`` the centres' |offsets| [C, 2] along them), looking at the focus."""
+    centres, focus, up = _frame(cameras, focus)
     mean = centres.mean(0)
     back = mean - focus
     back /= np.linalg.norm(back)
@@ -85,10 +123,10 @@ def spiral_path(cameras: list[Camera], num_frames: int, turns: int = SPIRAL_TURN
     right /= np.linalg.norm(right)
     true_up = np.cross(back, right)
     spread = np.abs(np.stack([(centres - mean) @ right, (centres - mean) @ true_up], axis=1))
-    radii = np.maximum(np.percentile(spread, SPIRAL_PERCENTILE, axis=0), 1e-3 * np.linalg.norm(mean - focus))
+    radii = np.maximum(radii_of(spread), 1e-3 * np.linalg.norm(mean - focus))
     angles = 2.0 * np.pi * turns * np.arange(num_frames) / num_frames
     return [_looking_at(cameras[0], mean + radii[0] * np.cos(a) * right + radii[1] * np.sin(a) * true_up, focus, up,
-                        f"spiral{i:04d}") for i, a in enumerate(angles)]
+                        f"{name}{i:04d}") for i, a in enumerate(angles)]
 
 
 def dataset_path(cameras: list[Camera], num_frames: int) -> list[Camera]:
@@ -138,4 +176,4 @@ def bounds_camera(xyz: np.ndarray, width: int, height: int, fov_x_deg: float = 5
     return Camera(K=K, viewmat=look_at_viewmat(position, centre), width=int(width), height=int(height), name="bounds")
 
 
-__all__ = ["PATHS", "UP", "bounds_camera", "camera_path", "dataset_path", "orbit_path", "scene_focus", "spiral_path"]
+__all__ = ["PATHS", "UP", "bounds_camera", "camera_path", "dataset_path", "faces_forward", "orbit_path", "scene_focus", "spiral_path"]

@@ -92,6 +92,14 @@ PRESETS: dict[str, dict] = {
 }
 
 
+def default_preset(device) -> str:
+    """The preset a run takes when none is named: the official schedule on a CUDA device, ``cpu-small`` elsewhere
+    (30,000 official iterations would take a 2-core machine hours)."""
+    import torch
+
+    return "official" if torch.device(device).type == "cuda" else "cpu-small"
+
+
 MIN_DENSIFY_INTERVAL = TrainConfig().densify_interval
 """Scaling a schedule never densifies more often than the official every 100 iterations (rt4dgs §3.4)."""
 

@@ -145,6 +145,9 @@ class Densification(DensityStrategy):
     once the first opacity reset has passed); opacities reset every ``opacity_reset_interval`` steps before
     ``densify_until``."""
 
+    def grows_until(self, cfg) -> int:
+        return cfg.densify_until
+
     def collects_statistics(self, cfg, step: int) -> bool:
         return step < cfg.densify_until
 

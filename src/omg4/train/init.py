@@ -10,6 +10,7 @@ coloured points along the first frame's training rays (:func:`ray_initial_points
 
 from __future__ import annotations
 
+import logging
 from typing import Callable
 
 import numpy as np
@@ -18,21 +19,32 @@ from omg4.data.scene import PointCloud, Scene
 from omg4.errors import DataError, OMG4Error
 from omg4.train.config import TrainConfig
 
+logger = logging.getLogger(__name__)
 
-def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str], None] = print) -> PointCloud:
+
+def initial_points(scene: Scene, mode: str, cfg: TrainConfig, log: Callable[[str], None] | None = None) -> PointCloud:
     """The initial points for ``mode``, one of :data:`INIT_MODES`."""
     if mode not in INIT_MODES:
         raise OMG4Error(f"unknown initialization '{mode}' (choose from {', '.join(INIT_MODES)})")
-    return INIT_MODES[mode](scene, cfg, log)
+    return INIT_MODES[mode](scene, cfg, log or logger.info)
+
+
+def auto_initialization(scene: Scene) -> str:
+    """What ``--init auto`` starts ``scene`` from: ``"points3d.ply"`` (the data's points), ``"mvs"`` (plane-sweep
+    stereo, when the first frame has at least three training cameras: multi-view video) or ``"random"`` (a
+    monocular scene such as D-NeRF, as the official code does)."""
+    if scene.initial_points is not None:
+        return "points3d.ply"
+    return "mvs" if len(scene.first_frame_views()) >= 3 else "random"
 
 
 def _auto_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
-    """The data's ``points3d.ply``; else plane-sweep stereo (on ``cfg.device``) when the first frame has at
-    least three training cameras (multi-view video); else — a monocular scene such as D-NeRF,
-    or a sweep that finds nothing — random points, as the official code does for D-NeRF."""
-    if scene.initial_points is not None:
+    """The points of :func:`auto_initialization`, plane-sweep stereo running on ``cfg.device``; random points
+    where the sweep finds nothing."""
+    mode = auto_initialization(scene)
+    if mode == "points3d.ply":
         return scene.initial_points
-    if len(scene.first_frame_views()) >= 3:
+    if mode == "mvs":
         try:
             points = _plane_sweep_points(scene, cfg, log)
             log(f"initialization: {len(points.xyz)} plane-sweep stereo points of the first frame")

@@ -18,6 +18,7 @@ segment afresh and learn every frame from the video.
 
 from __future__ import annotations
 
+import logging
 import contextlib
 import json
 from pathlib import Path
@@ -33,6 +34,8 @@ from omg4.data.segments import PLAN_FILE, Segment, segment_folder
 from omg4.errors import OMG4Error
 from omg4.train.config import TrainConfig
 from omg4.train.run_state import latest_iteration
+
+logger = logging.getLogger(__name__)
 
 PARALLEL_MODES = ("data", "segments")
 
@@ -151,12 +154,13 @@ def segment_budget(cfg: TrainConfig, first_count: int) -> TrainConfig:
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
                    initial_points: Callable[[Scene], object], *, parallel: str = "data", check_replicas: int = 0,
-                   teach: bool = True, log=print) -> list[dict]:
+                   teach: bool = True, log=None, preset: str | None = None) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
     order; with ``parallel="segments"`` the others' segments are read from their folders)."""
     from omg4.gaussians.checkpoint import describe_checkpoint
     from omg4.train.trainer import Trainer
 
+    log = log or logger.info
     if parallel not in PARALLEL_MODES:
         raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")
     world = distributed.world()
@@ -186,7 +190,7 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
                 f"{' (resuming)' if resume else ''}")
             Trainer(scene, seg_cfg, folder, points=points, model=start, resume=resume, log=log,
-                    check_replicas=check_replicas).run()
+                    check_replicas=check_replicas, preset=preset).run()
             del scene
     distributed.barrier("training the segments")
     return [{"index": seg["index"], "frames": seg["frames"],

@@ -33,6 +33,10 @@ class DensityStrategy:
             xyz, rgb = xyz[keep], rgb[keep]
         return xyz, rgb
 
+    def grows_until(self, cfg: TrainConfig) -> int:
+        """The last step at which the Gaussian count may still grow (0: it never does)."""
+        return 0
+
     def collects_statistics(self, cfg: TrainConfig, step: int) -> bool:
         """Whether step ``step`` accumulates the view-space gradient statistics (:class:`DensifyStats`)."""
         return False

@@ -12,11 +12,15 @@ on ``TrainConfig.device``; the generators are CPU ones whose draws are moved the
 
 from __future__ import annotations
 
+import logging
+import contextlib
 import json
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -39,6 +43,8 @@ from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_opti
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 from omg4.train.step import backward_batch, step_generator
 from omg4.train.strategy import strategy_for
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -101,18 +107,19 @@ class Trainer:
     In a distributed job (:mod:`omg4.distributed`) every rank trains a replica on its share of each batch;
     rank 0 alone logs, shows progress and writes files. It starts from ``model`` when given (on the CPU),
     else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
-    every that many steps and stops with a one-line error when they differ.
+    every that many steps and stops with a one-line error when they differ. ``preset``, the name of the preset
+    ``cfg`` started from, is recorded beside it (``config.json``), so a resumed run can check a preset named again.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, run_dir: str | Path, *, points: PointCloud | None = None,
-                 model: Gaussians4D | None = None, resume: bool = False, log: Callable[[str], None] = print,
-                 progress: bool = True, check_replicas: int = 0):
+                 model: Gaussians4D | None = None, resume: bool = False, log: Callable[[str], None] | None = None,
+                 progress: bool = True, check_replicas: int = 0, preset: str | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         self.world = distributed.world()
         self.scene, self.cfg, self.run_dir = scene, cfg, Path(run_dir)
-        self.log = log if self.world.main else (lambda *_: None)
+        self.log = (log or logger.info) if self.world.main else (lambda *_: None)
         self.progress = progress and self.world.main
         self.check_replicas = check_replicas
         self.extent = scene.extent
@@ -125,6 +132,7 @@ class Trainer:
             "normalization": scene.normalization.to_json(),
             "train_config": cfg.to_dict(),
             "world_size": self.world.size,
+            **({"preset": preset} if preset else {}),
         }
         self.start = 0
         start_it = latest_iteration(self.run_dir) if resume else None
@@ -185,7 +193,10 @@ class Trainer:
         return self.run_dir
 
     def run(self, stop_at: int | None = None) -> TrainResult:
-        """Train until ``cfg.iterations`` (or ``stop_at``, for tests of resuming)."""
+        """Train until ``cfg.iterations`` (or ``stop_at``, for tests of resuming).
+
+        Ctrl-C lets the step in progress finish, writes a checkpoint of it and raises ``KeyboardInterrupt``, so
+        ``--resume`` loses no step (a second Ctrl-C stops at once; a distributed job stops at once)."""
         cfg = self.cfg
         end = min(cfg.iterations, stop_at) if stop_at else cfg.iterations
         if self.world.main:
@@ -194,31 +205,91 @@ class Trainer:
         t0 = time.perf_counter()
         bar = tqdm(range(self.start + 1, end + 1), initial=self.start, total=cfg.iterations, desc="train",
                    disable=not self.progress, dynamic_ncols=True)
-        ema_loss, ema_psnr = None, None
-        for step in bar:
-            loss, p = self.train_step(step)
-            ema_loss = loss if ema_loss is None else 0.9 * ema_loss + 0.1 * loss
-            ema_psnr = p if ema_psnr is None else 0.9 * ema_psnr + 0.1 * p
-            if step % 10 == 0 or step == end:
-                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", N=self.model.num_gaussians)
-            if cfg.test_interval and step % cfg.test_interval == 0 and self.scene.test_views:
-                test_psnr = evaluate_psnr(self.model, self.scene.test_views, self.background, cfg.backend,
-                                          self.device)
-                self.history.append({"iteration": step, "test_psnr": test_psnr, "num_gaussians":
-                                     self.model.num_gaussians})
-                if self.world.main:
-                    bar.write(f"[{step}] test PSNR {test_psnr:.2f} dB, {self.model.num_gaussians} Gaussians")
-            if cfg.checkpoint_interval and step % cfg.checkpoint_interval == 0 and step != end:
-                self.save_checkpoint(step)
-            if self.check_replicas and step % self.check_replicas == 0:
-                distributed.check_replicas(list(self.model.params.values()), step)
+        ema_loss, ema_psnr, done = None, None, self.start
+        record_every = max(1, cfg.iterations // HISTORY_POINTS)
+        with interrupt_between_steps(enabled=not self.world.parallel) as interrupted:
+            for step in bar:
+                loss, p = self.train_step(step)
+                done = step
+                ema_loss = loss if ema_loss is None else 0.9 * ema_loss + 0.1 * loss
+                ema_psnr = p if ema_psnr is None else 0.9 * ema_psnr + 0.1 * p
+                if step % 10 == 0 or step == end:
+                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", N=self.model.num_gaussians)
+                if step == self.start + ESTIMATE_AFTER and step < end:
+                    self._log_estimate(time.perf_counter() - t0, step, end)
+                entry = {}
+                if step % record_every == 0 or step == end:
+                    entry = {"loss": ema_loss, "train_psnr": ema_psnr}
+                if cfg.test_interval and step % cfg.test_interval == 0 and self.scene.test_views:
+                    entry["test_psnr"] = evaluate_psnr(self.model, self.scene.test_views, self.background,
+                                                       cfg.backend, self.device)
+                    self.log(f"[{step}] test PSNR {entry['test_psnr']:.2f} dB, {self.model.num_gaussians} Gaussians")
+                if entry:
+                    self.history.append({"iteration": step, **entry, "num_gaussians": self.model.num_gaussians})
+                if cfg.checkpoint_interval and step % cfg.checkpoint_interval == 0 and step != end:
+                    self.save_checkpoint(step)
+                if self.check_replicas and step % self.check_replicas == 0:
+                    distributed.check_replicas(list(self.model.params.values()), step)
+                if interrupted():
+                    break
         bar.close()
+        if done < end:  # stopped by Ctrl-C: keep every finished step
+            if done > self.start:
+                self.save_checkpoint(done)
+            self.log(f"interrupted after iteration {done}: checkpoint written to {self.run_dir}; continue with "
+                     "--resume")
+            raise KeyboardInterrupt
         wall = time.perf_counter() - t0
         self.save_checkpoint(end)
         model_path = self.run_dir / "model.safetensors"
         if end == cfg.iterations and self.world.main:
             save_gaussians(model_path, self.model, {**self.metadata, "iteration": end})
         return TrainResult(self.model, model_path, end, wall, self.history)
+
+    def _log_estimate(self, seconds: float, step: int, end: int) -> None:
+        """The time the rest of the run will take at the rate of its first steps (the first step's one-off work
+        included); a run that still densifies grows, so it says so."""
+        remaining = seconds / (step - self.start) * (end - step)
+        growing = self.strategy.grows_until(self.cfg) > step
+        self.log(f"about {_duration(remaining)} for the remaining {end - step:,} iterations at the rate of the first "
+                 f"{step - self.start}" + (f"; the Gaussian count grows until iteration {self.strategy.grows_until(self.cfg):,}, "
+                                            "so expect longer" if growing else ""))
+
+
+HISTORY_POINTS = 100
+"""How many points of the training curve (loss, PSNR and Gaussian count) a run's history keeps."""
+
+ESTIMATE_AFTER = 20
+"""Steps after which a run logs its estimated remaining time."""
+
+
+def _duration(seconds: float) -> str:
+    """``"40 s"``, ``"12 min"`` or ``"3.2 h"``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
+
+
+@contextlib.contextmanager
+def interrupt_between_steps(enabled: bool = True) -> Iterator[Callable[[], bool]]:
+    """Inside, Ctrl-C (SIGINT) only sets a flag that the yielded function reads, so a loop can finish its step and
+    stop cleanly; a second Ctrl-C raises ``KeyboardInterrupt`` at once. Off the main thread, or not ``enabled``,
+    Ctrl-C raises as usual."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    pressed = []
+
+    def handler(signum, frame):
+        if pressed:
+            raise KeyboardInterrupt
+        pressed.append(signum)
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield lambda: bool(pressed)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def train(scene: Scene, cfg: TrainConfig, run_dir: str | Path, **kwargs) -> TrainResult:

@@ -51,6 +51,20 @@ export function resized(camera, width, height) {
   return withCenter({ ...camera, K, viewmat: camera.viewmat.slice(), width, height });
 }
 
+/** The camera's view centred in a width × height image: both focal lengths scaled by the largest factor that keeps
+ * its whole image inside, the principal point moved with the margins, so the image shows what the camera shows and
+ * more at two of its sides, undistorted (resized instead scales each axis by its own ratio). */
+export function framed(camera, width, height) {
+  const s = Math.min(width / camera.width, height / camera.height);
+  const K = camera.K.slice();
+  K[0] *= s;
+  K[1] *= s;
+  K[4] *= s;
+  K[2] = K[2] * s + (width - camera.width * s) / 2;
+  K[5] = K[5] * s + (height - camera.height * s) / 2;
+  return withCenter({ ...camera, K, viewmat: camera.viewmat.slice(), width, height });
+}
+
 /** The world → camera matrix of a camera at `eye` looking at `target` (look_at_viewmat). */
 export function lookAt(eye, target, up = UP) {
   const forward = normalize(sub(target, eye));

@@ -1,10 +1,11 @@
-// The omg4 player page: fetches model.omg4 — or, for a long capture, sequence.json and its segments one by one —
-// (and cameras.json when the export had a dataset), decodes and renders it with WebGL2, and plays it. URL parameters: ?camera=<name>&time=<T>&width=<W>&height=<H>&ui=0 (a reproducible
-// view: no camera → the first test camera, as `omg4 render --data` picks; a time → paused there; ui=0 → only the
-// canvas, at the page's top left). window.omg4Ready resolves after the first complete frame (rejects with the
-// one-line message a damaged file gets).
+// The omg4 player page: reads the export's list of its files (omg4-web.json), fetches model.omg4 — or, for a long
+// capture, sequence.json and its segments one by one — (and cameras.json when the export had a dataset), decodes and
+// renders it with WebGL2, and plays it. URL parameters: ?camera=<name>&time=<T>&width=<W>&height=<H>&ui=0 (a
+// reproducible view: no camera → the first test camera, as `omg4 render --data` picks; a time → paused there; ui=0 →
+// only the canvas, filling the window unless a size is given). window.omg4Ready resolves after the first complete
+// frame (rejects with the one-line message a damaged file gets).
 
-import { boundsCamera, cameraFromJson, orbitControls, resized, rigCameras } from "./camera.js";
+import { boundsCamera, cameraFromJson, framed, orbitControls, resized, rigCameras } from "./camera.js";
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
 import { Compositor, context } from "./render/renderer.js";
@@ -27,7 +28,14 @@ async function fetchBytes(url) {
   return new Uint8Array(await response.arrayBuffer());
 }
 
-async function presets() {
+async function exportedFiles() {
+  // what the export wrote, so the page asks for no file that is not there
+  const response = await fetch("omg4-web.json", { cache: "no-store" });
+  return new Set(response.ok ? (await response.json()).files : []);
+}
+
+async function presets(files) {
+  if (!files.has("cameras.json")) return [];
   const response = await fetch("cameras.json", { cache: "no-store" });
   if (!response.ok) return [];
   return (await response.json()).cameras.map(cameraFromJson);
@@ -49,7 +57,7 @@ function fitted(camera, bare) {
     const aspect = camera.height / camera.width;
     return resized(camera, width ?? Math.round(height / aspect), height ?? Math.round(width * aspect));
   }
-  if (bare) return camera;
+  if (bare) return framed(camera, Math.max(16, window.innerWidth), Math.max(16, window.innerHeight));
   const fit = Math.min((window.innerWidth - 16) / camera.width, (window.innerHeight - 16) / camera.height);
   return resized(camera, Math.max(16, Math.round(camera.width * fit)), Math.max(16, Math.round(camera.height * fit)));
 }
@@ -58,14 +66,16 @@ async function main() {
   const bare = params.get("ui") === "0";
   if (bare) document.body.classList.add("bare");
   const started = performance.now();
-  const index = await fetch("sequence.json", { cache: "no-store" });
-  const segments = index.ok ? (await index.json()).segments.map((s) => ({ url: s.file, range: s.time_range, bytes: s.bytes }))
+  const files = await exportedFiles();
+  const sequence = files.has("sequence.json") && params.get("model") === null;
+  const segments = sequence
+    ? (JSON.parse(new TextDecoder().decode(await fetchBytes("sequence.json")))).segments.map((s) => ({ url: s.file, range: s.time_range, bytes: s.bytes }))
     : [{ url: params.get("model") ?? "model.omg4", range: null, bytes: null }];
   const bytes = await fetchBytes(segments[0].url);
-  const fileBytes = index.ok ? segments.reduce((sum, s) => sum + s.bytes, 0) : bytes.length;
+  const fileBytes = sequence ? segments.reduce((sum, s) => sum + s.bytes, 0) : bytes.length;
   const payload = await decodePayload(bytes);
   const model = buildModel(payload);  // the first segment: its cameras, and where to look
-  const exported = await presets();
+  const exported = await presets(files);
   const cameras = exported.length ? exported : rigCameras(payload.meta);  // the export's dataset, else the file's rig
   segments[0].range ??= model.timeRange;
   const [t0, t1] = [segments[0].range[0], segments.at(-1).range[1]];
@@ -145,7 +155,8 @@ async function main() {
       state.dirty = false;
       slider.value = String(state.time);
       $("clock").textContent = `${state.time.toFixed(2)} s`;
-      const rate = stamps.length > 1 ? `${((1000 * (stamps.length - 1)) / (stamps.at(-1) - stamps[0])).toFixed(1)} FPS` : "– FPS";
+      const span = stamps.length > 1 ? stamps.at(-1) - stamps[0] : 0;  // no rate until the clock has advanced
+      const rate = span > 0 ? `${((1000 * (stamps.length - 1)) / span).toFixed(1)} FPS` : "– FPS";
       const shown = segments.length > 1 ? ` (segment ${playback.shown.map((k) => k + 1).join(" + ")} of ${segments.length})` : "";
       $("stats").textContent = `${(fileBytes / 1024).toFixed(1)} KB · ${playback.gaussians.toLocaleString()} Gaussians${shown}\n`
         + `${drawn.toLocaleString()} drawn · ${rate}`;

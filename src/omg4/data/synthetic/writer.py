@@ -10,15 +10,12 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
-import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from omg4.atomic import remove_stale_temporaries
+from omg4.atomic import atomic_folder
 from omg4.data.points import write_ply
 from omg4.data.scene import Camera, PointCloud
 from omg4.data.synthetic.raycast import RayHits, StaticLayer, SyntheticScene, box_filter
@@ -59,18 +56,6 @@ def _prepare_target(out_dir: Path, force: bool) -> None:
         raise OMG4Error(f"{out_dir} exists and is not empty (use --force to overwrite it)")
 
 
-def _replace_dir(tmp: Path, out_dir: Path) -> None:
-    """Move the finished folder ``tmp`` onto ``out_dir``; an old ``out_dir`` is moved aside first
-    and deleted only after the rename, so an interruption never leaves a half-written scene."""
-    old = None
-    if out_dir.exists() or out_dir.is_symlink():
-        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.{os.getpid()}-", dir=out_dir.parent))
-        os.replace(out_dir, old / "x")
-    os.replace(tmp, out_dir)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = SynthConfig(), force: bool = False,
                           progress: bool = True) -> SynthResult:
     """Render the scene of ``config`` and write it as an N3DV folder at ``out_dir``.
@@ -92,11 +77,7 @@ def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = Synt
     per_cam = -(-config.num_points // n_train)
     near, far = np.zeros(len(cams)), np.zeros(len(cams))
     xyz, rgb = [], []
-    remove_stale_temporaries(out_dir.parent, f".{out_dir.name}.tmp-")
-    remove_stale_temporaries(out_dir.parent, f".{out_dir.name}.old.")
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:12]}"
-    tmp.mkdir()
-    try:
+    with atomic_folder(out_dir) as tmp:
         with tqdm(total=len(cams) * config.num_frames, desc="omg4 synth", unit="frame", disable=not progress) as bar:
 
             def frames(i: int, layer: StaticLayer):
@@ -121,10 +102,6 @@ def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = Synt
         meta = {"generator": GENERATOR, **asdict(config), "test_camera": "cam00",
                 "world": "metres, +z up, LLFF poses", "time": "timestamp = frame / fps; motion phase = frame / frames"}
         (tmp / "synth.json").write_text(json.dumps(meta, indent=2) + "\n")
-        _replace_dir(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return SynthResult(out_dir, cams, len(points.xyz), poses_bounds)
 
 
