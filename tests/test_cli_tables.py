@@ -31,6 +31,7 @@ DEVICE = {"--backend": BACKENDS}
 TABLES: dict[str, dict[str, object]] = {
     "demo": {},
     "synth": {},
+    "prepare": {},
     "info": {**SCENE},
     "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES,
               "--parallel": PARALLEL_MODES},

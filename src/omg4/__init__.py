@@ -17,6 +17,7 @@ _PUBLIC = {
                      "compress_to_file", "load_model", "render_frame", "evaluate_model", "Scene", "Camera",
                      "TrainConfig", "CompressConfig", "TrainResult"), "omg4.api"),
     "View": "omg4.data.scene",
+    "prepare_capture": "omg4.prepare.pipeline",
     "MergeConfig": "omg4.compress.merge_clusters",
     "StageLengths": "omg4.compress.schedule",
     "CompactGrids": "omg4.codec.payload",

@@ -24,6 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the whole pipeline on a built-in synthetic scene (synth, train, compress, decode, eval)"),
     "synth": ("synth", "write the built-in procedural dynamic scene in N3DV layout"),
+    "prepare": ("prepare", "your own capture: raw multi-view videos → a synchronized, calibrated dataset"),
     "info": ("info", "summary of a dataset folder, a checkpoint or an .omg4 file"),
     "train": ("train", "train a Real-Time4DGS or FreeTimeGS baseline"),
     "import-rt4dgs": ("import_rt4dgs", "convert an official Real-Time4DGS checkpoint"),

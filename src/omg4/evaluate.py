@@ -39,7 +39,7 @@ def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
 
     if is_segmented_run(path):
         return load_segmented_run(path, device)
-    from omg4.train.run_state import run_model
+    from omg4.gaussians.checkpoint import run_model
 
     path = run_model(path)
     if not path.is_file():

@@ -32,7 +32,7 @@ def read_baseline(path: str | Path, device="cpu") -> tuple[Gaussians4D, dict]:
     is a one-line error that says so."""
     from omg4.codec.container import has_magic
     from omg4.gaussians.checkpoint import load_gaussians
-    from omg4.train.run_state import run_model
+    from omg4.gaussians.checkpoint import run_model
 
     path = run_model(path)
     if path.is_file() and has_magic(path):

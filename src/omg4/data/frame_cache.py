@@ -43,7 +43,7 @@ class VideoInfo:
     Attributes:
         path: the video file.
         num_frames: frame count from the container (estimated from duration × rate when the
-            container does not store it).
+            container does not store it, else counted from the stream's packets).
         width, height: frame size in pixels.
         fps: average frame rate.
     """
@@ -67,6 +67,8 @@ def probe_video(path: Path) -> VideoInfo:
             if count == 0 and stream.duration and stream.time_base and fps > 0:
                 count = int(round(float(stream.duration * stream.time_base) * fps))
             width, height = int(stream.codec_context.width), int(stream.codec_context.height)
+            if count == 0:  # a container that records neither (Matroska, WebM): count the packets, no decoding
+                count = sum(1 for packet in container.demux(stream) if packet.size)
     except FileNotFoundError:
         raise DataError(f"missing video file {path}") from None
     except (av.error.FFmpegError, OSError, ValueError) as e:

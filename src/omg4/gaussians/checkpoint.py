@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from omg4.atomic import atomic_path
-from omg4.errors import CorruptFileError
+from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians.backbone import BACKBONES
 from omg4.gaussians.model import GaussianConfig, Gaussians4D, param_shapes
 
@@ -90,6 +90,21 @@ def _config_of(path: Path, header: dict) -> GaussianConfig:
         raise CorruptFileError(f"{path}: a {header['format']} checkpoint whose config names the {config.backbone} "
                                "backbone")
     return config
+
+
+def run_model(path: str | os.PathLike) -> Path:
+    """``path`` itself, or for a training run's folder its final ``model.safetensors``, so a run folder is accepted
+    wherever a model file is; a run folder without its final model yet (it holds ``config.json`` or
+    ``checkpoints/``) or any other folder is a one-line error."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    model = path / "model.safetensors"
+    if model.is_file():
+        return model
+    if (path / "config.json").is_file() or (path / "checkpoints").is_dir():
+        raise OMG4Error(f"{path} is a training run without its final model yet: finish it with omg4 train --resume")
+    raise OMG4Error(f"{path} is a folder, not a model file or a training run")
 
 
 def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") -> tuple[Gaussians4D, dict]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from fractions import Fraction
+from pathlib import Path
 from typing import Iterable, Sequence
 
 import av
@@ -28,15 +29,18 @@ def _pad_even(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
-def write_video(path: str | os.PathLike, frames: Iterable[ImageLike], fps: float = 30, crf: int = 18) -> int:
+def write_video(path: str | os.PathLike, frames: Iterable[ImageLike], fps: float = 30, crf: int = 18,
+                audio: tuple[np.ndarray, int] | None = None) -> int:
     """Encode ``frames`` as H.264 (libx264, yuv420p, constant rate factor ``crf``) into ``path``, atomically.
 
     Args:
-        path: output file; the container follows its suffix (``.mp4``).
+        path: output file; the container follows its suffix (``.mp4``, ``.mkv``, ``.mov``).
         frames: ``[H, W, 3]`` float images in [0, 1] or uint8 images, all the same size;
             consumed lazily, so a generator of renders streams without holding the video.
         fps: frame rate (fractional rates such as 29.97 are kept as a fraction).
         crf: x264 constant rate factor (0 = lossless luma, 18 ≈ visually lossless).
+        audio: ``(int16 mono samples, sample rate)`` to store beside the frames, from the first frame's
+            instant: uncompressed PCM in ``.mkv`` and ``.mov`` (sample-exact), AAC otherwise.
 
     Returns the number of frames written. Raises :class:`OMG4Error` when there are no
     frames and ``ValueError`` when a frame's size differs from the first one's.
@@ -54,6 +58,8 @@ def write_video(path: str | os.PathLike, frames: Iterable[ImageLike], fps: float
             stream.width, stream.height = width + width % 2, height + height % 2
             stream.pix_fmt = "yuv420p"
             stream.options = {"crf": str(crf)}
+            sound = None if audio is None else container.add_stream(
+                "pcm_s16le" if Path(path).suffix.lower() in (".mkv", ".mov") else "aac", rate=audio[1], layout="mono")
             for frame in _chain(first, iterator):
                 if frame.shape[:2] != (height, width):
                     raise ValueError(f"frame {count} is {frame.shape[1]}x{frame.shape[0]}, expected {width}x{height}")
@@ -61,7 +67,20 @@ def write_video(path: str | os.PathLike, frames: Iterable[ImageLike], fps: float
                 container.mux(stream.encode(video_frame))
                 count += 1
             container.mux(stream.encode(None))
+            if sound is not None:
+                _write_audio(container, sound, *audio)
     return count
+
+
+def _write_audio(container, stream, samples: np.ndarray, rate: int) -> None:
+    """Mux mono int16 ``samples`` at ``rate`` Hz into ``container``'s audio ``stream``."""
+    samples = np.asarray(samples, dtype=np.int16).reshape(-1)
+    chunk = 1024
+    for start in range(0, len(samples), chunk):
+        frame = av.AudioFrame.from_ndarray(samples[None, start:start + chunk], format="s16", layout="mono")
+        frame.sample_rate, frame.pts, frame.time_base = rate, start, Fraction(1, rate)
+        container.mux(stream.encode(frame))
+    container.mux(stream.encode(None))
 
 
 def _chain(first: np.ndarray, rest: Iterable[ImageLike]) -> Iterable[np.ndarray]:

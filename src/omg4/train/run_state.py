@@ -10,7 +10,6 @@ training device; :func:`load_run_checkpoint` puts them on the device asked for.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -95,20 +94,6 @@ def holds_files(run_dir: Path) -> bool:
         return run_dir.is_dir() and any(run_dir.iterdir())
     except OSError as exc:
         raise OMG4Error(f"cannot look into {run_dir}: {exc.strerror or exc}") from None
-
-
-def run_model(path: str | os.PathLike) -> Path:
-    """``path`` itself, or for a training run's folder its final ``model.safetensors``, so a run folder is accepted
-    wherever a model file is; a run folder without its final model yet is a one-line error."""
-    path = Path(path)
-    if not path.is_dir():
-        return path
-    model = path / "model.safetensors"
-    if model.is_file():
-        return model
-    if (path / "config.json").is_file() or latest_iteration(path) is not None:
-        raise OMG4Error(f"{path} is a training run without its final model yet: finish it with omg4 train --resume")
-    raise OMG4Error(f"{path} is a folder, not a model file or a training run")
 
 
 def clear_run(run_dir: Path) -> None:
