@@ -158,10 +158,13 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     view order; FPS timed by rank 0). ``bitrate_mbps`` is the storage per second of the model's time range (for
     video captures, whose times are seconds). A sequence of segments (``model.ranges``) also reports the views near
     a boundary between segments and the others apart (``boundary``, ``interior``: mean PSNR, SSIM, view count).
+    ``per_frame`` summarizes every view, not only the mean: the worst frame, the spread and the 5th percentile of
+    PSNR and SSIM (:func:`omg4.metrics.frames.per_frame`).
     """
     from omg4 import distributed
     from omg4.metrics import lpips, lpips_min_side, psnr, ssim
     from omg4.metrics.dynamic import masked_psnr, masked_ssim
+    from omg4.metrics.frames import per_frame
 
     if not views:
         raise OMG4Error("there are no test views to evaluate on")
@@ -209,5 +212,6 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
         "storage_mb": storage_bytes / 2**20 if storage_bytes is not None else None,
         "bitrate_mbps": 8 * storage_bytes / (t1 - t0) / 1e6 if storage_bytes is not None else None,
         "num_views": len(views),
+        "per_frame": per_frame(per_view),
         "per_view": per_view,
     }

@@ -95,4 +95,53 @@ def rate_distortion_plot(path: Path, rows: dict[str, dict], title: str, curves: 
     plt.close(fig)
 
 
-__all__ = ["TABLE_COLUMNS", "PAPER_N3DV_POINTS", "Curves", "format_table", "rate_distortion_plot"]
+def per_frame_plot(path: Path, models: dict[str, list[dict]], title: str = "") -> dict[str, tuple[list, list]]:
+    """PSNR of every evaluated frame, one line per model and test camera (``models``: label → per-view rows of
+    :func:`omg4.evaluate.evaluate`); with two models a second panel shows the second − the first, frame by frame,
+    its worst frame marked. Written as PNG; returns the lines drawn (name → (frames, values))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from omg4.atomic import atomic_path
+    from omg4.metrics.frames import frame_differences
+
+    labels = list(models)
+    pair = len(labels) == 2
+    fig, axes = plt.subplots(2 if pair else 1, 1, figsize=(8, 5.6 if pair else 3.2), dpi=120, squeeze=False,
+                             sharex=True)
+    lines: dict[str, tuple[list, list]] = {}
+    for label in labels:
+        for camera, rows in _by_camera(models[label]).items():
+            lines[f"{label} {camera}"] = ([r["frame"] for r in rows], [r["psnr"] for r in rows])
+            axes[0, 0].plot(*lines[f"{label} {camera}"], marker=".", label=f"{label} {camera}")
+    axes[0, 0].set_ylabel("PSNR (dB)")
+    axes[0, 0].legend(fontsize=7)
+    axes[0, 0].set_title(title or "PSNR of every frame")
+    if pair:
+        difference = frame_differences(models[labels[1]], models[labels[0]])
+        ax = axes[1, 0]
+        for camera, rows in _by_camera(difference).items():
+            lines[f"difference {camera}"] = ([r["frame"] for r in rows], [r["psnr"] for r in rows])
+            ax.plot(*lines[f"difference {camera}"], marker=".", label=camera)
+        worst = min(difference, key=lambda r: r["psnr"])
+        ax.annotate(f"{worst['psnr']:+.2f} dB", (worst["frame"], worst["psnr"]), fontsize=8, color="red")
+        ax.axhline(0.0, color="grey", linewidth=0.8)
+        ax.set_ylabel(f"{labels[1]} − {labels[0]} (dB)")
+    axes[-1, 0].set_xlabel("frame")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return lines
+
+
+def _by_camera(rows: list[dict]) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    for r in sorted(rows, key=lambda r: (r["camera"], r["frame"])):
+        out.setdefault(r["camera"], []).append(r)
+    return out
+
+
+__all__ = ["TABLE_COLUMNS", "PAPER_N3DV_POINTS", "Curves", "format_table", "per_frame_plot", "rate_distortion_plot"]

@@ -325,3 +325,28 @@ def test_invalid_rate_weight_is_refused_before_any_work(baseline, tiny_scene):
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(OMG4Error, match="rate weight"):
             CompressionPipeline(baseline.model, tiny_scene, _config(rate_weight=bad), progress=False)
+
+
+def test_the_stage_log_reports_quality_in_each_fifth_of_the_clip(tiny_scene):
+    """Before and after a stage, the PSNR of two training views per fifth of the clip (in time order): the values
+    the evaluation of those views gives."""
+    import numpy as np
+
+    from omg4.compress.pipeline import TIME_BUCKETS, CompressConfig, CompressionPipeline
+    from omg4.evaluate import evaluate
+    from omg4.train import make_config
+    from omg4.train.trainer import initial_model
+
+    model = initial_model(tiny_scene, make_config("cpu-small", max_gaussians=300))
+    pipe = CompressionPipeline(model, tiny_scene, CompressConfig(schedule="tiny", backend="cpu", stages=("prune",)),
+                               progress=False, log=lambda *_: None)
+    views = sorted(tiny_scene.train_views, key=lambda v: (v.timestamp, v.camera.name))
+    edges = np.linspace(0, len(views), TIME_BUCKETS + 1).astype(int)
+    picked = [[views[i] for i in np.linspace(a, b - 1, 2).round().astype(int)] for a, b in zip(edges[:-1], edges[1:])]
+    expected = [np.mean([r["psnr"] for r in evaluate(pipe.model, group, lpips_nets=(), time_frames=False,
+                                                      progress=False, backend="cpu")["per_view"]]) for group in picked]
+    pipe.apply_event("prune", 0, 0)
+    record = pipe.records[-1]
+    assert record.psnr_by_time_before == pytest.approx(expected, abs=1e-9)
+    assert len(record.psnr_by_time_after) == TIME_BUCKETS and record.num_gaussians < 300
+    assert record.psnr_by_time_after != record.psnr_by_time_before  # pruning changed the images

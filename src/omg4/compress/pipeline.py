@@ -18,6 +18,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -33,9 +34,11 @@ from omg4.compress.svq import SubVectorQuantizer
 from omg4.data.scene import Scene
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
+from omg4.evaluate import render_image, view_image
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
+from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
 from omg4.settings import knob
 from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
@@ -92,12 +95,23 @@ class CompressConfig:
 
 @dataclass
 class StageRecord:
-    """One row of the pipeline's log: the stage, when it ran, and the Gaussian count after it."""
+    """One row of the pipeline's log: the stage, when it ran, the Gaussian count after it, and the training views'
+    PSNR in each fifth of the clip (:data:`TIME_BUCKETS`) just before the stage and just after it (before its
+    fine-tuning), so a stage that hurts some times shows where it happens."""
 
     stage: str
     iteration: int
     num_gaussians: int
     seconds: float
+    psnr_by_time_before: list[float] | None = None
+    psnr_by_time_after: list[float] | None = None
+
+
+TIME_BUCKETS = 5
+"""Spans of the clip the stage log reports quality for."""
+
+VIEWS_PER_BUCKET = 2
+"""Training views rendered per span for the stage log."""
 
 
 class CompressionPipeline:
@@ -253,13 +267,37 @@ class CompressionPipeline:
         self._quantize(self.schema.svq_stage("svq4d"))
 
     def apply_event(self, name: str, round_index: int, iteration: int) -> None:
+        before = self.quality_by_time()
         t0 = time.perf_counter()
         {"sample": self.stage_sample, "prune": self.stage_prune, "sample+prune": self.stage_sample_prune,
          "appearance": self.stage_appearance, "svq3d": self.stage_svq3d, "svq4d": self.stage_svq4d,
          }.get(name, lambda: self.stage_merge(round_index))()
+        seconds = time.perf_counter() - t0
+        after = self.quality_by_time()
         label = f"merge{round_index + 1}" if name == "merge" else name
-        self.records.append(StageRecord(label, iteration, self.model.num_gaussians, time.perf_counter() - t0))
-        self.log(f"{label} (iteration {iteration}): {self.model.num_gaussians:,} Gaussians")
+        self.records.append(StageRecord(label, iteration, self.model.num_gaussians, seconds, before, after))
+        spans = "" if after is None else (f"; training views' PSNR by fifth of the clip "
+                                          f"{' '.join(f'{p:.2f}' for p in before)} → {' '.join(f'{p:.2f}' for p in after)}")
+        self.log(f"{label} (iteration {iteration}): {self.model.num_gaussians:,} Gaussians{spans}")
+
+    def quality_by_time(self) -> list[float] | None:
+        """Mean PSNR of :data:`VIEWS_PER_BUCKET` training views in each of :data:`TIME_BUCKETS` equal spans of the
+        clip (views in time order, evenly spread within a span; None off the main rank)."""
+        if not self.world.main:
+            return None
+        views = sorted(self.scene.train_views, key=lambda v: (v.timestamp, v.camera.name))
+        edges = np.linspace(0, len(views), TIME_BUCKETS + 1).astype(int)
+        out = []
+        with torch.no_grad():
+            for start, stop in zip(edges[:-1], edges[1:]):
+                if stop <= start:
+                    out.append(float("nan"))
+                    continue
+                picks = np.linspace(start, stop - 1, min(VIEWS_PER_BUCKET, stop - start)).round().astype(int)
+                out.append(float(np.mean([psnr(render_image(self.model, views[i], self.background, self.cfg.backend,
+                                                            self.device), view_image(views[i], self.device))
+                                          for i in picks])))
+        return out
 
     # -------------------------------------------------------------------- training
     def finetune_step(self, step: int) -> float:

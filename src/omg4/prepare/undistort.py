@@ -65,7 +65,7 @@ class Undistorter:
         self.grid = torch.as_tensor(grid, dtype=torch.float32)[None]
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:
-        image = torch.as_tensor(np.ascontiguousarray(frame), dtype=torch.float32).permute(2, 0, 1)[None]
+        image = torch.from_numpy(np.array(frame, dtype=np.float32)).permute(2, 0, 1)[None]
         out = torch.nn.functional.grid_sample(image, self.grid, mode="bilinear", padding_mode="border",
                                               align_corners=False)
         return out[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
