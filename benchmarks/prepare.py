@@ -13,6 +13,7 @@ Poses are compared after one similarity: the rotation that best aligns the orien
 scale from the centres; errors are per camera, rotation in degrees and centre in % of the rig's diameter.
 
     python benchmarks/prepare.py synthetic [--rigs 8x320x240 12x640x360] [--seeds 0 1] [--frames 30] [--train 0]
+                                           [--shared-intrinsics]
     python benchmarks/prepare.py basketball
     python benchmarks/prepare.py audio [--trials 5]
 
@@ -87,11 +88,13 @@ def synthetic(args) -> dict:
                 for i in range(cameras):  # renamed, no poses
                     shutil.copy(tmp / "scene" / f"cam{i:02d}.mp4", tmp / "raw" / f"clip_{i:02d}.mp4")
                 t0 = time.perf_counter()
-                record = prepare_capture(tmp / "raw", tmp / "data", test_camera="clip_00")
+                record = prepare_capture(tmp / "raw", tmp / "data", test_camera="clip_00",
+                                         shared_intrinsics=args.shared_intrinsics)
                 wall = time.perf_counter() - t0
                 truth = {f"clip_{i:02d}": (c.viewmat, c.K[0, 0]) for i, c in
                          enumerate(load_scene(tmp / "scene", decode=False, progress=False).cameras())}
                 row = {"rig": rig, "seed": seed, "frames": args.frames, "prepare_s": wall,
+                       "shared_intrinsics": args.shared_intrinsics,
                        **pose_errors(calibrated(record), truth)}
                 if args.train:
                     row.update(training_gap(tmp / "scene", tmp / "data", args.train, tmp))
@@ -195,10 +198,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--train", type=int, default=0, help="train baselines of this many steps on both datasets")
     ap.add_argument("--trials", type=int, default=5)
+    ap.add_argument("--shared-intrinsics", action="store_true", help="synthetic: one camera model for the rig")
     args = ap.parse_args(argv)
     result = {"synthetic": synthetic, "basketball": basketball, "audio": audio}[args.kind](args)
     result["command"] = shlex.join(["python", "benchmarks/prepare.py", *(sys.argv[1:] if argv is None else argv)])
-    name = args.kind if args.kind != "synthetic" or not args.train else f"{args.kind}_train{args.train}"
+    name = args.kind + (f"_train{args.train}" if args.train else "") + ("_shared" if args.shared_intrinsics else "")
     save_record(RESULTS / f"prepare_{name}.json", result)
     return 0
 
