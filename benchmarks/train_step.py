@@ -22,7 +22,7 @@ Times are the median of ``--steps`` steps after ``--warmup``; the aten count is 
 under a ``TorchDispatchMode`` that counts every dispatched operator.
 
     python benchmarks/train_step.py [--workloads demo basketball] [--device cpu|cuda]
-                                    [--steps 10] [--model CKPT] [--json PATH]
+                                    [--steps 10] [--parts train compress] [--model CKPT] [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/train_step.json`` (``train_step_cuda.json`` with ``--device cuda``). To time another
@@ -187,7 +187,8 @@ def host_synchronizations(step_fn, i: int) -> int:
     return sum("synchroniz" in str(w.message) for w in caught)
 
 
-def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, model_path: Path | None = None) -> dict:
+def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, model_path: Path | None = None,
+                 parts: tuple[str, ...] = ("train", "compress")) -> dict:
     from omg4.compress.pipeline import CompressConfig, CompressionPipeline
     from omg4.data import random_initial_points
     from omg4.gaussians.checkpoint import load_gaussians
@@ -204,18 +205,20 @@ def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, mod
         trainer.optimizer = trainer._make_optimizer()
     num = trainer.model.num_gaussians
     base = 10  # SH degrees all active from step 5 on
-    train = measure(lambda i: trainer.train_step(base + i), device, warmup, steps)
-
+    row = {"workload": name, "device": device, "gaussians": num, "batch": batch,
+           "model": str(model_path) if model_path else "random initialization",
+           "resolution": f"{scene.train_views[0].camera.width}x{scene.train_views[0].camera.height}"}
+    if "train" in parts:
+        row["train"] = measure(lambda i: trainer.train_step(base + i), device, warmup, steps)
+    if "compress" not in parts:
+        return row
     ccfg = CompressConfig(preset="M", stages=("appearance", "svq3d", "svq4d"), schedule="short", batch_size=batch,
                           device=device)
     pipe = CompressionPipeline(trainer.model.detach_copy(), scene, ccfg, progress=False, log=lambda s: None)
     for e in pipe.events:
         pipe.apply_event(e.name, e.round, e.iteration)
-    compress = measure(lambda i: pipe.finetune_step(i), device, warmup, steps)
-    view = scene.train_views[0].camera
-    return {"workload": name, "device": device, "gaussians": num, "batch": batch,
-            "model": str(model_path) if model_path else "random initialization",
-            "resolution": f"{view.width}x{view.height}", "train": train, "compress": compress}
+    row["compress"] = measure(lambda i: pipe.finetune_step(i), device, warmup, steps)
+    return row
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -224,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--parts", nargs="+", default=["train", "compress"], choices=["train", "compress"],
+                    help="which steps to time (the compression step needs its stages fitted first)")
     ap.add_argument("--model", type=Path, default=None, help="a trained checkpoint for the demo workload")
     ap.add_argument("--json", type=Path, default=None,
                     help="record file (default benchmarks/results/train_step.json, train_step_cuda.json on CUDA)")
@@ -235,14 +240,13 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             row = run_workload(name, args.device, args.warmup, args.steps, Path(tmp),
-                               args.model if name == "demo" else None)
+                               args.model if name == "demo" else None, tuple(args.parts))
             rows.append(row)
             print(f"{name:16s} {row['device']:6s} N={row['gaussians']:>9,} B={row['batch']} "
-                  f"train {row['train']['ms_per_step']:8.1f} ms {row['train']['aten_ops_per_step']:6d} ops | "
-                  f"compress {row['compress']['ms_per_step']:8.1f} ms {row['compress']['aten_ops_per_step']:6d} ops",
-                  flush=True)
+                  + " | ".join(f"{part} {row[part]['ms_per_step']:8.1f} ms {row[part]['aten_ops_per_step']:6d} ops"
+                               for part in args.parts), flush=True)
             if kind == "cuda":
-                for part in ("train", "compress"):
+                for part in args.parts:
                     r = row[part]
                     print(f"  {part}: {r['gpu_launches_per_step']} kernels + {r['gpu_copies_per_step']} copies/fills "
                           f"per step, {r['host_syncs_per_step']} host synchronizations, "
@@ -258,9 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     print("| workload | device | N | batch | train ms/step | train aten ops | compress ms/step | compress aten ops |")
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
-        print(f"| {row['workload']} | {row['device']} | {row['gaussians']:,} | {row['batch']} | "
-              f"{row['train']['ms_per_step']:.1f} | {row['train']['aten_ops_per_step']:,} | "
-              f"{row['compress']['ms_per_step']:.1f} | {row['compress']['aten_ops_per_step']:,} |")
+        cells = [f"{row[part]['ms_per_step']:.1f} | {row[part]['aten_ops_per_step']:,}" if part in row else "– | –"
+                 for part in ("train", "compress")]
+        print(f"| {row['workload']} | {row['device']} | {row['gaussians']:,} | {row['batch']} | {' | '.join(cells)} |")
     return 0
 
 

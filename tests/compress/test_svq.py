@@ -58,6 +58,20 @@ def test_gradients_reach_codebooks_only():
     assert not q.indices.requires_grad
 
 
+def test_slots_of_mixed_lengths_reconstruct_and_backpropagate():
+    """A decoded file may hold slots of different sub-vector lengths: column blocks follow the slots' widths."""
+    gen = torch.Generator().manual_seed(1)
+    codebooks = [torch.randn(5, 1, generator=gen), torch.randn(7, 2, generator=gen), torch.randn(3, 1, generator=gen)]
+    indices = torch.stack([torch.randint(0, k.shape[0], (40,), generator=gen) for k in codebooks], dim=1)
+    q = SubVectorQuantizer(codebooks, indices)
+    expected = np.concatenate([cb.numpy()[ix] for cb, ix in zip(codebooks, indices.T.numpy())], axis=1)
+    np.testing.assert_array_equal(q.values().detach().numpy(), expected)
+    q.values().square().sum().backward()
+    for j, cb in enumerate(q.codebooks):
+        counts = torch.bincount(indices[:, j], minlength=cb.shape[0]).float()
+        torch.testing.assert_close(cb.grad, 2 * counts[:, None] * cb.detach())
+
+
 def test_select_keeps_rows_and_codebook_objects():
     q = SubVectorQuantizer.fit(_values(200), 2, 8)
     codebook_ids = [id(cb) for cb in q.codebooks]

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import viser  # noqa: F401  (the viewer extra: without it the command is a one-line "not available" error)
-
 from omg4.commands.common import add_background_argument, add_device_arguments, add_scene_arguments, int_in
 from omg4.data.scene import MAX_IMAGE_SIDE
 
@@ -27,6 +25,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     import torch
+    import viser  # noqa: F401  (the viewer extra: where it is missing, a one-line error with its pip command)
 
     from omg4.commands.common import background_from_args, device_from_args, load_scene_from_args
     from omg4.evaluate import load_model

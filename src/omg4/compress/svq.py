@@ -38,6 +38,8 @@ class SubVectorQuantizer(nn.Module):
             raise ValueError(f"indices must be [N, {len(codebooks)}], got {tuple(indices.shape)}")
         self.codebooks = nn.ParameterList([nn.Parameter(cb.detach().clone().float()) for cb in codebooks])
         self.register_buffer("indices", indices.to(torch.int64))
+        self.register_buffer("table_rows", None, persistent=False)  # moves with the module
+        self._table_rows()
 
     @classmethod
     def fit(cls, values: torch.Tensor, sub_len: int, codebook_size: int, seed: int = 0,
@@ -62,9 +64,25 @@ class SubVectorQuantizer(nn.Module):
     def num_gaussians(self) -> int:
         return int(self.indices.shape[0])
 
+    def _table_rows(self) -> None:
+        """Each index's row in the codebooks stacked along their rows (``table_rows [N · slots]``), where every slot's
+        sub-vectors have one length; else None (a decoded file may mix lengths)."""
+        widths = {cb.shape[1] for cb in self.codebooks}
+        if len(widths) != 1:
+            self.table_rows = None
+            return
+        sizes = np.array([cb.shape[0] for cb in self.codebooks], np.int64)
+        offsets = torch.as_tensor(np.cumsum(sizes) - sizes, device=self.indices.device)
+        self.table_rows = (self.indices + offsets).reshape(-1)
+
     def forward(self) -> torch.Tensor:
-        """Reconstruction ``[N, D]``: ``cat_j codebooks[j][indices[:, j]]``."""
-        return torch.cat([cb[self.indices[:, j]] for j, cb in enumerate(self.codebooks)], dim=1)
+        """Reconstruction ``[N, D]``: ``cat_j codebooks[j][indices[:, j]]``, as one gather from the stacked codebooks
+        where the slots share a sub-vector length. A gather's backward adds into the codebook rows (``index_add``);
+        indexing's would sort each slot's indices first (on CUDA a radix sort per slot and step)."""
+        if self.table_rows is None:
+            return torch.cat([cb.index_select(0, self.indices[:, j]) for j, cb in enumerate(self.codebooks)], dim=1)
+        table = torch.cat(list(self.codebooks)) if len(self.codebooks) > 1 else self.codebooks[0]
+        return table.index_select(0, self.table_rows).reshape(self.indices.shape[0], -1)
 
     def values(self) -> torch.Tensor:
         """Same as ``forward()``: the quantized attribute ``[N, D]``."""
@@ -73,6 +91,7 @@ class SubVectorQuantizer(nn.Module):
     def select(self, keep: torch.Tensor) -> None:
         """Keep the Gaussians where ``keep: bool [N]`` (or the rows listed in it); codebooks are untouched."""
         self.indices = self.indices[keep.to(self.indices.device)]
+        self._table_rows()
 
     def to_quantized(self) -> QuantizedAttribute:
         """The payload form: fp16 codebooks ``[K_j, s]`` and int64 indices ``[N]`` per slot."""
