@@ -24,6 +24,12 @@ SHARED_DATA = Path(os.environ.get("OMG4_SHARED_DATA", REPO_ROOT.parent / "shared
 # round differently with each; its conditional numerical reproducibility mode makes them round alike everywhere.
 os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
 
+# Under pytest-xdist (``-n 2``) every worker computes on one thread, so the workers share the cores instead of
+# contending for them (torch's and numba's thread pools would otherwise each take every core).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[variable] = "1"
+
 # Keep frame caches and converted weights of a test session out of the user's cache folder,
 # in a folder of the session's own that is removed when the session ends.
 if "OMG4_CACHE_DIR" not in os.environ:
