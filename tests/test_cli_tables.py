@@ -15,6 +15,7 @@ from omg4.cli import COMMANDS, _build_parser
 from omg4.codec.payload import CODECS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
+from omg4.compress.score import SCORE_WEIGHTINGS
 from omg4.data.readers import READERS
 from omg4.data.scene import SPLITS
 from omg4.gaussians.backbone import BACKBONES
@@ -37,6 +38,7 @@ TABLES: dict[str, dict[str, object]] = {
               "--parallel": PARALLEL_MODES},
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
+                 "--score-weighting": SCORE_WEIGHTINGS,
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE},  # --path: a name of PATHS or a camera path file (test_render_path_names)

@@ -112,7 +112,7 @@ def test_a_three_round_run_gives_each_stage_and_round_its_settings(tiny_scene, m
     n0 = model.num_gaussians
     merge_cfg = merging.MergeConfig(grid_size=0.3, grid_growth=1.5)
     cfg = CompressConfig(preset="M", lengths=LENGTHS, num_merge=3, batch_size=1, backend="cpu", seed=17,
-                         merge=merge_cfg)
+                         merge=merge_cfg, score_weighting="paper")
     pipeline = CompressionPipeline(model, tiny_scene, cfg, scores=scores(n0), progress=False, log=lambda *_: None)
     positions = []
     original_lr = pl.set_position_lr
@@ -151,6 +151,30 @@ def test_a_three_round_run_gives_each_stage_and_round_its_settings(tiny_scene, m
     assert [s for s, _ in positions] == [30_000 + i for i in range(1, 38)]
     assert all(kw["max_steps"] == 30_000 + 37 and kw["extent"] == pytest.approx(tiny_scene.extent) for _, kw in
                positions)
+
+
+def test_lifetime_weighting_ranks_sampling_and_pruning_by_weighted_scores(tiny_scene, monkeypatch):
+    from omg4.compress.score import lifetime_weights
+
+    rec = Recorder(monkeypatch)
+    model = baseline(tiny_scene)
+    n0 = model.num_gaussians
+    times = sorted({v.timestamp for v in tiny_scene.train_views})
+    weights = lifetime_weights(model, times)
+    assert (weights > 1).any()  # some Gaussians outlive the tiny clip or are cut by its ends
+    captured = []
+    sampling = pl.sampling_mask
+    monkeypatch.setattr(pl, "sampling_mask", lambda s, ratio: captured.append(s) or sampling(s, ratio))
+    assert CompressConfig().score_weighting == "paper"
+    cfg = CompressConfig(preset="M", stages=("sample", "prune"), lengths=LENGTHS, batch_size=1, backend="cpu",
+                         score_weighting="lifetime")
+    CompressionPipeline(model, tiny_scene, cfg, scores=scores(n0), progress=False, log=lambda *_: None).run()
+    torch.testing.assert_close(captured[0].static, scores(n0).static * weights)
+    torch.testing.assert_close(captured[0].dynamic, scores(n0).dynamic * weights)
+    (prune,) = rec.of("prune")  # the sampled Gaussians' weights, from the Gaussians the scores were computed on
+    weighted = scores(n0).weighted(weights)
+    kept = torch.sort(-(_minmax(weighted.static) * _minmax(weighted.dynamic)), stable=True).indices[:round(0.2 * n0)]
+    torch.testing.assert_close(prune["static"], weighted.static[kept.sort().values])
 
 
 def _minmax(x):

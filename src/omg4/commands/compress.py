@@ -18,13 +18,15 @@ from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background
                                   fill_device_arguments, float_in, int_at_least, load_scene_from_args, seed,
                                   settings_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
+from omg4.compress.score import SCORE_WEIGHTINGS
 from omg4.gaussians.backbone import BACKBONES
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 
 
 #: the CompressConfig fields this command has its own flags for
 SHORTCUTS = ("preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
-             "official_score_quirk", "baseline_iterations", "background", "backend", "device", "seed")
+             "official_score_quirk", "score_weighting", "baseline_iterations", "background", "backend", "device",
+             "seed")
 #: options of the command itself that a config file may set (as the record beside the output does)
 COMMAND_KEYS = ("codec", "grid_bits")
 
@@ -61,6 +63,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
     p.add_argument("--official-score-quirk", action="store_true", default=None,
                    help="accumulate the time gradient without zeroing, as the official release does")
+    p.add_argument("--score-weighting", choices=list(SCORE_WEIGHTINGS),
+                   help="what sampling and pruning rank by: the paper's SD scores (the default) or lifetime-weighted "
+                        "ones (beyond the paper: the clip's first and last frames keep as large a share of their "
+                        "Gaussians as its middle)")
     p.add_argument("--baseline-iterations", type=int_at_least(1),
                    help="iterations the baseline was trained for (the position learning rate continues its decay; "
                         "default: what the baseline's checkpoint records, else "

@@ -29,7 +29,7 @@ from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
 from omg4.compress.sampling import sampling_mask
 from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
-from omg4.compress.score import SDScores, compute_sd_scores
+from omg4.compress.score import SCORE_WEIGHTINGS, SDScores, compute_sd_scores, lifetime_weights
 from omg4.compress.svq import SubVectorQuantizer
 from omg4.data.scene import Scene
 from omg4.device import resolve_device
@@ -69,6 +69,8 @@ class CompressConfig:
     seed: int = knob(6666, "random seed (batches, MLP initialization, k-means)")
     merge: merging.MergeConfig = field(default_factory=merging.MergeConfig)
     official_score_quirk: bool = knob(False, "accumulate the time gradient without zeroing, as the official code")
+    score_weighting: str = knob("paper", "sampling and pruning rank by the paper's SD scores (paper) or by "
+                                         "lifetime-weighted ones (lifetime, beyond the paper)")
     baseline_iterations: int = knob(30_000, "the baseline's steps: the position learning rate continues its decay")
     position_lr_init: float = knob(1.6e-4, "the baseline's initial position learning rate (× extent)")
     position_lr_final: float = knob(1.6e-6, "the baseline's final position learning rate (× extent)")
@@ -128,6 +130,8 @@ class CompressionPipeline:
                  progress: bool = True, log=None, check_replicas: int = 0):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
+        if cfg.score_weighting not in SCORE_WEIGHTINGS:
+            raise OMG4Error(f"unknown score weighting '{cfg.score_weighting}' (choose from {', '.join(SCORE_WEIGHTINGS)})")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
@@ -142,6 +146,7 @@ class CompressionPipeline:
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.extent = scene.extent
         self.scores = scores
+        self.score_weights: torch.Tensor | None = None  # lifetime weights of the scored Gaussians, on first use
         self.records: list[StageRecord] = []
         for p in self.model.params.values():
             p.requires_grad_(True)
@@ -174,6 +179,8 @@ class CompressionPipeline:
             q.select(keep)
         if self.scores is not None:
             self.scores = self.scores.select(keep.cpu())
+        if self.score_weights is not None:
+            self.score_weights = self.score_weights[keep.cpu()]
 
     def ensure_scores(self) -> SDScores:
         """The SD scores of the current Gaussians, computed on first use (paper §4.1)."""
@@ -183,17 +190,27 @@ class CompressionPipeline:
                                             progress=self.progress, device=self.device)
         return self.scores
 
+    def selection_scores(self) -> SDScores:
+        """The scores sampling and pruning rank by: the SD scores, lifetime-weighted where ``cfg.score_weighting`` is
+        "lifetime" (:func:`~omg4.compress.score.lifetime_weights`, from the Gaussians the scores were computed on)."""
+        scores = self.ensure_scores()
+        if self.cfg.score_weighting == "paper":
+            return scores
+        if self.score_weights is None:
+            self.score_weights = lifetime_weights(self.model, sorted({v.timestamp for v in self.scene.train_views}))
+        return scores.weighted(self.score_weights)
+
     def stage_sample(self) -> None:
         """Gaussian Sampling (paper §4.1)."""
-        self._remove(sampling_mask(self.ensure_scores(), self.size.tau_gs))
+        self._remove(sampling_mask(self.selection_scores(), self.size.tau_gs))
 
     def stage_prune(self) -> None:
         """Gaussian Pruning (paper §4.2) on the stored scores of the sampled set."""
-        self._remove(pruning_mask(self.ensure_scores(), self.size.prune_quantile))
+        self._remove(pruning_mask(self.selection_scores(), self.size.prune_quantile))
 
     def stage_sample_prune(self) -> None:
         """Sampling and pruning applied at once (the paper's GS+GP ablation row)."""
-        scores = self.ensure_scores()
+        scores = self.selection_scores()
         keep = sampling_mask(scores, self.size.tau_gs)
         keep[keep.clone()] = pruning_mask(scores.select(keep), self.size.prune_quantile)
         self._remove(keep)

@@ -9,10 +9,17 @@ view:
 The time gradient is zeroed for every view. The official release never zeroes it, so its
 stored T is Σ_k Σ_{j≤k} g_j (omg4 §3); ``official_quirk=True`` reproduces that
 for parity. A Gaussian culled or off-screen in a view contributes nothing for that view.
+
+Beyond the paper, sampling and pruning can rank by *lifetime-weighted* scores (:func:`lifetime_weights`): a sum
+over the clip's views favours the Gaussians that live inside it, and the clip's first and last frames are carried
+by Gaussians it cuts short, which then lose most in sampling and pruning. Weighted, every frame keeps about the
+same share of its visible Gaussians; after the whole pipeline the demo's files are no better for it (docs/results.md,
+"Every frame"), so the paper's ranking stays the default.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +28,7 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4.data.scene import View
+from omg4.gaussians.covariance import temporal_marginal
 from omg4.train.step import view_losses
 
 
@@ -34,6 +42,11 @@ class SDScores:
     def select(self, keep: torch.Tensor) -> "SDScores":
         """The scores of the kept Gaussians (bool mask or index)."""
         return SDScores(self.static[keep], self.dynamic[keep])
+
+    def weighted(self, weights: torch.Tensor) -> "SDScores":
+        """Both scores times per-Gaussian ``weights`` [N] (≥ 0)."""
+        w = weights.to(self.static.dtype)
+        return SDScores(self.static * w, self.dynamic * w)
 
     def save(self, path: str | Path) -> None:
         """Write both scores as float64 ``.npz`` (atomically)."""
@@ -56,6 +69,38 @@ class SDScores:
         if s.shape != (num_gaussians,) or d.shape != (num_gaussians,):
             raise CorruptFileError(f"{path}: scores for {s.shape[0]} Gaussians, the model has {num_gaussians}")
         return SDScores(s, d)
+
+
+SCORE_WEIGHTINGS = ("paper", "lifetime")
+"""How sampling and pruning weight the SD scores: ``paper`` (as they are) or ``lifetime`` (:func:`lifetime_weights`)."""
+
+
+def lifetime_weights(model, times: list[float]) -> torch.Tensor:
+    """Per-Gaussian weights ``w_i = max(1, L_i / n_i)`` [N] (float64, CPU) of the lifetime-weighted SD score.
+
+    ``n_i`` counts the ``times`` at which Gaussian i passes the temporal cull (p_t > ``time_cull``, rt4dgs §1.4),
+    ``L_i`` those it would pass on an unbounded time axis sampled at the clip's mean frame spacing,
+    ``2 √(2 ln(1/cull) Σtt) / spacing``. A score summed over the clip's views, times ``L_i / n_i``, is the score of
+    the Gaussian's whole life at its mean rate: a Gaussian the clip's ends cut short, or one that outlives the clip,
+    is no longer ranked below one the clip holds whole (for those ``w_i`` = 1, as for one it never shows). ``model`` exposes ``params`` and
+    ``config`` (its backbone's ``motion`` gives Σtt).
+    """
+    t = model.params["t"].detach()[:, 0]
+    n = t.shape[0]
+    if len(times) < 2 or n == 0:
+        return torch.ones(n, dtype=torch.float64)
+    cull = model.config.time_cull
+    with torch.no_grad():
+        _, _, var_t = model.config.schema.motion(model.params, model.config)
+        var_t = var_t.detach().double()
+        t = t.double()
+        inside = torch.zeros(n, dtype=torch.float64, device=t.device)
+        for tau in times:  # one time at a time: [N] memory whatever the clip's length
+            inside += (temporal_marginal(tau - t, var_t) > cull).double()
+        spacing = (max(times) - min(times)) / (len(times) - 1)
+        lifetime = 2.0 * torch.sqrt(2.0 * math.log(1.0 / cull) * var_t) / spacing
+    weights = torch.where(inside > 0, lifetime / inside.clamp_min(1.0), 1.0)  # never shown: nothing to scale
+    return weights.clamp_min(1.0).cpu()
 
 
 def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | None = None, backend: str = "auto",
