@@ -54,16 +54,19 @@ def baseline_and_scores(root: Path, seed: int):
         Trainer(scene, cfg, run, progress=False, log=lambda s: None).run()
     model = load_gaussians(run / "model.safetensors")[0]
     scores_path = root / "scores.npz"
-    if not scores_path.exists():
-        compute_sd_scores(model, scene.train_views, progress=False, batch_size=2).save(scores_path)
-    return scene, model, scores_path
+    if scores_path.exists():
+        scores = SDScores.load(scores_path, model.num_gaussians)
+    else:
+        scores = compute_sd_scores(model, scene.train_views, progress=False, batch_size=2)
+        scores.save(scores_path)
+    return scene, model, scores, scores_path
 
 
-def frame_psnrs(model, views) -> list[float]:
+def frame_rows(model, views) -> list[dict]:
+    """:func:`omg4.evaluate.evaluate`'s per-view rows (PSNR; no LPIPS, no timing)."""
     from omg4.evaluate import evaluate
 
-    result = evaluate(model, views, time_frames=False, lpips_nets=(), progress=False, fps_views=0)
-    return [row["psnr"] for row in result["per_view"]]
+    return evaluate(model, views, time_frames=False, lpips_nets=(), progress=False, fps_views=0)["per_view"]
 
 
 def kept_shares(model, scene, scores, weighting: str) -> list[float]:
@@ -93,27 +96,26 @@ def kept_shares(model, scene, scores, weighting: str) -> list[float]:
 def run_seed(root: Path, seed: int) -> dict:
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
-    from omg4.compress.score import SDScores
     from omg4.demo import DEMO_LENGTHS
     from omg4.evaluate import load_model
+    from omg4.metrics.frames import frame_differences, frame_summary
 
-    scene, model, scores_path = baseline_and_scores(root, seed)
-    base = frame_psnrs(model, scene.test_views)
-    row = {"seed": seed, "baseline_psnr": statistics.fmean(base), "baseline_gaussians": model.num_gaussians}
+    scene, model, scores, scores_path = baseline_and_scores(root, seed)
+    base = frame_rows(model, scene.test_views)
+    row = {"seed": seed, "baseline_psnr": statistics.fmean(r["psnr"] for r in base),
+           "baseline_gaussians": model.num_gaussians}
     for weighting in WEIGHTINGS:
         out = root / f"M_{weighting}.omg4"
         if not out.exists():
             cfg = CompressConfig(preset="M", lengths=DEMO_LENGTHS, batch_size=2, seed=seed, baseline_iterations=1500,
                                  score_weighting=weighting)
             compress_to_file(model, scene, cfg, out, scores_path=scores_path)
-        psnrs = frame_psnrs(load_model(out), scene.test_views)
-        delta = [a - b for a, b in zip(psnrs, base)]
-        ordered = sorted(delta)
-        shares = kept_shares(model, scene, SDScores.load(scores_path, model.num_gaussians), weighting)
-        row[weighting] = {"file_bytes": out.stat().st_size, "mean_delta_psnr": statistics.fmean(delta),
-                          "worst_delta_psnr": ordered[0], "worst_frame": delta.index(ordered[0]),
-                          "p5_delta_psnr": ordered[max(0, round(0.05 * (len(ordered) - 1)))],
-                          "delta_psnr_per_frame": delta, "kept_visible_share_per_frame": shares}
+        delta = frame_differences(frame_rows(load_model(out), scene.test_views), base, keys=("psnr",))
+        summary = frame_summary(delta, "psnr")
+        row[weighting] = {"file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
+                          "worst_delta_psnr": summary["min"], "worst_frame": summary["worst"]["frame"],
+                          "p5_delta_psnr": summary["p5"], "delta_psnr_per_frame": [r["psnr"] for r in delta],
+                          "kept_visible_share_per_frame": kept_shares(model, scene, scores, weighting)}
     return row
 
 
