@@ -116,6 +116,8 @@ def test_bad_inputs_are_one_line_errors(rig, tmp_path, capsys):
     (tmp_path / "taken").mkdir()
     (tmp_path / "taken" / "notes.txt").write_text("mine")
     _refused(["prepare", str(good), "--out", str(tmp_path / "taken")], capsys, "add --force")
+    _refused(["prepare", str(good), "--out", str(tmp_path / "taken" / "notes.txt" / "data")], capsys,
+             "notes.txt is not a folder")
     _refused(["prepare", str(good), "--out", str(tmp_path / "d5"), "--sync", "audio"], capsys, "has no audio track")
     assert sorted(p.name for p in good.iterdir()) == ["phone_A.mkv", "phone_B.mkv"]
     assert not any((tmp_path / f"d{i}").exists() for i in range(1, 6))

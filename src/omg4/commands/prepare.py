@@ -37,6 +37,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from omg4.commands.common import printable
     from omg4.prepare import prepare_capture
+    from omg4.prepare.calibrate import DISTORTION_GAIN
 
     record = prepare_capture(args.src, args.out, sync=args.sync, test_camera=args.test_camera,
                              shared_intrinsics=args.shared_intrinsics, instants=args.instants,
@@ -45,6 +46,10 @@ def run(args) -> int:
     print(f"{len(kept)} of {len(record['cameras'])} cameras calibrated, {record['frames']} shared frames at "
           f"{record['fps']:g} fps (sync: {record['sync']}); test camera {record['test_camera']} = "
           f"{printable(record['test_source'])}")
+    lens = record["lens"]
+    print(f"lens distortion {lens['distortion']}: reprojection RMS {lens['rms_with_px']:.3f} px with it, "
+          f"{lens['rms_without_px']:.3f} px without (kept when leaving it out costs more than "
+          f"{DISTORTION_GAIN:.0%})")
     print("| source | name | skipped frames | focal (px) | k1 | reprojection (px) | matches agreeing | note |")
     print("|---|---|---|---|---|---|---|---|")
     for c in record["cameras"]:
