@@ -37,8 +37,10 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from omg4.commands.common import printable
     from omg4.prepare import prepare_capture
+    from omg4.outputs import check_outputs
     from omg4.prepare.calibrate import DISTORTION_GAIN
 
+    check_outputs({"--out": args.out}, inputs=[args.src], folders=["--out"])  # writable, before any work
     record = prepare_capture(args.src, args.out, sync=args.sync, test_camera=args.test_camera,
                              shared_intrinsics=args.shared_intrinsics, instants=args.instants,
                              max_features=args.max_features, image_fps=args.fps, force=args.force, progress=True)
