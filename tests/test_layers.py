@@ -1,0 +1,109 @@
+"""The packages' floors (docs/architecture.md, "Allowed import directions"): every ``omg4`` import of every module,
+lazy ones inside functions included, points only where its package's row allows; a climb fails here."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SOURCE = Path(__file__).resolve().parents[1] / "src" / "omg4"
+
+ANYTHING = None
+"""The application layer may import any package."""
+
+FLOORS: dict[str, tuple[str, ...] | None] = {
+    "errors": (),
+    "allocator": (),
+    "atomic": ("errors",),
+    "device": ("errors",),
+    "distributed": ("errors",),
+    "settings": ("errors",),
+    "metrics": ("errors", "atomic"),
+    "data": ("errors", "atomic"),
+    "data.synthetic.writer": ("errors", "atomic", "io.video"),
+    "render": ("device", "data", "errors"),
+    "gaussians": ("render", "errors", "atomic"),
+    "codec": ("errors", "atomic"),
+    "codec.decoder": ("gaussians.appearance", "gaussians.model", "gaussians.visibility", "errors", "atomic"),
+    "codec.sequence": ("data.segments", "gaussians.appearance", "gaussians.model", "gaussians.visibility", "errors",
+                       "atomic"),
+    "io": ("gaussians", "render.view", "data.scene", "codec.browser", "codec.sequence", "errors", "atomic"),
+    "evaluate": ("data", "render", "gaussians", "metrics", "codec", "device", "distributed", "errors"),
+    "prepare": ("data", "io.video", "errors", "atomic"),
+    "train": ("data", "gaussians", "render", "metrics", "evaluate", "device", "distributed", "settings", "errors",
+              "atomic"),
+    "compress": ("train", "evaluate", "metrics", "codec", "gaussians", "render", "data", "device", "distributed",
+                 "settings", "errors", "atomic"),
+    "outputs": ("data", "errors"),
+    "report": ("metrics", "atomic"),
+    "api": ("compress", "data", "evaluate", "gaussians", "render", "train", "errors"),
+    **{app: ANYTHING for app in ("__init__", "__main__", "cli", "commands", "demo", "bench", "viewer", "launch")},
+}
+"""Package (or module, more specific) → the packages and modules it may import besides its own package."""
+
+
+def imports(source: str) -> list[str]:
+    """The ``omg4`` modules a module's source imports, anywhere in it, without the ``omg4.`` prefix
+    (``from omg4.a import b`` counts as ``a.b`` where ``b`` is a module, else as ``a``)."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and _within(node.module, "omg4"):
+            package = node.module[len("omg4."):] if node.module != "omg4" else ""
+            for alias in node.names:
+                submodule = ".".join(filter(None, (package, alias.name)))
+                found.append(submodule if _is_module(submodule) else package)
+        elif isinstance(node, ast.Import):
+            found += [alias.name[len("omg4."):] for alias in node.names if alias.name.startswith("omg4.")]
+    return found
+
+
+def _is_module(name: str) -> bool:
+    path = SOURCE.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def _within(name: str, prefix: str) -> bool:
+    return name == prefix or name.startswith(prefix + ".")
+
+
+def rule(module: str) -> tuple[str, tuple[str, ...] | None]:
+    """The most specific row of :data:`FLOORS` for a module (dotted, without ``omg4.``)."""
+    rows = [key for key in FLOORS if _within(module, key)]
+    if not rows:
+        raise KeyError(f"{module}: no row in FLOORS; give its package a floor")
+    key = max(rows, key=len)
+    return key, FLOORS[key]
+
+
+def climbs(module: str, source: str) -> list[str]:
+    """The imports of ``module`` that its row does not allow."""
+    _, allowed = rule(module)
+    if allowed is ANYTHING:
+        return []
+    own = module.split(".")[0]
+    return [name for name in imports(source)
+            if not _within(name, own) and not any(_within(name, a) for a in allowed)]
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for path in SOURCE.rglob("*.py"):
+        parts = path.relative_to(SOURCE).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" and len(parts) > 1 else parts)] = path
+    return out
+
+
+def test_every_import_points_down_its_floors():
+    found = {m: climbs(m, p.read_text()) for m, p in sorted(modules().items())}
+    assert {m: c for m, c in found.items() if c} == {}
+
+
+def test_a_climb_is_caught_lazy_or_not():
+    lazy = "def f():\n    from omg4.compress.pipeline import CompressConfig\n"
+    assert climbs("gaussians.model", lazy) == ["compress.pipeline"]
+    assert climbs("codec.payload", "import omg4.gaussians.model\n") == ["gaussians.model"]
+    assert climbs("codec.decoder", "from omg4.gaussians import model\n") == []  # its row allows the decoder's parts
+    assert climbs("data.scene", "from omg4 import io\n") == ["io"]
+    assert climbs("data.synthetic.writer", "from omg4.io.video import write_video\n") == []
+    assert climbs("commands.train", "from omg4.compress import api\n") == []
+    assert rule("codec.decoder")[0] == "codec.decoder" and rule("codec.payload")[0] == "codec"
