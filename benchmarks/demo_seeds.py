@@ -7,8 +7,13 @@ their difference, SSIM, PSNR on the moving pixels, file sizes, the size ratio an
 two models timed together, frame by frame), so a reader can tell a real difference from the spread of
 seeds and processors.
 
-Usage: ``python benchmarks/demo_seeds.py [--seeds 0 1 2] [--work runs/demo_seeds]``; about 15 minutes a seed on
-two cores.
+With ``--equal-training-control`` each seed also trains a baseline for as many steps as the baseline and the
+compression's fine-tuning together (``omg4 demo --equal-training-control``) and the rows add its PSNR, OMG4-M's
+difference to it (mean and worst frame) and the baseline's worst frame; the record is
+``demo_seeds_control.json``.
+
+Usage: ``python benchmarks/demo_seeds.py [--seeds 0 1 2] [--work runs/demo_seeds] [--equal-training-control]``;
+about 15 minutes a seed on two cores (30 with the control).
 """
 
 from __future__ import annotations
@@ -40,7 +45,21 @@ def row_of(results: dict) -> dict:
         "size_ratio": base["storage_mb"] / omg4["storage_mb"],
         "baseline_fps": base["fps"], "omg4_fps": omg4["fps"], "fps_ratio": omg4["fps"] / base["fps"],
         "wall_s": sum(results["timings"].values()),
+        "worst_frame_delta_psnr": results["per_frame_difference"]["psnr"]["min"],
+        **(control_row(results) if "equal_training_control" in results else {}),
     }
+
+
+def control_row(results: dict) -> dict:
+    """OMG4-M against the equal-training control of one demo run."""
+    from omg4.demo import CONTROL_ROW
+
+    control, record = results["methods"][CONTROL_ROW], results["equal_training_control"]
+    return {"control_iterations": record["iterations"], "control_psnr": control["psnr"],
+            "control_ssim": control["ssim"], "control_gaussians": control["num_gaussians"],
+            "delta_psnr_control": record["delta_psnr"],
+            "worst_frame_delta_psnr_control": record["per_frame_difference"]["psnr"]["min"],
+            "control_minus_baseline_psnr": control["psnr"] - results["methods"]["Real-Time4DGS (baseline)"]["psnr"]}
 
 
 def spread(rows: list[dict]) -> dict:
@@ -56,15 +75,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--work", type=Path, default=Path("runs/demo_seeds"))
-    ap.add_argument("--json", type=Path, default=RESULTS)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--equal-training-control", action="store_true",
+                    help="also train and report the equal-training control (record demo_seeds_control.json)")
     args = ap.parse_args()
+    control = args.equal_training_control
     rows = {}
     t0 = time.perf_counter()
     for seed in args.seeds:
-        results = run_demo(args.work / f"seed{seed}", DemoSettings(seed=seed))
+        results = run_demo(args.work / f"seed{seed}", DemoSettings(seed=seed, equal_training_control=control))
         rows[seed] = row_of(results)
-    save_record(args.json, {
-        "command": "python benchmarks/demo_seeds.py --seeds " + " ".join(map(str, args.seeds)),
+    save_record(args.json or RESULTS.with_name("demo_seeds_control.json" if control else RESULTS.name), {
+        "command": "python benchmarks/demo_seeds.py --seeds " + " ".join(map(str, args.seeds))
+                   + (" --equal-training-control" if control else ""),
         "settings": {k: str(v) for k, v in DemoSettings().__dict__.items() if k != "seed"},
         "seeds": {str(s): r for s, r in rows.items()},
         "spread": spread(list(rows.values())),

@@ -94,7 +94,7 @@ def synthetic(args) -> dict:
                 truth = {f"clip_{i:02d}": (c.viewmat, c.K[0, 0]) for i, c in
                          enumerate(load_scene(tmp / "scene", decode=False, progress=False).cameras())}
                 row = {"rig": rig, "seed": seed, "frames": args.frames, "prepare_s": wall,
-                       "shared_intrinsics": args.shared_intrinsics,
+                       "shared_intrinsics": args.shared_intrinsics, "lens": record["lens"],
                        **pose_errors(calibrated(record), truth)}
                 if args.train:
                     row.update(training_gap(tmp / "scene", tmp / "data", args.train, tmp))
@@ -140,7 +140,7 @@ def basketball(args) -> dict:
         t0 = time.perf_counter()
         record = prepare_capture(root / "ims", Path(tmp) / "data", test_camera="0")
         wall = time.perf_counter() - t0
-    row = {"capture": "panoptic_basketball", "cameras_in": len(truth), "prepare_s": wall,
+    row = {"capture": "panoptic_basketball", "cameras_in": len(truth), "prepare_s": wall, "lens": record["lens"],
            "reregistered": [c["source"] for c in record["cameras"] if c.get("reregistered")],
            "left_out": [c["source"] for c in record["cameras"] if not c["reliable"]],
            **pose_errors(calibrated(record), truth)}

@@ -1,7 +1,7 @@
 """The main job and the benchmark run end to end at tiny sizes and write what they promise."""
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import av
@@ -13,7 +13,7 @@ from PIL import Image
 from omg4.bench import rate_distortion_curves, row_file, run_bench
 from omg4.codec.container import read_container
 from omg4.codec.payload import CompactGrids
-from omg4.demo import QUICK, SMOKE_CHECK_NOTE, run_demo
+from omg4.demo import CONTROL_ROW, QUICK, SMOKE_CHECK_NOTE, check_demo_folder, run_demo
 from omg4.train import Trainer, make_config
 
 COARSE = CompactGrids(positions=12, rotations=7, times=7)
@@ -47,13 +47,22 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, ca
         return write_video(path, views, models, *args, **kwargs)
 
     monkeypatch.setattr(omg4.demo, "side_by_side_video", recording_video)
-    results = run_demo(out, QUICK, log=lambda *_: None)
+    results = run_demo(out, replace(QUICK, equal_training_control=True), log=lambda *_: None)
     # every model renders as it would from its file (FPS like with like): render-only, windowed
-    assert len(evaluated) == 3 and all(issubclass(kind, WindowedModel) for kind in evaluated)
+    assert len(evaluated) == 4 and all(issubclass(kind, WindowedModel) for kind in evaluated)
     assert len(video) == 2 and all(isinstance(model, WindowedModel) for model in video)
     saved = json.loads((out / "results.json").read_text())
     methods = saved["methods"]
-    assert set(methods) == {"Real-Time4DGS (baseline)", "OMG4-M"}
+    assert set(methods) == {"Real-Time4DGS (baseline)", "OMG4-M", CONTROL_ROW}
+    # the control trains as long as the baseline (60) and the tiny schedule's fine-tuning together:
+    # sampling 4, pruning 4, two merge rounds of 4, appearance 8, SVQ 4 + 4
+    control = saved["equal_training_control"]
+    assert control["iterations"] == 60 + 32
+    assert json.loads((out / "control" / "config.json").read_text())["train_config"]["iterations"] == 92
+    assert control["delta_psnr"] == methods["OMG4-M"]["psnr"] - methods[CONTROL_ROW]["psnr"]
+    frames = control["per_frame_difference"]["psnr"]
+    assert frames["min"] <= control["delta_psnr"] <= frames["max"] and frames["min"] < frames["max"]
+    check_demo_folder(out)  # everything it wrote is an output a re-run may replace
     for row in methods.values():
         assert {"psnr", "ssim", "lpips_alex", "psnr_dynamic", "ssim_dynamic", "fps", "num_gaussians",
                 "storage_mb"} <= set(row)
@@ -98,13 +107,20 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):
     cfg = make_config("cpu-small", iterations=20, batch_size=1, checkpoint_interval=0, densify_until=0,
                       backend="cpu")
     base = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None).run()
-    evaluated = _recording_evaluate(monkeypatch)
+    # the equal-training control: 20 steps and the tiny schedule's 32 fine-tuning steps (4 + 4 + 2 × 4 + 8 + 4 + 4)
+    control = Trainer(tiny_scene, replace(cfg, iterations=52), tmp_path / "control", progress=False,
+                      log=lambda *_: None).run()
+    evaluated, lines = _recording_evaluate(monkeypatch), []
     results = run_bench(tiny_scene, base.model, base.model_path, tmp_path / "bench", schedule="tiny", batch_size=1,
                         baseline_iterations=20, rows=["GS+AC", "(GS+GP)+GM+AC", "OMG4-T"], backend="cpu",
-                        rate_weights=(0.0, 30.0), grids=(COARSE, CompactGrids()), log=lambda *_: None)
+                        rate_weights=(0.0, 30.0), grids=(COARSE, CompactGrids()), control=(control.model_path, 52),
+                        log=lines.append)
     assert evaluated and all(issubclass(kind, WindowedModel) for kind in evaluated)  # the baseline too
+    assert results["Real-Time4DGS, equal training"]["equal_training_iterations"] == 52
+    assert results["Real-Time4DGS, equal training"]["num_gaussians"] == control.model.num_gaussians
+    assert not any(line.startswith("warning") for line in lines)
     # the first grid is the pipeline run's file (compress_to_file), the default one re-encoded from its paper copy
-    assert list(results) == ["Real-Time4DGS", "GS+AC, grids 12/7/7", "GS+AC", "GS+AC, β=30, grids 12/7/7", "GS+AC, β=30",
+    assert list(results) == ["Real-Time4DGS", "Real-Time4DGS, equal training", "GS+AC, grids 12/7/7", "GS+AC", "GS+AC, β=30, grids 12/7/7", "GS+AC, β=30",
                              "(GS+GP)+GM+AC, grids 12/7/7", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30, grids 12/7/7",
                              "(GS+GP)+GM+AC, β=30", "OMG4-T, grids 12/7/7", "OMG4-T", "OMG4-T, β=30, grids 12/7/7",
                              "OMG4-T, β=30"]
@@ -112,7 +128,7 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):
     assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
     assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
     assert results["OMG4-T"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]
-    files = {Path(r["file"]).name for name, r in results.items() if name != "Real-Time4DGS"}
+    files = {Path(r["file"]).name for name, r in results.items() if "file" in r}
     assert len(files) == 12 and {"OMG4-T_beta30.omg4", "OMG4-T_beta30_grids12-7-7.omg4"} <= files
     for row in ("GS+AC", "OMG4-T, β=30"):  # the same pipeline result on both grids
         fine, coarse = results[row], results[row + ", grids 12/7/7"]

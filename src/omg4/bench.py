@@ -25,7 +25,7 @@ import torch
 
 from omg4.atomic import write_text_atomic
 from omg4.codec.payload import CompactGrids
-from omg4.report import Curves, format_table, rate_distortion_plot
+from omg4.report import Curves, equal_training_row, format_table, rate_distortion_plot
 
 def bench_table(rows: dict[str, dict]) -> str:
     """The paper's columns plus bytes per Gaussian, the same model's size and quality with the paper's coder,
@@ -61,13 +61,16 @@ def row_file(out: Path, name: str, rate_weight: float, grids: CompactGrids = Com
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
               baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
               backend: str = "auto", device: torch.device | str = "cpu", rate_weights: tuple[float, ...] = (0.0,),
-              grids: tuple[CompactGrids, ...] = (CompactGrids(),), log=print) -> dict:
+              grids: tuple[CompactGrids, ...] = (CompactGrids(),), control: tuple[Path, int | None] | None = None,
+              log=print) -> dict:
     """Compress ``baseline`` once per row of its backbone (``Backbone.paper_rows``) and rate weight, write each result
     at every compact grid of ``grids`` (the first by the pipeline run, the others re-encoded from its paper-coder
     copy), and evaluate everything on the test views, computing on ``device``. ``baseline_path`` must be the checkpoint
     ``baseline`` was loaded from: its row is evaluated as a render-only model loaded from that file, as the compressed
-    rows are from theirs. In a distributed job every rank compresses and evaluates its share of the views
-    (:mod:`omg4.distributed`) and rank 0 alone writes and prints."""
+    rows are from theirs. ``control``: the checkpoint of the equal-training control (a baseline trained for as many
+    steps as the baseline and the full pipeline's fine-tuning together) and the steps it records, evaluated as the
+    baseline is, its row recording how many steps equal training takes. In a distributed job every rank compresses
+    and evaluates its share of the views (:mod:`omg4.distributed`) and rank 0 alone writes and prints."""
     from omg4 import distributed
     from omg4.codec.decoder import load_omg4
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
@@ -107,6 +110,18 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     results[base_name] = evaluate(load_model(baseline_path, device), scene.test_views,
                                   storage_bytes=baseline_path.stat().st_size, backend=backend, device=device,
                                   masks=masks)
+    if control is not None:
+        control_path, control_iterations = control
+        equal = baseline_iterations + CompressConfig(schedule=schedule).fine_tuning_iterations()
+        log(f"evaluating the equal-training control ({control_iterations or 'unknown'} steps; the baseline's and the "
+            f"full pipeline's fine-tuning together: {equal})")
+        if control_iterations != equal:
+            log(f"warning: the control was trained for {control_iterations or 'an unknown number of'} steps, not "
+                f"{equal}: its row is a differently trained baseline, not the equal-training control")
+        results[equal_training_row(base_name)] = {
+            **evaluate(load_model(control_path, device), scene.test_views, storage_bytes=control_path.stat().st_size,
+                       backend=backend, device=device, masks=masks),
+            "iterations": control_iterations, "equal_training_iterations": equal}
     for name, beta in runs:
         preset, stages = table_rows[name]
         path = row_file(out, name, beta, grids[0])

@@ -11,6 +11,10 @@ per pixel; M keeps about 5 % of them), so the demo renders 128×96 and lets the 
 to 60k Gaussians (4.9 per pixel) in 1500 iterations, then fine-tunes the compression for
 4,700 iterations (the paper's 11,000 scaled to the run, with more weight on the recovery
 after pruning and on the MLPs). The M preset's ratios (τ_GS 0.2, p 0.8) are untouched.
+
+The compression's fine-tuning keeps training the baseline's Gaussians, so against an under-trained baseline it
+can gain. ``--equal-training-control`` also trains a baseline for as many steps as the baseline and that
+fine-tuning together (6,200) and reports OMG4-M against it: what compression costs at equal training.
 """
 
 from __future__ import annotations
@@ -26,7 +30,10 @@ from omg4.atomic import write_text_atomic
 from omg4.compress.schedule import SCHEDULES, StageLengths
 from omg4.errors import OMG4Error
 from omg4.metrics.frames import frame_differences, per_frame
-from omg4.report import format_table, per_frame_plot, rate_distortion_plot
+from omg4.report import equal_training_row, format_table, per_frame_plot, rate_distortion_plot
+
+CONTROL_ROW = equal_training_row("Real-Time4DGS")
+"""The results row of the baseline trained for as many steps as the baseline and the compression together."""
 
 DEMO_LENGTHS = StageLengths(sample=300, prune=600, merge=300, appearance=2400, svq3d=400, svq4d=400)
 """Fine-tuning after each OMG4 stage in the demo: 4,700 iterations (the official schedule has 11,000)."""
@@ -34,7 +41,9 @@ DEMO_LENGTHS = StageLengths(sample=300, prune=600, merge=300, appearance=2400, s
 
 @dataclass(frozen=True)
 class DemoSettings:
-    """Sizes of the demo run (defaults: 16 cameras × 60 frames at 128×96, a 60k-Gaussian baseline)."""
+    """Sizes of the demo run (defaults: 16 cameras × 60 frames at 128×96, a 60k-Gaussian baseline);
+    ``equal_training_control``: also train a baseline for as many steps as the baseline and the compression's
+    fine-tuning together, the control that tells what compression costs from what more training gives."""
 
     cameras: int = 16
     frames: int = 60
@@ -46,6 +55,7 @@ class DemoSettings:
     batch_size: int = 2
     seed: int = 0
     smoke_check: bool = False
+    equal_training_control: bool = False
 
 
 QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=60, max_gaussians=20_000,
@@ -71,15 +81,15 @@ def side_by_side_video(path: Path, views, models: list, labels: list[str], fps: 
     return write_video(path, frames(), fps=fps)
 
 
-DEMO_OUTPUTS = ("scene", "baseline", "scene_M.omg4", "scene_M.omg4.scores.npz", "scene_M_paper_codec.omg4",
-                "rate_distortion.png", "side_by_side.mp4", "results.json")
+DEMO_OUTPUTS = ("scene", "baseline", "control", "scene_M.omg4", "scene_M.omg4.scores.npz", "scene_M_paper_codec.omg4",
+                "rate_distortion.png", "per_frame.png", "per_frame_control.png", "side_by_side.mp4", "results.json")
 """What ``omg4 demo`` writes into its folder (``scene`` is replaced whole on a re-run)."""
 
 
 def check_demo_folder(out: str | Path) -> None:
     """Refuse a folder the demo would damage: one holding anything but an earlier demo's outputs (its ``scene``
-    written by ``omg4 synth`` — the demo writes it first and replaces it whole —, its ``baseline`` only a training
-    run's files). Hidden entries (``.name``: stale temporaries of an interrupted run) are ignored."""
+    written by ``omg4 synth`` — the demo writes it first and replaces it whole —, its ``baseline`` and ``control``
+    only a training run's files). Hidden entries (``.name``: stale temporaries of an interrupted run) are ignored."""
     from omg4.data.synthetic.writer import is_synthetic_scene
     from omg4.train.run_state import RUN_FILES
 
@@ -91,7 +101,8 @@ def check_demo_folder(out: str | Path) -> None:
         foreign = sorted(name for name in entries if name not in DEMO_OUTPUTS)
         scene, baseline = out / "scene", out / "baseline"
         synth_made = is_synthetic_scene(scene)
-        foreign_run = sorted(p.name for p in baseline.iterdir() if p.name not in RUN_FILES) if baseline.is_dir() else []
+        foreign_run = sorted(f"{run.name}/{p.name}" for run in (baseline, out / "control") if run.is_dir()
+                             for p in run.iterdir() if p.name not in RUN_FILES)
     except OSError as exc:
         raise OMG4Error(f"cannot look into {out}: {exc}") from None
     if foreign:
@@ -100,7 +111,7 @@ def check_demo_folder(out: str | Path) -> None:
         raise OMG4Error(f"{out} is not a folder an earlier demo wrote ({scene} is no scene it synthesized): choose a "
                         "new or empty folder")
     if foreign_run:
-        raise OMG4Error(f"{baseline} holds {foreign_run[0]!r}, which the demo's training does not write: choose a new "
+        raise OMG4Error(f"{out} holds {foreign_run[0]!r}, which the demo's training does not write: choose a new "
                         "or empty folder")
 
 
@@ -115,16 +126,18 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
     from omg4.evaluate import dynamic_masks, evaluate, frame_rates, load_model
-    from omg4.train import Trainer, make_config
+    from omg4.train import Trainer
 
     out = Path(out)
     check_demo_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     torch.manual_seed(settings.seed)
+    steps = 6 if settings.equal_training_control else 5
+    step = iter(range(1, steps + 1))
 
     t = time.perf_counter()
-    log("[1/5] synthesizing the built-in scene")
+    log(f"[{next(step)}/{steps}] synthesizing the built-in scene")
     scene_dir = out / "scene"
     write_synthetic_scene(scene_dir, SynthConfig(seed=settings.seed, num_cameras=settings.cameras,
                                                  num_frames=settings.frames, width=settings.width,
@@ -133,15 +146,12 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     timings["synth_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    log(f"[2/5] training the Real-Time4DGS baseline ({settings.train_iterations} iterations)")
-    cfg = make_config("cpu-small", iterations=settings.train_iterations, batch_size=settings.batch_size,
-                      max_gaussians=settings.max_gaussians, seed=settings.seed, checkpoint_interval=0,
-                      device=str(device))
-    baseline = Trainer(scene, cfg, out / "baseline").run()
+    log(f"[{next(step)}/{steps}] training the Real-Time4DGS baseline ({settings.train_iterations} iterations)")
+    baseline = Trainer(scene, _baseline_config(settings, settings.train_iterations, device), out / "baseline").run()
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    log("[3/5] compressing with OMG4 (M preset)")
+    log(f"[{next(step)}/{steps}] compressing with OMG4 (M preset)")
     omg4_path = out / "scene_M.omg4"
     ccfg = CompressConfig(preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
                           seed=settings.seed, baseline_iterations=settings.train_iterations,
@@ -150,8 +160,17 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     report = compress_to_file(baseline.model, scene, ccfg, omg4_path, paper_copy=paper_path, progress=True)
     timings["compress_s"] = time.perf_counter() - t
 
+    control = None
+    if settings.equal_training_control:
+        t = time.perf_counter()
+        length = settings.train_iterations + ccfg.fine_tuning_iterations()
+        log(f"[{next(step)}/{steps}] training the equal-training control: a baseline of {length} iterations (the "
+            f"baseline's {settings.train_iterations} and the compression's {ccfg.fine_tuning_iterations()})")
+        control = Trainer(scene, _baseline_config(settings, length, device), out / "control").run()
+        timings["control_s"] = time.perf_counter() - t
+
     t = time.perf_counter()
-    log("[4/5] decoding the file alone and evaluating both models on the test camera")
+    log(f"[{next(step)}/{steps}] decoding the file alone and evaluating the models on the test camera")
     decoded = load_omg4(omg4_path, device)
     base_render = load_model(baseline.model_path, device)  # render-only from its file, as the .omg4 model is
     masks = dynamic_masks(scene.test_views)  # one dynamic region for both models
@@ -161,8 +180,13 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
         "OMG4-M": evaluate(decoded, scene.test_views, storage_bytes=omg4_path.stat().st_size, masks=masks,
                            time_frames=False, device=device),
     }
-    # the two models' frames take turns, so the FPS ratio is not a slow spell of the host
-    for row, fps in zip(rows.values(), frame_rates([base_render, decoded], scene.test_views, device=device)):
+    rendered = [base_render, decoded]
+    if control is not None:
+        rendered.append(load_model(control.model_path, device))
+        rows[CONTROL_ROW] = evaluate(rendered[-1], scene.test_views, masks=masks, time_frames=False,
+                                     storage_bytes=control.model_path.stat().st_size, device=device)
+    # the models' frames take turns, so the FPS ratio is not a slow spell of the host
+    for row, fps in zip(rows.values(), frame_rates(rendered, scene.test_views, device=device)):
         row.update(fps=fps["fps"], fps_detail={**fps, "timed_with": "models alternating frame by frame"})
     paper_row = evaluate(load_omg4(paper_path, device), scene.test_views, storage_bytes=paper_path.stat().st_size,
                          masks=masks, device=device, lpips_nets=(), time_frames=False)
@@ -170,12 +194,17 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     timings["eval_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    log("[5/5] writing results, plot and video")
+    log(f"[{next(step)}/{steps}] writing results, plots and video")
     table = format_table(rows)
     rate_distortion_plot(out / "rate_distortion.png", rd_points, f"omg4 demo ({settings.width}×{settings.height})")
     base_rows, omg4_rows = rows["Real-Time4DGS (baseline)"]["per_view"], rows["OMG4-M"]["per_view"]
     per_frame_plot(out / "per_frame.png", {"baseline": base_rows, "OMG4-M": omg4_rows}, "omg4 demo: every test frame")
     frames = per_frame(frame_differences(omg4_rows, base_rows))
+    if control is not None:
+        control_rows = rows[CONTROL_ROW]["per_view"]
+        per_frame_plot(out / "per_frame_control.png", {"equal-training control": control_rows, "OMG4-M": omg4_rows},
+                       "omg4 demo: every test frame against a baseline trained as long")
+        against_control = per_frame(frame_differences(omg4_rows, control_rows))
     side_by_side_video(out / "side_by_side.mp4", scene.test_views, [base_render, decoded],
                        ["ground truth", "baseline", "OMG4-M"], device=device)
     timings["outputs_s"] = time.perf_counter() - t
@@ -185,6 +214,10 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
         "methods": {name: {k: v for k, v in r.items() if k != "per_view"} for name, r in rows.items()},
         "per_view": {name: r["per_view"] for name, r in rows.items()},
         "per_frame_difference": frames,
+        **({"equal_training_control": {
+            "iterations": settings.train_iterations + ccfg.fine_tuning_iterations(),
+            "delta_psnr": rows["OMG4-M"]["psnr"] - rows[CONTROL_ROW]["psnr"],
+            "per_frame_difference": against_control}} if control is not None else {}),
         "compression": report,
         "paper_codec_mb": paper_path.stat().st_size / 2**20,
         "paper_codec": {k: paper_row[k] for k in ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic", "storage_mb")},
@@ -204,6 +237,21 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     worst = frames["psnr"]["worst"]
     print(f"every test frame: OMG4-M − baseline from {frames['psnr']['min']:+.2f} dB (frame {worst['frame']}) to "
           f"{frames['psnr']['max']:+.2f} dB (per_frame.png)")
+    if control is not None:
+        worst = against_control["psnr"]["worst"]
+        print(f"against the equal-training control ({results['equal_training_control']['iterations']} iterations): "
+              f"OMG4-M {results['equal_training_control']['delta_psnr']:+.2f} dB PSNR, every test frame from "
+              f"{against_control['psnr']['min']:+.2f} dB (frame {worst['frame']}) to "
+              f"{against_control['psnr']['max']:+.2f} dB (per_frame_control.png)")
     if settings.smoke_check:
         print(SMOKE_CHECK_NOTE)
     return results
+
+
+def _baseline_config(settings: DemoSettings, iterations: int, device):
+    """The demo's baseline training run of ``iterations`` steps (the ``cpu-small`` schedule scaled to them)."""
+    from omg4.train import make_config
+
+    return make_config("cpu-small", iterations=iterations, batch_size=settings.batch_size,
+                       max_gaussians=settings.max_gaussians, seed=settings.seed, checkpoint_interval=0,
+                       device=str(device))

@@ -26,6 +26,12 @@ PAPER_N3DV_POINTS: dict[str, tuple[float, float]] = {
 }
 
 
+def equal_training_row(title: str) -> str:
+    """The results row of the equal-training control of a ``title`` baseline: one trained for as many steps as
+    the baseline and the compression's fine-tuning together."""
+    return f"{title}, equal training"
+
+
 def format_table(rows: dict[str, dict]) -> str:
     """A markdown table with the paper's columns and the dynamic-region ones, one row per method."""
     head = "| method | " + " | ".join(c for c, _, _ in TABLE_COLUMNS) + " |"

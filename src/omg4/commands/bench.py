@@ -17,6 +17,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
     p.add_argument("--model", required=True, type=Path, help="trained baseline checkpoint (.safetensors)")
     p.add_argument("--out", type=Path, default=Path("omg4_bench"), help="output folder")
+    p.add_argument("--control", type=Path, metavar="CKPT",
+                   help="an equal-training control: the same baseline trained for as many steps as the baseline and "
+                        "the full pipeline's fine-tuning together (omg4 train ... --iterations N+F; the log names "
+                        "N+F), reported beside the baseline so a row's cost is measured against equal training")
     p.add_argument("--schedule", choices=list(SCHEDULES),
                    help="fine-tuning lengths (see omg4 compress --help; default: official on cuda, cpu elsewhere)")
     p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE), default=CompressConfig.batch_size,
@@ -52,14 +56,23 @@ def run(args) -> int:
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
     from omg4.compress.api import read_baseline, trained_iterations
+    from omg4.gaussians.checkpoint import run_model
     from omg4.outputs import check_outputs
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
     for g in grids:
         check_codec(args.codec, g)
-    check_outputs({"--out": args.out}, inputs=[args.data, args.model], datasets=[args.data], folders=["--out"])
+    check_outputs({"--out": args.out}, inputs=[args.data, args.model, args.control], datasets=[args.data],
+                  folders=["--out"])
     world, device = distributed.init(device_from_args(args))
     baseline, metadata = read_baseline(args.model, device)
+    control = None
+    if args.control is not None:
+        control_model, control_metadata = read_baseline(args.control, "cpu")
+        if control_model.config.backbone != baseline.config.backbone:
+            raise OMG4Error(f"--control {args.control} is a {control_model.config.backbone} model and --model a "
+                            f"{baseline.config.backbone} one: the control trains the same backbone longer")
+        control = (run_model(args.control), trained_iterations(control_metadata))
     iterations = args.baseline_iterations or trained_iterations(metadata) or CompressConfig.baseline_iterations
     known = baseline.config.schema.paper_rows
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None
@@ -70,5 +83,5 @@ def run(args) -> int:
     scene = distributed.main_first(lambda: load_scene_from_args(args))
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
               baseline_iterations=iterations, rows=rows, codec=args.codec, backend=args.backend,
-              device=device, rate_weights=args.rate_weights, grids=grids)
+              device=device, rate_weights=args.rate_weights, grids=grids, control=control)
     return 0

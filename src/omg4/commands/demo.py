@@ -12,6 +12,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("omg4_demo"), help="output folder (default: ./omg4_demo)")
     p.add_argument("--quick", action="store_true", help="a tiny run (seconds) to check the installation")
     p.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
+    p.add_argument("--equal-training-control", action="store_true",
+                   help="also train a baseline for as many steps as the baseline and the compression's fine-tuning "
+                        "together, and report OMG4-M against it (about twice the demo's time)")
     add_device_arguments(p, backend=False)
 
 
@@ -23,6 +26,7 @@ def run(args) -> int:
 
     check_outputs({"--out": args.out}, folders=["--out"])
     device = device_from_args(args)
-    settings = replace(QUICK if args.quick else DemoSettings(), seed=args.seed)
+    settings = replace(QUICK if args.quick else DemoSettings(), seed=args.seed,
+                       equal_training_control=args.equal_training_control)
     run_demo(args.out, settings, device=device)
     return 0

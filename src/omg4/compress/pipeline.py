@@ -94,6 +94,10 @@ class CompressConfig:
             raise OMG4Error(f"unknown schedule '{self.schedule}' (choose from {', '.join(SCHEDULES)})")
         return SCHEDULES[self.schedule]
 
+    def fine_tuning_iterations(self) -> int:
+        """How many fine-tuning steps the whole pipeline takes (every stage's, each merge round's)."""
+        return build_events(self.stages, self.stage_lengths(), self.num_merge)[1]
+
 
 @dataclass
 class StageRecord:
