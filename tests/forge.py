@@ -225,8 +225,8 @@ def _inflated(num_gaussians: int, codec: str) -> bytes:
         header, sections = _split((Path(tmp) / "base.omg4").read_bytes())
     float_encoding = "f16-lzma" if codec == "paper" else "f16-planes"
     replaced = {"xyz": layout._encode_xyz_morton(np.zeros((n, 3), np.float16)) if codec == "ans"
-                else layout._encode_f16(np.zeros(3 * n, np.float16), float_encoding),
-                "t": layout._encode_f16(np.full(n, 0.5, np.float16), float_encoding)}
+                else layout.encode_f16(np.zeros(3 * n, np.float16), float_encoding),
+                "t": layout.encode_f16(np.full(n, 0.5, np.float16), float_encoding)}
     for attr, shapes in header["attributes"].items():
         for j, (k, _) in enumerate(shapes):
             replaced[f"svq.{attr}.index{j}"] = encode_indices(np.zeros(n, np.int64), k, codec)

@@ -8,7 +8,7 @@ import pytest
 import forge
 from omg4.codec.browser import BROWSER_FLOATS, _float_count, browser_decodable
 from omg4.codec.container import container_bytes, read_container, write_container
-from omg4.codec.payload import CompactGrids, _decode_f16, _encode_f16, decode_payload
+from omg4.codec.payload import CompactGrids, decode_f16, encode_f16, decode_payload
 from omg4.codec.sequence import read_sequence
 
 from tests.codec.test_payload import assert_payload_equal
@@ -35,8 +35,8 @@ def test_the_rewrite_keeps_every_value_and_leaves_no_lzma_or_huffman(tmp_path, c
     original = read_container(path)[1]
     for name, encoding in before["encodings"].items():  # each LZMA section as the smaller browser encoding
         if encoding == "f16-lzma":
-            values = _decode_f16(original[name], "f16-lzma", _float_count(before, name))
-            assert len(sections[name]) == min(len(_encode_f16(values, e)) for e in BROWSER_FLOATS), name
+            values = decode_f16(original[name], "f16-lzma", _float_count(before, name))
+            assert len(sections[name]) == min(len(encode_f16(values, e)) for e in BROWSER_FLOATS), name
     kept = [name for name, e in before["encodings"].items() if e not in ("f16-lzma", "paper")]
     assert (kept or codec == "paper") and all(sections[name] == original[name] for name in kept)  # byte for byte
 

@@ -27,8 +27,8 @@ def _decode_slot(cb_enc, cb_bytes, ix_enc, ix_bytes, k, s, n):
     if cb_enc == "sorted":
         rows = codewords.decode_sorted_codebook(cb_bytes, k, s)
     else:
-        from omg4.codec.payload import _decode_f16
-        rows = _decode_f16(cb_bytes, cb_enc, k * s).reshape(k, s)
+        from omg4.codec.payload import decode_f16
+        rows = decode_f16(cb_bytes, cb_enc, k * s).reshape(k, s)
     if ix_enc == "first-use":
         labels = codewords.decode_first_use_indices(ix_bytes, k, n)
     else:

@@ -47,13 +47,13 @@ def test_one_segment_is_read_by_seeking_to_it(tmp_path, monkeypatch):
     path = tmp_path / "seq.omg4"
     sequence.write_sequence(path, parts, fps=10.0)
     read = []
-    original_read = container._Source.read
+    original_read = container.ContainerSource.read
     def counted(self, n, what):  # reads from the file (a segment's bytes are then decoded from memory)
         if self.file is not None:
             read.append(n)
         return original_read(self, n, what)
 
-    monkeypatch.setattr(container._Source, "read", counted)
+    monkeypatch.setattr(container.ContainerSource, "read", counted)
     real_open = open
 
     class Counting:

@@ -17,6 +17,7 @@ import torch
 from omg4.compress.merging import (MergeConfig, MergeGroups, MergeProxy, build_merge_groups, build_star_clusters,
                                    make_disjoint)
 from omg4.errors import OMG4Error
+from omg4.gaussians.backbone import RT4DGS
 
 TIME_RANGE = (0.0, 10.0)
 
@@ -249,7 +250,7 @@ def test_empty_and_tiny_inputs():
     g = build_merge_groups(xyz, torch.zeros(5), torch.zeros(5, 3), TIME_RANGE, 0.1, cfg)
     assert g.num_groups == 0
     params = _params(5)
-    baked, mask = MergeProxy(g, 5).bake(params)  # a round without groups changes nothing
+    baked, mask = MergeProxy(g, 5, RT4DGS.merged).bake(params)  # a round without groups changes nothing
     assert mask.all() and all(torch.equal(baked[k], params[k]) for k in params)
 
 
@@ -283,7 +284,7 @@ def _toy_groups() -> MergeGroups:
 
 def test_equal_weights_give_member_mean_and_keep_other_attributes():
     params = _params(10)
-    proxy = MergeProxy(_toy_groups(), 10)
+    proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged)
     values, keep = proxy.apply(params)
     assert keep.tolist() == [0, 1, 2, 5, 7, 8]
     for rep, members in ((1, [1, 4, 6]), (2, [2, 3]), (7, [7, 9])):
@@ -298,7 +299,7 @@ def test_equal_weights_give_member_mean_and_keep_other_attributes():
 
 def test_weighted_proxy_matches_formula():
     params = _params(10, dtype=torch.float64)
-    proxy = MergeProxy(_toy_groups(), 10).double()
+    proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged).double()
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
         for p in proxy.logits.values():
@@ -318,7 +319,7 @@ def test_weighted_proxy_matches_formula():
 
 def test_bake_preserves_the_proxy_exactly():
     params = _params(10)
-    proxy = MergeProxy(_toy_groups(), 10)
+    proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged)
     with torch.no_grad():
         proxy.logits["merge_xyz_logits"].copy_(torch.linspace(-1, 2, 7))
         proxy.logits["merge_rest_logits"].copy_(torch.linspace(3, -2, 7))
@@ -342,7 +343,7 @@ def test_bake_preserves_the_time_slice_exactly():
     params = _params(n, seed=2)
     params.update(xyz=xyz, t=t, features_dc=dc, scaling=params["scaling"] * 0.1 - 4.0,
                   scaling_t=params["scaling_t"] * 0.1 + 1.0)
-    proxy = MergeProxy(build_merge_groups(xyz, t, dc, TIME_RANGE, 0.1, MergeConfig()), n)
+    proxy = MergeProxy(build_merge_groups(xyz, t, dc, TIME_RANGE, 0.1, MergeConfig()), n, RT4DGS.merged)
     assert proxy.num_groups > 10
     with torch.no_grad():
         for p in proxy.logits.values():
@@ -362,7 +363,7 @@ def test_bake_preserves_the_time_slice_exactly():
 
 def test_gradients_reach_logits_and_all_members():
     params = {k: v.double().requires_grad_(True) for k, v in _params(10, seed=1).items()}
-    proxy = MergeProxy(_toy_groups(), 10).double()
+    proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged).double()
     probe = {k: torch.randn(v.shape, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
              for k, v in params.items()}
 
@@ -392,7 +393,7 @@ def test_gradients_reach_logits_and_all_members():
 
 
 def test_param_groups_for_adam():
-    proxy = MergeProxy(_toy_groups(), 10)
+    proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged)
     groups = proxy.param_groups(0.01)
     assert [g["name"] for g in groups] == ["merge_xyz_logits", "merge_dc_logits", "merge_rest_logits"]
     assert all(g["lr"] == 0.01 and g["params"][0].shape == (7,) for g in groups)
@@ -402,7 +403,7 @@ def test_param_groups_for_adam():
 
 def test_proxy_rejects_wrong_row_count():
     with pytest.raises(ValueError):
-        MergeProxy(_toy_groups(), 10).apply(_params(11))
+        MergeProxy(_toy_groups(), 10, RT4DGS.merged).apply(_params(11))
 
 
 def test_round_trip_on_built_groups():
@@ -411,7 +412,7 @@ def test_round_trip_on_built_groups():
     groups = build_merge_groups(xyz, t, dc, TIME_RANGE, 0.1, MergeConfig())
     params = _params(len(xyz))
     params.update(xyz=xyz, t=t, features_dc=dc)
-    baked, mask = MergeProxy(groups, len(xyz)).bake(params)
+    baked, mask = MergeProxy(groups, len(xyz), RT4DGS.merged).bake(params)
     assert int(mask.sum()) == len(xyz) - groups.num_removed
     torch.testing.assert_close(baked["xyz"][groups.representative],
                                torch.stack([xyz[groups.members[groups.group_of == g]].mean(0)

@@ -12,7 +12,7 @@ from omg4.errors import OMG4Error
 from omg4.gaussians.checkpoint import load_gaussians
 from omg4.train import make_config
 from omg4.train.init import initial_points
-from omg4.train.segmented import segment_plan, train_segments, write_plan
+from omg4.train.segmented import plan_capture, segment_plan, train_segments, write_plan
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +40,20 @@ def test_the_plan_names_frames_times_and_folders():
     assert [s["frames"] for s in plan["segments"]] == [[20, 25], [24, 29], [28, 32]]
     assert [s["time_range"] for s in plan["segments"]] == [[2.0, 2.5], [2.4, 2.9], [2.8, 3.2]]
     assert [s["folder"] for s in plan["segments"]] == ["segment_000", "segment_001", "segment_002"]
+
+
+def test_a_capture_is_planned_from_its_frames_and_refused_without_a_frame_sequence(capture):
+    scene = load_scene(capture, decode=False, progress=False)  # 12 frames at 30 fps
+    plan = plan_capture(scene, 6)
+    assert plan["overlap"] == 1 and plan["fps"] == pytest.approx(30.0)  # a sixth of a segment by default
+    assert [s["frames"] for s in plan["segments"]] == [[0, 6], [5, 11], [10, 12]]
+    assert plan_capture(scene, 6, overlap=2)["overlap"] == 2
+    gaps = load_scene(capture, frames=[0, 1, 2, 5, 6], decode=False, progress=False)
+    with pytest.raises(OMG4Error, match="needs a contiguous range of frames"):
+        plan_capture(gaps, 2)
+    scene.format = "blender"
+    with pytest.raises(OMG4Error, match="a blender scene has no frame sequence to cut"):
+        plan_capture(scene, 6)
 
 
 def test_each_segment_trains_on_its_own_frames_and_done_ones_are_skipped(capture, tmp_path):

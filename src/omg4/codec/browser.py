@@ -16,9 +16,9 @@ import math
 import os
 from pathlib import Path
 
-from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, container_bytes
+from omg4.codec.container import SEQUENCE_VERSION, read_versioned, container_bytes
 from omg4.codec.entropy import decode_indices, encode_indices
-from omg4.codec.payload import _decode_f16, _encode_f16, check_sections, container_version
+from omg4.codec.payload import decode_f16, encode_f16, check_sections, container_version
 
 #: the float encodings the browser decodes, in order of preference on a tie
 BROWSER_FLOATS = ("f16", "f16-planes")
@@ -29,7 +29,7 @@ def browser_decodable(source: str | os.PathLike | bytes) -> bytes:
     browser cannot decode re-encoded losslessly; the file's own bytes when it has none."""
     in_memory = isinstance(source, (bytes, bytearray, memoryview))
     data = bytes(source) if in_memory else Path(source).read_bytes()
-    version, header, sections = _read_versioned(data if in_memory else source)  # a file's errors name the file
+    version, header, sections = read_versioned(data if in_memory else source)  # a file's errors name the file
     if version == SEQUENCE_VERSION:
         segments = {name: browser_decodable(segment) for name, segment in sections.items()}
         return data if segments == sections else container_bytes(header, segments, SEQUENCE_VERSION)
@@ -47,8 +47,8 @@ def _single_model(header: dict, sections: dict[str, bytes]) -> tuple[dict, dict[
                  for j, (k, _) in enumerate(shapes)}
     for name, encoding in header["encodings"].items():
         if encoding == "f16-lzma":
-            values = _decode_f16(sections[name], encoding, _float_count(header, name))
-            options = [(e, _encode_f16(values, e)) for e in BROWSER_FLOATS]
+            values = decode_f16(sections[name], encoding, _float_count(header, name))
+            options = [(e, encode_f16(values, e)) for e in BROWSER_FLOATS]
             encodings[name], out[name] = min(options, key=lambda o: len(o[1]))
         elif encoding == "paper" and name in alphabets:
             indices = decode_indices(sections[name], alphabets[name], n, "paper")

@@ -130,7 +130,7 @@ def _head(header: dict, sections: dict[str, bytes], version: int) -> bytes:
     return head
 
 
-class _Source:
+class ContainerSource:
     """Bounded reads from a file or an in-memory buffer; knows the total size up front."""
 
     def __init__(self, source: str | os.PathLike | bytes | bytearray | memoryview):
@@ -202,7 +202,7 @@ def _inflate_json(label: str, blob: bytes) -> bytes:
     return text
 
 
-def _read_prefix_and_table(src: _Source) -> tuple[int, dict, list[tuple[str, int, int]]]:
+def read_prefix_and_table(src: ContainerSource) -> tuple[int, dict, list[tuple[str, int, int]]]:
     """Validate magic, version and the checksummed JSON; returns (version, header, section table)."""
     label = src.label
     if src.size < PREFIX.size:
@@ -245,14 +245,14 @@ def read_container(source: str | os.PathLike | bytes | bytearray | memoryview) -
     Raises :class:`CorruptFileError` (one line) on any damage and :class:`OMG4Error` when
     the file is missing.
     """
-    return _read_versioned(source)[1:]
+    return read_versioned(source)[1:]
 
 
-def _read_versioned(source) -> tuple[int, dict, dict[str, bytes]]:
+def read_versioned(source) -> tuple[int, dict, dict[str, bytes]]:
     """:func:`read_container` plus the file's format version."""
-    src = _Source(source)
+    src = ContainerSource(source)
     try:
-        version, header, table = _read_prefix_and_table(src)
+        version, header, table = read_prefix_and_table(src)
         sections = {}
         for name, size, crc in table:
             data = src.read(size, f"section {name!r}")
@@ -271,7 +271,7 @@ def describe_container(source: str | os.PathLike | bytes | bytearray | memoryvie
     where ``header_bytes`` counts the fixed prefix plus the JSON, so
     ``header_bytes + sum(sections.values()) == total_bytes``.
     """
-    version, header, sections = _read_versioned(source)
+    version, header, sections = read_versioned(source)
     sizes = {name: len(data) for name, data in sections.items()}
     total = Path(source).stat().st_size if not isinstance(source, (bytes, bytearray, memoryview)) else len(source)
     return {"version": version, "total_bytes": total, "header_bytes": total - sum(sizes.values()),

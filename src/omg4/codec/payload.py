@@ -47,7 +47,7 @@ import numpy as np
 from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, decode_sorted_codes, deinterleave,
                                   encode_codewords, encode_sorted_codes, interleave, keys_to_fp16, ordered_keys)
-from omg4.codec.container import SEQUENCE_VERSION, _read_versioned, write_container
+from omg4.codec.container import SEQUENCE_VERSION, read_versioned, write_container
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices, pack_varints, unpack_varints
 from omg4.codec.rig import check_rig
 from omg4.errors import CorruptFileError, OMG4Error
@@ -231,7 +231,9 @@ def _f16_planes(values: np.ndarray) -> bytes:
     return pack_varints(np.array([len(hi)])) + hi + encode_indices(bits & 0xFF, 256, "ans")
 
 
-def _encode_f16(values: np.ndarray, encoding: str) -> bytes:
+def encode_f16(values: np.ndarray, encoding: str) -> bytes:
+    """The bytes of a float section: fp16 values as they are (``f16``), LZMA-compressed (``f16-lzma``) or split
+    into byte planes (docs/file-format.md, "Float encodings")."""
     raw = np.ascontiguousarray(values, dtype="<f2")
     if encoding == "f16":
         return raw.tobytes()
@@ -240,7 +242,7 @@ def _encode_f16(values: np.ndarray, encoding: str) -> bytes:
     return _f16_planes(raw)
 
 
-def _decode_f16(data: bytes, encoding: str, count: int) -> np.ndarray:
+def decode_f16(data: bytes, encoding: str, count: int) -> np.ndarray:
     """``count`` fp16 values of a float section; checks length and finiteness."""
     if encoding == "f16":
         raw = data
@@ -270,7 +272,7 @@ def _decode_f16(data: bytes, encoding: str, count: int) -> np.ndarray:
 
 
 def _smallest_f16(values: np.ndarray) -> tuple[str, bytes]:
-    options = [(enc, _encode_f16(values, enc)) for enc in ("f16", "f16-lzma", "f16-planes")]
+    options = [(enc, encode_f16(values, enc)) for enc in ("f16", "f16-lzma", "f16-planes")]
     return min(options, key=lambda o: len(o[1]))
 
 
@@ -434,7 +436,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     encodings: dict[str, str] = {}
 
     def put_float(name: str, values: np.ndarray, fixed: str | None = None) -> None:
-        enc, data = (fixed, _encode_f16(values, fixed)) if fixed else _smallest_f16(values)
+        enc, data = (fixed, encode_f16(values, fixed)) if fixed else _smallest_f16(values)
         sections[name], encodings[name] = data, enc
 
     float_encoding = "f16-lzma" if codec == "paper" else None
@@ -578,7 +580,7 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
 
     Any damage raises a one-line :class:`CorruptFileError` naming the file and section.
     """
-    version, header, sections = _read_versioned(source)
+    version, header, sections = read_versioned(source)
     label = "data" if isinstance(source, (bytes, bytearray, memoryview)) else str(source)
     if version == SEQUENCE_VERSION or header.get("layout") is not None:
         if version == SEQUENCE_VERSION and header.get("layout") == "sequence":
@@ -623,7 +625,7 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return grids.decode_positions(data, count, exact=encoding == grids.POSITIONS_EXACT)
             if compact and encoding == grids.TIMES and name == "t":
                 return grids.decode_times(data, count)
-            return _decode_f16(data, encoding, count)
+            return decode_f16(data, encoding, count)
         except CorruptFileError as exc:
             raise CorruptFileError(f"section {name}: {exc}") from None
 

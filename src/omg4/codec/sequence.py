@@ -28,8 +28,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
-from omg4.codec.container import (PREFIX, SEQUENCE_VERSION, _read_prefix_and_table, _Source, crc32, has_magic,
-                                  read_container, write_container)
+from omg4.codec.container import (PREFIX, SEQUENCE_VERSION, ContainerSource, crc32, has_magic, read_container,
+                                  read_prefix_and_table, write_container)
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAX_SEGMENTS = 100_000
@@ -96,9 +96,9 @@ def is_sequence(path: str | os.PathLike) -> bool:
 
 def read_index(path: str | os.PathLike) -> SequenceIndex:
     """The index of a sequence file, reading only its prefix and header (one-line errors on anything forged)."""
-    src = _Source(path)
+    src = ContainerSource(path)
     try:
-        version, header, table = _read_prefix_and_table(src)
+        version, header, table = read_prefix_and_table(src)
         json_end = src.size - sum(size for _, size, _ in table)
     finally:
         src.close()

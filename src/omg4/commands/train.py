@@ -174,23 +174,12 @@ def _train_segments(args, cfg, world, preset: str | None) -> int:
 
     from omg4 import distributed
     from omg4.atomic import write_text_atomic
-    from omg4.data.segments import plan_segments
-    from omg4.errors import OMG4Error
     from omg4.train.init import initial_points
     from omg4.train.run_state import clear_run
-    from omg4.train.segmented import segment_plan, train_segments, write_plan
+    from omg4.train.segmented import plan_capture, train_segments, write_plan
 
     capture = load_scene_from_args(args, decode=False, background=cfg.background)
-    if capture.format not in ("n3dv", "panoptic"):
-        raise OMG4Error(f"--segment-frames cuts multi-view video into segments of frames; a {capture.format} scene "
-                        "has no frame sequence to cut")
-    frames = sorted({v.frame_index for v in capture.train_views})
-    if frames != list(range(frames[0], frames[-1] + 1)):
-        raise OMG4Error("--segment-frames needs a contiguous range of frames")
-    fps = len(frames) / (capture.time_range[1] - capture.time_range[0])
-    overlap = args.overlap if args.overlap is not None else max(1, round(args.segment_frames / 6))
-    segments = plan_segments(len(frames), args.segment_frames, overlap)
-    plan = segment_plan(segments, fps, frames[0], args.segment_frames, overlap)
+    plan = plan_capture(capture, args.segment_frames, args.overlap)
     if args.force and world.main:
         import shutil
 
@@ -211,7 +200,7 @@ def _train_segments(args, cfg, world, preset: str | None) -> int:
                                teach=not args.independent_segments, preset=preset)
     if not world.main:
         return 0
-    print(f"trained {len(summaries)} segments of {args.segment_frames} frames (sharing {overlap}) -> {args.out}")
+    print(f"trained {len(summaries)} segments of {args.segment_frames} frames (sharing {plan['overlap']}) -> {args.out}")
     for s in summaries:
         print(f"  segment {s['index']}: frames {s['frames'][0]}-{s['frames'][1] - 1}, {s['num_gaussians']} Gaussians")
     if args.json:

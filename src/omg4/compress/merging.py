@@ -16,7 +16,6 @@ import torch
 
 from omg4.compress.merge_clusters import (MergeConfig, MergeGroups, StarClusters, build_merge_groups,
                                           build_star_clusters, make_disjoint)
-from omg4.gaussians.backbone import RT4DGS
 
 
 class MergeProxy(torch.nn.Module):
@@ -28,7 +27,7 @@ class MergeProxy(torch.nn.Module):
     this module has no submodules, so the generic recursive ``apply(fn)`` is never needed.
     """
 
-    def __init__(self, groups: MergeGroups, num_gaussians: int, merged: dict[str, str] = RT4DGS.merged):
+    def __init__(self, groups: MergeGroups, num_gaussians: int, merged: dict[str, str]):
         super().__init__()
         self.merged = dict(merged)
         self.num_gaussians = int(num_gaussians)

@@ -8,7 +8,7 @@ Per Gaussian, from its activated scales ``s`` and its two (unnormalized) quatern
 — everything of the conditioning that does not depend on the query time (the conditional mean
 ``μ + gain·(τ − μ_t)`` and the marginal ``exp(−½ (τ − μ_t)² / var_t)`` are per (view, Gaussian)
 row and stay in torch). Each entry of R4 is a sum of four products ``±q_l[a] q_r[b]``
-(:func:`omg4.gaussians.rotation._product_table`), so one pass over the Gaussians does the whole
+(:func:`omg4.gaussians.rotation.product_table`), so one pass over the Gaussians does the whole
 chain in registers; in torch it is a normalisation, an outer product, a table product, a
 broadcast scale, a batched ``L Lᵀ`` and the Schur complement, each with its backward — about a
 fifth of a CPU training step at 80k Gaussians. The backward pass recomputes the forward values
@@ -26,7 +26,7 @@ import torch
 from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
-from omg4.gaussians.rotation import _product_table
+from omg4.gaussians.rotation import product_table
 from omg4.render.api import as_numpy, keeping_torch_threads
 from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
 
@@ -41,7 +41,7 @@ NORMALIZE_EPS = 1e-12
 def rotation_terms(convention: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(left [16, 4], right [16, 4] int64, signs [16, 4] float64)``: entry ``e`` of the flattened R4 is
     ``Σ_k signs[e, k] · q_l[left[e, k]] · q_r[right[e, k]]`` (the nonzeros of the product table)."""
-    table = _product_table(convention, torch.float64, "cpu").numpy()  # [16 (a·4 + b), 16 (entry)]
+    table = product_table(convention, torch.float64, "cpu").numpy()  # [16 (a·4 + b), 16 (entry)]
     pairs = np.zeros((16, 4), dtype=np.int64)
     signs = np.zeros((16, 4), dtype=np.float64)
     for entry in range(16):

@@ -63,7 +63,7 @@ def right_isoclinic(q: torch.Tensor) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=None)
-def _product_table(convention: str, dtype: torch.dtype, device: str) -> torch.Tensor:
+def product_table(convention: str, dtype: torch.dtype, device: str) -> torch.Tensor:
     """[16, 16] constant C with ``R4(q_l, q_r).flatten() = (q_l ⊗ q_r).flatten() @ C``.
 
     Every entry of ``M_l(q_l) @ M_r(q_r)`` is bilinear in the two quaternions, so row ``4a + b``
@@ -91,10 +91,10 @@ def build_rotation_4d(q_l: torch.Tensor, q_r: torch.Tensor, convention: str = "f
     Returns:
         [N, 4, 4] rotation matrices acting on (x, y, z, t) column vectors.
     """
-    table = _product_table(convention, q_l.dtype, str(q_l.device))
+    table = product_table(convention, q_l.dtype, str(q_l.device))
     outer = normalize_quaternion(q_l).unsqueeze(-1) * normalize_quaternion(q_r).unsqueeze(-2)  # [N, 4, 4]
     return (outer.reshape(-1, 16) @ table).reshape(*q_l.shape[:-1], 4, 4)
 
 
 __all__ = ["ROTATION_CONVENTIONS", "normalize_quaternion", "build_rotation_3d", "left_isoclinic", "right_isoclinic",
-           "build_rotation_4d"]
+           "build_rotation_4d", "product_table"]

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from omg4.gaussians.backbone import APPEARANCE_FEATURES, RT4DGS, Backbone
+from omg4.gaussians.backbone import APPEARANCE_FEATURES, Backbone
 from omg4.train.config import TrainConfig
 
 
@@ -25,7 +25,7 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> floa
     return math.exp(math.log(lr_init) * (1 - u) + math.log(lr_final) * u)
 
 
-def baseline_lrs(cfg: TrainConfig, extent: float, schema: Backbone = RT4DGS) -> dict[str, float]:
+def baseline_lrs(cfg: TrainConfig, extent: float, schema: Backbone) -> dict[str, float]:
     """Initial learning rate of each per-Gaussian parameter group (rt4dgs §3.3; the appearance features of
     paper §4.4 included), from the backbone's table: ``cfg``'s field named by each attribute, times
     ``extent`` for positions, times and velocities."""

@@ -40,6 +40,28 @@ logger = logging.getLogger(__name__)
 PARALLEL_MODES = ("data", "segments")
 
 
+def default_overlap(segment_frames: int) -> int:
+    """The frames neighbouring segments share unless told: a sixth of a segment, at least one."""
+    return max(1, round(segment_frames / 6))
+
+
+def plan_capture(capture: Scene, segment_frames: int, overlap: int | None = None) -> dict:
+    """The plan (:func:`segment_plan`) that cuts a multi-view video capture (``capture``: its views need not be
+    decoded) into segments of ``segment_frames`` frames sharing ``overlap`` (default :func:`default_overlap`).
+    A scene without a frame sequence (Blender, D-NeRF) or with gaps in its frames is a one-line error."""
+    from omg4.data.segments import plan_segments
+
+    if capture.format not in ("n3dv", "panoptic"):
+        raise OMG4Error(f"--segment-frames cuts multi-view video into segments of frames; a {capture.format} scene "
+                        "has no frame sequence to cut")
+    frames = sorted({v.frame_index for v in capture.train_views})
+    if frames != list(range(frames[0], frames[-1] + 1)):
+        raise OMG4Error("--segment-frames needs a contiguous range of frames")
+    fps = len(frames) / (capture.time_range[1] - capture.time_range[0])
+    overlap = default_overlap(segment_frames) if overlap is None else overlap
+    return segment_plan(plan_segments(len(frames), segment_frames, overlap), fps, frames[0], segment_frames, overlap)
+
+
 def segment_plan(segments: list[Segment], fps: float, first_frame: int, segment_frames: int | None,
                  overlap: int) -> dict:
     """The plan a segmented run records (frames counted from the capture's first, times in seconds)."""
@@ -197,5 +219,5 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
              **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
 
 
-__all__ = ["PARALLEL_MODES", "segment_plan", "write_plan", "shared_frames", "taught_by", "warm_start", "segment_budget",
-           "train_segments"]
+__all__ = ["PARALLEL_MODES", "default_overlap", "plan_capture", "segment_plan", "write_plan", "shared_frames",
+           "taught_by", "warm_start", "segment_budget", "train_segments"]
