@@ -425,3 +425,24 @@ def test_info_decides_a_file_kind_by_its_content_as_render_does(model_file, tmp_
     damaged = tmp_path / "damaged.omg4"
     damaged.write_bytes(b"garbage" * 10)
     _refused(["info", str(damaged)], capsys, contains="damaged.omg4")
+
+
+def test_bench_refuses_a_control_that_is_no_baseline_of_the_same_backbone(tiny_scene_dir, model_file, tmp_path,
+                                                                          capsys):
+    from omg4.gaussians import GaussianConfig, Gaussians4D
+    from omg4.gaussians.checkpoint import save_gaussians
+
+    def checkpoint(name: str, backbone: str) -> Path:
+        path = tmp_path / name
+        save_gaussians(path, Gaussians4D.from_points(torch.rand(30, 3), torch.rand(30, 3),
+                                                     GaussianConfig(time_range=(0.0, 1.0), backbone=backbone,
+                                                                    sh_degree_t=0 if backbone == "freetimegs" else 2)))
+        return path
+
+    baseline = checkpoint("baseline.safetensors", "rt4dgs")
+    other = checkpoint("freetime.safetensors", "freetimegs")
+    bench = ["bench", str(tiny_scene_dir), "--model", str(baseline), "--out", str(tmp_path / "bench")]
+    _refused(bench + ["--control", str(model_file)], capsys, contains="--control: ")
+    _refused(bench + ["--control", str(tmp_path / "missing.safetensors")], capsys, contains="--control: ")
+    _refused(bench + ["--control", str(other)], capsys, contains="the control trains the same backbone longer")
+    assert not (tmp_path / "bench").exists()

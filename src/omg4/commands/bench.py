@@ -68,7 +68,10 @@ def run(args) -> int:
     baseline, metadata = read_baseline(args.model, device)
     control = None
     if args.control is not None:
-        control_model, control_metadata = read_baseline(args.control, "cpu")
+        try:
+            control_model, control_metadata = read_baseline(args.control, "cpu")
+        except OMG4Error as exc:
+            raise OMG4Error(f"--control: {exc}") from None
         if control_model.config.backbone != baseline.config.backbone:
             raise OMG4Error(f"--control {args.control} is a {control_model.config.backbone} model and --model a "
                             f"{baseline.config.backbone} one: the control trains the same backbone longer")
