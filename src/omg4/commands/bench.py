@@ -55,8 +55,8 @@ def run(args) -> int:
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
-    from omg4.compress.api import read_baseline, trained_iterations
-    from omg4.gaussians.checkpoint import run_model
+    from omg4.compress.api import baseline_file, read_baseline, trained_iterations
+    from omg4.gaussians.checkpoint import describe_checkpoint
     from omg4.outputs import check_outputs
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
@@ -67,15 +67,16 @@ def run(args) -> int:
     world, device = distributed.init(device_from_args(args))
     baseline, metadata = read_baseline(args.model, device)
     control = None
-    if args.control is not None:
+    if args.control is not None:  # its header alone: run_bench loads it once, to evaluate it
         try:
-            control_model, control_metadata = read_baseline(args.control, "cpu")
+            control_path = baseline_file(args.control)
+            described = describe_checkpoint(control_path)
         except OMG4Error as exc:
             raise OMG4Error(f"--control: {exc}") from None
-        if control_model.config.backbone != baseline.config.backbone:
-            raise OMG4Error(f"--control {args.control} is a {control_model.config.backbone} model and --model a "
+        if described["backbone"] != baseline.config.backbone:
+            raise OMG4Error(f"--control {args.control} is a {described['backbone']} model and --model a "
                             f"{baseline.config.backbone} one: the control trains the same backbone longer")
-        control = (run_model(args.control), trained_iterations(control_metadata))
+        control = (control_path, trained_iterations(described))
     iterations = args.baseline_iterations or trained_iterations(metadata) or CompressConfig.baseline_iterations
     known = baseline.config.schema.paper_rows
     rows = [r.strip() for r in args.rows.split(",")] if args.rows else None

@@ -26,19 +26,25 @@ from omg4.gaussians.checkpoint import save_gaussians
 logger = logging.getLogger(__name__)
 
 
-def read_baseline(path: str | Path, device="cpu") -> tuple[Gaussians4D, dict]:
-    """The trained baseline to compress and its file's metadata (``iteration``: the steps it was trained for),
-    from a checkpoint (``model.safetensors``) or a training run's folder; an ``.omg4`` file (already compressed)
-    is a one-line error that says so."""
+def baseline_file(path: str | Path) -> Path:
+    """The checkpoint of a trained baseline: ``path`` itself (``model.safetensors``) or a training run's folder's;
+    an ``.omg4`` file (already compressed) is a one-line error that says so."""
     from omg4.codec.container import has_magic
-    from omg4.gaussians.checkpoint import load_gaussians
     from omg4.gaussians.checkpoint import run_model
 
     path = run_model(path)
     if path.is_file() and has_magic(path):
         raise OMG4Error(f"{path} is a compressed .omg4 file: compression starts from the trained baseline "
                         "(its model.safetensors or its run folder)")
-    return load_gaussians(path, device)
+    return path
+
+
+def read_baseline(path: str | Path, device="cpu") -> tuple[Gaussians4D, dict]:
+    """The trained baseline to compress (:func:`baseline_file`) and its file's metadata (``iteration``: the steps
+    it was trained for)."""
+    from omg4.gaussians.checkpoint import load_gaussians
+
+    return load_gaussians(baseline_file(path), device)
 
 
 def trained_iterations(metadata: dict) -> int | None:

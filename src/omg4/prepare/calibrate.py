@@ -237,9 +237,9 @@ def simplest_lens(rec, keypoints: dict[str, np.ndarray]):
     _quiet(pycolmap.bundle_adjustment, pinhole, options)
     radial, plain = _reprojection_rms(rec, keypoints), _reprojection_rms(pinhole, keypoints)
     radial_wins = plain > (1.0 + DISTORTION_GAIN) * radial
-    logger.info(f"lens distortion {'kept' if radial_wins else 'dropped'}: reprojection RMS {radial:.3f} px with "
-                f"it, {plain:.3f} px without")
     lens = {"distortion": "kept" if radial_wins else "dropped", "rms_with_px": radial, "rms_without_px": plain}
+    logger.info(f"lens distortion {lens['distortion']}: reprojection RMS {radial:.3f} px with it, {plain:.3f} px "
+                "without")
     if radial_wins:
         return rec, lens
     pinhole.update_point_3d_errors()
