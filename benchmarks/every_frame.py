@@ -1,19 +1,20 @@
-"""Every frame of the demo against its baseline: OMG4-M with the paper's SD scores and with lifetime-weighted ones.
+"""Every frame of the demo against its baseline: OMG4-M as the paper runs it and with the changes beyond it.
 
 For each seed: the demo's scene (16 cameras × 60 frames, 128×96) and its baseline (1,500 iterations, 60k
 Gaussians, batch 2, as ``omg4 demo``), the SD scores once, then the demo's whole OMG4-M compression
-(:data:`omg4.demo.DEMO_LENGTHS`) twice from the same baseline and scores — ``score_weighting="paper"`` and
-``"lifetime"`` (:func:`omg4.compress.score.lifetime_weights`) — each decoded from its file and evaluated on the
-test camera frame by frame. The record keeps every frame's ΔPSNR (OMG4-M − baseline), the mean, the worst frame,
-the 5th percentile and the file size of each, and — the mechanism — the share of each frame's visible baseline
-(opacity × temporal marginal, summed over the Gaussians that pass the cull at the frame's time) that the
-sampling and pruning of each weighting keep, before any fine-tuning.
+(:data:`omg4.demo.DEMO_LENGTHS`) from the same baseline and scores once per variant (:data:`VARIANTS`): the
+paper's; lifetime-weighted SD scores (:func:`omg4.compress.score.lifetime_weights`); fine-tuning views drawn by
+each span's fall below the baseline (:mod:`omg4.compress.time_balance`); both. Each file is decoded and
+evaluated on the test camera frame by frame. The record keeps every frame's ΔPSNR (OMG4-M − baseline), the
+mean, the worst frame, the 5th percentile and the file size of each, and — the mechanism of the score
+weighting — the share of each frame's visible baseline (opacity × temporal marginal, summed over the Gaussians
+that pass the cull at the frame's time) that sampling and pruning keep, before any fine-tuning.
 
 Steps already done in ``--work`` (a scene, a baseline, scores, a compressed file) are reused, so a run can be
-continued or extended by seeds.
+continued or extended by seeds and variants (``--variants`` with no name only makes the baselines).
 
-Usage: ``python benchmarks/every_frame.py [--seeds 0 1 2] [--work runs/every_frame]``; about 20 minutes a seed on
-two cores.
+Usage: ``python benchmarks/every_frame.py [--seeds 0 1 2] [--variants ...] [--device cpu|cuda]
+[--work runs/every_frame]``; about 10 minutes a seed and variant on two cores.
 """
 
 from __future__ import annotations
@@ -28,10 +29,12 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the omg4 command: idle
 from environment import save_record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "every_frame_demo.json"
-WEIGHTINGS = ("paper", "lifetime")
+VARIANTS = {"paper": {}, "lifetime": {"score_weighting": "lifetime"}, "deficit": {"time_sampling": "deficit"},
+            "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit"}}
+"""Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the demo's."""
 
 
-def baseline_and_scores(root: Path, seed: int):
+def baseline_and_scores(root: Path, seed: int, device: str):
     """The seed's scene, trained baseline and SD scores (made once in ``root``)."""
     import torch
 
@@ -49,7 +52,7 @@ def baseline_and_scores(root: Path, seed: int):
     run = root / "base"
     if not (run / "model.safetensors").exists():
         cfg = make_config("cpu-small", iterations=1500, batch_size=2, max_gaussians=60_000, seed=seed,
-                          checkpoint_interval=0, device="cpu")
+                          checkpoint_interval=0, device=device)
         torch.manual_seed(seed)
         Trainer(scene, cfg, run, progress=False, log=lambda s: None).run()
     model = load_gaussians(run / "model.safetensors")[0]
@@ -57,16 +60,17 @@ def baseline_and_scores(root: Path, seed: int):
     if scores_path.exists():
         scores = SDScores.load(scores_path, model.num_gaussians)
     else:
-        scores = compute_sd_scores(model, scene.train_views, progress=False, batch_size=2)
+        scores = compute_sd_scores(model.to(device), scene.train_views, progress=False, batch_size=2, device=device)
         scores.save(scores_path)
     return scene, model, scores, scores_path
 
 
-def frame_rows(model, views) -> list[dict]:
+def frame_rows(model, views, device: str) -> list[dict]:
     """:func:`omg4.evaluate.evaluate`'s per-view rows (PSNR; no LPIPS, no timing)."""
     from omg4.evaluate import evaluate
 
-    return evaluate(model, views, time_frames=False, lpips_nets=(), progress=False, fps_views=0)["per_view"]
+    return evaluate(model, views, time_frames=False, lpips_nets=(), progress=False, fps_views=0,
+                    device=device)["per_view"]
 
 
 def kept_shares(model, scene, scores, weighting: str) -> list[float]:
@@ -93,29 +97,29 @@ def kept_shares(model, scene, scores, weighting: str) -> list[float]:
             / torch.zeros(frames).index_add_(0, geom.views, weight.float())).tolist()
 
 
-def run_seed(root: Path, seed: int) -> dict:
+def run_seed(root: Path, seed: int, variants: list[str], device: str) -> dict:
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.demo import DEMO_LENGTHS
     from omg4.evaluate import load_model
     from omg4.metrics.frames import frame_differences, frame_summary
 
-    scene, model, scores, scores_path = baseline_and_scores(root, seed)
-    base = frame_rows(model, scene.test_views)
+    scene, model, scores, scores_path = baseline_and_scores(root, seed, device)
+    base = frame_rows(model.to(device), scene.test_views, device)
     row = {"seed": seed, "baseline_psnr": statistics.fmean(r["psnr"] for r in base),
            "baseline_gaussians": model.num_gaussians}
-    for weighting in WEIGHTINGS:
-        out = root / f"M_{weighting}.omg4"
+    for variant in variants:
+        out = root / f"M_{variant}.omg4"
+        cfg = CompressConfig(preset="M", lengths=DEMO_LENGTHS, batch_size=2, seed=seed, baseline_iterations=1500,
+                             device=device, **VARIANTS[variant])
         if not out.exists():
-            cfg = CompressConfig(preset="M", lengths=DEMO_LENGTHS, batch_size=2, seed=seed, baseline_iterations=1500,
-                                 score_weighting=weighting)
             compress_to_file(model, scene, cfg, out, scores_path=scores_path)
-        delta = frame_differences(frame_rows(load_model(out), scene.test_views), base, keys=("psnr",))
+        delta = frame_differences(frame_rows(load_model(out, device), scene.test_views, device), base, keys=("psnr",))
         summary = frame_summary(delta, "psnr")
-        row[weighting] = {"file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
+        row[variant] = {"file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
                           "worst_delta_psnr": summary["min"], "worst_frame": summary["worst"]["frame"],
                           "p5_delta_psnr": summary["p5"], "delta_psnr_per_frame": [r["psnr"] for r in delta],
-                          "kept_visible_share_per_frame": kept_shares(model, scene, scores, weighting)}
+                          "kept_visible_share_per_frame": kept_shares(model, scene, scores, cfg.score_weighting)}
     return row
 
 
@@ -123,19 +127,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--work", type=Path, default=Path("runs/every_frame"))
+    ap.add_argument("--variants", nargs="*", choices=list(VARIANTS), default=["paper", "deficit"])
+    ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", type=Path, default=RESULTS)
     args = ap.parse_args()
-    rows = [run_seed(args.work / f"seed{seed}", seed) for seed in args.seeds]
-    save_record(args.json, {"command": "python benchmarks/every_frame.py --seeds " + " ".join(map(str, args.seeds)),
-                            "seeds": rows})
-    print("| seed | score weighting | mean ΔPSNR | worst frame ΔPSNR (frame) | 5th percentile | file B "
+    rows = [run_seed(args.work / f"seed{seed}", seed, args.variants, args.device) for seed in args.seeds]
+    if not args.variants:
+        return
+    save_record(args.json, {"command": "python benchmarks/every_frame.py --seeds " + " ".join(map(str, args.seeds))
+                            + " --variants " + " ".join(args.variants) + f" --device {args.device}",
+                            "device": args.device, "seeds": rows})
+    print("| seed | variant | mean ΔPSNR | worst frame ΔPSNR (frame) | 5th percentile | file B "
           "| visible weight kept: first / middle / last frame |")
     print("|---|---|---|---|---|---|---|")
     for row in rows:
-        for weighting in WEIGHTINGS:
-            r = row[weighting]
+        for variant in args.variants:
+            r = row[variant]
             shares = r["kept_visible_share_per_frame"]
-            print(f"| {row['seed']} | {weighting} | {r['mean_delta_psnr']:+.3f} | {r['worst_delta_psnr']:+.3f} "
+            print(f"| {row['seed']} | {variant} | {r['mean_delta_psnr']:+.3f} | {r['worst_delta_psnr']:+.3f} "
                   f"({r['worst_frame']}) | {r['p5_delta_psnr']:+.3f} | {r['file_bytes']:,} | "
                   + " / ".join(f"{share:.3f}" for share in (shares[0], shares[len(shares) // 2], shares[-1])) + " |")
 

@@ -16,6 +16,7 @@ from omg4.codec.payload import CODECS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
 from omg4.compress.score import SCORE_WEIGHTINGS
+from omg4.compress.time_balance import TIME_SAMPLINGS
 from omg4.data.readers import READERS
 from omg4.data.scene import SPLITS
 from omg4.gaussians.backbone import BACKBONES
@@ -38,7 +39,7 @@ TABLES: dict[str, dict[str, object]] = {
               "--parallel": PARALLEL_MODES},
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
-                 "--score-weighting": SCORE_WEIGHTINGS,
+                 "--score-weighting": SCORE_WEIGHTINGS, "--time-sampling": TIME_SAMPLINGS,
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE},  # --path: a name of PATHS or a camera path file (test_render_path_names)

@@ -19,14 +19,15 @@ from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background
                                   settings_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.score import SCORE_WEIGHTINGS
+from omg4.compress.time_balance import TIME_SAMPLINGS
 from omg4.gaussians.backbone import BACKBONES
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 
 
 #: the CompressConfig fields this command has its own flags for
 SHORTCUTS = ("preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
-             "official_score_quirk", "score_weighting", "baseline_iterations", "background", "backend", "device",
-             "seed")
+             "official_score_quirk", "score_weighting", "time_sampling", "baseline_iterations", "background", "backend",
+             "device", "seed")
 #: options of the command itself that a config file may set (as the record beside the output does)
 COMMAND_KEYS = ("codec", "grid_bits")
 
@@ -67,6 +68,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="what sampling and pruning rank by: the paper's SD scores (the default) or lifetime-weighted "
                         "ones (beyond the paper: the clip's first and last frames keep as large a share of their "
                         "Gaussians as its middle)")
+    p.add_argument("--time-sampling", choices=list(TIME_SAMPLINGS),
+                   help="how fine-tuning draws its views: uniformly (the paper, the default) or more often in the "
+                        "spans of the clip that fell further below the baseline (beyond the paper: deficit)")
     p.add_argument("--baseline-iterations", type=int_at_least(1),
                    help="iterations the baseline was trained for (the position learning rate continues its decay; "
                         "default: what the baseline's checkpoint records, else "

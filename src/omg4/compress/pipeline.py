@@ -31,6 +31,7 @@ from omg4.compress.sampling import sampling_mask
 from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
 from omg4.compress.score import SCORE_WEIGHTINGS, SDScores, compute_sd_scores, lifetime_weights
 from omg4.compress.svq import SubVectorQuantizer
+from omg4.compress.time_balance import REFRESH, TIME_SAMPLINGS, DeficitSampler
 from omg4.data.scene import Scene
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
@@ -71,6 +72,9 @@ class CompressConfig:
     official_score_quirk: bool = knob(False, "accumulate the time gradient without zeroing, as the official code")
     score_weighting: str = knob("paper", "sampling and pruning rank by the paper's SD scores (paper) or by "
                                          "lifetime-weighted ones (lifetime, beyond the paper)")
+    time_sampling: str = knob("uniform", "fine-tuning draws its views uniformly (uniform, the paper) or more often "
+                                         "in the spans of the clip that fell further below the baseline (deficit, "
+                                         "beyond the paper)")
     baseline_iterations: int = knob(30_000, "the baseline's steps: the position learning rate continues its decay")
     position_lr_init: float = knob(1.6e-4, "the baseline's initial position learning rate (× extent)")
     position_lr_final: float = knob(1.6e-6, "the baseline's final position learning rate (× extent)")
@@ -136,6 +140,8 @@ class CompressionPipeline:
             raise OMG4Error("the scene has no training views")
         if cfg.score_weighting not in SCORE_WEIGHTINGS:
             raise OMG4Error(f"unknown score weighting '{cfg.score_weighting}' (choose from {', '.join(SCORE_WEIGHTINGS)})")
+        if cfg.time_sampling not in TIME_SAMPLINGS:
+            raise OMG4Error(f"unknown time sampling '{cfg.time_sampling}' (choose from {', '.join(TIME_SAMPLINGS)})")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
@@ -158,6 +164,8 @@ class CompressionPipeline:
         self.mlp_optimizer = None
         self.mlp_scheduler = None
         self.codebook_optimizer = None
+        self.time_balance = (DeficitSampler(scene.train_views, self._view_psnr) if cfg.time_sampling == "deficit"
+                             else None)
         self.events, self.total_iterations = build_events(cfg.stages, cfg.stage_lengths(), cfg.num_merge)
         if cfg.stage_lengths() == SCHEDULES["tiny"] and self.world.main:
             logger.warning("the tiny schedule is a smoke test: a few fine-tuning steps per stage leave the model far "
@@ -315,10 +323,20 @@ class CompressionPipeline:
                     out.append(float("nan"))
                     continue
                 picks = np.linspace(start, stop - 1, min(VIEWS_PER_BUCKET, stop - start)).round().astype(int)
-                out.append(float(np.mean([psnr(render_image(self.model, views[i], self.background, self.cfg.backend,
-                                                            self.device), view_image(views[i], self.device))
-                                          for i in picks])))
+                out.append(float(np.mean([self._view_psnr(views[i]) for i in picks])))
         return out
+
+    def _view_psnr(self, view) -> float:
+        """PSNR of the current model's render of a training view."""
+        return float(psnr(render_image(self.model, view, self.background, self.cfg.backend, self.device),
+                          view_image(view, self.device)))
+
+    def rebalance(self, log: bool) -> None:
+        """Re-weight the fine-tuning's draw over the clip (``time_sampling="deficit"``); ``log``: say how."""
+        deficit = self.time_balance.update()
+        if log:
+            self.log("fall below the baseline by tenth of the clip (dB) " + " ".join(f"{d:+.2f}" for d in deficit)
+                     + "; draw weights " + " ".join(f"{w:.2f}" for w in self.time_balance.weights))
 
     # -------------------------------------------------------------------- training
     def finetune_step(self, step: int) -> float:
@@ -328,8 +346,11 @@ class CompressionPipeline:
                         final=self.cfg.position_lr_final, extent=self.extent,
                         max_steps=self.cfg.baseline_iterations + self.total_iterations)
         views = self.scene.train_views
-        batch = torch.randint(len(views), (self.cfg.batch_size,), generator=step_generator(self.cfg.seed, step, 2),
-                              device="cpu")
+        generator = step_generator(self.cfg.seed, step, 2)
+        if self.time_balance is None:
+            batch = torch.randint(len(views), (self.cfg.batch_size,), generator=generator, device="cpu")
+        else:
+            batch = self.time_balance.draw(self.cfg.batch_size, generator)
         loss, _ = backward_batch(self.model, views, batch, background=self.background, backend=self.cfg.backend,
                                  lambda_dssim=0.2, what="compression", step=step, device=self.device)
         step_optimizers((self.optimizer, self.mlp_optimizer, self.codebook_optimizer), self.device)
@@ -355,11 +376,17 @@ class CompressionPipeline:
         end = self.total_iterations if stop_iteration is None else stop_iteration
         bar = tqdm(total=end, desc="compress", disable=not self.progress, dynamic_ncols=True)
         loss_ema = None
+        if self.time_balance is not None:
+            self.time_balance.start()
         for step in range(1, end + 1):
+            applied = False
             while events and events[0].iteration == step - 1:
                 e = events.pop(0)
                 self.apply_event(e.name, e.round, step - 1)
                 bar.set_description(f"compress [{self.records[-1].stage}]")
+                applied = True
+            if self.time_balance is not None and (applied or (step - 1) % REFRESH == 0):
+                self.rebalance(log=applied)
             loss = self.finetune_step(step)
             loss_ema = loss if loss_ema is None else 0.9 * loss_ema + 0.1 * loss
             bar.update(1)
