@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from environment import save_record
-from omg4.codec.decoder import load_omg4
+from omg4.models.compact import load_omg4
 from omg4.codec.payload import CODECS, decode_payload, encode_payload
 
 ROOT = Path(__file__).resolve().parents[1]

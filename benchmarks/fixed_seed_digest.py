@@ -86,12 +86,12 @@ def main() -> None:
 
 def digests(trained, path: Path, scene) -> dict:
     """The digests of one backbone's run: trained parameters, decoded values, rendered test view, file."""
-    from omg4.codec.decoder import load_omg4
+    from omg4 import load_model  # the public name: the same in every version compared
     from omg4.codec.payload import decode_payload
     from omg4.render.view import render_view
 
     payload = decode_payload(path)
-    decoded = load_omg4(path)
+    decoded = load_model(path)
     view = scene.test_views[0]
     image = render_view(decoded, view.camera, view.timestamp, backend="cpu")[0].image
     params = trained.model.params

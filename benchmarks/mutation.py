@@ -53,6 +53,7 @@ TARGETS: dict[str, tuple[tuple[str, ...], str, bool]] = {
     "train": (("src/omg4/train",), "tests/train", True),
     "metrics": (("src/omg4/metrics",), "tests/metrics", True),
     "codec": (("src/omg4/codec",), "tests/codec", True),
+    "models": (("src/omg4/models",), "tests/codec", True),  # the decoder's and the sequence's tests live there
     "gaussians": (("src/omg4/gaussians",), "tests/gaussians", True),
     "render": (("src/omg4/render",), "tests/render", True),
     "distributed": (("src/omg4/distributed.py", "src/omg4/launch.py"), "tests/test_distributed.py", False),

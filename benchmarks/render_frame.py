@@ -153,7 +153,7 @@ def add_compositing_load(rows: list[dict], models: list, views: list) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from omg4.data import load_scene
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("data", type=Path)

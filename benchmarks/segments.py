@@ -103,7 +103,7 @@ def frame_split(model, views, ranges: list, fps: float) -> dict:
     import torch
 
     from omg4.data.segments import near_boundary
-    from omg4.evaluate import view_image
+    from omg4.render.view import view_image
     from omg4.metrics import psnr, ssim
     from omg4.render.view import render_view
 
@@ -134,7 +134,8 @@ def frame_split(model, views, ranges: list, fps: float) -> dict:
 
 def quality(args) -> None:
     from omg4.data import load_scene
-    from omg4.evaluate import evaluate, load_model
+    from omg4.evaluate import evaluate
+    from omg4.models import load_model
 
     work = Path(args.work) / args.name
     data = Path(args.data) if args.data else work / "scene"

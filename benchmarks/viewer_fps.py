@@ -33,7 +33,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def measure(path: Path, camera, frames: int, width: int, height: int) -> dict:
     from scipy.spatial.transform import Rotation
 
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.viewer import camera_from_pose, render_frame
 
     model = load_model(path)

@@ -83,7 +83,7 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
     import numpy as np
     from PIL import Image
 
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.metrics import psnr
 
     t0, t1 = load_model(model).config.time_range

@@ -293,9 +293,9 @@ def exercise(path: str | Path) -> str:
     import torch
 
     from omg4.codec.sequence import is_sequence
-    from omg4.codec.summary import describe_file, describe_sequence
+    from omg4.models.summary import describe_file, describe_sequence
     from omg4.data.scene import Camera
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.render.view import render_view
 
     (describe_sequence if is_sequence(path) else describe_file)(path)

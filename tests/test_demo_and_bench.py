@@ -34,7 +34,7 @@ def _recording_evaluate(monkeypatch) -> list:
 
 
 def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, capsys):
-    from omg4.gaussians.visibility import WindowedModel
+    from omg4.models.windowed import WindowedModel
 
     import omg4.demo
 
@@ -75,7 +75,7 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, ca
     assert methods["OMG4-M"]["storage_mb"] == omg4_file.stat().st_size / 2**20
     paper_file = out / "scene_M_paper_codec.omg4"
     assert saved["paper_codec_mb"] == paper_file.stat().st_size / 2**20
-    from omg4.codec.decoder import load_omg4
+    from omg4.models.compact import load_omg4
 
     a, b = load_omg4(omg4_file), load_omg4(paper_file)  # one model, two coders
     assert a.num_gaussians == b.num_gaussians
@@ -102,7 +102,7 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, ca
 
 
 def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):
-    from omg4.gaussians.visibility import WindowedModel
+    from omg4.models.windowed import WindowedModel
 
     cfg = make_config("cpu-small", iterations=20, batch_size=1, checkpoint_interval=0, densify_until=0,
                       backend="cpu")

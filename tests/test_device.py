@@ -109,7 +109,7 @@ def test_a_steps_cameras_times_and_images_reach_the_gpu_without_a_host_synchroni
     """In CUDA's sync debug mode "error" any copy that makes the host wait for the GPU raises; the values that
     arrive equal the CPU ones."""
     from omg4.device import to_device
-    from omg4.evaluate import view_image
+    from omg4.render.view import view_image
     from omg4.render.view import camera_tensors
 
     view = tiny_scene.train_views[0]

@@ -105,7 +105,7 @@ def test_a_run_checkpointed_with_two_ranks_resumes_with_one(tiny_scene_dir, sing
 
 def test_compress_and_eval_on_two_ranks_equal_one_process(tiny_scene_dir, single_run, tmp_path):
     from omg4.codec.payload import decode_payload
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.render.view import render_view
 
     common = [str(tiny_scene_dir), "--model", str(single_run / "model.safetensors"), "--backend", "cpu",

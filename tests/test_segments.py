@@ -40,7 +40,7 @@ def test_a_segmented_run_has_one_model_per_segment_and_its_plan(segmented_run):
 
 def test_render_at_a_boundary_is_the_stated_blend_of_the_two_segments(segmented_run, long_scene):
     from omg4.data import load_scene
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.render.view import render_view
 
     model = load_model(segmented_run)

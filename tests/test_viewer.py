@@ -36,7 +36,7 @@ def _scene_pixels(image: Image.Image) -> np.ndarray:
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium to drive (Debian package 'chromium')")
 def test_the_page_shows_frames_and_follows_the_time_slider(viser, model_file, tmp_path):
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.viewer import Viewer, ViewerSettings, view_presets
 
     model = load_model(model_file)

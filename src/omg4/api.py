@@ -25,7 +25,8 @@ from omg4.compress.pipeline import CompressConfig
 from omg4.data import load_scene
 from omg4.data.scene import Camera, Scene
 from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-from omg4.evaluate import evaluate, load_model
+from omg4.evaluate import evaluate
+from omg4.models import load_model
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians
 from omg4.render.view import render_view

@@ -12,73 +12,14 @@ paper counts it). Renders are clamped to [0, 1] before every metric.
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from omg4.data.scene import View
 from omg4.data.segments import near_boundary
-from omg4.device import to_device
-from omg4.errors import CorruptFileError, OMG4Error
-from omg4.render.view import render_view
-
-def load_model(path: str | os.PathLike, device: torch.device | str = "cpu"):
-    """A render-only model on ``device`` from a checkpoint (``.safetensors``), a compressed ``.omg4`` file, an
-    ``.omg4`` sequence of segments, a training run's folder (its ``model.safetensors``) or a segmented training
-    run's folder (``segments.json``).
-
-    Single models come with a per-time-window visibility index (:class:`omg4.gaussians.visibility.WindowedModel`)
-    and the file's metadata as ``.meta`` (scene name, time range, normalization); sequences and segmented runs
-    are :class:`omg4.codec.sequence.SequenceModel` s, decoding each segment when first shown.
-    """
-    path = Path(path)
-    from omg4.data.segments import is_segmented_run
-
-    if is_segmented_run(path):
-        return load_segmented_run(path, device)
-    from omg4.gaussians.checkpoint import run_model
-
-    path = run_model(path)
-    if not path.is_file():
-        raise OMG4Error(f"model file {path} does not exist")
-    from omg4.codec.container import has_magic
-    from omg4.codec.sequence import is_sequence
-
-    if is_sequence(path):
-        from omg4.codec.sequence import load_sequence
-
-        return load_sequence(path, device)
-    if has_magic(path):
-        from omg4.codec.decoder import load_omg4
-
-        return load_omg4(path, device)
-    if path.suffix.lower() == ".omg4":
-        raise CorruptFileError(f"{path}: not an .omg4 file (wrong magic bytes)")
-    from omg4.gaussians.checkpoint import load_gaussians
-    from omg4.gaussians.visibility import WindowedModel
-
-    model, meta = load_gaussians(path, device)
-    return WindowedModel(model.params, model.config, model.active_sh_degree, model.active_sh_degree_t, meta=meta)
-
-
-def load_segmented_run(run_dir: Path, device: torch.device | str = "cpu"):
-    """A :class:`~omg4.codec.sequence.SequenceModel` of a segmented run's final models (one per segment)."""
-    from omg4.codec.sequence import SequenceModel
-    from omg4.data.segments import read_run_plan
-
-    plan = read_run_plan(run_dir)
-    models = [run_dir / seg["folder"] / "model.safetensors" for seg in plan["segments"]]
-    missing = [str(m) for m in models if not m.is_file()]
-    if missing:
-        raise OMG4Error(f"{run_dir}: segment models not trained yet ({missing[0]}{' …' if len(missing) > 1 else ''});"
-                        " resume the training with --resume")
-    return SequenceModel([tuple(seg["time_range"]) for seg in plan["segments"]],
-                         lambda k: load_model(models[k], device), meta={"fps": plan["fps"]},
-                         storage_bytes=sum(m.stat().st_size for m in models))
-
+from omg4.errors import OMG4Error
+from omg4.render.view import render_view, view_image
 
 def frame_rates(models: list, views: list[View], *, fps_views: int = 30, background: torch.Tensor | None = None,
                 backend: str = "auto", device: torch.device | str = "cpu") -> list[dict]:
@@ -97,23 +38,6 @@ def frame_rates(models: list, views: list[View], *, fps_views: int = 30, backgro
                                                 device=device) for m in models]
         rates = measure_fps_together(renderers, timed, warmup=min(3, len(timed)), device=device)
     return distributed.gather_objects(rates, "sharing the frame rates")[0]
-
-
-def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
-    """The ground-truth image of ``view`` as float32 [H, W, 3] on ``device``; NaN or Inf is a one-line error."""
-    img = view.image()
-    if not np.isfinite(img).all():
-        raise OMG4Error(f"image of camera {view.camera.name} frame {view.frame_index} contains NaN or Inf")
-    return to_device(torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)), device)
-
-
-def render_image(model, view: View, background: torch.Tensor | None = None, backend: str = "auto",
-                 device: torch.device | str = "cpu") -> torch.Tensor:
-    """[H, W, 3] render of ``model`` (living on ``device``) at ``view``, clamped to [0, 1], no gradients."""
-    with torch.no_grad():
-        rendered, _ = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
-                                  device=device)
-    return rendered.image.clamp(0.0, 1.0)
 
 
 class _ClipImages:

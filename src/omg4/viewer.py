@@ -1,6 +1,6 @@
 """The interactive browser viewer of ``omg4 view``: server-side rendering streamed through viser.
 
-The model (a checkpoint or a decoded ``.omg4`` file, :func:`omg4.evaluate.load_model`) is
+The model (a checkpoint or a decoded ``.omg4`` file, :func:`omg4.models.load_model`) is
 rendered by the project's own renderer (numba on the CPU, gsplat on CUDA) for every connected
 browser's camera, and the image is sent as the page's background (JPEG). The panel has a time
 slider with play/pause, speed and loop; camera presets (the dataset's cameras, or an orbit
@@ -90,7 +90,7 @@ class Viewer:
     """A viser server showing ``model``; :meth:`stop` shuts it down.
 
     Args:
-        model: a render-only model (:func:`omg4.evaluate.load_model`).
+        model: a render-only model (:func:`omg4.models.load_model`).
         presets: cameras offered in the preset list (the first is where a new browser starts).
         file_bytes: the model file's size, shown in the panel.
     """

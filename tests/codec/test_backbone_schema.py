@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.codec.decoder import load_omg4
+from omg4.models.compact import load_omg4
 from omg4.codec.grids import position_order
 from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
 from omg4.gaussians import GaussianConfig

@@ -8,7 +8,7 @@ import pytest
 import forge
 
 from omg4.codec import entropy
-from omg4.codec.decoder import load_omg4
+from omg4.models.compact import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
 from omg4.errors import CorruptFileError, OMG4Error
 
@@ -159,7 +159,7 @@ def test_info_refuses_what_the_decoder_refuses(tmp_path, capsys, codec):
     """A file declaring 20,000 identical Gaussians in a few bytes: every section consistent with its header, so
     only the decoder's bounds catch it; ``info`` decodes as ``render`` does and refuses it the same way."""
     from omg4.cli import main
-    from omg4.codec.summary import describe_file
+    from omg4.models.summary import describe_file
 
     path = tmp_path / "inflated.omg4"
     path.write_bytes(forge._inflated(20_000, codec))
@@ -175,7 +175,7 @@ def test_info_refuses_what_the_decoder_refuses(tmp_path, capsys, codec):
 
 def test_info_counts_bits_per_gaussian_from_the_file_size(tmp_path):
     """bits per Gaussian = 8 × the file's bytes / its Gaussian count."""
-    from omg4.codec.summary import describe_file
+    from omg4.models.summary import describe_file
 
     path = tmp_path / "m.omg4"
     forge.valid_file(path, 300, codec="compact")

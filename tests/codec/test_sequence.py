@@ -8,6 +8,7 @@ import forge
 from omg4.codec import sequence
 from omg4.codec.container import read_container, write_container
 from omg4.errors import CorruptFileError, OMG4Error
+from omg4.models.sequence import SequenceModel, load_sequence
 
 
 def _segments(tmp_path, count=3):
@@ -76,7 +77,7 @@ def test_one_segment_is_read_by_seeking_to_it(tmp_path, monkeypatch):
     monkeypatch.setattr(sequence, "open", lambda p, mode="r": Counting(real_open(p, mode)), raising=False)
     entries = sequence.read_index(path).segments
     assert sum(read) == entries[0].offset  # the prefix and the index: everything before the first segment
-    model = sequence.load_sequence(path)  # the index, then segment 0 for the model's settings
+    model = load_sequence(path)  # the index, then segment 0 for the model's settings
     read.clear()
     model.segment(2)
     assert read == [entries[2].size]
@@ -135,7 +136,7 @@ def test_a_billion_segments_and_bytes_past_the_end_are_refused(tmp_path):
 
 def test_forged_sequence_files_end_as_one_line_errors_or_decode(tmp_path):
     """The fuzz harness's forged-file classes on a sequence: every case decodes or is one CorruptFileError."""
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
 
     parts = _segments(tmp_path)
     path = tmp_path / "seq.omg4"
@@ -168,7 +169,7 @@ def test_late_frames_and_the_whole_time_range(tmp_path):
     index = sequence.read_index(path)
     assert [e.frames for e in index.segments] == [(1_000_000, 1_000_010), (1_000_008, 1_000_018),
                                                   (1_000_016, 1_000_026)]
-    model = sequence.load_sequence(path)
+    model = load_sequence(path)
     assert model.config.time_range == pytest.approx((100_000.0, 100_002.6))
 
 
@@ -195,7 +196,7 @@ def test_showing_a_segment_decodes_the_next_one_ahead_and_only_that(tmp_path):
             loaded.notify_all()
         return Segment(k)
 
-    model = sequence.SequenceModel([(0.0, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0)], load)
+    model = SequenceModel([(0.0, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0)], load)
     assert loads == [0]
     parts = model.parts_at(0.5)
     assert [(seg.k, w) for seg, w in parts] == [(0, 1.0)]
@@ -207,3 +208,12 @@ def test_showing_a_segment_decodes_the_next_one_ahead_and_only_that(tmp_path):
     with loaded:
         assert loaded.wait_for(lambda: len(loads) == 3, timeout=10)
     assert loads == [0, 1, 3]  # segment 3 on demand; nothing after the last
+
+
+def test_the_old_home_of_the_sequence_model_still_answers_with_a_warning():
+    with pytest.warns(DeprecationWarning, match="moved to omg4.models.load_sequence"):
+        assert sequence.load_sequence is load_sequence
+    with pytest.warns(DeprecationWarning, match="moved to omg4.models.SequenceModel"):
+        assert sequence.SequenceModel is SequenceModel
+    with pytest.raises(AttributeError):
+        sequence.no_such_name

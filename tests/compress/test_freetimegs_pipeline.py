@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from omg4.codec.decoder import load_omg4
+from omg4.models.compact import load_omg4
 from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.schedule import StageLengths

@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from omg4.codec.decoder import load_omg4
+from omg4.models.compact import load_omg4
 from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import StageLengths
@@ -142,7 +142,7 @@ def test_culling_before_the_mlp_renders_the_same_frame(baseline, tiny_scene, tmp
 
 
 def test_decoder_imports_no_training_or_compression_code():
-    code = ("import sys, omg4.codec.decoder, omg4.evaluate; "
+    code = ("import sys, omg4.models.compact, omg4.evaluate; "
             "bad = [m for m in sys.modules if m.startswith(('omg4.train', 'omg4.compress'))]; "
             "print(bad); sys.exit(1 if bad else 0)")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -219,7 +219,8 @@ def test_cuda_compression_tracks_the_cpu_run(baseline, tiny_scene, tmp_path, sco
     """The same scores on both devices give the same sampled and pruned sets; the CUDA-written file
     decodes on the CPU and on CUDA and renders close to the CPU-written one."""
     from omg4.compress.score import SDScores, compute_sd_scores
-    from omg4.evaluate import evaluate, load_model
+    from omg4.evaluate import evaluate
+    from omg4.models import load_model
 
     cpu_scores = SDScores.load(scores_file, baseline.model.num_gaussians)
     gpu_scores = compute_sd_scores(baseline.model.to("cuda"), tiny_scene.train_views, device="cuda", progress=False)

@@ -53,7 +53,7 @@ def test_several_times_get_the_union_and_times_outside_get_none():
 def test_windowed_baseline_renders_the_frames_of_the_plain_model():
     """A checkpoint loaded for rendering (window rows gathered first) shows exactly the plain model's slices."""
     from omg4.gaussians import GaussianConfig, Gaussians4D
-    from omg4.gaussians.visibility import WindowedModel
+    from omg4.models.windowed import WindowedModel
 
     p = _gaussians(4, n=800)
     g = torch.Generator().manual_seed(4)
@@ -73,12 +73,12 @@ def test_windowed_baseline_renders_the_frames_of_the_plain_model():
 
 def _mlp_model(monkeypatch=None, limit=None):
     from omg4.gaussians import GaussianConfig
-    from omg4.gaussians import visibility
     from omg4.gaussians.appearance import AppearanceMLP
-    from omg4.gaussians.visibility import WindowedModel
+    from omg4.models import windowed
+    from omg4.models.windowed import WindowedModel
 
     if limit is not None:
-        monkeypatch.setattr(visibility, "MAX_CACHED_TERMS", limit)
+        monkeypatch.setattr(windowed, "MAX_CACHED_TERMS", limit)
     p = _gaussians(5, n=600)
     g = torch.Generator().manual_seed(5)
     values = {"xyz": p["xyz"], "t": p["t"], "scaling": p["scales"][:, :3].log(), "scaling_t": p["scales"][:, 3:].log(),
@@ -143,7 +143,7 @@ def test_only_the_candidate_rows_can_pass():
 def test_windowed_freetimegs_renders_the_frames_of_the_plain_model():
     """A FreeTimeGS checkpoint loaded for rendering (motion computed at load) shows the plain model's slices."""
     from omg4.gaussians import GaussianConfig, Gaussians4D
-    from omg4.gaussians.visibility import WindowedModel
+    from omg4.models.windowed import WindowedModel
 
     g = torch.Generator().manual_seed(9)
     n = 700

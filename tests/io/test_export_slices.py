@@ -7,7 +7,7 @@ import torch
 
 from omg4.cli import main
 import forge
-from omg4.evaluate import load_model
+from omg4.models import load_model
 from omg4.render.api import rasterize
 from omg4.render.paths import bounds_camera
 from omg4.render.view import render_view

@@ -119,7 +119,7 @@ def test_bounds_camera_frames_the_points():
 def test_render_path_writes_a_moving_video(tmp_path):
     model = tmp_path / "m.omg4"
     forge.valid_file(model, 300, seed=2, codebook_scale=0.3)
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
 
     camera = bounds_camera(load_model(model).values["xyz"].numpy(), 64, 48)
     (tmp_path / "cam.json").write_text(json.dumps(camera.to_json()))
@@ -186,7 +186,7 @@ def test_a_nerfstudio_camera_path_gives_back_its_cameras(tmp_path):
 def test_render_follows_a_camera_path_file_and_sizes_images(tmp_path):
     model = tmp_path / "m.omg4"
     forge.valid_file(model, 300, seed=2, codebook_scale=0.3)
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
 
     camera = bounds_camera(load_model(model).values["xyz"].numpy(), 64, 48)
     (tmp_path / "path.json").write_text(json.dumps(nerfstudio_path([camera] * 5, fps=10)))

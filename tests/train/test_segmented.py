@@ -94,7 +94,7 @@ def test_a_segment_learns_its_shared_frames_as_the_crossfade_from_the_segment_be
     import numpy as np
     import torch
 
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.render.view import render_view
     from omg4.train.segmented import taught_by
 
@@ -127,7 +127,7 @@ def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_can_be_d
     import torch
 
     from omg4.gaussians.model import GaussianConfig, Gaussians4D
-    from omg4.gaussians.visibility import WindowedModel
+    from omg4.models.windowed import WindowedModel
     from omg4.train.segmented import warm_start
 
     scene = load_scene(capture, frames=range(4, 10), progress=False)  # times [4/30, 10/30)

@@ -37,7 +37,7 @@ def test_a_rank_back_propagates_its_share_of_the_batch_loss_and_regularizer(tiny
     assert rendered_views == [views[0].camera.name + str(views[0].frame_index),
                               views[5].camera.name + str(views[5].frame_index)]
     assert float(weight.grad) == 3.0 * 2 / 4
-    from omg4.evaluate import view_image
+    from omg4.render.view import view_image
     from omg4.render.view import render_view
     from omg4.train.loss import photometric_losses  # the same losses, computed alone
 
@@ -50,7 +50,7 @@ def test_a_rank_back_propagates_its_share_of_the_batch_loss_and_regularizer(tiny
 def test_one_process_adds_the_whole_regularizer_to_the_batch_loss(tiny_scene):
     """A single process renders the whole batch: loss = mean of the views' losses + the regularizer, whose
     gradient reaches its inputs at full weight."""
-    from omg4.evaluate import view_image
+    from omg4.render.view import view_image
     from omg4.render.view import render_view
     from omg4.train.loss import photometric_losses
 

@@ -34,7 +34,8 @@ def run(args) -> int:
     from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
-    from omg4.evaluate import evaluate, load_model
+    from omg4.evaluate import evaluate
+    from omg4.models import load_model
     from omg4.metrics.frames import frame_differences, per_frame
     from omg4.outputs import check_outputs
     from omg4.report import per_frame_plot

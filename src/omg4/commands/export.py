@@ -95,7 +95,7 @@ def run(args) -> int:
     planned = _outputs(args.out, requested[2] if requested else 1)
     check_outputs({f"--out ({p.name})": p for p in planned}, inputs=[args.model, args.data],
                   datasets=[args.data] if args.data else [], force=args.force)
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
 
     model = load_model(args.model)
     if fmt == "splatv":

@@ -117,9 +117,9 @@ def checkpoint_summary(path: Path, **_) -> tuple[dict, str]:
 
 def omg4_summary(path: Path, **_) -> tuple[dict, str]:
     """Per-section size breakdown of an ``.omg4`` file and its bits per Gaussian, once the decoder has accepted the
-    whole file (:func:`omg4.codec.summary.describe_file`). The JSON also carries the container version and each
+    whole file (:func:`omg4.models.summary.describe_file`). The JSON also carries the container version and each
     section's encoding (which names the compact codec's grids)."""
-    from omg4.codec.summary import describe_file
+    from omg4.models.summary import describe_file
 
     d = describe_file(path)
     n, total, groups = d["num_gaussians"], d["total_bytes"], d["groups"]
@@ -135,8 +135,8 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
 
 def sequence_summary(path: Path, **_) -> tuple[dict, str]:
     """An ``.omg4`` sequence file: its segments (frames, times, Gaussians, bytes), every one decoded first, and the
-    bitrate over the capture (:func:`omg4.codec.summary.describe_sequence`)."""
-    from omg4.codec.summary import describe_sequence
+    bitrate over the capture (:func:`omg4.models.summary.describe_sequence`)."""
+    from omg4.models.summary import describe_sequence
 
     d = describe_sequence(path)
     lines = [f"{printable(path)}: OMG4 sequence of {len(d['segments'])} segments, {d['duration_s']:.3g} s at "

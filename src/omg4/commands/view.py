@@ -28,7 +28,7 @@ def run(args) -> int:
     import viser  # noqa: F401  (the viewer extra: where it is missing, a one-line error with its pip command)
 
     from omg4.commands.common import background_from_args, device_from_args, load_scene_from_args
-    from omg4.evaluate import load_model
+    from omg4.models import load_model
     from omg4.viewer import Viewer, ViewerSettings, check_port_free, view_presets
 
     check_port_free(args.host, args.port)  # before the model loads: a busy port fails at once

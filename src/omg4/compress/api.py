@@ -163,7 +163,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     import shutil
 
     from omg4 import distributed
-    from omg4.codec.decoder import CompactModel
+    from omg4.models.compact import CompactModel
     from omg4.codec.payload import decode_payload
     from omg4.codec.sequence import read_index, write_sequence
     from omg4.data.segments import read_run_plan

@@ -35,7 +35,7 @@ from omg4.compress.time_balance import REFRESH, TIME_SAMPLINGS, DeficitSampler
 from omg4.data.scene import Scene
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
-from omg4.evaluate import render_image, view_image
+from omg4.render.view import render_image, view_image
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone

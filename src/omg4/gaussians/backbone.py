@@ -136,7 +136,7 @@ class Backbone:
             constant covariance and opacity × exp(−½ (τ − t)² / variance) (the conditional mean, Schur
             complement and Σtt of rt4dgs §1.4; FreeTimeGS's motion and duration), which the ``.splatv``
             export writes exactly and a render-only model computes once at load
-            (:class:`~omg4.gaussians.visibility.WindowedModel`).
+            (:class:`~omg4.models.windowed.WindowedModel`).
         initialize: ``(xyz [M, 3], rgb [M, 3], config, generator) → params``: a model's raw values from a point
             cloud (CPU tensors, one Gaussian per point; :mod:`omg4.gaussians.initial` holds the shared part).
         size_presets: its OMG4 sizes by name (paper appendix), and ``default_preset`` the one used unless named.

@@ -136,7 +136,7 @@ def export_ply(path: str | os.PathLike, model, timestamp: float, *, normalizatio
     """Write the time slice of ``model`` at ``timestamp`` as a standard 3DGS ``.ply``.
 
     ``model``: a :class:`Gaussians4D` or a render-only model (a loaded checkpoint or decoded
-    ``.omg4`` file, :func:`omg4.evaluate.load_model`; its appearance MLPs give the SH). The
+    ``.omg4`` file, :func:`omg4.models.load_model`; its appearance MLPs give the SH). The
     model's active SH degrees are kept (spatial degree → f_rest count; temporal bands folded
     at τ). With ``normalization`` the output is in the dataset's original world. A sequence of segments writes
     the slice of the segment weighing most at ``timestamp``. Returns the number of Gaussians written.

@@ -16,8 +16,9 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from omg4.data.scene import Camera
+from omg4.data.scene import Camera, View
 from omg4.device import to_device
+from omg4.errors import OMG4Error
 
 
 @dataclass
@@ -82,7 +83,7 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
     Returns ``(rendered, time_slice)``: the :class:`omg4.render.Rendered` of the slice and
     the slice itself (its ``index`` maps ``rendered.means2d`` rows to model Gaussians).
 
-    A model made of segments (a long capture, :class:`omg4.codec.sequence.SequenceModel`) offers
+    A model made of segments (a long capture, :class:`omg4.models.sequence.SequenceModel`) offers
     ``parts_at(timestamp)``, the models shown at that time with weights summing to 1: each is rendered and the
     images, alphas and depths are blended by the weights (a crossfade across a boundary); the slice returned is
     the heaviest part's.
@@ -146,3 +147,20 @@ def views_by_size(cameras: list[Camera]) -> list[list[int]]:
     for i, c in enumerate(cameras):
         groups.setdefault((c.width, c.height), []).append(i)
     return list(groups.values())
+
+
+def view_image(view: View, device: torch.device | str = "cpu") -> torch.Tensor:
+    """The ground-truth image of ``view`` as float32 [H, W, 3] on ``device``; NaN or Inf is a one-line error."""
+    img = view.image()
+    if not np.isfinite(img).all():
+        raise OMG4Error(f"image of camera {view.camera.name} frame {view.frame_index} contains NaN or Inf")
+    return to_device(torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)), device)
+
+
+def render_image(model, view: View, background: torch.Tensor | None = None, backend: str = "auto",
+                 device: torch.device | str = "cpu") -> torch.Tensor:
+    """[H, W, 3] render of ``model`` (living on ``device``) at ``view``, clamped to [0, 1], no gradients."""
+    with torch.no_grad():
+        rendered, _ = render_view(model, view.camera, view.timestamp, background=background, backend=backend,
+                                  device=device)
+    return rendered.image.clamp(0.0, 1.0)

@@ -133,7 +133,7 @@ def taught_by(scene: Scene, teacher, frames: tuple[int, int], *,
 
 
 def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
-    """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.evaluate.load_model`
+    """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.models.load_model`
     gives its checkpoint) Gaussians that can be drawn somewhere in ``scene``'s time range — opacity times the
     peak temporal marginal over the range (:func:`~omg4.gaussians.visibility.peak_marginal`) at least the
     rasterizer's :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a
@@ -200,7 +200,7 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             shared = shared_frames(before, seg) if teach and parallel != "segments" else None
             start, seg_cfg = None, cfg
             if shared is not None:
-                from omg4.evaluate import load_model
+                from omg4.models import load_model
 
                 first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
                 seg_cfg = segment_budget(cfg, describe_checkpoint(first)["num_gaussians"])

@@ -13,7 +13,7 @@ import torch
 
 from omg4.data.scene import View
 from omg4.errors import OMG4Error
-from omg4.evaluate import view_image
+from omg4.render.view import view_image
 from omg4.render.view import render_views, views_by_size
 from omg4.train.loss import photometric_losses
 

@@ -31,7 +31,7 @@ from omg4.atomic import write_text_atomic
 from omg4.data.scene import PointCloud, Scene, View
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
-from omg4.evaluate import render_image, view_image
+from omg4.render.view import render_image, view_image
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.backbone import backbone_named
 from omg4.gaussians.checkpoint import save_gaussians

@@ -1,4 +1,4 @@
-// A decoded .omg4 payload as the per-Gaussian values the renderer needs (omg4/codec/decoder.py CompactModel):
+// A decoded .omg4 payload as the per-Gaussian values the renderer needs (omg4/models/compact.py CompactModel):
 // SVQ attributes reconstructed and split by backbone (gaussians/backbone.py svq_widths), the time-independent
 // 3D covariance, velocity ("gain") and time variance of each Gaussian (Real-Time4DGS: the 4D Gaussian conditioned on
 // time, rt4dgs §3.2, covariance.py; FreeTimeGS: a Gaussian moving at constant velocity, freetime.py), the
@@ -194,7 +194,7 @@ function positionTerm(xyz, net, n) {
 const isInt = (v, lo, hi) => Number.isInteger(v) && v >= lo && v <= hi;
 const REQUIRED_SH_DEGREE_T = { freetimegs: 0 };
 
-/** The model config and active SH degrees a payload's meta declares, validated as omg4/codec/decoder.py
+/** The model config and active SH degrees a payload's meta declares, validated as omg4/models/compact.py
  * model_settings and GaussianConfig do (a CorruptFileError otherwise). */
 function settings(meta) {
   const given = meta.gaussian_config;

@@ -1,6 +1,6 @@
 """What an ``.omg4`` file holds, byte by byte (``omg4 info``), once the decoder has accepted all of it.
 
-The file is first decoded exactly as ``render`` and ``eval`` decode it (:func:`omg4.codec.decoder.load_omg4`:
+The file is first decoded exactly as ``render`` and ``eval`` decode it (:func:`omg4.models.compact.load_omg4`:
 every checksum, bound and section), so a file the decoder refuses is refused here with the same one-line
 :class:`~omg4.errors.CorruptFileError`. Sections are then grouped by what they store — positions, time
 centres, each SVQ attribute's indices and codebooks (or its unit quaternions), the MLP weights — plus the
@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 
 from omg4.codec.container import describe_container
-from omg4.codec.decoder import load_omg4
+from omg4.models.compact import load_omg4
 
 _PLAIN_GROUPS = {"xyz": "positions", "t": "time centres", "mlp": "MLPs"}
 

@@ -19,7 +19,7 @@ from omg4.codec.payload import CompressedPayload, decode_payload
 from omg4.errors import CorruptFileError
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.model import GaussianConfig
-from omg4.gaussians.visibility import WindowedModel
+from omg4.models.windowed import WindowedModel
 
 
 class CompactModel(WindowedModel):
@@ -76,3 +76,6 @@ def load_omg4(path: str | os.PathLike, device: torch.device | str = "cpu") -> Co
     """Decode an ``.omg4`` file into a :class:`CompactModel` on ``device`` (one-line :class:`CorruptFileError`
     if damaged)."""
     return CompactModel(decode_payload(path), device)
+
+
+__all__ = ["CompactModel", "load_omg4", "model_settings"]
