@@ -1,6 +1,6 @@
 """Decode time of ``.omg4`` files of about 3 MB, per codec (the "compact" codec's speed bound).
 
-A well-formed compressed model (``tests/forge.py: valid_payload``: the M preset's codebook sizes,
+A well-formed compressed model (:func:`omg4.testing.forge.valid_payload`: the M preset's codebook sizes,
 random values) is grown until its file holds at least ``--megabytes`` MB, written with each
 codec, then decoded ``--repeats`` times: ``decode_payload`` (file → arrays) and ``load_omg4``
 (file → renderable model with its visibility index). Reports the median seconds.
@@ -22,12 +22,11 @@ import time
 from pathlib import Path
 
 from environment import save_record
-from omg4.models.compact import load_omg4
 from omg4.codec.payload import CODECS, decode_payload, encode_payload
+from omg4.models.compact import load_omg4
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))  # forge.py: the valid and hostile files the tests share
-from forge import valid_payload  # noqa: E402
+from omg4.testing.forge import valid_payload
 
 
 def sized_file(path: Path, codec: str, megabytes: float) -> tuple[int, int]:

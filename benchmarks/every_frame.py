@@ -101,8 +101,8 @@ def run_seed(root: Path, seed: int, variants: list[str], device: str) -> dict:
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.demo import DEMO_LENGTHS
-    from omg4.models import load_model
     from omg4.metrics.frames import frame_differences, frame_summary
+    from omg4.models import load_model
 
     scene, model, scores, scores_path = baseline_and_scores(root, seed, device)
     base = frame_rows(model.to(device), scene.test_views, device)

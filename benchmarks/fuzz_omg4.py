@@ -1,7 +1,7 @@
 """Fuzz benchmark: forged ``.omg4`` files through info, decoding, loading and rendering.
 
 Valid compressed models of three size classes (every codec) are mutated by
-``tests/forge.py`` — hostile header values, damaged or re-split sections, hostile
+:mod:`omg4.testing.forge` — hostile header values, damaged or re-split sections, hostile
 names, all with recomputed checksums, plus raw damage — and each case runs through
 its ``exercise`` in this process. Per case: the outcome ("ok",
 "CorruptFileError", or the escaping exception's type), the wall time, and the peak resident
@@ -32,7 +32,6 @@ from environment import save_record
 from omg4.codec.payload import CODECS
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))  # forge.py: the hostile-file generator the tests share
 RESULTS = REPO / "benchmarks" / "results" / "fuzz_omg4.json"
 #: size class → (Gaussians, codebook scale): a tiny file, a demo-sized one, a larger one
 CLASSES = {"small": (300, 0.1), "medium": (5000, 1.0), "large": (40000, 1.0)}
@@ -57,8 +56,8 @@ def _alarm(signum, frame):
 
 def run_case(path: Path) -> tuple[str, float, float]:
     """(outcome, seconds, peak RSS MB) of one file through ``forge.exercise``."""
-    from forge import exercise
     from omg4.errors import CorruptFileError
+    from omg4.testing.forge import exercise
 
     _peak_rss_reset()
     signal.alarm(CASE_TIMEOUT_S)
@@ -88,8 +87,8 @@ def main() -> None:
 
     import torch
 
-    from forge import forged_files, valid_file, valid_sequence
     from omg4.codec.payload import CompactGrids
+    from omg4.testing.forge import forged_files, valid_file, valid_sequence
 
     grids = CompactGrids.parse(args.grid_bits)
 

@@ -28,12 +28,12 @@ from pathlib import Path
 
 from environment import save_record
 from omg4.atomic import write_text_atomic
-from omg4.models.compact import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
 from omg4.commands.info import omg4_summary
 from omg4.data import load_scene
 from omg4.evaluate import dynamic_masks, evaluate
 from omg4.gaussians.backbone import BACKBONES
+from omg4.models.compact import load_omg4
 
 ROOT = Path(__file__).resolve().parents[1]
 PER_GAUSSIAN = ("positions", "time centres", "indices", "quaternions")

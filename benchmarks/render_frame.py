@@ -7,7 +7,7 @@ aten operations one frame dispatches (the CPU proxy for GPU kernel launches), th
 fraction of the model's Gaussians that reach the rasterizer (those passing the temporal
 cull), and the compositing work per pixel, counted on the CPU whatever ``--device``: box pixels
 the numba kernels visit and Gaussians blended, which every exact renderer must do
-(:mod:`compositing_load`), and the aten operations of one time slice with the torch forms the CUDA path
+(:mod:`omg4.render.compositing_load`), and the aten operations of one time slice with the torch forms the CUDA path
 runs instead of the CPU's numba kernels (a proxy for the slice's GPU kernel launches). The paper reports
 OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
 
@@ -34,8 +34,8 @@ from typing import Iterator
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from compositing_load import compositing_load  # noqa: E402
 from environment import save_record  # noqa: E402
+from omg4.render.compositing_load import compositing_load  # noqa: E402
 from train_step import OpCounter, code_under_test, keep_freed_memory_if_present, sync  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

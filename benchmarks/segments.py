@@ -103,8 +103,8 @@ def frame_split(model, views, ranges: list, fps: float) -> dict:
     import torch
 
     from omg4.data.segments import near_boundary
-    from omg4.render.view import view_image
     from omg4.metrics import psnr, ssim
+    from omg4.render.view import view_image
     from omg4.render.view import render_view
 
     by_camera: dict[str, list] = {}

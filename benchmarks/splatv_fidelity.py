@@ -29,11 +29,11 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def measure(path: Path, scene) -> dict:
-    from omg4.models import load_model
-    from omg4.render.view import render_image, view_image
     from omg4.io.splatv import export_splatv, read_splatv, splatv_state
     from omg4.metrics import psnr
+    from omg4.models import load_model
     from omg4.render.api import rasterize
+    from omg4.render.view import render_image, view_image
 
     model = load_model(path)
     t0, t1 = model.config.time_range

@@ -6,7 +6,7 @@ For each model: the export folder served by a local static server, the page open
 first frame), the bytes transferred (every file the page fetched), frames per second while playing (frames the
 page drew in ``--seconds`` of playback: each a new time, so a new slice through the MLPs) and while the camera
 orbits a paused frame (the median of finished frames, each drawn and read back: a new view of the same time). ``--forged N`` adds a file of N
-random Gaussians (``tests/forge.py``) to measure the player at that size.
+random Gaussians (:mod:`omg4.testing.forge`) to measure the player at that size.
 
     python benchmarks/web_player.py omg4_demo/scene_M.omg4 --data omg4_demo/scene --forged 60000 --name demo
 
@@ -28,9 +28,8 @@ from environment import save_record
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
-sys.path.insert(0, str(REPO / "tests"))
 
-from browser import Browser, open_player, served  # noqa: E402
+from omg4.testing.browser import Browser, open_player, served
 
 # time paused, the camera orbiting the focus a degree a frame: each frame drawn and read back (a finished frame)
 ORBIT = """import('./camera.js').then(({ lookAt }) => {
@@ -83,8 +82,8 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
     import numpy as np
     from PIL import Image
 
-    from omg4.models import load_model
     from omg4.metrics import psnr
+    from omg4.models import load_model
 
     t0, t1 = load_model(model).config.time_range
     time_ = round((t0 + t1) / 2, 3)
@@ -117,7 +116,7 @@ def main() -> None:
         tmp = Path(tmp)
         models = [(str(m), m) for m in args.models]
         for n in args.forged:
-            import forge
+            from omg4.testing import forge
 
             forge.valid_file(tmp / f"forged_{n}.omg4", n, codec="compact", seed=n)
             models.append((f"forged, {n:,} random Gaussians", tmp / f"forged_{n}.omg4"))

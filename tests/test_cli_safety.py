@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from omg4.cli import main
-import forge
+from omg4.testing import forge
 
 
 @pytest.fixture(scope="module")

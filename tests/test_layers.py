@@ -35,7 +35,8 @@ FLOORS: dict[str, tuple[str, ...] | None] = {
     "outputs": ("data", "errors"),
     "report": ("metrics", "atomic"),
     "api": ("compress", "data", "evaluate", "gaussians", "models", "render", "train", "errors"),
-    **{app: ANYTHING for app in ("__init__", "__main__", "cli", "commands", "demo", "bench", "viewer", "launch")},
+    **{app: ANYTHING for app in ("__init__", "__main__", "cli", "commands", "demo", "bench", "viewer", "launch",
+                                 "testing")},
 }
 """Package (or module, more specific) → the packages and modules it may import besides its own package."""
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-import forge
 from omg4.cli import install_hint, main
+from omg4.testing import forge
 
 
 @pytest.fixture(scope="module")

@@ -99,3 +99,28 @@ def test_compress_writes_one_sequence_and_eval_of_it_weights_the_segments_by_fra
         assert whole[key] == pytest.approx(sum(n * r[key] for n, r in parts) / total, rel=1e-9)
     assert whole["num_segments"] == 2 and whole["boundary"]["num_views"] == 2  # frames 7 and 8
     assert whole["bitrate_mbps"] == pytest.approx(8 * out.stat().st_size / (16 / 30) / 1e6)
+
+
+def test_the_library_calls_train_and_compress_a_long_capture_as_the_commands_do(long_scene, tmp_path):
+    import omg4
+    from omg4.codec.sequence import read_index
+    from omg4.compress.schedule import SCHEDULES
+    from omg4.models import SequenceModel, load_model
+
+    cfg = omg4.train_config("cpu-small", iterations=12, batch_size=2, backend="cpu", checkpoint_interval=0,
+                            test_interval=0)
+    run = tmp_path / "run"
+    summaries = omg4.train_segments(long_scene, run, 8, cfg, overlap=2)
+    plan = json.loads((run / "segments.json").read_text())
+    assert [s["frames"] for s in plan["segments"]] == [[0, 8], [6, 14], [12, 16]]  # 8 frames, 2 shared
+    assert [s["index"] for s in summaries] == [s["index"] for s in plan["segments"]]
+    assert all((run / s["folder"] / "model.safetensors").is_file() for s in plan["segments"])
+    again = omg4.train_segments(long_scene, run, 8, cfg, overlap=2)  # every segment done: nothing retrained
+    assert [s["num_gaussians"] for s in again] == [s["num_gaussians"] for s in summaries]
+    out = tmp_path / "seq.omg4"
+    report = omg4.compress_segments(run, long_scene, out, omg4.CompressConfig(lengths=SCHEDULES["tiny"],
+                                                                               batch_size=2, backend="cpu"))
+    index = read_index(out)
+    assert [list(e.frames) for e in index.segments] == [s["frames"] for s in plan["segments"]]
+    assert report["file_bytes"] == out.stat().st_size and len(report["segments"]) == len(plan["segments"])
+    assert isinstance(load_model(out), SequenceModel)

@@ -96,13 +96,13 @@ def static_backbone(monkeypatch):
 
 
 def test_a_backbone_declared_here_trains_compresses_decodes_and_renders(tiny_scene, tmp_path, static_backbone):
-    from omg4.models.compact import load_omg4
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.compress.schedule import StageLengths
     from omg4.evaluate import evaluate
-    from omg4.models import load_model
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.models import load_model
+    from omg4.models.compact import load_omg4
     from omg4.render.view import render_view
     from omg4.train import Trainer, make_config
 

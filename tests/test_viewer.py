@@ -8,11 +8,11 @@ import socket
 
 import numpy as np
 import pytest
-from browser import CHROMIUM, Browser, free_port, wait
+from omg4.testing.browser import CHROMIUM, Browser, free_port, wait
 from PIL import Image
 
 from omg4.cli import main
-import forge
+from omg4.testing import forge
 
 
 @pytest.fixture

@@ -13,9 +13,9 @@ __version__ = "0.2.0"
 
 #: public name → the module that defines it
 _PUBLIC = {
-    **dict.fromkeys(("synthesize_scene", "load_scene", "train_config", "train_baseline", "load_baseline",
-                     "compress_to_file", "load_model", "render_frame", "evaluate_model", "Scene", "Camera",
-                     "TrainConfig", "CompressConfig", "TrainResult"), "omg4.api"),
+    **dict.fromkeys(("synthesize_scene", "load_scene", "train_config", "train_baseline", "train_segments",
+                     "load_baseline", "compress_to_file", "compress_segments", "load_model", "render_frame",
+                     "evaluate_model", "Scene", "Camera", "TrainConfig", "CompressConfig", "TrainResult"), "omg4.api"),
     "View": "omg4.data.scene",
     "prepare_capture": "omg4.prepare.pipeline",
     "MergeConfig": "omg4.compress.merge_clusters",

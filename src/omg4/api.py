@@ -20,18 +20,21 @@ from pathlib import Path
 
 import torch
 
+from omg4.compress import api as compress_api
 from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig
 from omg4.data import load_scene
 from omg4.data.scene import Camera, Scene
 from omg4.data.synthetic import SynthConfig, write_synthetic_scene
 from omg4.evaluate import evaluate
-from omg4.models import load_model
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians
+from omg4.models import load_model
 from omg4.render.view import render_view
-from omg4.train import make_config
+from omg4.train import make_config, segmented
 from omg4.train.config import TrainConfig
+from omg4.train.init import initial_points
+from omg4.train.segmented import plan_capture, write_plan
 from omg4.train.trainer import TrainResult, Trainer
 
 
@@ -60,6 +63,38 @@ def train_baseline(scene: Scene, config: TrainConfig | None = None, run_dir: str
     return Trainer(scene, config or TrainConfig(), run_dir, resume=resume, progress=progress, log=log).run()
 
 
+def train_segments(data: str | os.PathLike, run_dir: str | os.PathLike, segment_frames: int,
+                   config: TrainConfig | None = None, *, overlap: int | None = None, init: str = "auto",
+                   teach: bool = True, **scene_options) -> list[dict]:
+    """Train a long capture (``data``: an N3DV or Panoptic folder) as segments of ``segment_frames`` frames sharing
+    ``overlap`` (default: :func:`omg4.train.segmented.default_overlap`), as ``omg4 train --segment-frames`` does:
+    the plan (``segments.json``) and one run folder per segment in ``run_dir``; segments already trained are kept,
+    so a second call resumes. ``teach``: a segment's shared frames show the crossfade from the segment before;
+    ``scene_options``: :func:`load_scene`'s reader options (``downscale``, ``cameras``, ...). Returns one summary
+    per segment."""
+    cfg = config or TrainConfig()
+    capture = load_scene(data, decode=False, progress=False, background=cfg.background, **scene_options)
+    plan = plan_capture(capture, segment_frames, overlap)
+    write_plan(Path(run_dir), plan)
+    return segmented.train_segments(Path(run_dir), plan, cfg, _segment_scenes(data, cfg.background, scene_options),
+                                    lambda scene: initial_points(scene, init, cfg), teach=teach)
+
+
+def compress_segments(run_dir: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike,
+                      config: CompressConfig | None = None, *, codec: str = "compact", teach: bool = True,
+                      progress: bool = False, **scene_options) -> dict:
+    """Compress every segment of a run of :func:`train_segments` into one sequence file ``out`` (``omg4 compress``
+    of a segmented run); the report gives each segment's and the file's bytes, duration and bitrate."""
+    cfg = config or CompressConfig()
+    return compress_api.compress_segments(run_dir, _segment_scenes(data, cfg.background, scene_options), cfg, out,
+                                          codec=codec, teach=teach, progress=progress)
+
+
+def _segment_scenes(data, background, options: dict):
+    return lambda start, stop: load_scene(data, frames=range(start, stop), background=background, progress=False,
+                                          **options)
+
+
 def load_baseline(path: str | os.PathLike, device: torch.device | str = "cpu") -> Gaussians4D:
     """A trained baseline checkpoint (``model.safetensors``, any backbone) as a trainable model on ``device``."""
     return load_gaussians(path, device)[0]
@@ -81,6 +116,6 @@ def evaluate_model(model, views: list, *, lpips_nets: tuple[str, ...] = ("alex",
     return evaluate(model, views, lpips_nets=lpips_nets, backend=backend, device=device, progress=progress)
 
 
-__all__ = ["synthesize_scene", "load_scene", "train_config", "train_baseline", "load_baseline", "compress_to_file",
-           "load_model", "render_frame", "evaluate_model", "Scene", "Camera", "TrainConfig", "CompressConfig",
-           "TrainResult"]
+__all__ = ["synthesize_scene", "load_scene", "train_config", "train_baseline", "train_segments", "load_baseline",
+           "compress_to_file", "compress_segments", "load_model", "render_frame", "evaluate_model", "Scene", "Camera",
+           "TrainConfig", "CompressConfig", "TrainResult"]

@@ -72,7 +72,6 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     baseline is, its row recording how many steps equal training takes. In a distributed job every rank compresses
     and evaluates its share of the views (:mod:`omg4.distributed`) and rank 0 alone writes and prints."""
     from omg4 import distributed
-    from omg4.models.compact import load_omg4
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import FULL_STAGES, CompressConfig
@@ -80,6 +79,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.errors import OMG4Error
     from omg4.evaluate import dynamic_masks, evaluate
     from omg4.models import load_model
+    from omg4.models.compact import load_omg4
 
     table_rows = baseline.config.schema.paper_rows
     names = rows or list(table_rows)

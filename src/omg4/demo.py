@@ -70,8 +70,8 @@ SMOKE_CHECK_NOTE = ("--quick is a smoke check of the installation (60 training s
 def side_by_side_video(path: Path, views, models: list, labels: list[str], fps: float = 30.0,
                        device: torch.device | str = "cpu") -> int:
     """An MP4 of ground truth beside each model's render (models on ``device``) over ``views`` (one test camera)."""
-    from omg4.render.view import render_image
     from omg4.io.video import side_by_side, write_video
+    from omg4.render.view import render_image
 
     def frames():
         for v in views:
@@ -120,13 +120,13 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     """Run the whole pipeline into ``out`` computing on ``device``; returns the results written to ``results.json``.
 
     Refuses (:func:`check_demo_folder`) a folder that holds anything but an earlier demo's outputs."""
-    from omg4.models.compact import load_omg4
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
     from omg4.evaluate import dynamic_masks, evaluate, frame_rates
     from omg4.models import load_model
+    from omg4.models.compact import load_omg4
     from omg4.train import Trainer
 
     out = Path(out)

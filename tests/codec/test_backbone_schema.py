@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.models.compact import load_omg4
 from omg4.codec.grids import position_order
 from omg4.codec.payload import CompressedPayload, QuantizedAttribute, encode_payload
 from omg4.gaussians import GaussianConfig
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import APPEARANCE_FEATURES, BACKBONES
+from omg4.models.compact import load_omg4
 
 WIDTH = {"xyz": 3, "t": 1}
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-import forge
 from omg4.codec.browser import BROWSER_FLOATS, _float_count, browser_decodable
 from omg4.codec.container import container_bytes, read_container, write_container
 from omg4.codec.payload import CompactGrids, decode_f16, encode_f16, decode_payload
 from omg4.codec.sequence import read_sequence
+from omg4.testing import forge
 
 from tests.codec.test_payload import assert_payload_equal
 

@@ -183,7 +183,7 @@ def test_weights_in_few_bits_match_an_independent_rounding(bits):
 def _with_row_scaled_weights(path, bits: int) -> bytes:
     """The file at ``path`` as the writer of versions 3 and 4 made it: every MLP matrix re-coded with a scale per row
     (``int<bits>-rows``, the old writer path ``weights.encode_rows``), the version the container then needs."""
-    import forge
+    from omg4.testing import forge
     header, sections = forge._split(path.read_bytes())
     sections = dict(sections)
     decoded = decode_payload(path)
@@ -227,8 +227,8 @@ def test_weights_are_column_scaled_in_version_5_and_older_row_scaled_files_still
     sizes = {bits: sum(encode_payload(p, tmp_path / "x.omg4", precision=CompactGrids(weights=bits)).values())
              for bits in (8, 6, 4)}
     assert sizes[8] > sizes[6] > sizes[4]
-    import forge
     from omg4.commands.info import omg4_summary
+    from omg4.testing import forge
     model = tmp_path / "model_w6.omg4"  # a whole model, which omg4 info decodes before describing
     encode_payload(forge.valid_payload(300), model, precision=CompactGrids(weights=6))
     summary, text = omg4_summary(model)  # omg4 info names the version and the encodings
@@ -269,7 +269,7 @@ def test_a_valid_weight_stream_on_a_codebook_section_is_refused(tmp_path):
 
 
 def test_forged_files_keep_the_version_their_encodings_need(tmp_path):
-    import forge
+    from omg4.testing import forge
     encode_payload(make_payload(60), tmp_path / "w6.omg4", precision=CompactGrids(weights=6))
     assert describe_container(forge._assemble(*forge._split((tmp_path / "w6.omg4").read_bytes())))["version"] == 5
     encode_payload(make_payload(60), tmp_path / "w16.omg4", precision=CompactGrids(weights=16))
@@ -293,7 +293,7 @@ def test_uint_values_longer_than_allowed_are_refused_before_unpacking():
 
 def _forged_compact(tmp_path, edit):
     """A valid compact file with ``edit(header, sections)`` applied and every checksum recomputed."""
-    import forge
+    from omg4.testing import forge
     p = make_payload(60)
     p.rotations = ("rotation",)
     encode_payload(p, tmp_path / "m.omg4", codec="compact")
@@ -590,7 +590,7 @@ def test_files_of_the_version_1_layout_still_decode(tmp_path):
 
 
 def test_a_quaternion_list_on_a_version_1_codec_is_refused(tmp_path):
-    import forge
+    from omg4.testing import forge
     path = tmp_path / "a.omg4"
     encode_payload(make_payload(50), path, codec="ans")
     header, sections = forge._split(path.read_bytes())
@@ -636,7 +636,7 @@ def test_the_declared_values_bound_is_the_documented_sum(tmp_path):
     weight declared large puts the sum past 2²⁰; the file's bytes then decide, one byte either side of the bound."""
     from omg4.codec.payload import _check_header
 
-    import forge
+    from omg4.testing import forge
 
     forge.valid_file(tmp_path / "m.omg4", 50, codec="compact")
     header, _ = read_container(tmp_path / "m.omg4")

@@ -120,7 +120,7 @@ def test_log_scaled_groups_are_the_exp_activated_attributes():
 
 
 def test_a_hostile_log_scale_list_is_a_corrupt_file_error(tmp_path):
-    import forge
+    from omg4.testing import forge
     encode_payload(make_payload(50), tmp_path / "m.omg4", codec="compact")
     header, sections = forge._split((tmp_path / "m.omg4").read_bytes())
     for bad in ("scale", ["nope"], [1], ["scale"] * 40):
@@ -168,7 +168,7 @@ def test_quaternion_encoding_names(name, bits):
 
 
 def test_a_hostile_quaternion_encoding_name_is_a_corrupt_file_error(tmp_path):
-    import forge
+    from omg4.testing import forge
     p = make_payload(50)
     p.rotations = ("rotation",)
     encode_payload(p, tmp_path / "m.omg4", codec="compact")

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import forge
+from omg4.testing import forge
 
 from omg4.codec import entropy
-from omg4.models.compact import load_omg4
 from omg4.codec.payload import decode_payload, encode_payload
 from omg4.errors import CorruptFileError, OMG4Error
+from omg4.models.compact import load_omg4
 
 @pytest.fixture(scope="module")
 def valid(tmp_path_factory):

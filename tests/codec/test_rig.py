@@ -8,11 +8,11 @@ import copy
 import numpy as np
 import pytest
 
-import forge
 from omg4.codec.payload import decode_payload
 from omg4.codec.rig import check_rig, rig_cameras, rig_json
 from omg4.data.scene import Camera, look_at_viewmat
 from omg4.errors import CorruptFileError
+from omg4.testing import forge
 
 
 def _cameras() -> list[Camera]:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-import forge
 from omg4.codec import sequence
 from omg4.codec.container import read_container, write_container
 from omg4.errors import CorruptFileError, OMG4Error
 from omg4.models.sequence import SequenceModel, load_sequence
+from omg4.testing import forge
 
 
 def _segments(tmp_path, count=3):

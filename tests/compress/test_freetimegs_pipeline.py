@@ -3,11 +3,11 @@
 import pytest
 import torch
 
-from omg4.models.compact import load_omg4
 from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.schedule import StageLengths
 from omg4.gaussians.checkpoint import load_gaussians
+from omg4.models.compact import load_omg4
 from omg4.render.view import render_view
 from omg4.train import Trainer, make_config
 

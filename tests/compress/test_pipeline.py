@@ -7,13 +7,13 @@ import sys
 import pytest
 import torch
 
-from omg4.models.compact import load_omg4
 from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import StageLengths
 from omg4.data.scene import Camera
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians
+from omg4.models.compact import load_omg4
 from omg4.render.view import render_view
 from omg4.train import Trainer, make_config
 

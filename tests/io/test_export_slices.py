@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from omg4.cli import main
-import forge
 from omg4.models import load_model
 from omg4.render.api import rasterize
 from omg4.render.paths import bounds_camera
 from omg4.render.view import render_view
+from omg4.testing import forge
 
 from test_ply_export import eval_real_sh, ply_gaussians, read_ply
 

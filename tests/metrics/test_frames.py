@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import forge
 from omg4.cli import main
 from omg4.metrics.frames import frame_differences, frame_summary
+from omg4.testing import forge
 
 
 def rows(values, camera="cam00"):

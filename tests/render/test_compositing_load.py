@@ -1,23 +1,19 @@
-"""``benchmarks/compositing_load.py``: the blended (pixel, Gaussian) pairs it counts equal a brute-force count
+"""``omg4.render.compositing_load``: the blended (pixel, Gaussian) pairs it counts equal a brute-force count
 over every pixel and Gaussian, and its check against the renderer catches rules that differ."""
 
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from omg4.data.scene import Camera
+from omg4.render import compositing_load
 from omg4.render.api import project_and_bin
 from omg4.render.projection import project_gaussians
 from omg4.render.view import TimeSlice, camera_tensors
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import compositing_load  # noqa: E402
 
 WIDTH, HEIGHT = 40, 24
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from omg4.cli import main
-import forge
 from omg4.data.scene import Camera, look_at_viewmat
 from omg4.errors import OMG4Error
 from omg4.render.paths import bounds_camera, camera_path, faces_forward
+from omg4.testing import forge
 
 K = np.array([[80.0, 0.0, 40.0], [0.0, 80.0, 30.0], [0.0, 0.0, 1.0]])
 FOCUS = np.array([0.3, -0.2, 0.5])

@@ -4,7 +4,7 @@ Skipped, with the reason, where Debian's ``chromium`` is missing (``.ci/run`` in
 from __future__ import annotations
 
 import pytest
-from browser import CHROMIUM, Browser
+from omg4.testing.browser import CHROMIUM, Browser
 
 
 @pytest.fixture(scope="module")

@@ -11,15 +11,15 @@ import time
 
 import numpy as np
 import pytest
-from browser import open_player, served
+from omg4.testing.browser import open_player, served
 from PIL import Image
 
-import forge
 from omg4.cli import main
 from omg4.codec.container import read_container
 from omg4.codec.payload import CompactGrids, decode_payload
 from omg4.io.web_player import MANIFEST, export_web
 from omg4.metrics import psnr
+from omg4.testing import forge
 
 # the page's decoder, every decoded array as the SHA-256 of its bytes (fp16 bit patterns, int32 indices)
 DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {

@@ -224,16 +224,26 @@ def background_from_args(args) -> tuple[float, float, float]:
     return (1.0, 1.0, 1.0) if getattr(args, "white_background", False) else (0.0, 0.0, 0.0)
 
 
-def load_scene_from_args(args, *, decode: bool = True, background: tuple[float, float, float] | None = None):
+def load_scene_from_args(args, *, decode: bool = True, background: tuple[float, float, float] | None = None,
+                         frames: range | None = None):
     """The scene named by ``args.data`` with the reader options of :func:`add_scene_arguments`, its RGBA
     images composited over ``background`` (default: that of :func:`background_from_args`; ``decode=False``:
-    cameras and times only, no frame decoded)."""
+    cameras and times only, no frame decoded); ``frames`` replaces ``--frames``."""
     from omg4.data import load_scene
 
     cameras = [c.strip() for c in args.cameras.split(",")] if getattr(args, "cameras", None) else None
-    return load_scene(args.data, format=args.format, downscale=args.downscale, frames=parse_frames(args.frames),
-                      cameras=cameras, background=background or background_from_args(args), decode=decode,
-                      progress=decode)
+    return load_scene(args.data, format=args.format, downscale=args.downscale,
+                      frames=frames if frames is not None else parse_frames(args.frames), cameras=cameras,
+                      background=background or background_from_args(args), decode=decode, progress=decode)
+
+
+def segment_scenes(args, background: tuple[float, float, float]):
+    """``load(start, stop)``: the frames ``[start, stop)`` of ``args.data`` as a scene (rank 0 reads first), for
+    :func:`omg4.train.segmented.train_segments` and :func:`omg4.compress.api.compress_segments`."""
+    from omg4 import distributed
+
+    return lambda start, stop: distributed.main_first(
+        lambda: load_scene_from_args(args, background=background, frames=range(start, stop)))
 
 
 def printable(value: object) -> str:

@@ -13,10 +13,9 @@ from pathlib import Path
 
 from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
                                   add_device_arguments, add_distributed_arguments, add_force_argument,
-                                  add_rate_weight_argument,
-                                  add_scene_arguments, add_settings_arguments, compact_grids, device_from_args,
-                                  fill_device_arguments, float_in, int_at_least, load_scene_from_args, seed,
-                                  settings_from_args)
+                                  add_rate_weight_argument, add_scene_arguments, add_settings_arguments,
+                                  compact_grids, device_from_args, fill_device_arguments, float_in, int_at_least,
+                                  load_scene_from_args, seed, segment_scenes, settings_from_args)
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.score import SCORE_WEIGHTINGS
 from omg4.compress.time_balance import TIME_SAMPLINGS
@@ -98,7 +97,6 @@ def run(args) -> int:
     from omg4.errors import OMG4Error
     from omg4.data.segments import is_segmented_run
     from omg4.outputs import check_outputs
-    from omg4.settings import config_dict
 
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
     codec = args.codec or settings.pop("codec", None) or CODECS[0]
@@ -132,8 +130,7 @@ def run(args) -> int:
     if not world.main:
         return 0
     report["world_size"] = world.size
-    write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
-                                          "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
+    write_record(record, cfg, codec, precision)
     print(f"wrote {args.out} ({report['file_bytes'] / 2**20:.3f} MB, {report['num_gaussians']} Gaussians, "
           f"{report['wall_time_s']:.0f} s) and its settings {record}")
     if args.json:
@@ -164,30 +161,30 @@ def pipeline_config(args, settings: dict, device) -> CompressConfig:
     return cfg
 
 
+def write_record(path, cfg: CompressConfig, codec: str, precision) -> None:
+    """``<out>.config.json``: every setting of the run, the codec and its grids (a valid ``--config``)."""
+    from omg4.atomic import write_text_atomic
+    from omg4.settings import config_dict
+
+    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
+                                        "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
+
+
 def _compress_segments(args, cfg, codec, precision, record, world) -> int:
     """A segmented run: every segment compressed, one sequence file written."""
-    import argparse
-
-    from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.compress.api import compress_segments
     from omg4.errors import OMG4Error
-    from omg4.settings import config_dict
 
     if args.stop_after or args.scores:
         raise OMG4Error("a segmented run compresses into one sequence file: --stop-after and --scores take one model")
 
-    def load_segment(start: int, stop: int):
-        options = argparse.Namespace(**{**vars(args), "frames": f"{start}:{stop}"})
-        return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
-
-    report = compress_segments(args.model, load_segment, cfg, args.out, codec=codec, precision=precision,
-                               check_replicas=args.check_replicas, teach=not args.independent_segments,
-                               progress=True)
+    report = compress_segments(args.model, segment_scenes(args, cfg.background), cfg, args.out, codec=codec,
+                               precision=precision, check_replicas=args.check_replicas,
+                               teach=not args.independent_segments, progress=True)
     if not world.main:
         return 0
-    write_text_atomic(record, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
-                                          "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
+    write_record(record, cfg, codec, precision)
     print(f"wrote {args.out}: {len(report['segments'])} segments, {report['file_bytes'] / 2**20:.3f} MB, "
           f"{report['bitrate_mbps']:.2f} Mbit/s over {report['duration_s']:.2f} s, {report['wall_time_s']:.0f} s")
     if args.json:

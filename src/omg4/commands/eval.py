@@ -35,8 +35,8 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
     from omg4.evaluate import evaluate
-    from omg4.models import load_model
     from omg4.metrics.frames import frame_differences, per_frame
+    from omg4.models import load_model
     from omg4.outputs import check_outputs
     from omg4.report import per_frame_plot
 
@@ -45,6 +45,7 @@ def run(args) -> int:
     check_outputs({"--json": args.json, "--plot": args.plot}, inputs=[args.data, *args.model], datasets=[args.data],
                   force=args.force)
     world, device = distributed.init(device_from_args(args))
+    models = [load_model(path, device) for path in args.model]  # a wrong file fails before the videos are decoded
     scene = distributed.main_first(lambda: load_scene_from_args(args))
     views = scene.split_views(args.split)
     if args.max_views and len(views) > args.max_views:
@@ -52,8 +53,7 @@ def run(args) -> int:
     bg = torch.tensor(background_from_args(args), device=device)
     nets = tuple(n.strip() for n in args.lpips.split(",") if n.strip())
     results = []
-    for path in args.model:
-        model = load_model(path, device)
+    for path, model in zip(args.model, models):
         storage = getattr(model, "storage_bytes", None) or _size(path)  # a sequence or run: all its files
         results.append(evaluate(model, views, storage_bytes=storage, lpips_nets=nets, background=bg,
                                 backend=args.backend, device=device))

@@ -115,9 +115,9 @@ def run(args) -> int:
     import torch
 
     from omg4.errors import OMG4Error
-    from omg4.models import load_model
     from omg4.io.images import save_npy, save_png
     from omg4.io.video import write_video
+    from omg4.models import load_model
     from omg4.outputs import check_outputs
     from omg4.render.view import render_view
 

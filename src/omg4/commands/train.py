@@ -9,8 +9,9 @@ import json
 from pathlib import Path
 
 from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments,
-                                  add_distributed_arguments, add_scene_arguments, add_settings_arguments, device_from_args, fill_device_arguments, int_at_least,
-                                  load_scene_from_args, seed, settings_from_args)
+                                  add_distributed_arguments, add_scene_arguments, add_settings_arguments,
+                                  device_from_args, fill_device_arguments, int_at_least, load_scene_from_args, seed,
+                                  segment_scenes, settings_from_args)
 from omg4.gaussians.backbone import BACKBONES
 from omg4.train.config import PRESETS, TrainConfig
 from omg4.train.init import INIT_MODES
@@ -170,8 +171,6 @@ def run(args) -> int:
 
 def _train_segments(args, cfg, world, preset: str | None) -> int:
     """``--segment-frames``: plan the segments of the capture and train one model per segment (resumable)."""
-    import argparse
-
     from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.train.init import initial_points
@@ -191,11 +190,7 @@ def _train_segments(args, cfg, world, preset: str | None) -> int:
     write_plan(args.out, plan)
     distributed.barrier()
 
-    def load_segment(start: int, stop: int):
-        options = argparse.Namespace(**{**vars(args), "frames": f"{start}:{stop}"})
-        return distributed.main_first(lambda: load_scene_from_args(options, background=cfg.background))
-
-    summaries = train_segments(args.out, plan, cfg, load_segment, lambda scene: initial_points(scene, args.init, cfg),
+    summaries = train_segments(args.out, plan, cfg, segment_scenes(args, cfg.background), lambda scene: initial_points(scene, args.init, cfg),
                                parallel=args.parallel, check_replicas=args.check_replicas,
                                teach=not args.independent_segments, preset=preset)
     if not world.main:

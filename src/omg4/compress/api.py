@@ -163,11 +163,11 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     import shutil
 
     from omg4 import distributed
-    from omg4.models.compact import CompactModel
     from omg4.codec.payload import decode_payload
     from omg4.codec.sequence import read_index, write_sequence
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.models.compact import CompactModel
     from omg4.train.segmented import shared_frames, taught_by
 
     log = log or logger.info

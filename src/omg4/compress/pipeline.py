@@ -35,12 +35,12 @@ from omg4.compress.time_balance import REFRESH, TIME_SAMPLINGS, DeficitSampler
 from omg4.data.scene import Scene
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
-from omg4.render.view import render_image, view_image
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
 from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
+from omg4.render.view import render_image, view_image
 from omg4.settings import knob
 from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
                               step_optimizers)

@@ -95,7 +95,7 @@ configure_numba_cache()
 
 
 @njit(cache=True, inline="always")
-def _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height):
+def tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height):
     """Pixel box ``[x0, x1) × [y0, y1)`` of a tile in its view's image, clipped to it, and the view's first
     output row.
 
@@ -111,13 +111,13 @@ def _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height):
 
 
 @njit(cache=True, inline="always")
-def _clipped_box(boxes, gi, x0, y0, x1, y1):
+def clipped_box(boxes, gi, x0, y0, x1, y1):
     """Gaussian ``gi``'s pixel box ``[bx0, bx1) × [by0, by1)`` clipped to the tile ``[x0, x1) × [y0, y1)``."""
     return max(boxes[gi, 0], x0), min(boxes[gi, 1], x1), max(boxes[gi, 2], y0), min(boxes[gi, 3], y1)
 
 
 @njit(cache=True, inline="always")
-def _gaussian(params, gi):
+def gaussian_terms(params, gi):
     """Gaussian ``gi``'s (mean x, mean y, conic a, b, c, opacity, σ cutoff) from ``params``."""
     return params[gi, 0], params[gi, 1], params[gi, 2], params[gi, 3], params[gi, 4], params[gi, 5], params[gi, 6]
 
@@ -160,7 +160,7 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_pe
     alpha_min = consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        x0, y0, x1, y1, oy = _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height)
+        x0, y0, x1, y1, oy = tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height)
         tw = x1 - x0
         n_pix = tw * (y1 - y0)
         trans = np.ones(n_pix)
@@ -173,10 +173,10 @@ def composite_forward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_pe
             if n_done == n_pix:
                 break
             gi = ids[k]
-            bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
+            bx0, bx1, by0, by1 = clipped_box(boxes, gi, x0, y0, x1, y1)
             if bx0 >= bx1 or by0 >= by1:
                 continue
-            mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
+            mx, my, ca, cb, cc, opac, cut = gaussian_terms(params, gi)
             e_row, s_row, s_step, r_row, r_step, step, recur = _box_exp(
                 ca, cb, cc, mx - pix_x[bx0], mx - pix_x[bx1 - 1], my - pix_y[by0], my - pix_y[by1 - 1])
             for py in range(by0, by1):
@@ -240,7 +240,7 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_p
     alpha_min = consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        x0, y0, x1, y1, oy = _tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height)
+        x0, y0, x1, y1, oy = tile_bounds(tile, tiles_x, tiles_per_view, tile_size, width, height)
         tw = x1 - x0
         n_pix = tw * (y1 - y0)
         trans = np.empty(n_pix)
@@ -264,10 +264,10 @@ def composite_backward(params, feats, boxes, ids, tile_offsets, tiles_x, tiles_p
         k_end = max(start, row_end.max())
         for k in range(k_end - 1, start - 1, -1):
             gi = ids[k]
-            bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
+            bx0, bx1, by0, by1 = clipped_box(boxes, gi, x0, y0, x1, y1)
             if bx0 >= bx1 or by0 >= by1:
                 continue
-            mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
+            mx, my, ca, cb, cc, opac, cut = gaussian_terms(params, gi)
             v_mx = 0.0
             v_my = 0.0
             v_xx = 0.0

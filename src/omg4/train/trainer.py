@@ -31,12 +31,12 @@ from omg4.atomic import write_text_atomic
 from omg4.data.scene import PointCloud, Scene, View
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
-from omg4.render.view import render_image, view_image
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.backbone import backbone_named
 from omg4.gaussians.checkpoint import save_gaussians
 from omg4.metrics import psnr
 from omg4.render.api import resolve_backend
+from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
 from omg4.train.densify import DensifyStats
 from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_optimizers

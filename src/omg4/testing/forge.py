@@ -10,8 +10,8 @@ recomputed — plus raw byte flips and truncations that the checksums must catch
 :func:`exercise` runs a file through everything a user's command does with it (``omg4
 info``, decoding, loading, rendering a frame). ``benchmarks/fuzz_omg4.py`` and the test
 suite drive it; a correct decoder lets every case end as "ok" or a one-line
-:class:`~omg4.errors.CorruptFileError`. Tooling for the tests and the fuzz benchmark, not part of the package:
-its valid models take the M preset's codebook sizes and the SVQ layout from the backbone table.
+:class:`~omg4.errors.CorruptFileError`. Its valid models take the M preset's codebook sizes and the SVQ layout
+from the backbone table.
 """
 
 from __future__ import annotations
@@ -293,9 +293,9 @@ def exercise(path: str | Path) -> str:
     import torch
 
     from omg4.codec.sequence import is_sequence
-    from omg4.models.summary import describe_file, describe_sequence
     from omg4.data.scene import Camera
     from omg4.models import load_model
+    from omg4.models.summary import describe_file, describe_sequence
     from omg4.render.view import render_view
 
     (describe_sequence if is_sequence(path) else describe_file)(path)

@@ -14,7 +14,8 @@ not match the renderer's alpha (the rules would then differ). The renderer's ``e
 float64 recurrence, so a Gaussian whose α lies within rounding of 1/255, or whose blending brings the
 transmittance within rounding of 1e-4, can be blended by one and not by the other: a pixel or two per frame.
 The check sees transmittance only; the counts themselves are tested against a brute-force count
-(``tests/render/test_compositing_load.py``).
+(``tests/render/test_compositing_load.py``); ``benchmarks/render_frame.py`` reports
+it beside the frame times.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from numba import njit, prange
 
 from omg4.render import rasterize
 from omg4.render.api import as_numpy, keeping_torch_threads, project_and_bin
-from omg4.render.cpu_kernels import TRANSMITTANCE_MIN, _clipped_box, _gaussian, _tile_bounds
+from omg4.render.cpu_kernels import TRANSMITTANCE_MIN, clipped_box, gaussian_terms, tile_bounds
 from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.render.view import camera_tensors, render_view
 
@@ -54,12 +55,12 @@ def _count(params, consts, pix_x, pix_y, boxes, ids, tile_offsets, tiles_x, tile
     half, alpha_max, alpha_min = consts[0], consts[1], consts[2]
     n_tiles = tile_offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        x0, y0, x1, y1, _ = _tile_bounds(tile, tiles_x, n_tiles, tile_size, width, height)
+        x0, y0, x1, y1, _ = tile_bounds(tile, tiles_x, n_tiles, tile_size, width, height)
         done = np.zeros((y1 - y0, x1 - x0), np.bool_)
         for k in range(tile_offsets[tile], tile_offsets[tile + 1]):
             gi = ids[k]
-            bx0, bx1, by0, by1 = _clipped_box(boxes, gi, x0, y0, x1, y1)
-            mx, my, ca, cb, cc, opac, cut = _gaussian(params, gi)
+            bx0, bx1, by0, by1 = clipped_box(boxes, gi, x0, y0, x1, y1)
+            mx, my, ca, cb, cc, opac, cut = gaussian_terms(params, gi)
             for py in range(by0, by1):
                 dy = my - pix_y[py]
                 for px in range(bx0, bx1):
