@@ -12,7 +12,7 @@ import argparse
 import pytest
 
 from omg4.cli import COMMANDS, _build_parser
-from omg4.codec.payload import CODECS
+from omg4.codec.coders import CODERS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
 from omg4.compress.score import SCORE_WEIGHTINGS
@@ -38,14 +38,14 @@ TABLES: dict[str, dict[str, object]] = {
     "train": {**SCENE, **DEVICE, "--backbone": BACKBONES, "--preset": PRESETS, "--init": INIT_MODES,
               "--parallel": PARALLEL_MODES},
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
-    "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODECS,
+    "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODERS,
                  "--score-weighting": SCORE_WEIGHTINGS, "--time-sampling": TIME_SAMPLINGS,
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE},  # --path: a name of PATHS or a camera path file (test_render_path_names)
     "export": {"--format": set(EXPORT_FORMATS.values()) | set(EXPORT_FOLDERS)},
     "view": {**SCENE, **DEVICE},
-    "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": CODECS},
+    "bench": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--codec": CODERS},
 }
 
 
@@ -78,7 +78,7 @@ def test_fine_tuning_defaults_are_the_library_defaults(command):
     if command == "bench":
         assert actions["--batch-size"].default == CompressConfig.batch_size
         assert actions["--baseline-iterations"].default is None  # the checkpoint's, else the library's
-        assert actions["--codec"].default == CODECS[0]
+        assert actions["--codec"].default == next(iter(CODERS))
         assert actions["--rate-weights"].default == (CompressConfig.rate_weight,)
         return
     # compress leaves its flags unset so that a config file can set them; unset, the run takes the library's

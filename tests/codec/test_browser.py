@@ -7,7 +7,8 @@ import pytest
 
 from omg4.codec.browser import BROWSER_FLOATS, _float_count, browser_decodable
 from omg4.codec.container import container_bytes, read_container, write_container
-from omg4.codec.payload import CompactGrids, decode_f16, encode_f16, decode_payload
+from omg4.codec.payload import CompactGrids, decode_payload
+from omg4.codec.sections import decode_f16, encode_f16
 from omg4.codec.sequence import read_sequence
 from omg4.testing import forge
 

@@ -9,9 +9,8 @@ import pytest
 from omg4.codec import codewords, quaternions, weights
 from omg4.codec.container import describe_container, read_container
 from omg4.codec.grids import position_order
-from omg4.codec.payload import (CompactGrids, CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
-                                encode_payload)
-from omg4.codec.payload import _smallest_f16 as smallest_f16
+from omg4.codec.payload import CompactGrids, CompressedPayload, QuantizedAttribute, decode_payload, encode_payload
+from omg4.codec.sections import canonical_order, smallest_f16
 from omg4.errors import CorruptFileError, OMG4Error
 
 from tests.codec.test_payload import make_payload
@@ -27,7 +26,7 @@ def _decode_slot(cb_enc, cb_bytes, ix_enc, ix_bytes, k, s, n):
     if cb_enc == "sorted":
         rows = codewords.decode_sorted_codebook(cb_bytes, k, s)
     else:
-        from omg4.codec.payload import decode_f16
+        from omg4.codec.sections import decode_f16
         rows = decode_f16(cb_bytes, cb_enc, k * s).reshape(k, s)
     if ix_enc == "first-use":
         labels = codewords.decode_first_use_indices(ix_bytes, k, n)
@@ -540,11 +539,11 @@ def test_version_2_compact_files_still_decode(tmp_path):
     """A file in the version-2 layout — fp16 positions as Morton codes, fp16 time centres, 3 × 10-bit
     quaternions, codebooks as stored — assembled here from the writer's pieces, decodes to those values."""
     from omg4.codec.container import write_container
-    from omg4.codec.payload import _encode_xyz_morton, _smallest_f16 as smallest
+    from omg4.codec.sections import encode_xyz_morton, smallest_f16 as smallest
     p = make_payload(500).to_fp16()
     p = p.permuted(canonical_order(p.xyz))
     rotation = p.attributes.pop("rotation").reconstruct()
-    sections, encodings = {"xyz": _encode_xyz_morton(p.xyz)}, {"xyz": "morton"}
+    sections, encodings = {"xyz": encode_xyz_morton(p.xyz)}, {"xyz": "morton"}
     encodings["t"], sections["t"] = smallest(p.t)
     shapes = {}
     for name, qa in p.attributes.items():

@@ -12,8 +12,8 @@ import pytest
 
 from omg4.codec.container import describe_container, read_container, write_container
 from omg4.codec.entropy import encode_indices
-from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
-                                encode_payload, morton_codes, morton_to_xyz)
+from omg4.codec.payload import CompressedPayload, QuantizedAttribute, decode_payload, encode_payload
+from omg4.codec.sections import canonical_order, morton_codes, morton_to_xyz
 from omg4.errors import CorruptFileError, OMG4Error
 
 # attribute → (D, sub-vector length, codebook size): the M preset (omg4 §7)

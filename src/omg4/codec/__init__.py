@@ -8,8 +8,8 @@ runs files through the commands and is never imported by the decoder.
 
 from omg4.codec.container import FORMAT_VERSION, MAGIC, describe_container, read_container, write_container
 from omg4.codec.entropy import decode_indices, decode_uints, encode_indices, encode_uints
-from omg4.codec.payload import (CompressedPayload, QuantizedAttribute, canonical_order, decode_payload,
-                                encode_payload)
+from omg4.codec.payload import CompressedPayload, QuantizedAttribute, decode_payload, encode_payload
+from omg4.codec.sections import canonical_order
 
 __all__ = [
     "FORMAT_VERSION", "MAGIC", "describe_container", "read_container", "write_container",

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from omg4.codec.container import SEQUENCE_VERSION, read_versioned, container_bytes
 from omg4.codec.entropy import decode_indices, encode_indices
-from omg4.codec.payload import decode_f16, encode_f16, check_sections, container_version
+from omg4.codec.payload import check_sections, container_version
+from omg4.codec.sections import decode_f16, encode_f16
 
 #: the float encodings the browser decodes, in order of preference on a tie
 BROWSER_FLOATS = ("f16", "f16-planes")

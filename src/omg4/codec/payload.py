@@ -32,11 +32,15 @@ Three codecs:
 
 ``decode_payload`` validates everything (index < codebook size, consistent counts, finite
 floats) and raises :class:`~omg4.errors.CorruptFileError` with one line otherwise.
+
+How each codec writes is its class in :data:`omg4.codec.coders.CODERS`; array-to-bytes helpers shared by all are
+in :mod:`omg4.codec.sections`. This module keeps what every codec shares — the payload, the file's limits, the
+header checks and the section reader — in one place, because together they are the boundary a hostile file
+meets (docs/file-format.md §5); that is why it runs past 400 lines.
 """
 
 from __future__ import annotations
 
-import lzma
 import math
 import os
 import re
@@ -45,16 +49,17 @@ from dataclasses import astuple, dataclass, field
 import numpy as np
 
 from omg4.codec import grids, quaternions, weights
-from omg4.codec.codewords import (decode_first_use_indices, decode_sorted_codebook, decode_sorted_codes, deinterleave,
-                                  encode_codewords, encode_sorted_codes, interleave, keys_to_fp16, ordered_keys)
+from omg4.codec.codewords import decode_first_use_indices, decode_sorted_codebook
+from omg4.codec.coders import CODERS, Coder
 from omg4.codec.container import SEQUENCE_VERSION, read_versioned, write_container
-from omg4.codec.entropy import MAX_SYMBOLS, decode_indices, encode_indices, pack_varints, unpack_varints
+from omg4.codec.entropy import MAX_SYMBOLS, decode_indices
 from omg4.codec.rig import check_rig
+from omg4.codec.sections import decode_f16, decode_xyz_morton
 from omg4.errors import CorruptFileError, OMG4Error
 
 KIND = "omg4-compressed-model"
-#: payload codecs, the default first (module docstring)
-CODECS = ("compact", "ans", "paper")
+#: the built-in payload codecs, the default first (module docstring; every known one: :data:`omg4.codec.coders.CODERS`)
+CODECS = tuple(CODERS)
 MAX_GAUSSIANS = 1 << 27
 MAX_SUB_LEN = 64
 MAX_MLP_ELEMENTS = 1 << 24
@@ -74,7 +79,6 @@ MAX_VALUES_PER_BYTE = 64
 VALUES_SLACK = 1 << 20
 _NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
 _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
-_LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 6}]
 #: allowed bits of each :class:`CompactGrids` field (what the writer accepts)
 GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (2, 16),
                      "log_scales": (0, 14), "codebooks": (0, 14), "exact": (0, 100)}
@@ -208,128 +212,16 @@ class CompressedPayload:
                                  tuple(self.rotations), tuple(self.log_scaled))
 
 
-# ----------------------------------------------------------------------- Morton order
-def morton_codes(xyz16: np.ndarray) -> np.ndarray:
-    """48-bit Z-order codes of fp16 positions ``xyz16: float16 [N, 3]`` → uint64 [N] (x in the lowest bit)."""
-    return interleave(ordered_keys(np.asarray(xyz16, np.float16).reshape(-1, 3)))
-
-
-def morton_to_xyz(codes: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`morton_codes`: float16 [N, 3]."""
-    return keys_to_fp16(deinterleave(codes, 3))
-
-
-def canonical_order(xyz: np.ndarray) -> np.ndarray:
-    """Stable Morton order of the fp16-rounded positions ``xyz: [N, 3]``: the storage order of the "ans" codec."""
-    return np.argsort(morton_codes(np.asarray(xyz, np.float16)), kind="stable")
-
-
-# ------------------------------------------------------------------ float sections
-def _f16_planes(values: np.ndarray) -> bytes:
-    bits = values.view(np.uint16).ravel()
-    hi = encode_indices(bits >> 8, 256, "ans")
-    return pack_varints(np.array([len(hi)])) + hi + encode_indices(bits & 0xFF, 256, "ans")
-
-
-def encode_f16(values: np.ndarray, encoding: str) -> bytes:
-    """The bytes of a float section: fp16 values as they are (``f16``), LZMA-compressed (``f16-lzma``) or split
-    into byte planes (docs/file-format.md, "Float encodings")."""
-    raw = np.ascontiguousarray(values, dtype="<f2")
-    if encoding == "f16":
-        return raw.tobytes()
-    if encoding == "f16-lzma":
-        return lzma.compress(raw.tobytes(), format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
-    return _f16_planes(raw)
-
-
-def decode_f16(data: bytes, encoding: str, count: int) -> np.ndarray:
-    """``count`` fp16 values of a float section; checks length and finiteness."""
-    if encoding == "f16":
-        raw = data
-    elif encoding == "f16-lzma":
-        d = lzma.LZMADecompressor(format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
-        try:
-            raw = d.decompress(data, max_length=2 * count)
-        except lzma.LZMAError:
-            raise CorruptFileError("damaged LZMA data") from None
-        if not d.eof or d.unused_data:
-            raise CorruptFileError("damaged LZMA data (wrong length)")
-    elif encoding == "f16-planes":
-        (size,), used = unpack_varints(data, 1, "plane sizes")
-        if size > len(data) - used:
-            raise CorruptFileError("truncated byte planes")
-        hi = decode_indices(data[used:used + int(size)], 256, count, "ans")
-        lo = decode_indices(data[used + int(size):], 256, count, "ans")
-        raw = ((hi << 8) | lo).astype("<u2").tobytes()
-    else:
-        raise CorruptFileError(f"unknown encoding {encoding!r}")
-    if len(raw) != 2 * count:
-        raise CorruptFileError(f"{len(raw)} bytes of fp16 data, expected {2 * count}")
-    values = np.frombuffer(raw, "<f2").astype(np.float16)
-    if not np.isfinite(values).all():
-        raise CorruptFileError("non-finite values")
-    return values
-
-
-def _smallest_f16(values: np.ndarray) -> tuple[str, bytes]:
-    options = [(enc, encode_f16(values, enc)) for enc in ("f16", "f16-lzma", "f16-planes")]
-    return min(options, key=lambda o: len(o[1]))
-
-
-def _encode_xyz_morton(xyz16: np.ndarray) -> bytes:
-    return encode_sorted_codes(morton_codes(xyz16))
-
-
-def _decode_xyz_morton(data: bytes, count: int) -> np.ndarray:
-    codes = decode_sorted_codes(data, count, 48, strict=False, damaged="Morton codes")
-    xyz = morton_to_xyz(codes)
-    if not np.isfinite(xyz).all():
-        raise CorruptFileError("non-finite positions")
-    return xyz
-
-
 # ------------------------------------------------------------------------ encoding
 def container_version(codec: object, encodings: object = None) -> int:
-    """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``): 3 for
-    "compact" (deflated JSON, grid-coded sections), 4 for "compact" with an MLP weight in fewer than 8 bits per row and
-    5 for "compact" with exact positions or column-scaled weights (encodings builds reading 1-3, or 1-4, do not
-    know), 1 otherwise, so files
-    of the older codecs stay readable by builds that predate versions 2 to 5. Any ``encodings`` value is accepted
-    (a forged header's too)."""
-    if codec != "compact":
-        return 1
-    names = [e for e in (encodings.values() if isinstance(encodings, dict) else ()) if isinstance(e, str)]
-    weight_encodings = [parsed for e in names if (parsed := weights.parse_encoding(e))]
-    if grids.POSITIONS_EXACT in names or any(columns for _, columns in weight_encodings):
-        return 5
-    return 4 if any(bits < weights.BITS for bits, _ in weight_encodings) else 3
+    """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``):
+    :meth:`omg4.codec.coders.Coder.version` of its coder, 1 for an unknown one. Any ``encodings`` value is
+    accepted (a forged header's too)."""
+    coder = CODERS.get(codec) if isinstance(codec, str) else None
+    return coder.version(encodings) if coder is not None else 1
 
 
-def largest_footprints(p: CompressedPayload, percent: int) -> np.ndarray:
-    """bool ``[N]``: the ⌈percent · N / 100⌉ Gaussians of ``p`` with the largest footprint — the product of their two
-    largest scales, from the 3-wide log-scale attribute ``scale`` of both backbones, as ``p`` holds it (the writer
-    passes its fp16 payload in storage order, before log-scale rounding) — whose positions the compact codec stores
-    exactly (:class:`CompactGrids` ``exact``); none without such an attribute. Ties: the earlier row."""
-    chosen = np.zeros(p.num_gaussians, bool)
-    scale = p.attributes.get("scale")
-    if not percent or scale is None or "scale" not in p.log_scaled:
-        return chosen
-    log_scales = scale.reconstruct().astype(np.float64)
-    if log_scales.shape[1] != 3:
-        return chosen
-    footprint = np.sort(log_scales, axis=1)[:, 1:].sum(axis=1)  # log of the two largest scales' product
-    chosen[np.argsort(-footprint, kind="stable")[:math.ceil(percent * p.num_gaussians / 100)]] = True
-    return chosen
-
-
-def _quaternion_stored(q: QuantizedAttribute, name: str, rotations: tuple[str, ...], precision: CompactGrids) -> bool:
-    """Whether the compact codec may store attribute ``name`` as unit quaternions (a rotation, 4 wide, unless the
-    grids keep rotation codebooks: ``precision.rotations`` 16)."""
-    return (precision.rotations < 16 and name in rotations
-            and sum(int(np.shape(cb)[1]) for cb in q.codebooks) == 4)
-
-
-def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) -> CompressedPayload:
+def _check_payload(p: CompressedPayload, coder: Coder, precision: CompactGrids) -> CompressedPayload:
     """The fp16/int64 form of ``p`` after checking shapes, names, ranges and finiteness (OMG4Error).
 
     A rotation the compact codec stores as unit quaternions (``precision.rotations`` < 16) may have codebooks of
@@ -357,7 +249,7 @@ def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) ->
     for attr, qa in q.attributes.items():
         if not qa.codebooks or len(qa.codebooks) != len(qa.indices):
             raise OMG4Error(f"attribute {attr}: needs one index array per codebook")
-        any_length = codec == "compact" and _quaternion_stored(qa, attr, q.rotations, precision)
+        any_length = coder.any_length_rotation(qa, attr, q.rotations, precision)
         max_rows = max(n, MAX_SYMBOLS) if any_length else MAX_SYMBOLS
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
             if cb.ndim != 2 or not 1 <= cb.shape[0] <= max_rows or not 1 <= cb.shape[1] <= MAX_SUB_LEN:
@@ -371,41 +263,12 @@ def _check_payload(p: CompressedPayload, codec: str, precision: CompactGrids) ->
     return q
 
 
-def round_codebook(codebook: np.ndarray, bits: int) -> np.ndarray:
-    """A codebook rounded to steps of 2^-bits, then to fp16 (for the log-scale codebooks at the default 5 bits fp16
-    holds every such value below 64 exactly, so rounding twice changes nothing)."""
-    step = 2.0 ** -bits
-    return (np.rint(np.asarray(codebook, np.float64) / step) * step).astype(np.float16)
-
-
-def _encode_compact_attribute(name: str, qa: QuantizedAttribute, as_quaternion: bool, round_bits: int,
-                              precision: CompactGrids, sections: dict[str, bytes], encodings: dict[str, str]
-                              ) -> list[list[int]] | None:
-    """Add the sections of one SVQ attribute in the "compact" codec at ``precision``, its codebooks rounded to steps of
-    2^-round_bits (0: as they are); returns its codebook shapes, or None when it was stored as unit quaternions
-    (smaller than its codebooks and indices, or too many rows for them)."""
-    quat = quaternions.encode_quaternions(qa.reconstruct(), precision.rotations) if as_quaternion else None
-    slots, shapes = {}, []
-    if max(cb.shape[0] for cb in qa.codebooks) <= MAX_SYMBOLS:
-        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            cb = round_codebook(cb, round_bits) if round_bits else cb
-            cb_enc, cb_bytes, ix_enc, ix_bytes, k = encode_codewords(cb, ix, _smallest_f16)
-            slots[f"svq.{name}.codebook{j}"], slots[f"svq.{name}.index{j}"] = (cb_enc, cb_bytes), (ix_enc, ix_bytes)
-            shapes.append([k, int(cb.shape[1])])
-    if quat is not None and (not slots or len(quat) < sum(len(b) for _, b in slots.values())):
-        sections[f"quat.{name}"], encodings[f"quat.{name}"] = quat, quaternions.encoding(precision.rotations)
-        return None
-    for section, (enc, data) in slots.items():
-        sections[section], encodings[section] = data, enc
-    return shapes
-
-
 def check_codec(codec: str, precision: CompactGrids = CompactGrids()) -> None:
     """Raise :class:`~omg4.errors.OMG4Error` unless ``codec`` is one of :data:`CODECS` and ``precision`` is the
     default or ``codec`` is "compact" (the only codec with grids)."""
-    if codec not in CODECS:
-        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODECS)})")
-    if codec != "compact" and precision != CompactGrids():
+    if codec not in CODERS:
+        raise OMG4Error(f"unknown codec {codec!r} (choose from {', '.join(CODERS)})")
+    if not CODERS[codec].takes_grids and precision != CompactGrids():
         raise OMG4Error(f"grids {precision.label} apply to the compact codec only, not {codec!r}")
 
 
@@ -426,63 +289,24 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     plus ``"header"``; the values sum to the file size.
     """
     check_codec(codec, precision)
-    q = _check_payload(p, codec, precision)
-    fp16_positions = codec == "ans" or (codec == "compact" and not precision.positions)
-    if codec == "compact" and not fp16_positions:
-        q = q.permuted(grids.position_order(q.xyz, precision.positions))
-    elif fp16_positions:
-        q = q.permuted(canonical_order(q.xyz))
-    sections: dict[str, bytes] = {}
-    encodings: dict[str, str] = {}
-
-    def put_float(name: str, values: np.ndarray, fixed: str | None = None) -> None:
-        enc, data = (fixed, encode_f16(values, fixed)) if fixed else _smallest_f16(values)
-        sections[name], encodings[name] = data, enc
-
-    float_encoding = "f16-lzma" if codec == "paper" else None
-    if codec == "paper":
-        put_float("xyz", q.xyz, float_encoding)
-    elif fp16_positions:
-        sections["xyz"], encodings["xyz"] = _encode_xyz_morton(q.xyz), "morton"
-    else:
-        exact = largest_footprints(q, precision.exact)
-        sections["xyz"] = grids.encode_positions(q.xyz, precision.positions, exact)
-        encodings["xyz"] = grids.POSITIONS_EXACT if exact.any() else grids.POSITIONS
-    times = (grids.encode_times(q.t, grids.time_step(q.t, q.meta.get("time_range"), precision.times))
-             if codec == "compact" and precision.times else None)
-    if times is None:
-        put_float("t", q.t, float_encoding)
-    else:
-        sections["t"], encodings["t"] = times, grids.TIMES
+    coder = CODERS[codec]
+    q = coder.arrange(_check_payload(p, coder, precision), precision)
+    written: dict[str, tuple[str, bytes]] = {"xyz": coder.positions(q, precision), "t": coder.times(q, precision)}
     shapes: dict[str, list[list[int]]] = {}
     stored_as_quaternions: list[str] = []
-    if codec == "compact":
-        for attr, qa in q.attributes.items():
-            as_quaternion = _quaternion_stored(qa, attr, q.rotations, precision)
-            round_bits = (precision.log_scales if attr in q.log_scaled
-                          else 0 if attr in q.rotations else precision.codebooks)
-            attr_shapes = _encode_compact_attribute(attr, qa, as_quaternion, round_bits, precision, sections,
-                                                    encodings)
-            if attr_shapes is None:
-                stored_as_quaternions.append(attr)
-            else:
-                shapes[attr] = attr_shapes
-    else:
-        for attr, qa in q.attributes.items():
-            for j, cb in enumerate(qa.codebooks):
-                put_float(f"svq.{attr}.codebook{j}", cb, float_encoding)
-            for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-                name = f"svq.{attr}.index{j}"
-                sections[name], encodings[name] = encode_indices(ix, cb.shape[0], codec), codec
-            shapes[attr] = [list(cb.shape) for cb in qa.codebooks]
-    for name, w in q.mlp.items():
-        if codec == "compact" and w.ndim == 2 and w.size and precision.weights <= weights.BITS:
-            sections[f"mlp.{name}"] = weights.encode_columns(w, precision.weights)
-            encodings[f"mlp.{name}"] = weights.encoding(precision.weights)
+    for attr, qa in q.attributes.items():
+        attr_shapes, attr_sections = coder.attribute(attr, qa, q, precision)
+        written.update(attr_sections)
+        if attr_shapes is None:
+            stored_as_quaternions.append(attr)
         else:
-            put_float(f"mlp.{name}", w, float_encoding)
+            shapes[attr] = attr_shapes
+    for name, w in q.mlp.items():
+        written[f"mlp.{name}"] = coder.mlp_weight(w, precision)
+    sections = {name: data for name, (_, data) in written.items()}
+    encodings = {name: enc for name, (enc, _) in written.items()}
     header = {
-        "kind": KIND, "codec": codec, "order": "original" if codec == "paper" else "morton",
+        "kind": KIND, "codec": codec, "order": coder.order,
         "num_gaussians": q.num_gaussians, "meta": q.meta,
         "attributes": shapes,
         "mlp": {k: list(w.shape) for k, w in q.mlp.items()},
@@ -490,14 +314,14 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         "rotations": [a for a in q.rotations if a in q.attributes],
         "log_scaled": [a for a in q.log_scaled if a in shapes],  # not those stored as unit quaternions
     }
-    if codec == "compact":
+    if coder.quaternion_sections:
         header["quaternions"] = stored_as_quaternions
     sizes = {name: len(data) for name, data in sections.items()}
     try:  # the decoder's limits hold for every file written, so no written file is refused on reading
         check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
-    total = write_container(path, header, sections, version=container_version(codec, encodings))
+    total = write_container(path, header, sections, version=coder.version(encodings))
     sizes["header"] = total - sum(sizes.values())
     return sizes
 
@@ -517,7 +341,8 @@ def _check_header(h: dict, section_bytes: int) -> None:
     allocate or inflate more than a bounded multiple of the file. Raises CorruptFileError.
     """
     n = h.get("num_gaussians")
-    ok = (h.get("kind") == KIND and h.get("codec") in CODECS and isinstance(h.get("meta"), dict)
+    ok = (h.get("kind") == KIND and isinstance(h.get("codec"), str) and h["codec"] in CODERS
+          and isinstance(h.get("meta"), dict)
           and isinstance(h.get("attributes"), dict) and isinstance(h.get("mlp"), dict)
           and isinstance(h.get("encodings"), dict) and _is_int(n, 1, MAX_GAUSSIANS))
     if not ok:
@@ -525,7 +350,7 @@ def _check_header(h: dict, section_bytes: int) -> None:
     if "rig" in h["meta"]:
         check_rig(h["meta"]["rig"])
     rotations = h.get("quaternions", [])
-    if (("quaternions" in h) != (h["codec"] == "compact") or not isinstance(rotations, list)
+    if (("quaternions" in h) != CODERS[h["codec"]].quaternion_sections or not isinstance(rotations, list)
             or len(rotations) > MAX_ATTRIBUTES or len(set(map(str, rotations))) != len(rotations)
             or not all(isinstance(a, str) and _NAME.fullmatch(a) and a not in h["attributes"] for a in rotations)):
         raise CorruptFileError("invalid list of quaternion attributes")
@@ -596,19 +421,19 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
 def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayload:
     check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
-    compact = codec == "compact"
-    index_encodings = ("ranks", "first-use") if compact else (codec,)
+    coder = CODERS[codec]
+    compact = coder.grid_encodings
 
     def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, ...] | None = None) -> np.ndarray:
         """Decode section ``name``; each encoding is accepted only for the section kind it was made for."""
         try:
             data, encoding = sections[name], enc[name]
             if num_symbols:
-                if encoding not in index_encodings:
+                if encoding not in coder.index_encodings:
                     raise CorruptFileError(f"encoding {encoding!r} is not an index encoding of the codec {codec!r}")
                 if encoding == "first-use":
                     return decode_first_use_indices(data, num_symbols, count)
-                return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else codec)
+                return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else encoding)
             kind = name.split(".")[0]
             if kind == "quat":
                 bits = quaternions.bits_of(encoding)
@@ -619,8 +444,8 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 return decode_sorted_codebook(data, *shape)
             if compact and weights.parse_encoding(encoding) and kind == "mlp" and len(shape) == 2:
                 return weights.decode_matrix(data, shape, encoding)
-            if encoding == "morton" and name == "xyz" and codec != "paper":
-                return _decode_xyz_morton(data, count)
+            if encoding == "morton" and name == "xyz" and coder.morton_positions:
+                return decode_xyz_morton(data, count)
             if compact and encoding in (grids.POSITIONS, grids.POSITIONS_EXACT) and name == "xyz":
                 return grids.decode_positions(data, count, exact=encoding == grids.POSITIONS_EXACT)
             if compact and encoding == grids.TIMES and name == "t":

@@ -97,11 +97,11 @@ def add_format_argument(p: argparse.ArgumentParser) -> None:
 
 
 def add_codec_argument(p: argparse.ArgumentParser, *, from_settings: bool = False) -> None:
-    """``--codec``: the ``.omg4`` file coder (:data:`omg4.codec.payload.CODECS`, the first is the default; with
+    """``--codec``: the ``.omg4`` file coder (:data:`omg4.codec.coders.CODERS`, the first is the default; with
     ``from_settings`` an unset flag stays None, for a config file to choose)."""
-    from omg4.codec.payload import CODECS
+    from omg4.codec.coders import CODERS
 
-    p.add_argument("--codec", default=None if from_settings else CODECS[0], choices=list(CODECS),
+    p.add_argument("--codec", default=None if from_settings else next(iter(CODERS)), choices=list(CODERS),
                    help="file coder: compact (default: codewords coded without their order, unit quaternions, "
                         "8-bit MLP weights: about half the paper coder's file at the same quality, docs/results.md), "
                         "ans (lossless, fp16 values as the paper), paper (Huffman + LZMA as OMG4)")

@@ -216,17 +216,17 @@ def _inflated(num_gaussians: int, codec: str) -> bytes:
     memory-exhaustion attack would send; :func:`encode_payload` itself refuses to write it)."""
     import tempfile
 
-    from omg4.codec import payload as layout
     from omg4.codec.entropy import encode_indices
+    from omg4.codec.sections import encode_f16, encode_xyz_morton
 
     n = num_gaussians
     with tempfile.TemporaryDirectory() as tmp:
         encode_payload(valid_payload(2, codebook_scale=0.01), Path(tmp) / "base.omg4", codec=codec)
         header, sections = _split((Path(tmp) / "base.omg4").read_bytes())
     float_encoding = "f16-lzma" if codec == "paper" else "f16-planes"
-    replaced = {"xyz": layout._encode_xyz_morton(np.zeros((n, 3), np.float16)) if codec == "ans"
-                else layout.encode_f16(np.zeros(3 * n, np.float16), float_encoding),
-                "t": layout.encode_f16(np.full(n, 0.5, np.float16), float_encoding)}
+    replaced = {"xyz": encode_xyz_morton(np.zeros((n, 3), np.float16)) if codec == "ans"
+                else encode_f16(np.zeros(3 * n, np.float16), float_encoding),
+                "t": encode_f16(np.full(n, 0.5, np.float16), float_encoding)}
     for attr, shapes in header["attributes"].items():
         for j, (k, _) in enumerate(shapes):
             replaced[f"svq.{attr}.index{j}"] = encode_indices(np.zeros(n, np.int64), k, codec)
