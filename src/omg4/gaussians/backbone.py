@@ -5,7 +5,7 @@ rate and what each OMG4 stage does with it (merged by a proxy, §4.3; replaced b
 appearance MLPs, §4.4; sub-vector quantized in stage 3D or 4D, §4.4; else kept explicit,
 positions and time centres in fp16) — and says how a time slice is formed, how a model
 starts from a point cloud, which density control trains it (a strategy of
-:mod:`omg4.train.strategy`, named here and imported only by training) and its OMG4 size presets.
+:mod:`omg4.train.strategies`, named here and looked up only by training) and its OMG4 size presets.
 Training, every OMG4 stage, the codec, the decoder and the commands read these tables; nothing
 else names attributes or backbones. Every backbone has positions ``xyz`` and time centres ``t``
 (the codec stores both explicitly). A new backbone is one :class:`Backbone` passed to
@@ -140,8 +140,8 @@ class Backbone:
         initialize: ``(xyz [M, 3], rgb [M, 3], config, generator) → params``: a model's raw values from a point
             cloud (CPU tensors, one Gaussian per point; :mod:`omg4.gaussians.initial` holds the shared part).
         size_presets: its OMG4 sizes by name (paper appendix), and ``default_preset`` the one used unless named.
-        training: ``"module:attribute"`` of its density control, a :class:`omg4.train.strategy.DensityStrategy`
-            class (or the class itself); None trains a fixed set of Gaussians.
+        training: the name of its density control in :data:`omg4.train.strategies.STRATEGIES`, or a
+            :class:`omg4.train.strategy.DensityStrategy` subclass; None trains a fixed set of Gaussians.
         paper_rows: the rows ``omg4 bench`` measures for it (the paper's table of this backbone): label →
             (size preset, stages).
         sh_degree_t: the temporal SH degree it requires (None: any).
@@ -304,7 +304,7 @@ RT4DGS = Backbone(
     initialize=_rt4dgs_initialize,
     size_presets=_RT4DGS_PRESETS,
     default_preset="M",
-    training="omg4.train.densify:Densification",
+    training="densification",
     paper_rows=_RT4DGS_ROWS,
 )
 
@@ -331,7 +331,7 @@ FREETIMEGS = Backbone(
     initialize=initialize_ftgs,
     size_presets=_FTGS_PRESETS,
     default_preset="L",
-    training="omg4.train.relocate:Relocation",
+    training="relocation",
     paper_rows={"AC only": ("L", _AC), "OMG4-FTGS-L": ("L", _FULL), "OMG4-FTGS-S": ("S", _FULL)},
     sh_degree_t=0,
 )

@@ -1,11 +1,8 @@
 """Density control as a strategy of the backbone: the hooks the trainer calls (cf. gsplat's ``Strategy``).
 
-A backbone names its strategy (:attr:`omg4.gaussians.backbone.Backbone.training`): Real-Time4DGS
-densifies, prunes and resets opacities (:class:`omg4.train.densify.Densification`, rt4dgs §3.4),
-FreeTimeGS relocates within a fixed budget and regularizes opacity
-(:class:`omg4.train.relocate.Relocation`, FreeTimeGS §3.3–3.4). A backbone that names none trains a
-fixed set of Gaussians (:class:`DensityStrategy` itself), so a new backbone never inherits another's
-density control. The trainer calls, in order: :meth:`~DensityStrategy.initial_points` once;
+A backbone names its strategy (:attr:`omg4.gaussians.backbone.Backbone.training`; the named ones are in
+:data:`omg4.train.strategies.STRATEGIES`). A backbone that names none trains a fixed set of Gaussians
+(:class:`DensityStrategy` itself). The trainer calls, in order: :meth:`~DensityStrategy.initial_points` once;
 then at every step :meth:`~DensityStrategy.collects_statistics` (whether the view-space gradient
 statistics are accumulated), :meth:`~DensityStrategy.regularizer` (a term added to the loss) and, after
 the optimizer step, :meth:`~DensityStrategy.after_step` (the density events).
@@ -13,11 +10,8 @@ the optimizer step, :meth:`~DensityStrategy.after_step` (the density events).
 
 from __future__ import annotations
 
-import importlib
-
 import torch
 
-from omg4.gaussians.backbone import Backbone
 from omg4.train.config import TrainConfig
 
 
@@ -51,15 +45,4 @@ class DensityStrategy:
         """The density events after the optimizer step ``step`` (1-based)."""
 
 
-def strategy_for(backbone: Backbone) -> DensityStrategy:
-    """A new instance of ``backbone``'s density control (:class:`DensityStrategy` when it names none)."""
-    spec = backbone.training
-    if spec is None:
-        return DensityStrategy()
-    if isinstance(spec, str):
-        module, _, name = spec.partition(":")
-        spec = getattr(importlib.import_module(module), name)
-    return spec()
-
-
-__all__ = ["DensityStrategy", "strategy_for"]
+__all__ = ["DensityStrategy"]

@@ -42,7 +42,7 @@ from omg4.train.densify import DensifyStats
 from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_optimizers
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 from omg4.train.step import backward_batch, step_generator
-from omg4.train.strategy import strategy_for
+from omg4.train.strategies import strategy_for
 
 logger = logging.getLogger(__name__)
 
