@@ -11,7 +11,7 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = sorted(p for folder in ("src", "tests", "benchmarks") for p in (ROOT / folder).rglob("*.py"))
+SOURCES = sorted(p for folder in ("src", "tests", "benchmarks", "tools") for p in (ROOT / folder).rglob("*.py"))
 TAG = re.compile(r"\b(paper|rt4dgs|omg4|data) §(\d+(?:\.\d+)?(?:-\d+)?[a-z]?)")
 OUTSIDE = re.compile(r"DESIGN\.md|_reference\.md|data_metrics_viewer|rasterizer_backends|shared/reference|"
                      r"\b[Ii]ssue \d+")
@@ -47,9 +47,9 @@ ORGANISATION_WORDS = re.compile(r"\bsessions?\b|\bissues? ?#?\d+|\bhelpers?\b|\b
 
 
 def _project_files() -> list[Path]:
-    """What a user reads: the README, the changelog, docs/, and benchmarks/ with its scripts and results."""
+    """What a user reads: the README, the changelog, docs/, benchmarks/ with its scripts and results, tools/."""
     files = [ROOT / "README.md", ROOT / "CHANGELOG.md"]
-    for folder in ("docs", "benchmarks"):
+    for folder in ("docs", "benchmarks", "tools"):
         files += [p for p in (ROOT / folder).rglob("*") if p.is_file() and p.suffix in (".md", ".py", ".json", ".toml")
                   and "__pycache__" not in p.parts]
     return sorted(p for p in files if p.exists())

@@ -5,7 +5,7 @@ returns freed heap tops to the system, so each training step on the CPU faults i
 tens of megabytes again (system time reached half the CPU time in a demo run). Raising the
 mmap threshold to its maximum (32 MiB on 64-bit) and the trim threshold to 1 GiB lets the
 heap reuse those blocks: about 8 % off a demo training step here
-(``benchmarks/train_step.py``). Called by the ``omg4`` command; library users may call it too.
+(``benchmarks/speed/train_step.py``). Called by the ``omg4`` command; library users may call it too.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ import sys
 from typing import Iterator
 
 # Idle OpenMP threads must not spin: on small machines shared with other work, torch's default busy-waiting
-# makes small-image ops many times slower (benchmarks/metrics.py; docs/results.md).
+# makes small-image ops many times slower (benchmarks/speed/metrics.py; docs/results.md).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # name -> (module in omg4.commands, one-line help)

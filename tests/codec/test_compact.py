@@ -524,7 +524,7 @@ def test_grids_are_validated_and_belong_to_the_compact_codec(tmp_path):
 
 
 def test_a_compact_file_re_encoded_from_its_paper_copy_is_the_same_file(tmp_path):
-    """``omg4 bench --grid-bits`` and ``benchmarks/rate_front.py`` write their further grids from the paper coder's
+    """``omg4 bench --grid-bits`` and ``benchmarks/studies/rate_front.py`` write their further grids from the paper coder's
     copy: that holds the payload's fp16 values exactly, so the compact file is byte for byte the direct one."""
     p = make_payload(2000)
     p.rotations, p.log_scaled = ("rotation",), ("scale",)

@@ -17,7 +17,7 @@ Gaussian with ``scale = √(2 Σtt)``; FreeTimeGS's motion is linear by construc
 normalized by the model's time range. The colour is approximated: one RGB per Gaussian, the
 view-averaged colour (the SH DC term) at the Gaussian's own time centre
 (:func:`omg4.gaussians.model.centre_appearance`), so view- and time-dependent colour is lost
-(``benchmarks/splatv_fidelity.py`` measures the PSNR this costs against our renderer). The
+(``benchmarks/studies/splatv_fidelity.py`` measures the PSNR this costs against our renderer). The
 viewer also culls at a temporal factor of 0.02 where ours culls at ``time_cull`` (0.05).
 """
 

@@ -15,7 +15,7 @@ data §3): 11×11 Gaussian window with σ = 1.5, zero padding of 5 pixels
 the mean of the SSIM map over pixels, channels and batch. The window is applied as one
 depthwise 11×11 ``conv2d`` over the five stacked statistics (x, y, x², y², xy): on CPU
 oneDNN's depthwise kernel beat two separable 1-D passes in interleaved runs (e.g. 213 vs
-301 ms at 1352×1014 on 2 shared cores; ``benchmarks/metrics.py``).
+301 ms at 1352×1014 on 2 shared cores; ``benchmarks/speed/metrics.py``).
 
 :func:`ms_ssim` is the standard MS-SSIM of Wang, Simoncelli & Bovik (2003) with the
 five-scale weights (0.0448, 0.2856, 0.3001, 0.2363, 0.1333), valid (unpadded) Gaussian

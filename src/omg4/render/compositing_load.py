@@ -14,7 +14,7 @@ not match the renderer's alpha (the rules would then differ). The renderer's ``e
 float64 recurrence, so a Gaussian whose α lies within rounding of 1/255, or whose blending brings the
 transmittance within rounding of 1e-4, can be blended by one and not by the other: a pixel or two per frame.
 The check sees transmittance only; the counts themselves are tested against a brute-force count
-(``tests/render/test_compositing_load.py``); ``benchmarks/render_frame.py`` reports
+(``tests/render/test_compositing_load.py``); ``benchmarks/speed/render_frame.py`` reports
 it beside the frame times.
 """
 

@@ -8,7 +8,7 @@ header and its ``meta``, deleted fields, changed codec, damaged, truncated, exte
 swapped or re-split section bytes, hostile section names — each with every checksum
 recomputed — plus raw byte flips and truncations that the checksums must catch.
 :func:`exercise` runs a file through everything a user's command does with it (``omg4
-info``, decoding, loading, rendering a frame). ``benchmarks/fuzz_omg4.py`` and the test
+info``, decoding, loading, rendering a frame). ``tools/fuzz_omg4.py`` and the test
 suite drive it; a correct decoder lets every case end as "ok" or a one-line
 :class:`~omg4.errors.CorruptFileError`. Its valid models take the M preset's codebook sizes and the SVQ layout
 from the backbone table.

@@ -5,7 +5,7 @@ the quantized attributes: halves of random unit quaternions (rotation, s = 2), l
 appearance-feature pairs (s = 2). For each case: wall time of ``kmeans`` with its defaults, the
 inertia, and the inertia of a long run (300 Lloyd iterations, no early stop) for reference.
 
-    python benchmarks/kmeans.py [--threads 2] [--quick] [--json PATH]
+    python benchmarks/speed/kmeans.py [--threads 2] [--quick] [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/kmeans.json``.
 """
@@ -20,10 +20,10 @@ from pathlib import Path
 
 import torch
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.compress.kmeans import KDTREE_MAX_DIM, inertia, kmeans
 
-RESULTS = Path(__file__).resolve().parent / "results" / "kmeans.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "kmeans.json"
 
 
 def attribute_like(kind: str, n: int, seed: int = 0) -> torch.Tensor:
@@ -79,7 +79,7 @@ def main() -> None:
         print(f"{kind:>10} {n:>8} {r['d']:>2} {k:>5} {r['path']:>6} {r['seconds']:>7.2f} {r['inertia']:>11.5g} "
               f"{r.get('inertia_long_run', float('nan')):>11.5g} {r.get('seconds_long_run', float('nan')):>7.2f}",
               flush=True)
-    save_record(args.json, {"command": shlex.join(["python", "benchmarks/kmeans.py", *sys.argv[1:]]),
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/speed/kmeans.py", *sys.argv[1:]]),
                             "benchmark": "compress.kmeans", "threads": args.threads, "torch": torch.__version__,
                             "rows": rows})
 

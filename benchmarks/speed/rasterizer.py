@@ -11,7 +11,7 @@ of (pixel, Gaussian) pairs inside the Gaussians' boxes, i.e. pixels × Gaussians
 than linearly with work). Compile time is measured in fresh processes: "cold" with an
 empty ``NUMBA_CACHE_DIR``, "warm" with the cache the cold run left.
 
-    python benchmarks/rasterizer.py [--backend cpu|gsplat] [--device cpu|cuda] [--runs 7] [--quick]
+    python benchmarks/speed/rasterizer.py [--backend cpu|gsplat] [--device cpu|cuda] [--runs 7] [--quick]
                                     [--torch-threads N] [--no-compile] [--json PATH]
 
 ``--torch-threads`` sets torch's intra-op threads (numba keeps its own); on a 2-core
@@ -36,13 +36,13 @@ from pathlib import Path
 
 import torch
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.render import rasterize
 from omg4.render.api import bin_gaussians
 from omg4.render.binning import sigma_cutoff
 from omg4.render.projection import project_gaussians
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 TARGET = "cpu fwd+bwd at 128x128/20k <= 50 ms on a 2-core machine"
 CASES = [(128, 128, 20_000), (256, 256, 50_000), (640, 360, 100_000)]
 QUICK_CASES = [(128, 128, 20_000)]
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     compile_info = None if (args.no_compile or args.backend != "cpu") else compile_times()
     print_table(args.backend, rows, compile_info)
 
-    result = {"command": shlex.join(["python", "benchmarks/rasterizer.py", *(sys.argv[1:] if argv is None else argv)]),
+    result = {"command": shlex.join(["python", "benchmarks/speed/rasterizer.py", *(sys.argv[1:] if argv is None else argv)]),
               "backend": args.backend, "device": args.device, "torch_threads": info["torch_threads"], "setup": info,
               "cases": rows}
     if compile_info:

@@ -9,7 +9,7 @@ memory (Linux ``VmHWM``, reset before each case through ``/proc/self/clear_refs`
 size class's valid file is measured the same way; the target is every failure a
 ``CorruptFileError``, no case over 2 s, none over 4× its class's valid peak memory.
 
-    python benchmarks/fuzz_omg4.py [--cases 10000] [--seed 0] [--codecs compact,ans,paper]
+    python tools/fuzz_omg4.py [--cases 10000] [--seed 0] [--codecs compact,ans,paper]
                                    [--grid-bits 15,9,10]  # the compact files' grids (version 5 by default)
                                    [--layouts single,sequence]  # single models, and sequences of three segments
 
@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.codec.payload import CODECS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -131,7 +131,7 @@ def main() -> None:
             rows.append(row)
             print(f"{name:<7} {codec:<6} {layout:<8} {len(base):>9} B  {dict(counts)}  slowest {worst_s:.3f} s "
                   f"({slowest}), peak {worst_mb:.0f} MB = {worst_mb / valid_mb:.2f}x valid ({valid_mb:.0f} MB)")
-    result = {"command": shlex.join(["python", "benchmarks/fuzz_omg4.py", *sys.argv[1:]]), "seed": args.seed,
+    result = {"command": shlex.join(["python", "tools/fuzz_omg4.py", *sys.argv[1:]]), "seed": args.seed,
               "codecs": codecs, "layouts": layouts, "grids": grids.label, "cases": sum(r["cases"] for r in rows),
               "outcomes": dict(outcomes), "escapes": {f"{k} {o}": c for (k, o), c in escapes.items()},
               "slowest_s": max(r["slowest_s"] for r in rows), "max_peak_ratio": max(r["peak_ratio"] for r in rows),

@@ -6,7 +6,7 @@ motion, temporal opacity, one RGB per Gaussian) with our rasterizer, and reports
 images against our renders of the model (and of both against the ground truth). Geometry maps
 exactly; the loss is the view- and time-dependent colour that one RGBA8 per Gaussian cannot hold.
 
-    python benchmarks/splatv_fidelity.py DATA --models baseline.safetensors model.omg4 [--name demo]
+    python benchmarks/studies/splatv_fidelity.py DATA --models baseline.safetensors model.omg4 [--name demo]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/splatv_fidelity_<name>.json``.
@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from environment import save_record
+from omg4.testing.records import save_record
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 def measure(path: Path, scene) -> dict:
@@ -74,7 +74,7 @@ def main() -> None:
               f"{r['psnr_splatv_vs_ours']:.2f} dB; vs ground truth: ours {r['psnr_ours_vs_gt']:.2f}, splatv "
               f"{r['psnr_splatv_vs_gt']:.2f} dB")
     save_record(RESULTS / f"splatv_fidelity_{args.name}.json", {
-        "command": shlex.join(["python", "benchmarks/splatv_fidelity.py", *sys.argv[1:]]), "scene": args.name,
+        "command": shlex.join(["python", "benchmarks/studies/splatv_fidelity.py", *sys.argv[1:]]), "scene": args.name,
         "downscale": args.downscale, "rows": results})
 
 

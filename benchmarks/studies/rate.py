@@ -12,7 +12,7 @@ fixed part (codebooks, MLP weights, header).
 Extra rows (``--also LABEL=FILE``): other files of the same pipeline run, e.g. one an earlier omg4 build wrote
 (before/after a coder change), split and evaluated the same way.
 
-Usage: python benchmarks/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [--json FILE] [--also LABEL=FILE ...]
+Usage: python benchmarks/studies/rate.py PAPER_FILE DATA [--downscale F] [--name NAME] [--json FILE] [--also LABEL=FILE ...]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/rate_<name>.json``; its table is written beside it as ``rate_<name>.md``.
@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.atomic import write_text_atomic
 from omg4.codec.payload import decode_payload, encode_payload
 from omg4.commands.info import omg4_summary
@@ -35,7 +35,7 @@ from omg4.evaluate import dynamic_masks, evaluate
 from omg4.gaussians.backbone import BACKBONES
 from omg4.models.compact import load_omg4
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PER_GAUSSIAN = ("positions", "time centres", "indices", "quaternions")
 QUALITY = ("psnr", "ssim", "psnr_dynamic", "ssim_dynamic")
 
@@ -101,7 +101,7 @@ def main() -> int:
     delta = {k: rows["compact"][k] - rows["paper"][k] for k in QUALITY}
     print("compact - paper:", {k: round(v, 4) for k, v in delta.items()},
           f"size {rows['compact']['bytes'] / rows['paper']['bytes']:.3f}x")
-    result = {"command": shlex.join(["python", "benchmarks/rate.py", *sys.argv[1:]]), "benchmark": "rate",
+    result = {"command": shlex.join(["python", "benchmarks/studies/rate.py", *sys.argv[1:]]), "benchmark": "rate",
               "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
               "downscale": args.downscale, "num_gaussians": payload.num_gaussians, "rows": rows,
               "compact_minus_paper": delta, "table": table}

@@ -12,7 +12,7 @@ compression's fine-tuning together (``omg4 demo --equal-training-control``) and 
 difference to it (mean and worst frame) and the baseline's worst frame; the record is
 ``demo_seeds_control.json``.
 
-Usage: ``python benchmarks/demo_seeds.py [--seeds 0 1 2] [--work runs/demo_seeds] [--equal-training-control]``;
+Usage: ``python benchmarks/studies/demo_seeds.py [--seeds 0 1 2] [--work runs/demo_seeds] [--equal-training-control]``;
 about 15 minutes a seed on two cores (30 with the control).
 """
 
@@ -26,9 +26,9 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the omg4 command: idle threads must not spin
 
-from environment import save_record  # noqa: E402
+from omg4.testing.records import save_record  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "demo_seeds.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "demo_seeds.json"
 
 
 def row_of(results: dict) -> dict:
@@ -86,7 +86,7 @@ def main() -> None:
         results = run_demo(args.work / f"seed{seed}", DemoSettings(seed=seed, equal_training_control=control))
         rows[seed] = row_of(results)
     save_record(args.json or RESULTS.with_name("demo_seeds_control.json" if control else RESULTS.name), {
-        "command": "python benchmarks/demo_seeds.py --seeds " + " ".join(map(str, args.seeds))
+        "command": "python benchmarks/studies/demo_seeds.py --seeds " + " ".join(map(str, args.seeds))
                    + (" --equal-training-control" if control else ""),
         "settings": {k: str(v) for k, v in DemoSettings().__dict__.items() if k != "seed"},
         "seeds": {str(s): r for s, r in rows.items()},

@@ -15,7 +15,7 @@ Scenes:
   iterations, plane-sweep initialization with 40k points (the command of
   ``baseline_quality.py`` at half its iterations), budget 60k.
 
-Usage: ``python benchmarks/freetimegs.py --scene demo|basketball [--work DIR] [--schedule cpu]``.
+Usage: ``python benchmarks/studies/freetimegs.py --scene demo|basketball [--work DIR] [--schedule cpu]``.
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ import sys
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.atomic import write_text_atomic
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
 # scene -> (reader options, training options, budget)
 SCENES = {
@@ -77,7 +77,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     reader, training, budget = SCENES[args.scene]
     data = scene_folder(args.scene, work)
-    results: dict = {"command": shlex.join(["python", "benchmarks/freetimegs.py", *sys.argv[1:]]), "scene": args.scene,
+    results: dict = {"command": shlex.join(["python", "benchmarks/studies/freetimegs.py", *sys.argv[1:]]), "scene": args.scene,
                      "reader_options": reader, "training_options": training, "budget": budget}
     for backbone in ("rt4dgs", "freetimegs"):
         run = work / backbone

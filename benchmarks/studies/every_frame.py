@@ -13,7 +13,7 @@ that pass the cull at the frame's time) that sampling and pruning keep, before a
 Steps already done in ``--work`` (a scene, a baseline, scores, a compressed file) are reused, so a run can be
 continued or extended by seeds and variants (``--variants`` with no name only makes the baselines).
 
-Usage: ``python benchmarks/every_frame.py [--seeds 0 1 2] [--variants ...] [--device cpu|cuda]
+Usage: ``python benchmarks/studies/every_frame.py [--seeds 0 1 2] [--variants ...] [--device cpu|cuda]
 [--work runs/every_frame]``; about 10 minutes a seed and variant on two cores.
 """
 
@@ -26,9 +26,9 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the omg4 command: idle threads must not spin
 
-from environment import save_record  # noqa: E402
+from omg4.testing.records import save_record  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "every_frame_demo.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "every_frame_demo.json"
 VARIANTS = {"paper": {}, "lifetime": {"score_weighting": "lifetime"}, "deficit": {"time_sampling": "deficit"},
             "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit"}}
 """Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the demo's."""
@@ -134,7 +134,7 @@ def main() -> None:
     rows = [run_seed(args.work / f"seed{seed}", seed, args.variants, args.device) for seed in args.seeds]
     if not args.variants:
         return
-    save_record(args.json, {"command": "python benchmarks/every_frame.py --seeds " + " ".join(map(str, args.seeds))
+    save_record(args.json, {"command": "python benchmarks/studies/every_frame.py --seeds " + " ".join(map(str, args.seeds))
                             + " --variants " + " ".join(args.variants) + f" --device {args.device}",
                             "device": args.device, "seeds": rows})
     print("| seed | variant | mean ΔPSNR | worst frame ΔPSNR (frame) | 5th percentile | file B "

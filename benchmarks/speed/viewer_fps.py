@@ -5,7 +5,7 @@ field of view at ``--size`` (default 640×360, the 16:9 canvas of a browser wind
 times as when playing, :meth:`omg4.viewer.Viewer.render` (:func:`omg4.viewer.render_frame`, our renderer) plus the JPEG encoding the
 server sends. Target of the viewer: ≥ 10 frames per second for the demo's OMG4-M on 2 CPU cores.
 
-    python benchmarks/viewer_fps.py DATA --models baseline.safetensors model.omg4 [--frames 40] [--name demo]
+    python benchmarks/speed/viewer_fps.py DATA --models baseline.safetensors model.omg4 [--frames 40] [--name demo]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/viewer_fps_<name>.json``.
@@ -25,9 +25,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from environment import save_record
+from omg4.testing.records import save_record
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 def measure(path: Path, camera, frames: int, width: int, height: int) -> dict:
@@ -76,7 +76,7 @@ def main() -> None:
         print(f"{r['model']}: {r['num_gaussians']} G, {r['fps']:.1f} FPS at {r['size'][0]}x{r['size'][1]} "
               f"({r['ms_per_frame']:.1f} ms, {100 * r['visible_fraction']:.0f} % visible)")
     save_record(RESULTS / f"viewer_fps_{args.name}.json", {
-        "command": shlex.join(["python", "benchmarks/viewer_fps.py", *sys.argv[1:]]), "scene": args.name,
+        "command": shlex.join(["python", "benchmarks/speed/viewer_fps.py", *sys.argv[1:]]), "scene": args.name,
         "torch_threads": torch.get_num_threads(), "rows": results})
 
 

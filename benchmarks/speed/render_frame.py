@@ -11,7 +11,7 @@ the numba kernels visit and Gaussians blended, which every exact renderer must d
 runs instead of the CPU's numba kernels (a proxy for the slice's GPU kernel launches). The paper reports
 OMG4 rendering 4.3× faster than its Real-Time4DGS baseline.
 
-    python benchmarks/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
+    python benchmarks/speed/render_frame.py DATA --models baseline.safetensors model.omg4 [--downscale 2]
                                       [--device cpu|cuda] [--frames 30] [--rounds 3] [--name demo]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
@@ -33,12 +33,11 @@ from typing import Iterator
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from environment import save_record  # noqa: E402
+from omg4.testing.records import save_record
 from omg4.render.compositing_load import compositing_load  # noqa: E402
 from train_step import OpCounter, code_under_test, keep_freed_memory_if_present, sync  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 @contextlib.contextmanager
@@ -189,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     name = args.name or args.data.name
     suffix = "" if args.device == "cpu" else "_" + args.device.split(":")[0]
     save_record(args.json or RESULTS / f"render_frame_{name}{suffix}.json", {
-        "command": shlex.join(["python", "benchmarks/render_frame.py", *(sys.argv[1:] if argv is None else argv)]),
+        "command": shlex.join(["python", "benchmarks/speed/render_frame.py", *(sys.argv[1:] if argv is None else argv)]),
         **code_under_test(), "scene": name, "device": args.device, "downscale": args.downscale,
         "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "rows": rows})
     return 0

@@ -8,7 +8,7 @@ page drew in ``--seconds`` of playback: each a new time, so a new slice through 
 orbits a paused frame (the median of finished frames, each drawn and read back: a new view of the same time). ``--forged N`` adds a file of N
 random Gaussians (:mod:`omg4.testing.forge`) to measure the player at that size.
 
-    python benchmarks/web_player.py omg4_demo/scene_M.omg4 --data omg4_demo/scene --forged 60000 --name demo
+    python benchmarks/speed/web_player.py omg4_demo/scene_M.omg4 --data omg4_demo/scene --forged 60000 --name demo
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/web_player_<name>.json``.
@@ -24,9 +24,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "benchmarks" / "results"
 
 from omg4.testing.browser import Browser, open_player, served
@@ -143,7 +143,7 @@ def main() -> None:
         finally:
             browser.close()
     save_record(RESULTS / f"web_player_{args.name}.json", {
-        "command": "python benchmarks/web_player.py " + shlex.join(sys.argv[1:]),
+        "command": "python benchmarks/speed/web_player.py " + shlex.join(sys.argv[1:]),
         "browser": "headless Chromium, software WebGL2 (SwiftShader)", "rows": rows})
 
 

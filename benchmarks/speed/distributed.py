@@ -9,7 +9,7 @@ per rank on the CPU). Scaling efficiency = images/s with N ranks / (N × images/
 
 Usage::
 
-    python benchmarks/distributed.py DATA (--model BASELINE.safetensors | --random N) [--downscale 2] [--ranks 1 2]
+    python benchmarks/speed/distributed.py DATA (--model BASELINE.safetensors | --random N) [--downscale 2] [--ranks 1 2]
         [--batch-size 4] [--steps 30] [--warmup 5] [--device cpu|cuda] [--name demo]
 """
 
@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 def worker(args) -> None:
@@ -114,8 +114,7 @@ def main() -> None:
     if args.worker_out:
         worker(args)
         return
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from environment import save_record
+    from omg4.testing.records import save_record
 
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads),
            "OMP_WAIT_POLICY": "PASSIVE"}
@@ -143,7 +142,7 @@ def main() -> None:
     name = args.name or args.data.name
     suffix = "" if args.device == "cpu" else "_" + args.device.split(":")[0]
     save_record(args.json or RESULTS / f"distributed_{name}{suffix}.json", {
-        "command": "python benchmarks/distributed.py " + " ".join(sys.argv[1:]),
+        "command": "python benchmarks/speed/distributed.py " + " ".join(sys.argv[1:]),
         "scene": name, "device": args.device, "batch_size": args.batch_size, "threads_per_rank": args.threads,
         "steps": args.steps, "runs": runs})
 

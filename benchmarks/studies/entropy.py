@@ -8,7 +8,7 @@ and the default ANS coder, with encode/decode times.
 Positions: 200k clustered fp16 positions and time centres as written by ``encode_payload``
 with the paper codec (fp16 + LZMA) and the default codec (Morton order + gap coding for xyz).
 
-    python benchmarks/entropy.py [--json PATH]
+    python benchmarks/studies/entropy.py [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/entropy.json``.
 """
@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.codec.entropy import decode_indices, encode_indices
 from omg4.codec.payload import CompressedPayload, encode_payload
 from omg4.compress.kmeans import kmeans
 
-RESULTS = Path(__file__).resolve().parent / "results" / "entropy.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "entropy.json"
 KIB = 1024.0
 
 
@@ -123,7 +123,7 @@ def main() -> None:
     for r in pos:
         print(f"{r['codec']:>6} {r['n']:>7} {r['xyz_kib']:>8.1f} {r['xyz_bits_per_gaussian']:>8.2f} {r['t_kib']:>7.1f} "
               f"{r['t_bits_per_gaussian']:>6.2f}")
-    save_record(args.json, {"command": shlex.join(["python", "benchmarks/entropy.py", *sys.argv[1:]]),
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/studies/entropy.py", *sys.argv[1:]]),
                             "benchmark": "codec.entropy", "index_streams": idx, "positions": pos})
 
 

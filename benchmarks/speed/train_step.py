@@ -21,7 +21,7 @@ steady-state one):
 Times are the median of ``--steps`` steps after ``--warmup``; the aten count is one step
 under a ``TorchDispatchMode`` that counts every dispatched operator.
 
-    python benchmarks/train_step.py [--workloads demo basketball] [--device cpu|cuda]
+    python benchmarks/speed/train_step.py [--workloads demo basketball] [--device cpu|cuda]
                                     [--steps 10] [--parts train compress] [--model CKPT] [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
@@ -45,12 +45,11 @@ from pathlib import Path
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from environment import save_record  # noqa: E402
+from omg4.testing.records import save_record
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "benchmarks" / "results"
-SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 
 class OpCounter(TorchDispatchMode):
@@ -252,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"per step, {r['host_syncs_per_step']} host synchronizations, "
                           f"GPU busy {r['gpu_busy_ms']:.1f} ms ({100 * r['gpu_busy_share']:.0f}%); "
                           f"top {r['top_kernels']}; GPU ms {r['top_kernels_ms']}", flush=True)
-    result = {"command": shlex.join(["python", "benchmarks/train_step.py", *(sys.argv[1:] if argv is None else argv)]),
+    result = {"command": shlex.join(["python", "benchmarks/speed/train_step.py", *(sys.argv[1:] if argv is None else argv)]),
               **code_under_test(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     if kind == "cuda":
         result["gpu"] = torch.cuda.get_device_name()

@@ -13,10 +13,10 @@ that of the ground truth, over the pairs that touch a boundary frame against the
 
 Usage::
 
-    python benchmarks/segments.py scaling [--lengths 60 120 240 480] [--work runs/segments]
-    python benchmarks/segments.py quality DATA [--downscale 2] [--segment-frames 50] [--overlap 10]
+    python benchmarks/studies/segments.py scaling [--lengths 60 120 240 480] [--work runs/segments]
+    python benchmarks/studies/segments.py quality DATA [--downscale 2] [--segment-frames 50] [--overlap 10]
         [--iterations 1500] [--schedule cpu] [--name basketball]
-    python benchmarks/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
+    python benchmarks/studies/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
         [--whole-clip] [--compress-from-video]
 
 ``--compress-from-video`` compresses segments trained as usual (taught by the segment before) from the video alone.
@@ -37,9 +37,9 @@ import sys
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
 TAUGHT = "the crossfade from the segment before into the video"  # omg4.train.segmented.taught_by
 
@@ -89,7 +89,7 @@ def scaling(args) -> None:
                   f"compress {compressed['seconds']:6.1f} s, {compressed['peak_mb']:7.1f} MB; {row['file_bytes']} B",
                   flush=True)
     save_record(args.json or RESULTS / "segments_scaling.json", {
-        "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
+        "command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]),
         "cameras": args.cameras, "size": [args.width, args.height], "iterations": args.iterations, "rows": rows})
 
 
@@ -169,7 +169,7 @@ def quality(args) -> None:
     ranges, fps = model.ranges, model.meta["fps"]
     compressed = frame_split(model, scene.test_views, ranges, fps)
     record = {
-        "command": "python benchmarks/segments.py " + shlex.join(sys.argv[1:]),
+        "command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]),
         "data": str(data), "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
         "iterations_per_segment": args.iterations, "schedule": args.schedule, "segments": model.num_segments,
         "shared_frames_learnt_from": "the video" if args.independent_segments else TAUGHT,

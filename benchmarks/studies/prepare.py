@@ -12,10 +12,10 @@ offsets, and training on the prepared dataset against training on the true poses
 Poses are compared after one similarity: the rotation that best aligns the orientations (chordal mean), then the
 scale from the centres; errors are per camera, rotation in degrees and centre in % of the rig's diameter.
 
-    python benchmarks/prepare.py synthetic [--rigs 8x320x240 12x640x360] [--seeds 0 1] [--frames 30] [--train 0]
+    python benchmarks/studies/prepare.py synthetic [--rigs 8x320x240 12x640x360] [--seeds 0 1] [--frames 30] [--train 0]
                                            [--shared-intrinsics]
-    python benchmarks/prepare.py basketball
-    python benchmarks/prepare.py audio [--trials 5]
+    python benchmarks/studies/prepare.py basketball
+    python benchmarks/studies/prepare.py audio [--trials 5]
 
 Records: ``benchmarks/results/prepare_<kind>.json`` (:func:`environment.save_record`).
 """
@@ -34,11 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from environment import save_record  # noqa: E402
+from omg4.testing.records import save_record
 
-RESULTS = Path(__file__).resolve().parent / "results"
-SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 
 def pose_errors(estimated: dict[str, tuple[np.ndarray, float]], truth: dict[str, tuple[np.ndarray, float]]) -> dict:
@@ -201,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--shared-intrinsics", action="store_true", help="synthetic: one camera model for the rig")
     args = ap.parse_args(argv)
     result = {"synthetic": synthetic, "basketball": basketball, "audio": audio}[args.kind](args)
-    result["command"] = shlex.join(["python", "benchmarks/prepare.py", *(sys.argv[1:] if argv is None else argv)])
+    result["command"] = shlex.join(["python", "benchmarks/studies/prepare.py", *(sys.argv[1:] if argv is None else argv)])
     name = args.kind + (f"_train{args.train}" if args.train else "") + ("_shared" if args.shared_intrinsics else "")
     save_record(RESULTS / f"prepare_{name}.json", result)
     return 0

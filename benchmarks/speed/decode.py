@@ -5,7 +5,7 @@ cold:  ``load_scene`` into an empty cache folder (PyAV decode + RGB conversion +
 warm:  ``load_scene`` again on the filled cache and read every frame as float32.
 Throughput counts output frames and uint8 RGB megabytes (H × W × 3 bytes per frame).
 
-Usage: python benchmarks/decode.py [--data DIR] [--downscale F] [--cameras N] [--json FILE]
+Usage: python benchmarks/speed/decode.py [--data DIR] [--downscale F] [--cameras N] [--json FILE]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/decode.json``.
 """
@@ -19,10 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.data import load_scene
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def run_once(data: Path, cache: Path, downscale: float, cameras: list[str] | None) -> dict:
@@ -66,7 +66,7 @@ def main() -> int:
     for r in rows:
         print(f"{r['mode']:<6} {r['frames']:>7} {r['width']:>4}x{r['height']:<4} {r['load_s']:>8.2f} "
               f"{r['read_float32_s']:>8.2f} {r['frames_per_s']:>9.1f} {r['MB_per_s']:>8.1f}")
-    result = {"command": shlex.join(["python", "benchmarks/decode.py", *sys.argv[1:]]), "benchmark": "decode",
+    result = {"command": shlex.join(["python", "benchmarks/speed/decode.py", *sys.argv[1:]]), "benchmark": "decode",
               "data": args.data.name, "downscale": args.downscale,
               "cache_MB": round(cache_mb, 1),
               "results": rows}

@@ -8,7 +8,7 @@ With ``--against CHECKOUT`` the same runs are made with that checkout's code too
 ``PYTHONPATH``) and the record says which digests are equal: refactorings that must not change behaviour keep
 every digest. The file's bytes are listed too, but its header may legitimately change (new metadata fields).
 
-Usage: ``python benchmarks/fixed_seed_digest.py [--against CHECKOUT] [--work DIR] [--print]``; about 40 s a
+Usage: ``python tools/fixed_seed_digest.py [--against CHECKOUT] [--work DIR] [--print]``; about 40 s a
 version. Recorded in ``benchmarks/results/fixed_seed_digest.json`` (``--print``: printed only).
 """
 
@@ -63,7 +63,7 @@ def main() -> None:
     if args.print:
         print(json.dumps(results))
         return
-    record = {"command": "python benchmarks/fixed_seed_digest.py" + (f" --against {args.against}" if args.against
+    record = {"command": "python tools/fixed_seed_digest.py" + (f" --against {args.against}" if args.against
                                                                      else ""), "digests": results}
     if args.against:
         import os
@@ -77,10 +77,9 @@ def main() -> None:
                                 text=True).stdout.strip()
         record.update(against_commit=commit, against=other,
                       equal={b: {k: results[b][k] == other.get(b, {}).get(k) for k in results[b]} for b in results})
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from environment import save_record
+    from omg4.testing.records import save_record
 
-    save_record(Path(__file__).resolve().parent / "results" / "fixed_seed_digest.json", record)
+    save_record(Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "fixed_seed_digest.json", record)
     print(json.dumps(record.get("equal", results), indent=2))
 
 

@@ -9,7 +9,7 @@ before clustering (inputs, torch). ``cpu_seconds`` (user + system, all threads) 
 beside wall time because shared machines make wall time noisy. Target: 300k in under 60 s on
 2 cores.
 
-    python benchmarks/merging.py [--sizes 100000 300000 1000000] [--threads 2] [--json PATH]
+    python benchmarks/speed/merging.py [--sizes 100000 300000 1000000] [--threads 2] [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in ``benchmarks/results/merging.json``.
 """
@@ -27,11 +27,11 @@ from pathlib import Path
 
 import torch
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.compress.merging import MergeConfig, build_merge_groups
 from omg4.compress.merge_clusters import merge_cells
 
-RESULTS = Path(__file__).resolve().parent / "results" / "merging.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "merging.json"
 
 
 def synthetic_gaussians(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -102,7 +102,7 @@ def main() -> None:
         rows.append(r)
         print(f"{n:>9} {r['seconds']:>8.2f} {r['cpu_seconds']:>8.2f} {r['peak_rss_mib']:>9.0f} {r['extra_mib']:>9.0f} "
               f"{r['cells']:>8} {r['largest_cell']:>8} {r['pairs']:>11} {r['groups']:>8} {r['removed']:>8}", flush=True)
-    save_record(args.json, {"command": shlex.join(["python", "benchmarks/merging.py", *sys.argv[1:]]),
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/speed/merging.py", *sys.argv[1:]]),
                             "benchmark": "merging.build_merge_groups", "grid_size": MergeConfig().grid_size,
                             "torch": torch.__version__, "rows": rows})
 

@@ -4,14 +4,14 @@ Every full-pipeline row's paper-coder copy in the folder (``*_paper_codec.omg4``
 OMG4's own coder) is re-encoded with the "compact" codec at each ``--grid-bits`` setting
 (:class:`omg4.codec.payload.CompactGrids`) — what ``omg4 bench --grid-bits`` writes, without running the
 pipelines again — and every file is decoded alone and evaluated on the test views. The table lists size, bytes
-per Gaussian (all, and the per-Gaussian sections as ``benchmarks/rate.py`` splits them), PSNR and SSIM per
+per Gaussian (all, and the per-Gaussian sections as ``benchmarks/studies/rate.py`` splits them), PSNR and SSIM per
 preset, rate weight β and grid; the figure has one panel per preset with every compact file, their Pareto
 front and the paper coder's files.
 Per preset, ``dominates`` says whether some compact file is smaller than the paper coder's file of the β = 0
 run and renders at least as well (PSNR and SSIM, float-order noise aside): a compact front strictly better
 than the paper coder's (``--grid-bits 0,16,0,16,0`` holds the paper coder's values exactly).
 
-Usage: python benchmarks/rate_front.py BENCH_DIR DATA [--downscale F] --grid-bits 15,9,10 12,7,7 ... [--name NAME]
+Usage: python benchmarks/studies/rate_front.py BENCH_DIR DATA [--downscale F] --grid-bits 15,9,10 12,7,7 ... [--name NAME]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/rate_front_<name>.json``; its table and figure are written beside it (``.md``, ``.png``).
@@ -26,7 +26,7 @@ import tempfile
 from dataclasses import asdict
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 from rate import measure
 from omg4.atomic import write_text_atomic
 from omg4.bench import row_label
@@ -36,7 +36,7 @@ from omg4.compress.pipeline import FULL_STAGES
 from omg4.data import load_scene
 from omg4.evaluate import dynamic_masks
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def measure_front(path: Path, scene, masks) -> dict:
@@ -152,7 +152,7 @@ def main() -> int:
     print("compact front strictly better than the paper coder's, per preset:", fronts)
     front_plot(out_json.with_suffix(".png"), results, args.name)
     write_text_atomic(out_json.with_suffix(".md"), table + "\n")
-    save_record(out_json, {"command": shlex.join(["python", "benchmarks/rate_front.py", *sys.argv[1:]]),
+    save_record(out_json, {"command": shlex.join(["python", "benchmarks/studies/rate_front.py", *sys.argv[1:]]),
                            "benchmark": "rate_front", "name": args.name, "bench_dir": str(args.bench_dir),
                            "data": str(args.data), "downscale": args.downscale,
                            "grids": [g.label for g in args.grid_bits], "rows": results, "dominates": fronts,

@@ -1,9 +1,9 @@
-"""The machine and commit a benchmark ran on, and its result file as a record of runs.
+"""The machine and commit a measurement ran on, and its result file as a record of runs.
 
 Every ``benchmarks/results/<name>.json`` holds ``latest`` (the newest run) and ``history``: the runs
 before it, keyed by ``"<date> <commit>"``. Each run carries its commit (``+dirty`` when the working
-tree differed from it), its date (UTC) and the machine. Imported by the scripts as a sibling module
-(``python benchmarks/<script>.py`` puts this folder on ``sys.path``).
+tree differed from it), its date (UTC) and the machine. The benchmarks (``benchmarks/speed``,
+``benchmarks/studies``) and the tools (``tools/``) of a checkout write through it.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from pathlib import Path
 
 from omg4.atomic import write_text_atomic
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
+"""The checkout this package runs from (an editable install; elsewhere git finds no commit: "unknown")."""
 
 
 def machine() -> dict:
@@ -37,12 +38,12 @@ def _processor() -> str:
 
 
 def commit() -> str:
-    """The checked-out commit (short hash), ``+dirty`` when sources or benchmarks differ from it."""
+    """The checked-out commit (short hash), ``+dirty`` when sources, benchmarks or tools differ from it."""
     def git(*args):
         return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout.strip()
 
     head = git("rev-parse", "--short=10", "HEAD") or "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "src", "benchmarks")
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "src", "benchmarks", "tools")
     return head + ("+dirty" if dirty else "")
 
 

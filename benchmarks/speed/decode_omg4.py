@@ -5,7 +5,7 @@ random values) is grown until its file holds at least ``--megabytes`` MB, writte
 codec, then decoded ``--repeats`` times: ``decode_payload`` (file → arrays) and ``load_omg4``
 (file → renderable model with its visibility index). Reports the median seconds.
 
-Usage: python benchmarks/decode_omg4.py [--megabytes 3] [--repeats 5] [--json FILE]
+Usage: python benchmarks/speed/decode_omg4.py [--megabytes 3] [--repeats 5] [--json FILE]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/decode_omg4.json``.
@@ -21,11 +21,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.codec.payload import CODECS, decode_payload, encode_payload
 from omg4.models.compact import load_omg4
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 from omg4.testing.forge import valid_payload
 
 
@@ -67,7 +67,7 @@ def main() -> int:
             r = rows[-1]
             print(f"{codec:<8} {n:>8} G {r['MB']:>7.3f} MB  decode {r['decode_payload_s']:.3f} s  "
                   f"load {r['load_omg4_s']:.3f} s")
-    save_record(args.json, {"command": shlex.join(["python", "benchmarks/decode_omg4.py", *sys.argv[1:]]),
+    save_record(args.json, {"command": shlex.join(["python", "benchmarks/speed/decode_omg4.py", *sys.argv[1:]]),
                             "benchmark": "decode_omg4", "megabytes": args.megabytes, "repeats": args.repeats,
                             "results": rows})
     return 0

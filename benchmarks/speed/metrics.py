@@ -9,7 +9,7 @@ instead of the one depthwise 11×11 convolution the package uses, the measuremen
 that choice. LPIPS-vgg runs once per size after the others (about 14 s at 1352×1014 on
 2 idle cores, data §2).
 
-    python benchmarks/metrics.py [--threads 2] [--repeats 7] [--quick] [--json PATH]
+    python benchmarks/speed/metrics.py [--threads 2] [--repeats 7] [--quick] [--json PATH]
 
 On a machine shared with other jobs, run with ``OMP_WAIT_POLICY=PASSIVE`` in the
 environment: with spinning OpenMP threads and more runnable jobs than cores, small torch
@@ -30,11 +30,11 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from environment import save_record
+from omg4.testing.records import save_record
 from omg4.metrics import LPIPS, measure_fps, ms_ssim, psnr, ssim
 from omg4.metrics.ssim import C1, C2
 
-RESULTS = Path(__file__).resolve().parent / "results" / "metrics.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "metrics.json"
 SIZES = [(320, 180), (1352, 1014)]
 
 
@@ -111,7 +111,7 @@ def main() -> None:
     print(f"{'metric':20s} {'size':11s} {'median ms':>10s} {'min ms':>10s} {'calls':>6s}")
     rows = run(args.repeats, args.quick)
     policy = os.environ.get("OMP_WAIT_POLICY", "default")
-    command = shlex.join(["python", "benchmarks/metrics.py", *sys.argv[1:]])
+    command = shlex.join(["python", "benchmarks/speed/metrics.py", *sys.argv[1:]])
     if policy != "default":
         command = f"OMP_WAIT_POLICY={shlex.quote(policy)} {command}"
     save_record(args.json, {"command": command, "benchmark": "metrics",

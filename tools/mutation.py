@@ -7,7 +7,7 @@ a ``not`` or a unary minus dropped, an integer off by one, ``True`` ↔ ``False`
 ``break`` → ``continue``. A mutant is *killed* when a test of the package's folder fails (or the run
 exceeds its time limit, or a test process dies of a signal), and *survives* when they all pass. The mutation score is killed / (all −
 equivalent), where an equivalent mutant is one with no observable change, explained in
-``benchmarks/mutation_equivalents.toml``.
+``tools/mutation_equivalents.toml``.
 
 Why a harness of our own rather than mutmut or cosmic-ray: mutmut 3 runs each mutant in a process
 forked from one that has already run torch's and numba's thread pools (neither is fork-safe) and
@@ -22,7 +22,7 @@ Which mutants run: all of them with ``--fraction 1``, or the stable sample of th
 not its line number — falls below the fraction; at least the ``--min-mutants`` lowest of a package), so an
 edit elsewhere does not reshuffle the sample.
 
-Usage: ``python benchmarks/mutation.py [--packages compress train …] [--fraction 0.1] [--min-mutants 20]
+Usage: ``python tools/mutation.py [--packages compress train …] [--fraction 0.1] [--min-mutants 20]
 [--json OUT]``.
 Needs ``pytest-cov`` (``pip install pytest-cov``). Resumable: finished mutants are kept in
 ``--work``/outcomes.jsonl and skipped by a re-run of the same tree.
@@ -43,7 +43,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 
 REPO = Path(__file__).resolve().parents[1]
 #: what is mutated → (its sources, the tests that guard it, whether coverage can map its lines to tests: not for
@@ -529,7 +529,7 @@ def main() -> None:
         print(f"{package}: {s['killed']}/{s['run']} killed, {s['equivalent']} equivalent, score {s['score']}",
               flush=True)
     save_record(args.json, {
-        "command": "python benchmarks/mutation.py " + " ".join(sys.argv[1:]),
+        "command": "python tools/mutation.py " + " ".join(sys.argv[1:]),
         "fraction": args.fraction, "min_mutants": args.min_mutants,
         "wall_time_s": round(time.perf_counter() - t_start, 1),
         "packages": packages,

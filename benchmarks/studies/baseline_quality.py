@@ -9,7 +9,7 @@ which has no ``points3d.ply``: plane-sweep stereo of the first frame; ``--init r
 summary, the wall time of the whole ``omg4 train`` command (loading, initialization,
 training) and the evaluation (PSNR, SSIM, LPIPS-alex, FPS, #Gaussians, MB) as a run of the record
 ``benchmarks/results/baseline_<scene>.json`` (:func:`environment.save_record`: commit, date, machine).
-Usage: ``python benchmarks/baseline_quality.py [--scenes basketball,mutant] [--work DIR]``; about
+Usage: ``python benchmarks/studies/baseline_quality.py [--scenes basketball,mutant] [--work DIR]``; about
 10–25 minutes per scene on 2 cores.
 """
 
@@ -23,9 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-from environment import save_record
+from omg4.testing.records import save_record
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
 # scene -> (folder, reader options, training-only options)
 SCENES = {
@@ -53,7 +53,7 @@ def main() -> None:
         command_wall_s = time.perf_counter() - start
         omg4("eval", str(data), *options, "--model", str(run / "model.safetensors"), "--json",
              str(run / "eval.json"))
-        result = {"command": shlex.join(["python", "benchmarks/baseline_quality.py", *sys.argv[1:]]), "init": "auto",
+        result = {"command": shlex.join(["python", "benchmarks/studies/baseline_quality.py", *sys.argv[1:]]), "init": "auto",
                   **json.loads((run / "eval.json").read_text())}
         result["training"] = json.loads((run / "train.json").read_text())
         result["training"]["command_wall_time_s"] = command_wall_s
