@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.testing import forge
 
 
@@ -86,8 +86,8 @@ def test_existing_files_inside_a_dataset_folder_need_force(tiny_scene_dir, model
 
 
 def test_dataset_rule_refuses_files_a_reader_takes_even_new_ones_and_force_allows_the_rest(tmp_path):
+    from omg4.app.outputs import check_outputs
     from omg4.errors import OMG4Error
-    from omg4.outputs import check_outputs
 
     data = tmp_path / "data"
     (data / "train").mkdir(parents=True)
@@ -284,7 +284,7 @@ def test_train_json_may_not_overwrite_what_the_run_folder_holds(tiny_scene_dir, 
 
 
 def test_train_json_beside_the_run_files_is_allowed():
-    from omg4.outputs import check_outputs
+    from omg4.app.outputs import check_outputs
     from omg4.train.run_state import RUN_FILES
 
     from omg4.errors import OMG4Error
@@ -296,7 +296,7 @@ def test_train_json_beside_the_run_files_is_allowed():
 
 
 def test_demo_refuses_a_folder_holding_anything_but_an_earlier_demo(tmp_path, capsys):
-    from omg4.demo import check_demo_folder
+    from omg4.app.demo import check_demo_folder
 
     mine = tmp_path / "mine"
     (mine / "scene").mkdir(parents=True)
@@ -343,7 +343,7 @@ def test_no_output_replaces_a_file_of_a_dataset_the_command_does_not_read(tiny_s
 
 
 def test_outputs_beside_a_dataset_that_no_reader_takes_are_allowed(tmp_path):
-    from omg4.outputs import check_outputs
+    from omg4.app.outputs import check_outputs
 
     project = tmp_path / "project"  # an N3DV folder: its reader takes top-level files only
     (project / "renders").mkdir(parents=True)

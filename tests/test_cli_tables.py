@@ -11,7 +11,7 @@ import argparse
 
 import pytest
 
-from omg4.cli import COMMANDS, _build_parser
+from omg4.app.cli import COMMANDS, _build_parser
 from omg4.codec.coders import CODERS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
@@ -93,8 +93,8 @@ def _compress_config(flags: list[str]) -> CompressConfig:
     """The CompressConfig ``omg4 compress`` runs with these flags and no config file, on the CPU."""
     import torch
 
-    from omg4.commands.common import fill_device_arguments
-    from omg4.commands.compress import pipeline_config
+    from omg4.app.commands.common import fill_device_arguments
+    from omg4.app.commands.compress import pipeline_config
 
     parser, _ = _build_parser("compress")
     args = parser.parse_args(["compress", "DATA", "--model", "M", "--out", "F", *flags])
@@ -114,7 +114,7 @@ def test_white_background_reaches_the_reader(argv, monkeypatch):
     """``--white-background`` composites the data's RGBA images over white, the colour the command renders on."""
     import omg4.data
 
-    from omg4.commands.common import background_from_args, load_scene_from_args
+    from omg4.app.commands.common import background_from_args, load_scene_from_args
 
     seen = {}
     monkeypatch.setattr(omg4.data, "load_scene", lambda *a, **kw: seen.update(kw))
@@ -126,7 +126,7 @@ def test_white_background_reaches_the_reader(argv, monkeypatch):
 
 
 def test_render_path_names_are_the_library_table():
-    from omg4.commands.render import camera_path_source
+    from omg4.app.commands.render import camera_path_source
 
     assert all(camera_path_source(name) == name for name in PATHS)
     assert camera_path_source("tour.json") == "tour.json"

@@ -10,10 +10,10 @@ import torch
 import pytest
 from PIL import Image
 
-from omg4.bench import rate_distortion_curves, row_file, run_bench
+from omg4.app.bench import rate_distortion_curves, row_file, run_bench
+from omg4.app.demo import CONTROL_ROW, QUICK, SMOKE_CHECK_NOTE, check_demo_folder, run_demo
 from omg4.codec.container import read_container
 from omg4.codec.payload import CompactGrids
-from omg4.demo import CONTROL_ROW, QUICK, SMOKE_CHECK_NOTE, check_demo_folder, run_demo
 from omg4.train import Trainer, make_config
 
 COARSE = CompactGrids(positions=12, rotations=7, times=7)
@@ -36,17 +36,17 @@ def _recording_evaluate(monkeypatch) -> list:
 def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, capsys):
     from omg4.models.windowed import WindowedModel
 
-    import omg4.demo
+    import omg4.app.demo
 
     out = tmp_path / "demo"
     evaluated, video = _recording_evaluate(monkeypatch), []
-    write_video = omg4.demo.side_by_side_video
+    write_video = omg4.app.demo.side_by_side_video
 
     def recording_video(path, views, models, *args, **kwargs):
         video.extend(models)
         return write_video(path, views, models, *args, **kwargs)
 
-    monkeypatch.setattr(omg4.demo, "side_by_side_video", recording_video)
+    monkeypatch.setattr(omg4.app.demo, "side_by_side_video", recording_video)
     results = run_demo(out, replace(QUICK, equal_training_control=True), log=lambda *_: None)
     # every model renders as it would from its file (FPS like with like): render-only, windowed
     assert len(evaluated) == 4 and all(issubclass(kind, WindowedModel) for kind in evaluated)

@@ -5,7 +5,7 @@ import sys
 import pytest
 import torch
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.render.api import resolve_backend

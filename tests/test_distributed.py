@@ -173,7 +173,7 @@ def test_check_replicas_catches_a_rank_whose_random_draws_differ(tiny_scene_dir,
         "if os.environ['RANK'] == '1':\n"
         "    planted = densify.step_generator\n"
         "    densify.step_generator = lambda seed, step, stream=0: planted(seed + 1, step, stream)\n"
-        "from omg4.cli import main\n"
+        "from omg4.app.cli import main\n"
         "sys.exit(main())\n")
     result = torchrun("train", str(tiny_scene_dir), "--out", str(tmp_path / "run"), *TRAIN, "--check-replicas", "1",
                       nproc=2, script=[str(script)])

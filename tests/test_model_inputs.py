@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from omg4.cli import install_hint, main
+from omg4.app.cli import install_hint, main
 from omg4.testing import forge
 
 
@@ -97,7 +97,7 @@ def test_a_missing_optional_package_names_its_pip_command(tmp_path, capsys, monk
     assert install_hint("numpy") is None and install_hint("pytorch_msssim") is None  # required, or tests only
     model = tmp_path / "m.omg4"
     forge.valid_file(model, 300)
-    for name in [m for m in sys.modules if m == "viser" or m.startswith(("viser.", "omg4.viewer", "omg4.commands.view"))]:
+    for name in [m for m in sys.modules if m == "viser" or m.startswith(("viser.", "omg4.app.viewer", "omg4.app.commands.view"))]:
         monkeypatch.delitem(sys.modules, name)
     monkeypatch.setitem(sys.modules, "viser", None)  # not installed
     err = _one_line_error(["view", str(model)], capsys)

@@ -43,7 +43,7 @@ def readme_commands() -> list[list[str]]:
 
 
 def test_there_is_an_example_of_every_command():
-    from omg4.cli import COMMANDS
+    from omg4.app.cli import COMMANDS
 
     shown = {argv[0] for argv in readme_commands()}
     assert shown == set(COMMANDS)
@@ -51,7 +51,7 @@ def test_there_is_an_example_of_every_command():
 
 @pytest.mark.parametrize("argv", readme_commands(), ids=lambda argv: " ".join(argv)[:60])
 def test_every_command_in_the_readme_parses(argv):
-    from omg4.cli import _build_parser
+    from omg4.app.cli import _build_parser
 
     parser, _ = _build_parser(argv[0])
     args = parser.parse_args(argv)

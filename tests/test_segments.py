@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.codec import sequence
 from omg4.data.segments import blend_weights
 

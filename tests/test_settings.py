@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.compress.pipeline import CompressConfig
 from omg4.errors import OMG4Error
 from omg4.settings import apply_settings, check_settings, parse_assignments, read_config_file, settings_of

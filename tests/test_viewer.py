@@ -11,7 +11,7 @@ import pytest
 from omg4.testing.browser import CHROMIUM, Browser, free_port, wait
 from PIL import Image
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.testing import forge
 
 
@@ -36,8 +36,8 @@ def _scene_pixels(image: Image.Image) -> np.ndarray:
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium to drive (Debian package 'chromium')")
 def test_the_page_shows_frames_and_follows_the_time_slider(viser, model_file, tmp_path):
+    from omg4.app.viewer import Viewer, ViewerSettings, view_presets
     from omg4.models import load_model
-    from omg4.viewer import Viewer, ViewerSettings, view_presets
 
     model = load_model(model_file)
     port = free_port()
@@ -80,8 +80,8 @@ def test_a_missing_model_is_a_one_line_error(viser, tmp_path, capsys):
 def test_camera_from_pose_inverts_a_cameras_pose():
     from scipy.spatial.transform import Rotation
 
+    from omg4.app.viewer import camera_from_pose
     from omg4.data.scene import Camera, look_at_viewmat
-    from omg4.viewer import camera_from_pose
 
     K = np.array([[300.0, 0, 320], [0, 300.0, 180], [0, 0, 1]])
     cam = Camera(K=K, viewmat=look_at_viewmat(np.array([1.0, -4.0, 1.5]), np.zeros(3)), width=640, height=360)

@@ -56,7 +56,7 @@ TARGETS: dict[str, tuple[tuple[str, ...], str, bool]] = {
     "models": (("src/omg4/models",), "tests/codec", True),  # the decoder's and the sequence's tests live there
     "gaussians": (("src/omg4/gaussians",), "tests/gaussians", True),
     "render": (("src/omg4/render",), "tests/render", True),
-    "distributed": (("src/omg4/distributed.py", "src/omg4/launch.py"), "tests/test_distributed.py", False),
+    "distributed": (("src/omg4/distributed.py", "src/omg4/app/launch.py"), "tests/test_distributed.py", False),
     "segments": (("src/omg4/data/segments.py",), "tests/data/test_segment_plans.py", True),
 }
 PACKAGES = tuple(TARGETS)

@@ -33,12 +33,12 @@ def worker(args) -> None:
     import torch
 
     from omg4 import distributed
-    from omg4.commands.common import load_scene_from_args
+    from omg4.app.commands.common import load_scene_from_args
     from omg4.device import resolve_device
     from omg4.gaussians.checkpoint import load_gaussians
+    from omg4.train.config import TrainConfig
     from omg4.train.optim import baseline_lrs, make_adam, step_optimizers
     from omg4.train.step import backward_batch, step_generator
-    from omg4.train.config import TrainConfig
 
     world, device = distributed.init(resolve_device(args.device))
     args.format, args.frames, args.cameras = None, None, None

@@ -2,7 +2,7 @@
 
 For each model, the viewer's frame loop without a browser: the test camera's pose and vertical
 field of view at ``--size`` (default 640×360, the 16:9 canvas of a browser window), successive
-times as when playing, :meth:`omg4.viewer.Viewer.render` (:func:`omg4.viewer.render_frame`, our renderer) plus the JPEG encoding the
+times as when playing, :meth:`omg4.app.viewer.Viewer.render` (:func:`omg4.app.viewer.render_frame`, our renderer) plus the JPEG encoding the
 server sends. Target of the viewer: ≥ 10 frames per second for the demo's OMG4-M on 2 CPU cores.
 
     python benchmarks/speed/viewer_fps.py DATA --models baseline.safetensors model.omg4 [--frames 40] [--name demo]
@@ -33,8 +33,8 @@ RESULTS = Path(__file__).resolve().parents[1] / "results"
 def measure(path: Path, camera, frames: int, width: int, height: int) -> dict:
     from scipy.spatial.transform import Rotation
 
+    from omg4.app.viewer import camera_from_pose, render_frame
     from omg4.models import load_model
-    from omg4.viewer import camera_from_pose, render_frame
 
     model = load_model(path)
     c2w = camera.camtoworld

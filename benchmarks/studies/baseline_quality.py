@@ -36,7 +36,7 @@ SCENES = {
 
 
 def omg4(*args: str) -> None:
-    subprocess.run([sys.executable, "-m", "omg4.cli", *args], check=True)
+    subprocess.run([sys.executable, "-m", "omg4", *args], check=True)
 
 
 def main() -> None:

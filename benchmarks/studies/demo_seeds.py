@@ -1,7 +1,7 @@
 """The demo's headline figures with their spread: ``omg4 demo`` run with several seeds.
 
 Each seed synthesizes the scene, trains the baseline, compresses it with OMG4-M and evaluates both on
-the test camera, exactly as ``omg4 demo --seed S`` does (:func:`omg4.demo.run_demo`). The record holds
+the test camera, exactly as ``omg4 demo --seed S`` does (:func:`omg4.app.demo.run_demo`). The record holds
 every seed's row and the mean ± standard deviation (sample, n − 1) of the baseline's and OMG4-M's PSNR,
 their difference, SSIM, PSNR on the moving pixels, file sizes, the size ratio and the FPS ratio (the
 two models timed together, frame by frame), so a reader can tell a real difference from the spread of
@@ -52,7 +52,7 @@ def row_of(results: dict) -> dict:
 
 def control_row(results: dict) -> dict:
     """OMG4-M against the equal-training control of one demo run."""
-    from omg4.demo import CONTROL_ROW
+    from omg4.app.demo import CONTROL_ROW
 
     control, record = results["methods"][CONTROL_ROW], results["equal_training_control"]
     return {"control_iterations": record["iterations"], "control_psnr": control["psnr"],
@@ -70,7 +70,7 @@ def spread(rows: list[dict]) -> dict:
 
 
 def main() -> None:
-    from omg4.demo import DemoSettings, run_demo
+    from omg4.app.demo import DemoSettings, run_demo
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

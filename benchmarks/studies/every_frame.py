@@ -2,7 +2,7 @@
 
 For each seed: the demo's scene (16 cameras × 60 frames, 128×96) and its baseline (1,500 iterations, 60k
 Gaussians, batch 2, as ``omg4 demo``), the SD scores once, then the demo's whole OMG4-M compression
-(:data:`omg4.demo.DEMO_LENGTHS`) from the same baseline and scores once per variant (:data:`VARIANTS`): the
+(:data:`omg4.app.demo.DEMO_LENGTHS`) from the same baseline and scores once per variant (:data:`VARIANTS`): the
 paper's; lifetime-weighted SD scores (:func:`omg4.compress.score.lifetime_weights`); fine-tuning views drawn by
 each span's fall below the baseline (:mod:`omg4.compress.time_balance`); both. Each file is decoded and
 evaluated on the test camera frame by frame. The record keeps every frame's ΔPSNR (OMG4-M − baseline), the
@@ -98,9 +98,9 @@ def kept_shares(model, scene, scores, weighting: str) -> list[float]:
 
 
 def run_seed(root: Path, seed: int, variants: list[str], device: str) -> dict:
+    from omg4.app.demo import DEMO_LENGTHS
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
-    from omg4.demo import DEMO_LENGTHS
     from omg4.metrics.frames import frame_differences, frame_summary
     from omg4.models import load_model
 

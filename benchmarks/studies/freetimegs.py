@@ -44,7 +44,7 @@ SCENES = {
 def omg4(*args: str) -> float:
     """Run an ``omg4`` command; returns its wall time in seconds."""
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "omg4.cli", *args], check=True)
+    subprocess.run([sys.executable, "-m", "omg4", *args], check=True)
     return time.perf_counter() - start
 
 

@@ -26,14 +26,14 @@ import sys
 import tempfile
 from pathlib import Path
 
-from omg4.testing.records import save_record
+from omg4.app.commands.info import omg4_summary
 from omg4.atomic import write_text_atomic
 from omg4.codec.payload import decode_payload, encode_payload
-from omg4.commands.info import omg4_summary
 from omg4.data import load_scene
 from omg4.evaluate import dynamic_masks, evaluate
 from omg4.gaussians.backbone import BACKBONES
 from omg4.models.compact import load_omg4
+from omg4.testing.records import save_record
 
 ROOT = Path(__file__).resolve().parents[2]
 PER_GAUSSIAN = ("positions", "time centres", "indices", "quaternions")

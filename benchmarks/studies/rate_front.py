@@ -28,10 +28,10 @@ from pathlib import Path
 
 from omg4.testing.records import save_record
 from rate import measure
+from omg4.app.bench import row_label
+from omg4.app.commands.common import compact_grids
 from omg4.atomic import write_text_atomic
-from omg4.bench import row_label
 from omg4.codec.payload import CompactGrids, decode_payload, encode_payload
-from omg4.commands.common import compact_grids
 from omg4.compress.pipeline import FULL_STAGES
 from omg4.data import load_scene
 from omg4.evaluate import dynamic_masks

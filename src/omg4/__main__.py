@@ -2,6 +2,6 @@
 
 import sys
 
-from omg4.cli import main
+from omg4.app.cli import main
 
 sys.exit(main())

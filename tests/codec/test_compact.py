@@ -226,7 +226,7 @@ def test_weights_are_column_scaled_in_version_5_and_older_row_scaled_files_still
     sizes = {bits: sum(encode_payload(p, tmp_path / "x.omg4", precision=CompactGrids(weights=bits)).values())
              for bits in (8, 6, 4)}
     assert sizes[8] > sizes[6] > sizes[4]
-    from omg4.commands.info import omg4_summary
+    from omg4.app.commands.info import omg4_summary
     from omg4.testing import forge
     model = tmp_path / "model_w6.omg4"  # a whole model, which omg4 info decodes before describing
     encode_payload(forge.valid_payload(300), model, precision=CompactGrids(weights=6))

@@ -113,7 +113,7 @@ def test_huffman_bitstream_whose_length_disagrees_with_its_counts_is_refused():
 
 
 def test_info_refuses_a_forged_section_name_and_never_prints_control_characters(valid, tmp_path, capsys):
-    from omg4.cli import main
+    from omg4.app.cli import main
 
     header, sections = forge._split(valid["ans"])
     forged = forge._assemble(header, [("\x1b[2J\x1b[31m" + sections[0][0], sections[0][1]), *sections[1:]])
@@ -126,7 +126,7 @@ def test_info_refuses_a_forged_section_name_and_never_prints_control_characters(
 
 @pytest.mark.parametrize("value", [2**40, "12", None, -3])
 def test_info_on_forged_counts_is_one_line(valid, tmp_path, capsys, value):
-    from omg4.cli import main
+    from omg4.app.cli import main
 
     path = tmp_path / "m.omg4"
     path.write_bytes(_forged(valid["paper"], ("num_gaussians",), value))
@@ -135,7 +135,7 @@ def test_info_on_forged_counts_is_one_line(valid, tmp_path, capsys, value):
 
 
 def test_printable_escapes_control_characters():
-    from omg4.commands.common import printable
+    from omg4.app.commands.common import printable
 
     assert printable("a\x1b[31mb\nc\u200bd") == "a\\x1b[31mb\\nc\\u200bd"
     assert printable("Gaußian 4D") == "Gaußian 4D"
@@ -158,7 +158,7 @@ def test_names_with_a_trailing_newline_are_refused(valid, tmp_path):
 def test_info_refuses_what_the_decoder_refuses(tmp_path, capsys, codec):
     """A file declaring 20,000 identical Gaussians in a few bytes: every section consistent with its header, so
     only the decoder's bounds catch it; ``info`` decodes as ``render`` does and refuses it the same way."""
-    from omg4.cli import main
+    from omg4.app.cli import main
     from omg4.models.summary import describe_file
 
     path = tmp_path / "inflated.omg4"

@@ -72,8 +72,8 @@ def test_a_file_with_a_forged_rig_is_a_one_line_error(tmp_path):
 
 
 def test_the_viewer_opens_at_the_files_rig_without_the_dataset(tmp_path):
+    from omg4.app.viewer import view_presets
     from omg4.models import load_model
-    from omg4.viewer import view_presets
 
     forge.valid_file(tmp_path / "m.omg4", 200, codec="compact")
     presets = view_presets(load_model(tmp_path / "m.omg4"), None)

@@ -79,7 +79,7 @@ def test_its_files_may_not_hold_another_codecs_encodings(plain, tmp_path):
 def test_the_commands_offer_it_and_a_name_is_taken_once(plain):
     import argparse
 
-    from omg4.commands.common import add_codec_argument
+    from omg4.app.commands.common import add_codec_argument
 
     parser = argparse.ArgumentParser()
     add_codec_argument(parser)

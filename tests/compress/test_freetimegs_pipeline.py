@@ -72,7 +72,7 @@ def test_real_time_4dgs_presets_are_refused_for_freetimegs(ftgs_run, tiny_scene)
 
 
 def test_bench_rows_of_a_freetimegs_baseline(ftgs_run, tiny_scene, tmp_path):
-    from omg4.bench import run_bench
+    from omg4.app.bench import run_bench
 
     result, _ = ftgs_run
     results = run_bench(tiny_scene, result.model, result.model_path, tmp_path / "bench", schedule="tiny",

@@ -150,7 +150,7 @@ def test_decoder_imports_no_training_or_compression_code():
 
 
 def test_corrupt_file_gives_one_line_error(tmp_path, baseline, tiny_scene, scores_file):
-    from omg4.cli import main
+    from omg4.app.cli import main
 
     out = tmp_path / "m.omg4"
     compress_to_file(baseline.model, tiny_scene, _config(), out, progress=False, log=lambda *_: None,
@@ -162,7 +162,7 @@ def test_corrupt_file_gives_one_line_error(tmp_path, baseline, tiny_scene, score
     cam.write_text(__import__("json").dumps(Camera.to_json(tiny_scene.test_views[0].camera)))
     for argv in (["info", str(bad)], ["render", "--model", str(bad), "--camera", str(cam), "--out",
                                       str(tmp_path / "x.png")]):
-        res = subprocess.run([sys.executable, "-m", "omg4.cli", *argv], capture_output=True, text=True)
+        res = subprocess.run([sys.executable, "-m", "omg4", *argv], capture_output=True, text=True)
         assert res.returncode == 2
         lines = [l for l in res.stderr.splitlines() if l.strip()]
         assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
@@ -174,7 +174,7 @@ def test_corrupt_file_gives_one_line_error(tmp_path, baseline, tiny_scene, score
 
 
 def test_info_breakdown_adds_up_to_file_size(tmp_path, baseline, tiny_scene, scores_file):
-    from omg4.commands.info import summarize
+    from omg4.app.commands.info import summarize
 
     out = tmp_path / "m.omg4"
     compress_to_file(baseline.model, tiny_scene, _config(), out, progress=False, log=lambda *_: None,
@@ -249,7 +249,7 @@ def test_cli_render_and_eval_on_cuda_match_cpu(baseline, tiny_scene, tiny_scene_
 
     import numpy as np
 
-    from omg4.cli import main
+    from omg4.app.cli import main
 
     cam = tmp_path / "cam.json"
     cam.write_text(json.dumps(Camera.to_json(tiny_scene.test_views[0].camera)))

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.data import load_scene
 from omg4.errors import DataError
 

@@ -14,7 +14,7 @@ import av
 import numpy as np
 import pytest
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.data.synthetic import SynthConfig, SyntheticScene, box_filter, camera_rays, write_synthetic_scene
 from omg4.errors import OMG4Error
 

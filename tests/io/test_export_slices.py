@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.models import load_model
 from omg4.render.api import rasterize
 from omg4.render.paths import bounds_camera

@@ -17,7 +17,7 @@ import pytest
 import torch
 from scipy.special import sph_harm_y
 
-from omg4.cli import main as omg4_main
+from omg4.app.cli import main as omg4_main
 from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians

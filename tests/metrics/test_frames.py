@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.metrics.frames import frame_differences, frame_summary
 from omg4.testing import forge
 
@@ -34,7 +34,7 @@ def test_differences_pair_views_by_camera_and_frame():
 
 
 def test_eval_of_two_models_compares_every_frame_and_plots_them(tiny_scene_dir, tmp_path, capsys):
-    from omg4.report import per_frame_plot
+    from omg4.app.report import per_frame_plot
 
     a, b = tmp_path / "a.omg4", tmp_path / "b.omg4"
     forge.valid_file(a, 300, seed=1, codebook_scale=0.2)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from capture import decoded, raw_capture, shared_audio, write_clip
-from omg4.cli import main
+from omg4.app.cli import main
 
 pytest.importorskip("pycolmap")
 

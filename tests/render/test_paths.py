@@ -6,7 +6,7 @@ import av
 import numpy as np
 import pytest
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.data.scene import Camera, look_at_viewmat
 from omg4.errors import OMG4Error
 from omg4.render.paths import bounds_camera, camera_path, faces_forward

@@ -10,7 +10,7 @@ import signal
 import pytest
 import torch
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.errors import OMG4Error
 from omg4.train import Trainer, TrainConfig, make_config
 from omg4.train.config import default_preset

@@ -84,7 +84,7 @@ def test_cli_train_writes_a_model_and_resumes_without_reinitializing(tiny_scene_
     import json
 
     import omg4.train.init as init
-    from omg4.cli import main
+    from omg4.app.cli import main
     from omg4.gaussians.checkpoint import load_gaussians
 
     run = tmp_path / "run"

@@ -14,7 +14,7 @@ import pytest
 from omg4.testing.browser import open_player, served
 from PIL import Image
 
-from omg4.cli import main
+from omg4.app.cli import main
 from omg4.codec.container import read_container
 from omg4.codec.payload import CompactGrids, decode_payload
 from omg4.io.web_player import MANIFEST, export_web

@@ -74,7 +74,7 @@ def int_in(low: int, high: int):
 
 
 def add_force_argument(p: argparse.ArgumentParser) -> None:
-    """``--force``: let outputs replace existing files inside a dataset folder (see :mod:`omg4.outputs`)."""
+    """``--force``: let outputs replace existing files inside a dataset folder (see :mod:`omg4.app.outputs`)."""
     p.add_argument("--force", action="store_true",
                    help="allow outputs to replace existing files inside a dataset folder (never the inputs)")
 

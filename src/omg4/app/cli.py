@@ -1,6 +1,6 @@
 """The ``omg4`` command: parses arguments, calls library functions, prints.
 
-Each subcommand lives in ``omg4.commands.<module>`` with two functions,
+Each subcommand lives in ``omg4.app.commands.<module>`` with two functions,
 ``configure(parser)`` and ``run(args) -> int``; only the chosen one is imported, so
 ``omg4 --help`` and ``omg4 info`` start fast. Errors of the user's making
 (:class:`omg4.errors.OMG4Error`) print one line and exit 2.
@@ -20,7 +20,7 @@ from typing import Iterator
 # makes small-image ops many times slower (benchmarks/speed/metrics.py; docs/results.md).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-# name -> (module in omg4.commands, one-line help)
+# name -> (module in omg4.app.commands, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the whole pipeline on a built-in synthetic scene (synth, train, compress, decode, eval)"),
     "synth": ("synth", "write the built-in procedural dynamic scene in N3DV layout"),
@@ -55,7 +55,7 @@ def _build_parser(command: str | None) -> tuple[argparse.ArgumentParser, dict]:
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == command:
-            mod = importlib.import_module(f"omg4.commands.{module}")
+            mod = importlib.import_module(f"omg4.app.commands.{module}")
             mod.configure(p)
             modules[name] = mod
     return parser, modules
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     command = next((a for a in argv if not a.startswith("-")), None)
     if command not in COMMANDS:
         command = None
-    from omg4.commands.common import printable
+    from omg4.app.commands.common import printable
     from omg4.errors import OMG4Error
 
     try:
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     from omg4 import distributed
 
     if getattr(args, "nproc", None) and args.nproc > 1 and not distributed.launched():
-        from omg4.launch import launch
+        from omg4.app.launch import launch
 
         return launch(args.command, argv, args.nproc)
     from omg4.allocator import keep_freed_memory

@@ -12,8 +12,8 @@ import json
 from pathlib import Path
 from typing import Callable
 
+from omg4.app.commands.common import add_format_argument, printable
 from omg4.atomic import write_text_atomic
-from omg4.commands.common import add_format_argument, printable
 from omg4.errors import OMG4Error
 
 
@@ -26,7 +26,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from omg4.outputs import check_outputs
+    from omg4.app.outputs import check_outputs
 
     check_outputs({"--json": args.json}, inputs=[args.path], datasets=[args.path] if args.path.is_dir() else [],
                   force=args.force)

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from omg4.commands.common import seed
+from omg4.app.commands.common import seed
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -23,8 +23,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from omg4.app.outputs import check_outputs
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-    from omg4.outputs import check_outputs
 
     check_outputs({"OUT_DIR": args.out_dir}, folders=["OUT_DIR"])
     config = SynthConfig(seed=args.seed, num_cameras=args.cameras, num_frames=args.frames, width=args.width,

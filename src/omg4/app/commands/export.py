@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omg4.commands.common import add_force_argument, finite_float
+from omg4.app.commands.common import add_force_argument, finite_float
 from omg4.io import EXPORT_FOLDERS, EXPORT_FORMATS
 
 MAX_SLICES = 100_000
@@ -78,8 +78,8 @@ def _outputs(out: Path, count: int) -> list[Path]:
 
 
 def run(args) -> int:
+    from omg4.app.outputs import check_outputs
     from omg4.errors import OMG4Error
-    from omg4.outputs import check_outputs
 
     fmt = args.format or EXPORT_FORMATS.get(args.out.suffix.lower())
     if fmt is None:
@@ -151,10 +151,10 @@ def _export_splatv(args, model) -> int:
 
 
 def _export_web(args) -> int:
+    from omg4.app.outputs import check_outputs
     from omg4.codec.container import has_magic
     from omg4.errors import OMG4Error
     from omg4.io.web_player import check_export_folder, export_web
-    from omg4.outputs import check_outputs
 
     if not args.model.is_file():
         raise OMG4Error(f"{args.model} does not exist or is not a file")

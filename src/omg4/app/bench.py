@@ -23,9 +23,9 @@ from pathlib import Path
 
 import torch
 
+from omg4.app.report import Curves, equal_training_row, format_table, rate_distortion_plot
 from omg4.atomic import write_text_atomic
 from omg4.codec.payload import CompactGrids
-from omg4.report import Curves, equal_training_row, format_table, rate_distortion_plot
 
 def bench_table(rows: dict[str, dict]) -> str:
     """The paper's columns plus bytes per Gaussian, the same model's size and quality with the paper's coder,

@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from omg4.commands.common import finite_float
+from omg4.app.commands.common import finite_float
 from omg4.gaussians.model import SH_DIRECTIONS
 
 
@@ -28,10 +28,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from omg4.app.outputs import check_outputs
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
     from omg4.io.rt4dgs_import import import_rt4dgs_file
-    from omg4.outputs import check_outputs
 
     if not args.time_range[1] > args.time_range[0]:
         raise OMG4Error(f"--time-range needs T0 < T1, got {args.time_range[0]:g} {args.time_range[1]:g}")

@@ -1,11 +1,11 @@
-"""``omg4 view MODEL [--data DATA] [--port P] [--device ...]``: the interactive browser viewer (:mod:`omg4.viewer`)."""
+"""``omg4 view MODEL [--data DATA] [--port P] [--device ...]``: the interactive browser viewer (:mod:`omg4.app.viewer`)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import add_background_argument, add_device_arguments, add_scene_arguments, int_in
+from omg4.app.commands.common import add_background_argument, add_device_arguments, add_scene_arguments, int_in
 from omg4.data.scene import MAX_IMAGE_SIDE
 
 
@@ -27,9 +27,9 @@ def run(args) -> int:
     import torch
     import viser  # noqa: F401  (the viewer extra: where it is missing, a one-line error with its pip command)
 
-    from omg4.commands.common import background_from_args, device_from_args, load_scene_from_args
+    from omg4.app.commands.common import background_from_args, device_from_args, load_scene_from_args
+    from omg4.app.viewer import Viewer, ViewerSettings, check_port_free, view_presets
     from omg4.models import load_model
-    from omg4.viewer import Viewer, ViewerSettings, check_port_free, view_presets
 
     check_port_free(args.host, args.port)  # before the model loads: a busy port fails at once
     device = device_from_args(args)

@@ -11,7 +11,7 @@ import json
 from dataclasses import astuple, replace
 from pathlib import Path
 
-from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
+from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
                                   add_device_arguments, add_distributed_arguments, add_force_argument,
                                   add_rate_weight_argument, add_scene_arguments, add_settings_arguments,
                                   compact_grids, device_from_args, fill_device_arguments, float_in, int_at_least,
@@ -91,12 +91,12 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from omg4 import distributed
+    from omg4.app.outputs import check_outputs
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CODECS, CompactGrids, check_codec
     from omg4.compress.api import compress_to_file, read_baseline, trained_iterations
-    from omg4.errors import OMG4Error
     from omg4.data.segments import is_segmented_run
-    from omg4.outputs import check_outputs
+    from omg4.errors import OMG4Error
 
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
     codec = args.codec or settings.pop("codec", None) or CODECS[0]

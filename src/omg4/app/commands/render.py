@@ -13,7 +13,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
+from omg4.app.commands.common import (add_background_argument, add_device_arguments, add_force_argument, add_scene_arguments,
                                   background_from_args, device_from_args, finite_float, float_in, int_at_least)
 from omg4.render.paths import PATHS
 
@@ -69,7 +69,7 @@ def _sized(camera, width: int | None, height: int | None):
 
 def _cameras(args):
     """(the camera to render, the reference cameras of a path, the scene or None)."""
-    from omg4.commands.common import load_scene_from_args
+    from omg4.app.commands.common import load_scene_from_args
     from omg4.data.scene import Camera
     from omg4.errors import OMG4Error
 
@@ -114,11 +114,11 @@ def run(args) -> int:
     import numpy as np
     import torch
 
+    from omg4.app.outputs import check_outputs
     from omg4.errors import OMG4Error
     from omg4.io.images import save_npy, save_png
     from omg4.io.video import write_video
     from omg4.models import load_model
-    from omg4.outputs import check_outputs
     from omg4.render.view import render_view
 
     args.fps_given = args.fps is not None

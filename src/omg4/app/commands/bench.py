@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_codec_argument, add_device_arguments,
+from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_codec_argument, add_device_arguments,
                                   add_distributed_arguments, add_scene_arguments,
                                   compact_grids, device_from_args, int_at_least, load_scene_from_args,
                                   rate_weight_list)
@@ -51,13 +51,13 @@ def _row_names() -> dict[str, list[str]]:
 
 def run(args) -> int:
     from omg4 import distributed
-    from omg4.bench import run_bench
+    from omg4.app.bench import run_bench
+    from omg4.app.outputs import check_outputs
     from omg4.codec.payload import CompactGrids, check_codec
+    from omg4.compress.api import baseline_file, read_baseline, trained_iterations
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
-    from omg4.compress.api import baseline_file, read_baseline, trained_iterations
     from omg4.gaussians.checkpoint import describe_checkpoint
-    from omg4.outputs import check_outputs
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
     for g in grids:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import float_in, int_at_least
+from omg4.app.commands.common import float_in, int_at_least
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -35,9 +35,9 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from omg4.commands.common import printable
+    from omg4.app.commands.common import printable
+    from omg4.app.outputs import check_outputs
     from omg4.prepare import prepare_capture
-    from omg4.outputs import check_outputs
     from omg4.prepare.calibrate import DISTORTION_GAIN
 
     check_outputs({"--out": args.out}, inputs=[args.src], folders=["--out"])  # writable, before any work

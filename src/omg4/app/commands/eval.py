@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (add_background_argument, add_device_arguments, add_distributed_arguments,
+from omg4.app.commands.common import (add_background_argument, add_device_arguments, add_distributed_arguments,
                                   add_force_argument, add_scene_arguments, background_from_args, device_from_args,
                                   int_at_least, load_scene_from_args)
 from omg4.data.scene import SPLITS
@@ -32,13 +32,13 @@ def run(args) -> int:
     import torch
 
     from omg4 import distributed
+    from omg4.app.outputs import check_outputs
+    from omg4.app.report import per_frame_plot
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
     from omg4.evaluate import evaluate
     from omg4.metrics.frames import frame_differences, per_frame
     from omg4.models import load_model
-    from omg4.outputs import check_outputs
-    from omg4.report import per_frame_plot
 
     if len(args.model) > 2:
         raise OMG4Error("--model: give one model, or two to compare")

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import torch
 
+from omg4.app.report import equal_training_row, format_table, per_frame_plot, rate_distortion_plot
 from omg4.atomic import write_text_atomic
 from omg4.compress.schedule import SCHEDULES, StageLengths
 from omg4.errors import OMG4Error
 from omg4.metrics.frames import frame_differences, per_frame
-from omg4.report import equal_training_row, format_table, per_frame_plot, rate_distortion_plot
 
 CONTROL_ROW = equal_training_row("Real-Time4DGS")
 """The results row of the baseline trained for as many steps as the baseline and the compression together."""

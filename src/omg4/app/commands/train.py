@@ -8,7 +8,7 @@ import argparse
 import json
 from pathlib import Path
 
-from omg4.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments,
+from omg4.app.commands.common import (MAX_BATCH_SIZE, add_background_argument, add_device_arguments,
                                   add_distributed_arguments, add_scene_arguments, add_settings_arguments,
                                   device_from_args, fill_device_arguments, int_at_least, load_scene_from_args, seed,
                                   segment_scenes, settings_from_args)
@@ -81,9 +81,9 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from omg4 import distributed
+    from omg4.app.outputs import check_outputs
     from omg4.atomic import write_text_atomic
     from omg4.errors import OMG4Error
-    from omg4.outputs import check_outputs
     from omg4.settings import check_settings, parse_assignments
     from omg4.train import make_config
     from omg4.train.config import default_preset

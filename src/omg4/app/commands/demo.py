@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.commands.common import add_device_arguments, device_from_args, seed
+from omg4.app.commands.common import add_device_arguments, device_from_args, seed
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -21,8 +21,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from dataclasses import replace
 
-    from omg4.demo import QUICK, DemoSettings, run_demo
-    from omg4.outputs import check_outputs
+    from omg4.app.demo import QUICK, DemoSettings, run_demo
+    from omg4.app.outputs import check_outputs
 
     check_outputs({"--out": args.out}, folders=["--out"])
     device = device_from_args(args)
