@@ -14,6 +14,7 @@ ANYTHING = None
 FLOORS: dict[str, tuple[str, ...] | None] = {
     "errors": (),
     "allocator": (),
+    "kernels": (),
     "atomic": ("errors",),
     "device": ("errors",),
     "distributed": ("errors",),
@@ -21,8 +22,8 @@ FLOORS: dict[str, tuple[str, ...] | None] = {
     "metrics": ("errors", "atomic"),
     "data": ("errors", "atomic"),
     "data.synthetic.writer": ("errors", "atomic", "io.video"),
-    "render": ("device", "data", "errors"),
-    "gaussians": ("render", "errors", "atomic"),
+    "render": ("device", "data", "kernels", "errors"),
+    "gaussians": ("render", "kernels", "errors", "atomic"),
     "codec": ("errors", "atomic"),
     "models": ("codec", "gaussians", "render", "data", "device", "errors", "atomic"),
     "io": ("gaussians", "render.view", "data.scene", "codec.browser", "codec.sequence", "errors", "atomic"),

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from omg4.render.cpu_kernels import resolve_cache_dir
+from omg4.kernels import resolve_cache_dir
 
 
 def test_environment_variable_wins():

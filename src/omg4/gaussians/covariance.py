@@ -20,7 +20,7 @@ import torch
 
 from omg4.gaussians.covariance_kernels import kernel_conditioning_terms
 from omg4.gaussians.rotation import build_rotation_4d
-from omg4.render.api import runs_cpu_kernels
+from omg4.kernels import runs_cpu_kernels
 from omg4.render.small_matmul import small_matmul
 
 

@@ -27,8 +27,7 @@ from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
 from omg4.gaussians.rotation import product_table
-from omg4.render.api import as_numpy, keeping_torch_threads
-from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
+from omg4.kernels import FAST_MATH, as_numpy, keeping_torch_threads  # also points numba's cache where it can write
 
 GAUSSIAN_CHUNK = 1024
 """Gaussians per parallel task (the task's scratch arrays are made once)."""

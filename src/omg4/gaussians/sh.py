@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from omg4.gaussians.sh_kernels import basis_from_terms, contract_coefficients
-from omg4.render.api import runs_cpu_kernels
+from omg4.kernels import runs_cpu_kernels
 from omg4.render.small_matmul import small_matmul
 
 C0 = 0.28209479177387814

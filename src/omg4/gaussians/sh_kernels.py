@@ -26,8 +26,7 @@ import torch
 from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
-from omg4.render.api import as_numpy, keeping_torch_threads, runs_cpu_kernels
-from omg4.render.cpu_kernels import FAST_MATH  # also points numba's cache where it can write
+from omg4.kernels import FAST_MATH, as_numpy, keeping_torch_threads, runs_cpu_kernels  # also points numba's cache
 from omg4.render.small_matmul import small_matmul
 
 _PARTS_PER_THREAD = 4

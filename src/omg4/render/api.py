@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from omg4.errors import OMG4Error
+from omg4.kernels import as_numpy, keeping_torch_threads
 from omg4.render.rendered import BACKENDS, Rendered
 from omg4.render.binning import TileBins, sigma_cutoff, tile_grid
 from omg4.render.cpu_kernels import composite_backward, composite_forward
@@ -265,31 +266,6 @@ def _tile_lists(tiles: np.ndarray, depths: np.ndarray, view_of: np.ndarray, num_
     ids, offsets = group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y, tiles_x * tiles_y * num_views)
     return TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
                     tiles_y=tiles_y, tile_size=tile_size)
-
-
-def as_numpy(t: torch.Tensor) -> np.ndarray:
-    """The numpy view of a CPU tensor for a numba kernel (detached; copied only when not contiguous)."""
-    return t.detach().contiguous().numpy()
-
-
-def runs_cpu_kernels(*tensors: torch.Tensor) -> bool:
-    """Whether the numba kernels take ``tensors``: all on the CPU, all float32 or all float64 (else the
-    torch forms run)."""
-    dtype = tensors[0].dtype
-    return dtype in (torch.float32, torch.float64) and all(
-        t.device.type == "cpu" and t.dtype == dtype for t in tensors)
-
-
-@contextlib.contextmanager
-def keeping_torch_threads() -> Iterator[None]:
-    """Run numba parallel kernels inside: numba's OpenMP pool shares the OpenMP runtime with torch and
-    resets its thread count on first use; torch's intra-op thread setting is restored afterwards."""
-    torch_threads = torch.get_num_threads()
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != torch_threads:
-            torch.set_num_threads(torch_threads)
 
 
 @contextlib.contextmanager

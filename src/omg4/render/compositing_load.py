@@ -28,7 +28,8 @@ import torch
 from numba import njit, prange
 
 from omg4.render import rasterize
-from omg4.render.api import as_numpy, keeping_torch_threads, project_and_bin
+from omg4.kernels import as_numpy, keeping_torch_threads
+from omg4.render.api import project_and_bin
 from omg4.render.cpu_kernels import TRANSMITTANCE_MIN, clipped_box, gaussian_terms, tile_bounds
 from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.render.view import camera_tensors, render_view

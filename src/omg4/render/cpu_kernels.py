@@ -42,53 +42,21 @@ Arrays (``N`` Gaussians, ``I`` intersections sorted by tile then depth, ``D`` fe
     pix_x: [W], pix_y: [H] pixel-centre coordinates (index + 0.5), input dtype.
     consts: [3] (0.5, α_max, 1/255) in the input dtype.
 
-numba's on-disk cache goes to ``NUMBA_CACHE_DIR`` when set, else beside this file, or to
-``~/.cache/omg4/numba`` when the package directory is read-only; this is decided before
-the kernels below are defined (numba binds the cache location at decoration time).
+numba's on-disk cache is pointed where it can write (:func:`omg4.kernels.configure_numba_cache`) before the
+kernels below are defined (numba binds the cache location at decoration time).
 """
 
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
-from typing import Callable, Mapping
 
-import numba
 import numpy as np
 from numba import njit, prange
 
-FAST_MATH = {"contract", "afn", "arcp", "reassoc", "nsz"}
-"""LLVM fast-math flags of the compositing kernels: fused multiply-adds, fast ``exp``, reassociated
-sums (about 15 % faster here, within the dense-reference tolerances); NaN and infinity keep their
-IEEE semantics (no ``nnan``/``ninf``)."""
+from omg4.kernels import FAST_MATH, configure_numba_cache
 
 TRANSMITTANCE_MIN = 1e-4
 """A pixel stops before the Gaussian that would bring its transmittance to ≤ this (gsplat)."""
-
-
-def resolve_cache_dir(environ: Mapping[str, str], package_dir: str | os.PathLike,
-                      writable: Callable[[str | os.PathLike], bool]) -> str | None:
-    """Folder to force as numba's cache, or None to keep numba's own choice.
-
-    ``NUMBA_CACHE_DIR`` in ``environ`` wins (numba reads it itself); a writable
-    ``package_dir`` keeps numba's default ``__pycache__``; otherwise ``~/.cache/omg4/numba``.
-    """
-    if environ.get("NUMBA_CACHE_DIR"):
-        return None
-    if writable(package_dir):
-        return None
-    return str(Path.home() / ".cache" / "omg4" / "numba")
-
-
-def configure_numba_cache() -> None:
-    """Point numba's on-disk cache where it can write (see the module docstring). Runs when this module is
-    imported, before its kernels are defined; another module's kernels need it to have run before theirs."""
-    folder = resolve_cache_dir(os.environ, Path(__file__).parent, lambda p: os.access(p, os.W_OK))
-    if folder is not None:
-        os.makedirs(folder, exist_ok=True)
-        os.environ["NUMBA_CACHE_DIR"] = folder  # survives numba's config reloads
-        numba.config.CACHE_DIR = folder
 
 
 configure_numba_cache()

@@ -23,7 +23,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from omg4.render.cpu_kernels import configure_numba_cache
+from omg4.kernels import configure_numba_cache
 
 configure_numba_cache()
 
