@@ -10,6 +10,7 @@ branched on the known backbones, this test would fail.
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import pytest
 import torch
@@ -25,16 +26,20 @@ from omg4.train.strategy import DensityStrategy
 NEVER_FADES = 1e6  # temporal variance: p_t ≈ 1 over any clip
 
 
+@dataclasses.dataclass
 class PruneTransparent(DensityStrategy):
-    """Every fifth step, remove the Gaussians below 2 % opacity (never all of them)."""
+    """Every ``every`` steps, remove the Gaussians below ``min_opacity`` (never all of them): its settings are its
+    own fields, as every strategy's."""
 
-    calls: list[int] = []
+    every: int = 5
+    min_opacity: float = 0.02
+    calls: ClassVar[list[int]] = []
 
-    def after_step(self, model, optimizer, stats, cfg, step, extent):
-        if step % 5:
+    def after_step(self, model, optimizer, stats, step, extent):
+        if step % self.every:
             return
         PruneTransparent.calls.append(step)
-        keep = torch.sigmoid(model.params["opacity"].detach()[:, 0]) >= 0.02
+        keep = torch.sigmoid(model.params["opacity"].detach()[:, 0]) >= self.min_opacity
         if bool(keep.any()) and not bool(keep.all()):
             keep_rows(model.params, optimizer, keep)
         stats.reset(model.num_gaussians)

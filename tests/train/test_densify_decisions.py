@@ -250,19 +250,19 @@ def _trainer_with_recorders(tiny_scene, tmp_path, monkeypatch, backbone="rt4dgs"
     return trainer, cfg, calls
 
 
-def _events(trainer, cfg, calls, steps):
+def _events(trainer, calls, steps):
     """(step, hook called, its keyword arguments) of the backbone's density control over ``steps``."""
     events = []
     for step in steps:
         calls.clear()
-        trainer.strategy.after_step(trainer.model, trainer.optimizer, trainer.stats, cfg, step, trainer.extent)
+        trainer.strategy.after_step(trainer.model, trainer.optimizer, trainer.stats, step, trainer.extent)
         events += [(step, name, k) for name, k in calls]
     return events
 
 
 def test_the_trainer_densifies_and_resets_at_the_scheduled_steps(tiny_scene, tmp_path, monkeypatch):
     trainer, cfg, calls = _trainer_with_recorders(tiny_scene, tmp_path, monkeypatch)
-    events = _events(trainer, cfg, calls, range(1, 21))
+    events = _events(trainer, calls, range(1, 21))
     # densify when densify_from < step < densify_until and step % interval == 0; reset every 6 steps before
     # densify_until; the screen-size limit only once the first reset has passed
     assert [(s, n) for s, n, _ in events] == [(3, "densify"), (6, "densify"), (6, "reset"), (9, "densify"),
@@ -279,5 +279,5 @@ def test_the_trainer_densifies_and_resets_at_the_scheduled_steps(tiny_scene, tmp
 
 def test_a_freetimegs_trainer_relocates_on_the_same_steps_and_never_resets(tiny_scene, tmp_path, monkeypatch):
     trainer, cfg, calls = _trainer_with_recorders(tiny_scene, tmp_path, monkeypatch, backbone="freetimegs")
-    steps = [(step, name) for step, name, _ in _events(trainer, cfg, calls, range(1, 21))]
+    steps = [(step, name) for step, name, _ in _events(trainer, calls, range(1, 21))]
     assert steps == [(3, "relocate"), (6, "relocate"), (9, "relocate"), (12, "relocate"), (15, "relocate")]

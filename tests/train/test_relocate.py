@@ -152,8 +152,8 @@ def test_the_freetimegs_regularizer_weighs_in_until_densification_ends():
     times = torch.tensor([0.2, 0.7], dtype=torch.float64)
     p = model.params
     expected = 0.25 * opacity_regularizer(p["opacity"], p["t"], p["duration"], times)
-    torch.testing.assert_close(Relocation().regularizer(p, cfg, times, 99), expected)
-    assert Relocation().regularizer(p, cfg, times, 100) is None
+    torch.testing.assert_close(Relocation.from_config(cfg).regularizer(p, times, 99), expected)
+    assert Relocation.from_config(cfg).regularizer(p, times, 100) is None
     from dataclasses import replace
 
-    assert Relocation().regularizer(p, replace(cfg, lambda_reg=0.0), times, 5) is None
+    assert Relocation.from_config(replace(cfg, lambda_reg=0.0)).regularizer(p, times, 5) is None

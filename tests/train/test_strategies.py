@@ -8,26 +8,63 @@ import pytest
 
 from omg4.errors import OMG4Error
 from omg4.gaussians.backbone import FREETIMEGS, RT4DGS
+from omg4.train.config import TrainConfig
 from omg4.train.densify import Densification
 from omg4.train.relocate import Relocation
 from omg4.train.strategies import strategy_for
 from omg4.train.strategy import DensityStrategy
 
 
+CFG = TrainConfig(densify_from=123, densify_until=4567, densify_interval=89, max_gaussians=321, seed=7,
+                  lambda_reg=0.25, relocate_opacity=0.004, prune_screen_size=17.0)
+
+
 def test_each_backbone_trains_with_its_named_density_control():
-    assert type(strategy_for(RT4DGS)) is Densification
-    assert type(strategy_for(FREETIMEGS)) is Relocation
-    assert strategy_for(RT4DGS) is not strategy_for(RT4DGS)  # a new instance each time: state is per run
+    assert type(strategy_for(RT4DGS, CFG)) is Densification
+    assert type(strategy_for(FREETIMEGS, CFG)) is Relocation
+    assert strategy_for(RT4DGS, CFG) is not strategy_for(RT4DGS, CFG)  # a new instance each time: state is per run
+
+
+def test_a_strategy_owns_the_settings_of_the_run_by_their_names():
+    densify = strategy_for(RT4DGS, CFG)
+    assert (densify.densify_from, densify.densify_until, densify.densify_interval, densify.max_gaussians,
+            densify.seed, densify.prune_screen_size) == (123, 4567, 89, 321, 7, 17.0)
+    assert densify.grows_until() == 4567 and densify.collects_statistics(4566) and not densify.collects_statistics(4567)
+    relocation = strategy_for(FREETIMEGS, CFG)
+    assert (relocation.lambda_reg, relocation.relocate_opacity, relocation.max_gaussians) == (0.25, 0.004, 321)
+    assert dataclasses.asdict(Densification()) == {f.name: getattr(TrainConfig(), f.name)
+                                                   for f in dataclasses.fields(Densification)}  # defaults: the run's
 
 
 def test_a_class_is_taken_as_it_is_and_none_trains_a_fixed_set():
+    @dataclasses.dataclass
     class Mine(DensityStrategy):
-        pass
+        every: int = 3  # a setting the run's config does not have keeps its default
 
-    assert type(strategy_for(dataclasses.replace(RT4DGS, training=Mine))) is Mine
-    assert type(strategy_for(dataclasses.replace(RT4DGS, training=None))) is DensityStrategy
+    mine = strategy_for(dataclasses.replace(RT4DGS, training=Mine), CFG)
+    assert type(mine) is Mine and (mine.every, mine.max_gaussians) == (3, 321)
+    fixed = strategy_for(dataclasses.replace(RT4DGS, training=None), CFG)
+    assert type(fixed) is DensityStrategy and fixed.max_gaussians == 321
+
+
+def test_hooks_that_still_take_the_config_run_with_a_deprecation_warning():
+    seen = []
+
+    class Old(DensityStrategy):
+        def collects_statistics(self, cfg, step):
+            seen.append((cfg.densify_from, step))
+            return True
+
+        def after_step(self, model, optimizer, stats, cfg, step, extent):
+            seen.append((model, cfg.seed, step, extent))
+
+    with pytest.warns(DeprecationWarning, match="hooks that take the TrainConfig are deprecated"):
+        old = strategy_for(dataclasses.replace(RT4DGS, training=Old), CFG)
+    assert old.collects_statistics(9) is True and old.grows_until() == 0
+    old.after_step("model", None, None, 10, 2.5)
+    assert seen == [(123, 9), ("model", 7, 10, 2.5)]
 
 
 def test_an_unknown_name_is_a_one_line_error():
     with pytest.raises(OMG4Error, match="names the density control 'densify'"):
-        strategy_for(dataclasses.replace(RT4DGS, training="densify"))
+        strategy_for(dataclasses.replace(RT4DGS, training="densify"), CFG)

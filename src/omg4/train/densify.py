@@ -9,6 +9,7 @@ with a large gradient, split large ones into two children sampled from the 4D Ga
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -18,7 +19,7 @@ from omg4.gaussians import build_rotation_4d
 from omg4.gaussians.backbone import activated_scales
 from omg4.train.optim import append_rows, keep_rows, replace_param
 from omg4.train.step import step_generator
-from omg4.train.strategy import DensityStrategy
+from omg4.train.strategy import DEFAULTS, DensityStrategy
 
 
 class DensifyStats:
@@ -139,29 +140,41 @@ def _split_children(params, idx, convention: str, generator: torch.Generator, n_
     return out
 
 
+@dataclasses.dataclass
 class Densification(DensityStrategy):
     """Real-Time4DGS's density control (rt4dgs §3.4): statistics before ``densify_until``; every
     ``densify_interval`` steps after ``densify_from`` a :func:`densify_and_prune` event (the screen-size limit
-    once the first opacity reset has passed); opacities reset every ``opacity_reset_interval`` steps before
-    ``densify_until``."""
+    ``prune_screen_size`` once the first opacity reset has passed); opacities reset every
+    ``opacity_reset_interval`` steps before ``densify_until``. ``seed`` seeds each event's draws."""
 
-    def grows_until(self, cfg) -> int:
-        return cfg.densify_until
+    densify_from: int = DEFAULTS.densify_from
+    densify_until: int = DEFAULTS.densify_until
+    densify_interval: int = DEFAULTS.densify_interval
+    densify_grad_threshold: float = DEFAULTS.densify_grad_threshold
+    percent_dense: float = DEFAULTS.percent_dense
+    prune_opacity: float = DEFAULTS.prune_opacity
+    prune_world_size: float = DEFAULTS.prune_world_size
+    prune_screen_size: float = DEFAULTS.prune_screen_size
+    opacity_reset_interval: int = DEFAULTS.opacity_reset_interval
+    seed: int = DEFAULTS.seed
 
-    def collects_statistics(self, cfg, step: int) -> bool:
-        return step < cfg.densify_until
+    def grows_until(self) -> int:
+        return self.densify_until
 
-    def after_step(self, model, optimizer, stats, cfg, step: int, extent: float) -> None:
-        if step >= cfg.densify_until:
+    def collects_statistics(self, step: int) -> bool:
+        return step < self.densify_until
+
+    def after_step(self, model, optimizer, stats, step: int, extent: float) -> None:
+        if step >= self.densify_until:
             return
-        if step > cfg.densify_from and step % cfg.densify_interval == 0:
-            size_threshold = cfg.prune_screen_size if step > cfg.opacity_reset_interval else None
+        if step > self.densify_from and step % self.densify_interval == 0:
+            size_threshold = self.prune_screen_size if step > self.opacity_reset_interval else None
             distributed.reduce_statistics(stats)  # every rank decides on the statistics of every view
-            densify_and_prune(model, optimizer, stats, grad_threshold=cfg.densify_grad_threshold,
-                              percent_dense=cfg.percent_dense, extent=extent, prune_opacity=cfg.prune_opacity,
-                              max_screen_size=size_threshold, prune_world_size=cfg.prune_world_size,
-                              max_gaussians=cfg.max_gaussians, generator=step_generator(cfg.seed, step, stream=1))
-        if step % cfg.opacity_reset_interval == 0:
+            densify_and_prune(model, optimizer, stats, grad_threshold=self.densify_grad_threshold,
+                              percent_dense=self.percent_dense, extent=extent, prune_opacity=self.prune_opacity,
+                              max_screen_size=size_threshold, prune_world_size=self.prune_world_size,
+                              max_gaussians=self.max_gaussians, generator=step_generator(self.seed, step, stream=1))
+        if step % self.opacity_reset_interval == 0:
             reset_opacity(model, optimizer)
 
 

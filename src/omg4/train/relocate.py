@@ -19,6 +19,7 @@ higher than 3DGS-MCMC's 0.005, which on the demo scene moved almost nothing (the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -28,39 +29,47 @@ from omg4.gaussians.freetime import opacity_regularizer, scaled_rotation_3d
 from omg4.train.densify import DensifyStats
 from omg4.train.optim import overwrite_rows
 from omg4.train.step import step_generator
-from omg4.train.strategy import DensityStrategy
+from omg4.train.strategy import DEFAULTS, DensityStrategy
 
 LAMBDA_GRAD = 0.5
 LAMBDA_OPACITY = 0.5
 SPLIT_SHRINK = math.log(1.6)
 
 
+@dataclasses.dataclass
 class Relocation(DensityStrategy):
-    """FreeTimeGS's density control (FreeTimeGS §3.3–3.4): a model that starts at its budget exactly (with
-    fewer initial points than ``max_gaussians``, points are drawn again: they spread over time), statistics
-    and the 4D regularization ``lambda_reg`` · mean σ·sg[p_t] before ``densify_until``, a :func:`relocate`
-    event every ``densify_interval`` steps strictly between ``densify_from`` and ``densify_until``; no opacity
-    resets."""
+    """FreeTimeGS's density control (FreeTimeGS §3.3–3.4): a model that starts at its budget ``max_gaussians``
+    exactly (with fewer initial points, points are drawn again: they spread over time), statistics and the 4D
+    regularization ``lambda_reg`` · mean σ·sg[p_t] before ``densify_until``, a :func:`relocate` event (of the
+    Gaussians below ``relocate_opacity``) every ``densify_interval`` steps strictly between ``densify_from`` and
+    ``densify_until``; no opacity resets. ``seed`` seeds each event's draws."""
 
-    def initial_points(self, xyz, rgb, cfg, generator):
-        if cfg.max_gaussians > len(xyz):
-            extra = torch.randint(len(xyz), (cfg.max_gaussians - len(xyz),), generator=generator, device="cpu")
+    densify_from: int = DEFAULTS.densify_from
+    densify_until: int = DEFAULTS.densify_until
+    densify_interval: int = DEFAULTS.densify_interval
+    lambda_reg: float = DEFAULTS.lambda_reg
+    relocate_opacity: float = DEFAULTS.relocate_opacity
+    seed: int = DEFAULTS.seed
+
+    def initial_points(self, xyz, rgb, generator):
+        if self.max_gaussians > len(xyz):
+            extra = torch.randint(len(xyz), (self.max_gaussians - len(xyz),), generator=generator, device="cpu")
             return torch.cat([xyz, xyz[extra]]), torch.cat([rgb, rgb[extra]])
-        return super().initial_points(xyz, rgb, cfg, generator)
+        return super().initial_points(xyz, rgb, generator)
 
-    def collects_statistics(self, cfg, step: int) -> bool:
-        return step < cfg.densify_until
+    def collects_statistics(self, step: int) -> bool:
+        return step < self.densify_until
 
-    def regularizer(self, params, cfg, timestamps, step: int):
-        if not cfg.lambda_reg or step >= cfg.densify_until:
+    def regularizer(self, params, timestamps, step: int):
+        if not self.lambda_reg or step >= self.densify_until:
             return None
-        return cfg.lambda_reg * opacity_regularizer(params["opacity"], params["t"], params["duration"], timestamps)
+        return self.lambda_reg * opacity_regularizer(params["opacity"], params["t"], params["duration"], timestamps)
 
-    def after_step(self, model, optimizer, stats, cfg, step: int, extent: float) -> None:
-        if cfg.densify_from < step < cfg.densify_until and step % cfg.densify_interval == 0:
+    def after_step(self, model, optimizer, stats, step: int, extent: float) -> None:
+        if self.densify_from < step < self.densify_until and step % self.densify_interval == 0:
             distributed.reduce_statistics(stats)  # every rank relocates by the statistics of every view
-            relocate(model, optimizer, stats, min_opacity=cfg.relocate_opacity,
-                     generator=step_generator(cfg.seed, step, stream=1))
+            relocate(model, optimizer, stats, min_opacity=self.relocate_opacity,
+                     generator=step_generator(self.seed, step, stream=1))
 
 
 def relocate(model, optimizer, stats: DensifyStats, *, min_opacity: float, generator: torch.Generator) -> int:

@@ -9,8 +9,12 @@ so a new backbone never inherits another's density control.
 
 from __future__ import annotations
 
+import inspect
+import warnings
+
 from omg4.errors import OMG4Error
 from omg4.gaussians.backbone import Backbone
+from omg4.train.config import TrainConfig
 from omg4.train.densify import Densification
 from omg4.train.relocate import Relocation
 from omg4.train.strategy import DensityStrategy
@@ -19,17 +23,60 @@ STRATEGIES: dict[str, type[DensityStrategy]] = {"densification": Densification, 
 """Every named density control."""
 
 
-def strategy_for(backbone: Backbone) -> DensityStrategy:
-    """A new instance of ``backbone``'s density control (:class:`DensityStrategy` when it names none)."""
+def strategy_for(backbone: Backbone, cfg: TrainConfig) -> DensityStrategy:
+    """A new instance of ``backbone``'s density control with its settings from ``cfg``
+    (:meth:`~omg4.train.strategy.DensityStrategy.from_config`; :class:`DensityStrategy` when it names none)."""
     spec = backbone.training
     if spec is None:
-        return DensityStrategy()
+        return DensityStrategy.from_config(cfg)
     if isinstance(spec, str):
         if spec not in STRATEGIES:
             raise OMG4Error(f"backbone {backbone.name} names the density control {spec!r}, which is not one of "
                             f"{', '.join(STRATEGIES)}")
         spec = STRATEGIES[spec]
-    return spec()
+    if _takes_config(spec):
+        return _ConfigHooks(spec(), cfg)
+    return spec.from_config(cfg)
+
+
+def _takes_config(cls: type) -> bool:
+    """Whether ``cls`` overrides a hook in the form before strategies owned their settings (a ``cfg`` argument)."""
+    return any("cfg" in inspect.signature(getattr(cls, hook)).parameters
+               for hook in ("initial_points", "grows_until", "collects_statistics", "regularizer", "after_step"))
+
+
+class _ConfigHooks(DensityStrategy):
+    """Runs a strategy whose hooks still take the run's ``TrainConfig`` (deprecated: a strategy owns its settings
+    as dataclass fields, see :class:`~omg4.train.strategy.DensityStrategy`)."""
+
+    def __init__(self, legacy, cfg: TrainConfig):
+        warnings.warn(f"{type(legacy).__name__}: density-control hooks that take the TrainConfig are deprecated; "
+                      "give the strategy its settings as dataclass fields (DensityStrategy.from_config)",
+                      DeprecationWarning, stacklevel=3)
+        super().__init__(max_gaussians=cfg.max_gaussians)
+        self.legacy, self.cfg = legacy, cfg
+
+    def _call(self, hook: str, *args):
+        method = getattr(self.legacy, hook)
+        if "cfg" not in inspect.signature(method).parameters:
+            return method(*args)
+        position = list(inspect.signature(method).parameters).index("cfg")
+        return method(*args[:position], self.cfg, *args[position:])
+
+    def initial_points(self, xyz, rgb, generator):
+        return self._call("initial_points", xyz, rgb, generator)
+
+    def grows_until(self) -> int:
+        return self._call("grows_until")
+
+    def collects_statistics(self, step: int) -> bool:
+        return self._call("collects_statistics", step)
+
+    def regularizer(self, params, timestamps, step: int):
+        return self._call("regularizer", params, timestamps, step)
+
+    def after_step(self, model, optimizer, stats, step: int, extent: float) -> None:
+        self._call("after_step", model, optimizer, stats, step, extent)
 
 
 __all__ = ["STRATEGIES", "strategy_for"]

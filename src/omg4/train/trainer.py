@@ -86,7 +86,7 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
     gen = torch.Generator().manual_seed(cfg.seed)
     xyz = torch.as_tensor(points.xyz, dtype=torch.float32, device="cpu")
     rgb = torch.as_tensor(points.rgb, dtype=torch.float32, device="cpu")
-    xyz, rgb = strategy_for(backbone).initial_points(xyz, rgb, cfg, gen)
+    xyz, rgb = strategy_for(backbone, cfg).initial_points(xyz, rgb, gen)
     return Gaussians4D.from_points(xyz, rgb, config, generator=gen)
 
 
@@ -151,7 +151,7 @@ class Trainer:
             self.optimizer = self._make_optimizer()
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
         distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
-        self.strategy = strategy_for(self.model.config.schema)
+        self.strategy = strategy_for(self.model.config.schema, cfg)
         self.history: list[dict] = []
 
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -168,7 +168,7 @@ class Trainer:
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
         batch = torch.randint(len(views), (cfg.batch_size,), generator=step_generator(cfg.seed, step), device="cpu")
-        collecting = self.strategy.collects_statistics(cfg, step)
+        collecting = self.strategy.collects_statistics(step)
 
         def on_views(rendered, sl):
             if collecting and rendered.means2d.grad is not None:
@@ -178,10 +178,10 @@ class Trainer:
         loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
                                           lambda_dssim=cfg.lambda_dssim, what="training", step=step,
                                           device=self.device, on_views=on_views,
-                                          regularizer=lambda times: self.strategy.regularizer(model.params, cfg,
-                                                                                              times, step))
+                                          regularizer=lambda times: self.strategy.regularizer(model.params, times,
+                                                                                              step))
         step_optimizers([self.optimizer], self.device)
-        self.strategy.after_step(model, self.optimizer, self.stats, cfg, step, self.extent)
+        self.strategy.after_step(model, self.optimizer, self.stats, step, self.extent)
         return loss, batch_psnr
 
     def save_checkpoint(self, step: int) -> Path:
@@ -250,9 +250,9 @@ class Trainer:
         """The time the rest of the run will take at the rate of its first steps (the first step's one-off work
         included); a run that still densifies grows, so it says so."""
         remaining = seconds / (step - self.start) * (end - step)
-        growing = self.strategy.grows_until(self.cfg) > step
+        growing = self.strategy.grows_until() > step
         self.log(f"about {_duration(remaining)} for the remaining {end - step:,} iterations at the rate of the first "
-                 f"{step - self.start}" + (f"; the Gaussian count grows until iteration {self.strategy.grows_until(self.cfg):,}, "
+                 f"{step - self.start}" + (f"; the Gaussian count grows until iteration {self.strategy.grows_until():,}, "
                                             "so expect longer" if growing else ""))
 
 
