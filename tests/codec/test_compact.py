@@ -183,7 +183,7 @@ def _with_row_scaled_weights(path, bits: int) -> bytes:
     """The file at ``path`` as the writer of versions 3 and 4 made it: every MLP matrix re-coded with a scale per row
     (``int<bits>-rows``, the old writer path ``weights.encode_rows``), the version the container then needs."""
     from omg4.testing import forge
-    header, sections = forge._split(path.read_bytes())
+    header, sections = forge.split_container(path.read_bytes())
     sections = dict(sections)
     decoded = decode_payload(path)
     for name, shape in header["mlp"].items():
@@ -191,7 +191,7 @@ def _with_row_scaled_weights(path, bits: int) -> bytes:
         if len(shape) == 2 and w.size:
             sections[f"mlp.{name}"] = weights.encode_rows(w.astype(np.float32), bits)
             header["encodings"][f"mlp.{name}"] = f"int{bits}-rows"
-    return forge._assemble(header, list(sections.items()))
+    return forge.assemble_container(header, list(sections.items()))
 
 
 def test_weights_are_column_scaled_in_version_5_and_older_row_scaled_files_still_decode(tmp_path):
@@ -270,9 +270,9 @@ def test_a_valid_weight_stream_on_a_codebook_section_is_refused(tmp_path):
 def test_forged_files_keep_the_version_their_encodings_need(tmp_path):
     from omg4.testing import forge
     encode_payload(make_payload(60), tmp_path / "w6.omg4", precision=CompactGrids(weights=6))
-    assert describe_container(forge._assemble(*forge._split((tmp_path / "w6.omg4").read_bytes())))["version"] == 5
+    assert describe_container(forge.assemble_container(*forge.split_container((tmp_path / "w6.omg4").read_bytes())))["version"] == 5
     encode_payload(make_payload(60), tmp_path / "w16.omg4", precision=CompactGrids(weights=16))
-    assert describe_container(forge._assemble(*forge._split((tmp_path / "w16.omg4").read_bytes())))["version"] == 3
+    assert describe_container(forge.assemble_container(*forge.split_container((tmp_path / "w16.omg4").read_bytes())))["version"] == 3
     assert describe_container(_with_row_scaled_weights(tmp_path / "w16.omg4", 6))["version"] == 4
 
 
@@ -296,10 +296,10 @@ def _forged_compact(tmp_path, edit):
     p = make_payload(60)
     p.rotations = ("rotation",)
     encode_payload(p, tmp_path / "m.omg4", codec="compact")
-    header, sections = forge._split((tmp_path / "m.omg4").read_bytes())
+    header, sections = forge.split_container((tmp_path / "m.omg4").read_bytes())
     sections = dict(sections)
     edit(header, sections)
-    return forge._assemble(header, list(sections.items()))
+    return forge.assemble_container(header, list(sections.items()))
 
 
 @pytest.mark.parametrize("section, encoding, data", [
@@ -592,10 +592,10 @@ def test_a_quaternion_list_on_a_version_1_codec_is_refused(tmp_path):
     from omg4.testing import forge
     path = tmp_path / "a.omg4"
     encode_payload(make_payload(50), path, codec="ans")
-    header, sections = forge._split(path.read_bytes())
+    header, sections = forge.split_container(path.read_bytes())
     header["quaternions"] = []
     with pytest.raises(CorruptFileError, match="quaternion"):
-        decode_payload(forge._assemble(header, sections))
+        decode_payload(forge.assemble_container(header, sections))
 
 
 def test_rotation_declared_but_not_a_quaternion_stays_lossless(tmp_path):

@@ -122,11 +122,11 @@ def test_log_scaled_groups_are_the_exp_activated_attributes():
 def test_a_hostile_log_scale_list_is_a_corrupt_file_error(tmp_path):
     from omg4.testing import forge
     encode_payload(make_payload(50), tmp_path / "m.omg4", codec="compact")
-    header, sections = forge._split((tmp_path / "m.omg4").read_bytes())
+    header, sections = forge.split_container((tmp_path / "m.omg4").read_bytes())
     for bad in ("scale", ["nope"], [1], ["scale"] * 40):
         header["log_scaled"] = bad
         with pytest.raises(CorruptFileError, match="log-scale"):
-            decode_payload(forge._assemble(header, sections))
+            decode_payload(forge.assemble_container(header, sections))
 
 
 @pytest.mark.parametrize("time_range", [[0.0, 1e8], [-1e308, 1e308], [0.0, 1e-320], [0.0, 1e-300], ["a", "b"],
@@ -172,8 +172,8 @@ def test_a_hostile_quaternion_encoding_name_is_a_corrupt_file_error(tmp_path):
     p = make_payload(50)
     p.rotations = ("rotation",)
     encode_payload(p, tmp_path / "m.omg4", codec="compact")
-    header, sections = forge._split((tmp_path / "m.omg4").read_bytes())
+    header, sections = forge.split_container((tmp_path / "m.omg4").read_bytes())
     for bad in ("smallest-three-²", "smallest-three-09", "smallest-three-99"):
         header["encodings"]["quat.rotation"] = bad
         with pytest.raises(CorruptFileError, match="quaternion encoding"):
-            decode_payload(forge._assemble(header, sections))
+            decode_payload(forge.assemble_container(header, sections))

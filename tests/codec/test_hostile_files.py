@@ -23,12 +23,12 @@ def valid(tmp_path_factory):
 def _forged(data: bytes, path: tuple, value) -> bytes:
     """``data`` with the header entry at ``path`` set to ``value`` (``"__forge_inf__"``: the JSON number 1e400),
     every checksum recomputed."""
-    header, sections = forge._split(data)
+    header, sections = forge.split_container(data)
     node = header
     for key in path[:-1]:
         node = node[key]
     node[path[-1]] = value
-    return forge._assemble(header, sections)
+    return forge.assemble_container(header, sections)
 
 
 @pytest.mark.parametrize("codec", ["compact", "ans", "paper"])
@@ -47,7 +47,7 @@ def test_every_forged_file_is_ok_or_a_one_line_corrupt_file_error(valid, codec, 
 
 
 def test_many_gaussians_declared_in_few_bytes_are_refused_before_any_decoding(monkeypatch):
-    data = forge._inflated(2_000_000, "ans")  # a well-formed file: every Gaussian identical
+    data = forge.inflated_file(2_000_000, "ans")  # a well-formed file: every Gaussian identical
     calls = []
     monkeypatch.setattr("omg4.codec.payload.decode_indices", lambda *a, **k: calls.append(a))
     with pytest.raises(CorruptFileError, match="Gaussians"):
@@ -115,8 +115,8 @@ def test_huffman_bitstream_whose_length_disagrees_with_its_counts_is_refused():
 def test_info_refuses_a_forged_section_name_and_never_prints_control_characters(valid, tmp_path, capsys):
     from omg4.app.cli import main
 
-    header, sections = forge._split(valid["ans"])
-    forged = forge._assemble(header, [("\x1b[2J\x1b[31m" + sections[0][0], sections[0][1]), *sections[1:]])
+    header, sections = forge.split_container(valid["ans"])
+    forged = forge.assemble_container(header, [("\x1b[2J\x1b[31m" + sections[0][0], sections[0][1]), *sections[1:]])
     path = tmp_path / "m.omg4"
     path.write_bytes(forged)
     assert main(["info", str(path)]) == 2
@@ -143,11 +143,11 @@ def test_printable_escapes_control_characters():
 
 def test_names_with_a_trailing_newline_are_refused(valid, tmp_path):
     """Attribute and MLP weight names must match their pattern whole: ``$`` alone lets ``"app\\n"`` through."""
-    header, sections = forge._split(valid["ans"])
+    header, sections = forge.split_container(valid["ans"])
     attribute = next(iter(header["attributes"]))
     header["attributes"][attribute + "\n"] = header["attributes"].pop(attribute)
     with pytest.raises(CorruptFileError, match="invalid codebook shapes"):
-        decode_payload(forge._assemble(header, sections))
+        decode_payload(forge.assemble_container(header, sections))
     p = forge.valid_payload(50)
     p.attributes[attribute + "\n"] = p.attributes.pop(attribute)
     with pytest.raises(OMG4Error, match="invalid attribute name"):
@@ -162,7 +162,7 @@ def test_info_refuses_what_the_decoder_refuses(tmp_path, capsys, codec):
     from omg4.models.summary import describe_file
 
     path = tmp_path / "inflated.omg4"
-    path.write_bytes(forge._inflated(20_000, codec))
+    path.write_bytes(forge.inflated_file(20_000, codec))
     with pytest.raises(CorruptFileError) as decoder_error:
         load_omg4(path)
     with pytest.raises(CorruptFileError) as info_error:

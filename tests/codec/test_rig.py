@@ -65,10 +65,10 @@ def test_a_rotation_off_by_less_than_the_tolerance_is_a_rotation():
 
 
 def test_a_file_with_a_forged_rig_is_a_one_line_error(tmp_path):
-    header, sections = forge._split(forge.valid_file(tmp_path / "m.omg4", 200, codec="compact"))
+    header, sections = forge.split_container(forge.valid_file(tmp_path / "m.omg4", 200, codec="compact"))
     header["meta"]["rig"]["cameras"][0]["width"] = -5
     with pytest.raises(CorruptFileError, match="camera 0"):
-        decode_payload(forge._assemble(header, sections))
+        decode_payload(forge.assemble_container(header, sections))
 
 
 def test_the_viewer_opens_at_the_files_rig_without_the_dataset(tmp_path):

@@ -56,11 +56,11 @@ def test_time_sequence(omg4_file, tmp_path):
 
 def test_original_world_undoes_the_files_normalization(omg4_file, tmp_path):
     """x_norm = s (R x + t): the original-world slice maps back through the normalization the file records."""
-    header, sections = forge._split(omg4_file.read_bytes())
+    header, sections = forge.split_container(omg4_file.read_bytes())
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     header["meta"]["normalization"] = {"scale": 2.0, "rotation": R.tolist(), "translation": [0.5, -1.0, 2.0]}
     moved = tmp_path / "moved.omg4"
-    moved.write_bytes(forge._assemble(header, sections))
+    moved.write_bytes(forge.assemble_container(header, sections))
     assert main(["export", str(moved), "--out", str(tmp_path / "n.ply"), "--time", "0.4"]) == 0
     assert main(["export", str(moved), "--out", str(tmp_path / "o.ply"), "--time", "0.4", "--original-world"]) == 0
     names, norm = read_ply(tmp_path / "n.ply")

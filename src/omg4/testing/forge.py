@@ -95,13 +95,13 @@ def valid_file(path: str | Path, num_gaussians: int, codec: str = "ans", seed: i
 
 
 # ------------------------------------------------------------------------- assembly
-def _split(data: bytes) -> tuple[dict, list[tuple[str, bytes]]]:
+def split_container(data: bytes) -> tuple[dict, list[tuple[str, bytes]]]:
     """(header, [(section name, bytes)] in file order) of a valid container."""
     header, sections = read_container(data)
     return header, list(sections.items())
 
 
-def _assemble(header: object, sections: list[tuple[str, bytes]]) -> bytes:
+def assemble_container(header: object, sections: list[tuple[str, bytes]]) -> bytes:
     """A container with correct checksums (JSON and sections) around any JSON ``header`` and any section names
     (what :func:`~omg4.codec.container.write_container` would refuse); the :data:`_RAW_NUMBERS` tokens become
     numbers JSON cannot hold. The version is the one the writer gives such a codec and encodings
@@ -150,7 +150,7 @@ def _mutate_header(rng: random.Random, header: dict, sections) -> bytes:
         del parent[path[-1]]
     else:
         parent[path[-1]] = _hostile_value(rng, parent[path[-1]])
-    return _assemble(header, sections)
+    return assemble_container(header, sections)
 
 
 def _damaged_bytes(rng: random.Random, data: bytes) -> bytes:
@@ -181,14 +181,14 @@ def _mutate_section(rng: random.Random, header: dict, sections) -> bytes:
     i = rng.randrange(len(sections))
     sections = list(sections)
     sections[i] = (sections[i][0], _damaged_bytes(rng, sections[i][1]))
-    return _assemble(header, sections)
+    return assemble_container(header, sections)
 
 
 def _swap_sections(rng: random.Random, header: dict, sections) -> bytes:
     i, j = rng.sample(range(len(sections)), 2)
     sections = list(sections)
     sections[i], sections[j] = (sections[i][0], sections[j][1]), (sections[j][0], sections[i][1])
-    return _assemble(header, sections)
+    return assemble_container(header, sections)
 
 
 def _resplit_sections(rng: random.Random, header: dict, sections) -> bytes:
@@ -198,7 +198,7 @@ def _resplit_sections(rng: random.Random, header: dict, sections) -> bytes:
     cut = rng.randrange(len(blob) + 1)
     sections = list(sections)
     sections[i], sections[i + 1] = (sections[i][0], blob[:cut]), (sections[i + 1][0], blob[cut:])
-    return _assemble(header, sections)
+    return assemble_container(header, sections)
 
 
 def _rename_section(rng: random.Random, header: dict, sections) -> bytes:
@@ -206,11 +206,11 @@ def _rename_section(rng: random.Random, header: dict, sections) -> bytes:
     name = rng.choice(["\x1b[2J\x1b[31mxyz", "xyz", "t", "svq.rotation.index0", "mlp.x\n", "é" * 50, "svq..", "."])
     sections = list(sections)
     sections[i] = (name, sections[i][1])
-    return _assemble(header, sections)
+    return assemble_container(header, sections)
 
 
 @functools.lru_cache(maxsize=8)
-def _inflated(num_gaussians: int, codec: str) -> bytes:
+def inflated_file(num_gaussians: int, codec: str) -> bytes:
     """A file declaring many Gaussians in few bytes, its sections consistent with the count: every Gaussian
     identical, so each index stream is one constant symbol and the Morton gaps are all zero (what a
     memory-exhaustion attack would send; :func:`encode_payload` itself refuses to write it)."""
@@ -222,7 +222,7 @@ def _inflated(num_gaussians: int, codec: str) -> bytes:
     n = num_gaussians
     with tempfile.TemporaryDirectory() as tmp:
         encode_payload(valid_payload(2, codebook_scale=0.01), Path(tmp) / "base.omg4", codec=codec)
-        header, sections = _split((Path(tmp) / "base.omg4").read_bytes())
+        header, sections = split_container((Path(tmp) / "base.omg4").read_bytes())
     float_encoding = "f16-lzma" if codec == "paper" else "f16-planes"
     replaced = {"xyz": encode_xyz_morton(np.zeros((n, 3), np.float16)) if codec == "ans"
                 else encode_f16(np.zeros(3 * n, np.float16), float_encoding),
@@ -233,7 +233,7 @@ def _inflated(num_gaussians: int, codec: str) -> bytes:
     header = {**header, "num_gaussians": n,
               "encodings": {**header["encodings"], "t": float_encoding} | ({} if codec == "ans" else
                                                                               {"xyz": float_encoding})}
-    return _assemble(header, [(name, replaced.get(name, data)) for name, data in sections])
+    return assemble_container(header, [(name, replaced.get(name, data)) for name, data in sections])
 
 
 MUTATIONS = ("header", "section", "swap", "resplit", "rename", "raw", "inflate")
@@ -246,9 +246,9 @@ def forged_files(base: bytes, count: int, seed: int = 0) -> Iterator[tuple[str, 
     all but "raw" carry correct checksums.
     """
     rng = random.Random(seed)
-    header, sections = _split(base)
+    header, sections = split_container(base)
     kinds = ("header",) + MUTATIONS
-    inflated = [_inflated(n, codec) for n in (10**5, 2 * 10**6) for codec in ("ans", "paper")] if count >= 8 else []
+    inflated = [inflated_file(n, codec) for n in (10**5, 2 * 10**6) for codec in ("ans", "paper")] if count >= 8 else []
     for k in range(count):
         kind = kinds[k % len(kinds)]
         if kind == "header":
@@ -309,4 +309,5 @@ def exercise(path: str | Path) -> str:
     return "ok"
 
 
-__all__ = ["MUTATIONS", "exercise", "forged_files", "valid_file", "valid_payload", "valid_sequence"]
+__all__ = ["MUTATIONS", "assemble_container", "exercise", "forged_files", "inflated_file", "split_container", "valid_file",
+           "valid_payload", "valid_sequence"]
