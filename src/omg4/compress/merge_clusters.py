@@ -11,8 +11,9 @@ normalized units, φ: time cell as a fraction of the duration D). Within a cell,
 Duplicates and subsets are removed, leaving the maximal clusters (omg4 §6a), which may
 overlap; :func:`make_disjoint` then gives every Gaussian to one group (omg4 §14.7).
 
-Everything is vectorized in torch. The work is organised in *chunks of whole cells* whose pair
-count is bounded by ``MergeConfig.pair_chunk`` (a Python loop over chunks, never over cells):
+Everything is vectorized in torch (one algorithm, read top to bottom, which is why the module runs past 400
+lines). The work is organised in *chunks of whole cells* whose pair count is bounded by ``MergeConfig.pair_chunk``
+(a Python loop over chunks, never over cells):
 
 * pairs of a cell are enumerated by a segmented ``repeat_interleave`` scheme;
 * per-cell quantiles come from a segmented sort (by similarity, then stably by cell) of only the

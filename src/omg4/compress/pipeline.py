@@ -8,7 +8,9 @@ codebooks and optimizer states live on ``CompressConfig.device``; random draws c
 generators, and merge clustering and k-means run on the CPU and hand their results back.
 Which attributes each stage merges, replaces or quantizes is the baseline's backbone table
 (:mod:`omg4.gaussians.backbone`); steps and parameter groups go through the layer the
-trainer uses (:mod:`omg4.train.step`, :mod:`omg4.train.optim`).
+trainer uses (:mod:`omg4.train.step`, :mod:`omg4.train.optim`). Each stage's work is its own module; this one
+holds the order of events and the state they share (model, optimizers, scores), which is why it is about 400
+lines.
 """
 
 from __future__ import annotations
