@@ -19,7 +19,7 @@ from omg4.gaussians import build_rotation_4d
 from omg4.gaussians.backbone import activated_scales
 from omg4.train.optim import append_rows, keep_rows, replace_param
 from omg4.train.step import step_generator
-from omg4.train.strategy import DEFAULTS, DensityStrategy
+from omg4.train.strategy import DEFAULTS, ScheduledEvents
 
 
 class DensifyStats:
@@ -141,28 +141,21 @@ def _split_children(params, idx, convention: str, generator: torch.Generator, n_
 
 
 @dataclasses.dataclass
-class Densification(DensityStrategy):
+class Densification(ScheduledEvents):
     """Real-Time4DGS's density control (rt4dgs §3.4): statistics before ``densify_until``; every
     ``densify_interval`` steps after ``densify_from`` a :func:`densify_and_prune` event (the screen-size limit
     ``prune_screen_size`` once the first opacity reset has passed); opacities reset every
-    ``opacity_reset_interval`` steps before ``densify_until``. ``seed`` seeds each event's draws."""
+    ``opacity_reset_interval`` steps before ``densify_until``."""
 
-    densify_from: int = DEFAULTS.densify_from
-    densify_until: int = DEFAULTS.densify_until
-    densify_interval: int = DEFAULTS.densify_interval
     densify_grad_threshold: float = DEFAULTS.densify_grad_threshold
     percent_dense: float = DEFAULTS.percent_dense
     prune_opacity: float = DEFAULTS.prune_opacity
     prune_world_size: float = DEFAULTS.prune_world_size
     prune_screen_size: float = DEFAULTS.prune_screen_size
     opacity_reset_interval: int = DEFAULTS.opacity_reset_interval
-    seed: int = DEFAULTS.seed
 
     def grows_until(self) -> int:
         return self.densify_until
-
-    def collects_statistics(self, step: int) -> bool:
-        return step < self.densify_until
 
     def after_step(self, model, optimizer, stats, step: int, extent: float) -> None:
         if step >= self.densify_until:

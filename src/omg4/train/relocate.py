@@ -29,7 +29,7 @@ from omg4.gaussians.freetime import opacity_regularizer, scaled_rotation_3d
 from omg4.train.densify import DensifyStats
 from omg4.train.optim import overwrite_rows
 from omg4.train.step import step_generator
-from omg4.train.strategy import DEFAULTS, DensityStrategy
+from omg4.train.strategy import DEFAULTS, ScheduledEvents
 
 LAMBDA_GRAD = 0.5
 LAMBDA_OPACITY = 0.5
@@ -37,28 +37,21 @@ SPLIT_SHRINK = math.log(1.6)
 
 
 @dataclasses.dataclass
-class Relocation(DensityStrategy):
+class Relocation(ScheduledEvents):
     """FreeTimeGS's density control (FreeTimeGS §3.3–3.4): a model that starts at its budget ``max_gaussians``
     exactly (with fewer initial points, points are drawn again: they spread over time), statistics and the 4D
     regularization ``lambda_reg`` · mean σ·sg[p_t] before ``densify_until``, a :func:`relocate` event (of the
     Gaussians below ``relocate_opacity``) every ``densify_interval`` steps strictly between ``densify_from`` and
-    ``densify_until``; no opacity resets. ``seed`` seeds each event's draws."""
+    ``densify_until``; no opacity resets."""
 
-    densify_from: int = DEFAULTS.densify_from
-    densify_until: int = DEFAULTS.densify_until
-    densify_interval: int = DEFAULTS.densify_interval
     lambda_reg: float = DEFAULTS.lambda_reg
     relocate_opacity: float = DEFAULTS.relocate_opacity
-    seed: int = DEFAULTS.seed
 
     def initial_points(self, xyz, rgb, generator):
         if self.max_gaussians > len(xyz):
             extra = torch.randint(len(xyz), (self.max_gaussians - len(xyz),), generator=generator, device="cpu")
             return torch.cat([xyz, xyz[extra]]), torch.cat([rgb, rgb[extra]])
         return super().initial_points(xyz, rgb, generator)
-
-    def collects_statistics(self, step: int) -> bool:
-        return step < self.densify_until
 
     def regularizer(self, params, timestamps, step: int):
         if not self.lambda_reg or step >= self.densify_until:

@@ -61,4 +61,18 @@ class DensityStrategy:
         """The density events after the optimizer step ``step`` (1-based)."""
 
 
-__all__ = ["DEFAULTS", "DensityStrategy"]
+@dataclasses.dataclass
+class ScheduledEvents(DensityStrategy):
+    """The schedule both backbones' density controls share: statistics before ``densify_until``, an event every
+    ``densify_interval`` steps after ``densify_from``, each event's draws seeded by ``seed`` and its step."""
+
+    densify_from: int = DEFAULTS.densify_from
+    densify_until: int = DEFAULTS.densify_until
+    densify_interval: int = DEFAULTS.densify_interval
+    seed: int = DEFAULTS.seed
+
+    def collects_statistics(self, step: int) -> bool:
+        return step < self.densify_until
+
+
+__all__ = ["DEFAULTS", "DensityStrategy", "ScheduledEvents"]
