@@ -422,7 +422,7 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
     check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
     coder = CODERS[codec]
-    compact = coder.grid_encodings
+    gridded = coder.grid_encodings  # grid positions and times, sorted codebooks, quantized weights
 
     def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, ...] | None = None) -> np.ndarray:
         """Decode section ``name``; each encoding is accepted only for the section kind it was made for."""
@@ -440,15 +440,15 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
                 if bits is None:
                     raise CorruptFileError(f"encoding {encoding!r} is not a quaternion encoding")
                 return quaternions.decode_quaternions(data, count, bits)
-            if compact and encoding == "sorted" and kind == "svq":
+            if gridded and encoding == "sorted" and kind == "svq":
                 return decode_sorted_codebook(data, *shape)
-            if compact and weights.parse_encoding(encoding) and kind == "mlp" and len(shape) == 2:
+            if gridded and weights.parse_encoding(encoding) and kind == "mlp" and len(shape) == 2:
                 return weights.decode_matrix(data, shape, encoding)
             if encoding == "morton" and name == "xyz" and coder.morton_positions:
                 return decode_xyz_morton(data, count)
-            if compact and encoding in (grids.POSITIONS, grids.POSITIONS_EXACT) and name == "xyz":
+            if gridded and encoding in (grids.POSITIONS, grids.POSITIONS_EXACT) and name == "xyz":
                 return grids.decode_positions(data, count, exact=encoding == grids.POSITIONS_EXACT)
-            if compact and encoding == grids.TIMES and name == "t":
+            if gridded and encoding == grids.TIMES and name == "t":
                 return grids.decode_times(data, count)
             return decode_f16(data, encoding, count)
         except CorruptFileError as exc:

@@ -56,6 +56,7 @@ class DeficitSampler:
         self.probes = self._probes(probes_per_bucket)
         self.reference: np.ndarray | None = None
         self.weights = np.ones(buckets)  # per bucket, relative to uniform
+        self.view_weights = torch.ones(len(views), dtype=torch.float64)  # each view's bucket weight, for the draw
 
     def _probes(self, per_bucket: int) -> list[tuple[int, int]]:
         """(bucket, view index) pairs: ``per_bucket`` views of each bucket evenly spread in (time, camera) order."""
@@ -89,12 +90,12 @@ class DeficitSampler:
         valid = np.isfinite(deficit)
         excess = np.where(valid, deficit - deficit[valid].mean(), 0.0)
         self.weights = np.clip(np.exp2(excess / TEMPERATURE_DB), 1 / MAX_RATIO, MAX_RATIO)
+        self.view_weights = torch.from_numpy(self.weights).index_select(0, self.bucket_of_view)
         return deficit
 
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """``count`` view indices (with replacement), each view drawn with its bucket's weight."""
-        p = torch.from_numpy(self.weights).index_select(0, self.bucket_of_view)
-        return torch.multinomial(p, count, replacement=True, generator=generator)
+        return torch.multinomial(self.view_weights, count, replacement=True, generator=generator)
 
 
 __all__ = ["BUCKETS", "MAX_RATIO", "PROBES_PER_BUCKET", "REFRESH", "TEMPERATURE_DB", "TIME_SAMPLINGS",

@@ -34,15 +34,23 @@ def strategy_for(backbone: Backbone, cfg: TrainConfig) -> DensityStrategy:
             raise OMG4Error(f"backbone {backbone.name} names the density control {spec!r}, which is not one of "
                             f"{', '.join(STRATEGIES)}")
         spec = STRATEGIES[spec]
-    if _takes_config(spec):
+    if _config_positions(spec):
         return _ConfigHooks(spec(), cfg)
     return spec.from_config(cfg)
 
 
-def _takes_config(cls: type) -> bool:
-    """Whether ``cls`` overrides a hook in the form before strategies owned their settings (a ``cfg`` argument)."""
-    return any("cfg" in inspect.signature(getattr(cls, hook)).parameters
-               for hook in ("initial_points", "grows_until", "collects_statistics", "regularizer", "after_step"))
+HOOKS = ("initial_points", "grows_until", "collects_statistics", "regularizer", "after_step")
+
+
+def _config_positions(cls: type) -> dict[str, int]:
+    """Where each hook of ``cls`` that still takes the run's config (the form before strategies owned their
+    settings) has its ``cfg`` argument, by hook name; empty for a strategy that owns its settings."""
+    positions = {}
+    for hook in HOOKS:
+        names = list(inspect.signature(getattr(cls, hook)).parameters)
+        if "cfg" in names:
+            positions[hook] = names.index("cfg") - 1  # without ``self``
+    return positions
 
 
 class _ConfigHooks(DensityStrategy):
@@ -55,13 +63,11 @@ class _ConfigHooks(DensityStrategy):
                       DeprecationWarning, stacklevel=3)
         super().__init__(max_gaussians=cfg.max_gaussians)
         self.legacy, self.cfg = legacy, cfg
+        self.positions = _config_positions(type(legacy))  # looked up once, not at every step
 
     def _call(self, hook: str, *args):
-        method = getattr(self.legacy, hook)
-        if "cfg" not in inspect.signature(method).parameters:
-            return method(*args)
-        position = list(inspect.signature(method).parameters).index("cfg")
-        return method(*args[:position], self.cfg, *args[position:])
+        method, position = getattr(self.legacy, hook), self.positions.get(hook)
+        return method(*args) if position is None else method(*args[:position], self.cfg, *args[position:])
 
     def initial_points(self, xyz, rgb, generator):
         return self._call("initial_points", xyz, rgb, generator)
@@ -79,4 +85,4 @@ class _ConfigHooks(DensityStrategy):
         self._call("after_step", model, optimizer, stats, step, extent)
 
 
-__all__ = ["STRATEGIES", "strategy_for"]
+__all__ = ["HOOKS", "STRATEGIES", "strategy_for"]
