@@ -50,7 +50,8 @@ class Browser:
              "--remote-debugging-port=0", "--window-size=960,540", "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         active = profile / "DevToolsActivePort"
-        wait(active.exists, "Chromium's DevTools port")
+        # Chromium creates the file before it writes the port into it: wait for the port itself
+        wait(lambda: active.exists() and active.read_text().split(), "Chromium's DevTools port")
         port = int(active.read_text().split()[0])
         pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
         self.ws = connect(next(p for p in pages if p["type"] == "page")["webSocketDebuggerUrl"], max_size=None)
