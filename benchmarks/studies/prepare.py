@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omg4.errors import OMG4Error
 from omg4.testing.records import save_record
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
@@ -42,27 +43,10 @@ SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parent
 
 def pose_errors(estimated: dict[str, tuple[np.ndarray, float]], truth: dict[str, tuple[np.ndarray, float]]) -> dict:
     """Per-camera rotation (degrees) and centre (% of the rig's diameter) errors after one similarity alignment,
-    and focal-length errors (%); both maps: name → (w2c [4, 4], focal)."""
-    names = sorted(set(estimated) & set(truth))
-    rotation = lambda m: m[:3, :3]  # noqa: E731
-    centre = lambda m: -m[:3, :3].T @ m[:3, 3]  # noqa: E731
-    M = sum(rotation(truth[n][0]).T @ rotation(estimated[n][0]) for n in names)
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    angles = [float(np.degrees(np.arccos(np.clip((np.trace(rotation(estimated[n][0]) @ R.T @ rotation(truth[n][0]).T)
-                                                   - 1) / 2, -1, 1)))) for n in names]
-    ours = np.stack([centre(estimated[n][0]) for n in names]) @ R.T
-    true = np.stack([centre(truth[n][0]) for n in names])
-    ours, true = ours - ours.mean(0), true - true.mean(0)
-    scale = (ours * true).sum() / (ours ** 2).sum()
-    diameter = max(np.linalg.norm(a - b) for a in true for b in true)
-    centres = list(100 * np.linalg.norm(scale * ours - true, axis=1) / diameter)
-    focal = [100 * abs(estimated[n][1] / truth[n][1] - 1) for n in names]
-    return {"cameras": len(names), "of": len(truth), "rotation_deg_median": float(np.median(angles)),
-            "rotation_deg_max": float(np.max(angles)), "centre_pct_median": float(np.median(centres)),
-            "centre_pct_max": float(np.max(centres)), "focal_pct_median": float(np.median(focal)),
-            "focal_pct_max": float(np.max(focal)), "per_camera": {n: {"rotation_deg": a, "centre_pct": float(c)}
-                                                                  for n, a, c in zip(names, angles, centres)}}
+    and focal-length errors (%); both maps: name → (w2c [4, 4], focal) (:func:`omg4.prepare.check.pose_differences`)."""
+    from omg4.prepare.check import pose_differences
+
+    return pose_differences(estimated, truth)
 
 
 def calibrated(record: dict) -> dict[str, tuple[np.ndarray, float]]:
@@ -87,13 +71,19 @@ def synthetic(args) -> dict:
                 for i in range(cameras):  # renamed, no poses
                     shutil.copy(tmp / "scene" / f"cam{i:02d}.mp4", tmp / "raw" / f"clip_{i:02d}.mp4")
                 t0 = time.perf_counter()
-                record = prepare_capture(tmp / "raw", tmp / "data", test_camera="clip_00",
-                                         shared_intrinsics=args.shared_intrinsics)
+                try:
+                    record = prepare_capture(tmp / "raw", tmp / "data", test_camera="clip_00",
+                                             shared_intrinsics=args.shared_intrinsics)
+                except OMG4Error as exc:  # a calibration prepare does not trust: its message is the result
+                    rows.append({"rig": rig, "seed": seed, "frames": args.frames, "refused": str(exc),
+                                 "prepare_s": time.perf_counter() - t0, "shared_intrinsics": args.shared_intrinsics})
+                    print(f"rig={rig} seed={seed} refused: {exc}", flush=True)
+                    continue
                 wall = time.perf_counter() - t0
                 truth = {f"clip_{i:02d}": (c.viewmat, c.K[0, 0]) for i, c in
                          enumerate(load_scene(tmp / "scene", decode=False, progress=False).cameras())}
                 row = {"rig": rig, "seed": seed, "frames": args.frames, "prepare_s": wall,
-                       "shared_intrinsics": args.shared_intrinsics, "lens": record["lens"],
+                       "shared_intrinsics": args.shared_intrinsics, "lens": record["lens"], "halves": record["halves"],
                        **pose_errors(calibrated(record), truth)}
                 if args.train:
                     row.update(training_gap(tmp / "scene", tmp / "data", args.train, tmp))
@@ -140,6 +130,7 @@ def basketball(args) -> dict:
         record = prepare_capture(root / "ims", Path(tmp) / "data", test_camera="0")
         wall = time.perf_counter() - t0
     row = {"capture": "panoptic_basketball", "cameras_in": len(truth), "prepare_s": wall, "lens": record["lens"],
+           "halves": record["halves"],
            "reregistered": [c["source"] for c in record["cameras"] if c.get("reregistered")],
            "left_out": [c["source"] for c in record["cameras"] if not c["reliable"]],
            **pose_errors(calibrated(record), truth)}
@@ -186,7 +177,10 @@ def audio(args) -> dict:
 def _line(row: dict) -> str:
     keys = ("rig", "capture", "seed", "cameras", "of", "rotation_deg_median", "rotation_deg_max", "centre_pct_median",
             "centre_pct_max", "focal_pct_median", "prepare_s", "psnr_gap_db")
-    return " ".join(f"{k}={row[k]:.3f}" if isinstance(row.get(k), float) else f"{k}={row[k]}" for k in keys if k in row)
+    halves = " halves=" + "/".join(f"{h['rotation_deg_median']:.2f}°,{h['focal_pct_median']:.1f}%"
+                                   for h in row.get("halves", []) if "rotation_deg_median" in h)
+    return " ".join(f"{k}={row[k]:.3f}" if isinstance(row.get(k), float) else f"{k}={row[k]}" for k in keys
+                    if k in row) + halves
 
 
 def main(argv: list[str] | None = None) -> int:

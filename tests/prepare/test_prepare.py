@@ -3,6 +3,8 @@ with sound, plus one camera that sees something else; and every bad input as one
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 from pathlib import Path
@@ -33,14 +35,16 @@ def prepared(rig, tmp_path_factory):
     write_clip(raw / "phone_Z.mkv", noise, 30, shared_audio(2.0))  # heard the same, saw something else entirely
     before = {p.name: p.stat().st_mtime_ns for p in raw.iterdir()}
     out = raw.parent / "data"
-    code = main(["prepare", str(raw), "--out", str(out)])
-    return raw, before, out, code
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["prepare", str(raw), "--out", str(out)])
+    return raw, before, out, code, printed.getvalue()
 
 
-def test_a_rig_is_calibrated_from_renamed_unposed_videos(prepared, rig, capsys):
+def test_a_rig_is_calibrated_from_renamed_unposed_videos(prepared, rig):
     from omg4.data import load_scene
 
-    raw, before, out, code = prepared
+    raw, before, out, code, printed = prepared
     assert code == 0
     assert {p.name: p.stat().st_mtime_ns for p in raw.iterdir()} == before  # nothing written into the capture
     record = json.loads((out / "calibration.json").read_text())
@@ -69,12 +73,17 @@ def test_a_rig_is_calibrated_from_renamed_unposed_videos(prepared, rig, capsys):
     assert np.median(angles) < 0.5 and max(angles) < 1.5, angles
     assert np.median(centres) < 0.02 and max(centres) < 0.05, centres
     assert (out / "rig.png").stat().st_size > 10_000 and (out / "points3d.ply").exists()
+    # the rig calibrated again from a half of the instants reproduces it
+    assert len(record["halves"]) == 2
+    assert any(h["cameras"] == 6 and h["rotation_deg_median"] < 0.5 and h["focal_pct_median"] < 2.0
+               for h in record["halves"]), record["halves"]
+    assert "calibrated again from each half of the instants" in printed
 
 
 def test_videos_are_synchronized_by_their_sound_and_trimmed_to_the_shared_span(prepared, rig):
     """Each camera skips max(late) − late frames (found from the audio, exactly), so frame k of every prepared
     video is frame max(late) + k of the clip; all are as long as the span they share."""
-    raw, _, out, _ = prepared
+    raw, _, out, _, _ = prepared
     record = json.loads((out / "calibration.json").read_text())
     assert record["sync"] == "audio" and record["frames"] == 16 - max(LATE)
     skipped = {c["source"]: c["offset_frames"] for c in record["cameras"]}

@@ -24,7 +24,7 @@ from omg4.atomic import atomic_folder
 from omg4.errors import OMG4Error
 from omg4.prepare.calibrate import CalibratedCamera, Calibration, calibrate
 from omg4.prepare.camera_model import project, sample
-from omg4.prepare.check import CameraCheck, check_and_repair
+from omg4.prepare.check import CameraCheck, check_and_repair, rig_disagreement
 from omg4.prepare.sources import Source, check_frame_rates, find_sources
 from omg4.prepare.sync import Offsets, common_span, synchronize
 from omg4.prepare.undistort import Undistorter
@@ -73,6 +73,7 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
               for s, off in zip(_bar(sources, progress, "reading instants"), offsets.frames)}
     with tempfile.TemporaryDirectory(prefix="omg4-prepare-") as work:
         calibration = calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics)
+        halves = _halves(frames, work, len(chosen), max_features, shared_intrinsics)
     calibration, checks = check_and_repair(calibration, {s.stem: (s.width, s.height) for s in sources})
     checks = _reprojection_checks(calibration, checks)
     kept = [s for s in sources if checks[s.stem].reliable]
@@ -80,6 +81,9 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
         worst = next(s for s in sources if not checks[s.stem].reliable)
         raise OMG4Error(f"the calibration cannot be trusted: {len(kept)} of {len(sources)} cameras hold "
                         f"({worst.name}: {checks[worst.stem].reason})")
+    doubt, halves = rig_disagreement({s.stem: calibration.cameras[s.stem] for s in kept}, halves)
+    if doubt:
+        raise OMG4Error(f"the calibration cannot be trusted: {doubt}")
     test = _test_source(kept, calibration, test_camera)
     order = [test, *[s for s in kept if s is not test]]
     names = {s.stem: f"cam{i:02d}" for i, s in enumerate(order)}
@@ -91,6 +95,7 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
     cameras = {s.stem: _undistorted_camera(calibration.cameras[s.stem], undistorters[s.stem], normalization, s,
                                            names[s.stem]) for s in order}
     record = _record(sources, offsets, length, fps, calibration, checks, names, test, cameras)
+    record["halves"] = halves
     with atomic_folder(out) as folder:
         _write_videos(folder, order, offsets, sources, length, fps, undistorters, names, progress)
         _write_geometry(folder, order, cameras, points, colors, names)
@@ -106,6 +111,24 @@ def _check_target(src: Path, out: Path, force: bool) -> None:
         raise OMG4Error(f"--out {out} must lie outside the capture folder {src} (nothing is written into it)")
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
         raise OMG4Error(f"--out {out} exists: choose a new folder, or add --force to replace it")
+
+
+def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_features: int,
+            shared_intrinsics: bool) -> list[dict[str, CalibratedCamera]]:
+    """The rig calibrated again from the even and from the odd ones of its ``count`` instants (the features and
+    matches already in ``work``), for :func:`~omg4.prepare.check.rig_disagreement`; none when there are fewer
+    than four instants, an empty rig for a half that cannot be reconstructed."""
+    if count < 4:
+        logger.info("fewer than four instants: the rig is not calibrated again from each half of them")
+        return []
+    halves = []
+    for part in (list(range(0, count, 2)), list(range(1, count, 2))):
+        try:
+            halves.append(calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics,
+                                    instants=part).cameras)
+        except OMG4Error:
+            halves.append({})
+    return halves
 
 
 def _instants(length: int, count: int) -> list[int]:

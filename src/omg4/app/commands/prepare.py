@@ -52,6 +52,11 @@ def run(args) -> int:
     print(f"lens distortion {lens['distortion']}: reprojection RMS {lens['rms_with_px']:.3f} px with it, "
           f"{lens['rms_without_px']:.3f} px without (kept when leaving it out costs more than "
           f"{DISTORTION_GAIN:.0%})")
+    halves = [(label, h) for label, h in zip(("even", "odd"), record["halves"]) if h.get("cameras", 0) >= 2]
+    if halves:  # the rig is trusted when one of them reproduces it (docs/prepare.md)
+        print("calibrated again from each half of the instants: " + "; ".join(
+            f"{label} ones {h['rotation_deg_median']:.2f}° and {h['focal_pct_median']:.1f} % in focal length apart "
+            f"({h['cameras']} cameras)" for label, h in halves))
     print("| source | name | skipped frames | focal (px) | k1 | reprojection (px) | matches agreeing | note |")
     print("|---|---|---|---|---|---|---|---|")
     for c in record["cameras"]:
