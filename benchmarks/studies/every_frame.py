@@ -1,66 +1,121 @@
-"""Every frame of the demo against its baseline: OMG4-M as the paper runs it and with the changes beyond it.
+"""Every frame of a scene against its baseline: OMG4-M as the paper runs it and with the changes beyond it.
 
-For each seed: the demo's scene (16 cameras × 60 frames, 128×96) and its baseline (1,500 iterations, 60k
-Gaussians, batch 2, as ``omg4 demo``), the SD scores once, then the demo's whole OMG4-M compression
-(:data:`omg4.app.demo.DEMO_LENGTHS`) from the same baseline and scores once per variant (:data:`VARIANTS`): the
-paper's; lifetime-weighted SD scores (:func:`omg4.compress.score.lifetime_weights`); fine-tuning views drawn by
-each span's fall below the baseline (:mod:`omg4.compress.time_balance`); both. Each file is decoded and
-evaluated on the test camera frame by frame. The record keeps every frame's ΔPSNR (OMG4-M − baseline), the
-mean, the worst frame, the 5th percentile and the file size of each, and — the mechanism of the score
-weighting — the share of each frame's visible baseline (opacity × temporal marginal, summed over the Gaussians
-that pass the cull at the frame's time) that sampling and pruning keep, before any fine-tuning.
+Scenes (``--scene``, :data:`SCENES`): ``demo``, the demo's synthetic scene (16 cameras × 60 frames, 128×96) and
+baseline (1,500 iterations, 60k Gaussians, batch 2, as ``omg4 demo``) with the demo's compression lengths
+(:data:`omg4.app.demo.DEMO_LENGTHS`); ``basketball``, ``../shared/data/n3dv_basketball`` at 320×180, all 60 frames;
+``basketball-segment``, its first segment of a long capture (frames 0-49); ``mutant``, D-NeRF's mutant at 200×200.
+The real scenes get a cpu-small baseline of 1,500 iterations and the ``cpu`` compression schedule.
 
-Steps already done in ``--work`` (a scene, a baseline, scores, a compressed file) are reused, so a run can be
-continued or extended by seeds and variants (``--variants`` with no name only makes the baselines).
+For each seed: the scene, its baseline and SD scores once, then OMG4-M from the same baseline and scores once per
+variant (:data:`VARIANTS`): the paper's; lifetime-weighted SD scores (:func:`omg4.compress.score.lifetime_weights`);
+fine-tuning views drawn by each span's fall below the baseline (:mod:`omg4.compress.time_balance`); both. Each
+file is decoded and evaluated on the test camera frame by frame. The record keeps every frame's ΔPSNR (OMG4-M −
+baseline), the mean, the worst frame, the 5th percentile and the file size of each, and — the mechanism of the
+score weighting — the share of each frame's visible baseline (opacity × temporal marginal, summed over the
+Gaussians that pass the cull at the frame's time) that sampling and pruning keep, before any fine-tuning. With
+``--control`` each seed also trains the equal-training control (the baseline's steps plus the compression's
+fine-tuning steps, otherwise the same) and every variant's per-frame ΔPSNR against it is kept too.
 
-Usage: ``python benchmarks/studies/every_frame.py [--seeds 0 1 2] [--variants ...] [--device cpu|cuda]
-[--work runs/every_frame]``; about 10 minutes a seed and variant on two cores.
+Steps already done in ``--work`` (a scene, a baseline, a control, scores, a compressed file) are reused, so a run
+can be continued or extended by seeds and variants (``--variants`` with no name only makes the baselines).
+
+Usage: ``python benchmarks/studies/every_frame.py [--scene demo] [--seeds 0 1 2] [--variants ...] [--control]
+[--device cpu|cuda] [--work runs/every_frame]``; about 10 minutes a seed and variant of the demo on two cores.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the omg4 command: idle threads must not spin
 
+from omg4.app.demo import DEMO_LENGTHS  # noqa: E402
 from omg4.testing.records import save_record  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results" / "every_frame_demo.json"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 VARIANTS = {"paper": {}, "lifetime": {"score_weighting": "lifetime"}, "deficit": {"time_sampling": "deficit"},
             "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit"}}
-"""Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the demo's."""
+"""Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the scene's."""
+BASELINE_ITERATIONS = 1500
 
 
-def baseline_and_scores(root: Path, seed: int, device: str):
-    """The seed's scene, trained baseline and SD scores (made once in ``root``)."""
-    import torch
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    """A scene of the study: where it comes from, its baseline's training settings beside cpu-small with
+    :data:`BASELINE_ITERATIONS`, and its compression's settings beside OMG4-M."""
 
-    from omg4.compress.score import SDScores, compute_sd_scores
+    data: str | None  # a folder under the shared data, or None: the demo's synthetic scene
+    reader: dict
+    train: dict
+    compress: dict
+
+
+SCENES = {
+    "demo": SceneSpec(None, {}, {"batch_size": 2, "max_gaussians": 60_000}, {"lengths": DEMO_LENGTHS, "batch_size": 2}),
+    "basketball": SceneSpec("n3dv_basketball", {"downscale": 2}, {}, {"schedule": "cpu"}),
+    "basketball-segment": SceneSpec("n3dv_basketball", {"downscale": 2, "frames": range(0, 50)}, {},
+                                    {"schedule": "cpu"}),
+    "mutant": SceneSpec("dnerf_mutant", {"downscale": 4}, {}, {"schedule": "cpu"}),
+}
+
+
+def load_study_scene(spec: SceneSpec, root: Path, seed: int):
+    """The scene (the demo's synthetic one is written in ``root`` once)."""
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+
+    if spec.data is None:
+        folder = root / "scene"
+        if not folder.exists():
+            write_synthetic_scene(folder, SynthConfig(seed=seed, num_cameras=16, num_frames=60, width=128, height=96),
+                                  force=True)
+    else:
+        folder = SHARED / spec.data
+        if not folder.is_dir():
+            raise SystemExit(f"this scene needs {folder} (set OMG4_SHARED_DATA)")
+    return load_scene(folder, progress=False, **spec.reader)
+
+
+def compress_config(spec: SceneSpec, seed: int, device: str, variant: str):
+    from omg4.compress.pipeline import CompressConfig
+
+    return CompressConfig(preset="M", seed=seed, baseline_iterations=BASELINE_ITERATIONS, device=device, **spec.compress,
+                          **VARIANTS[variant])
+
+
+def trained(spec: SceneSpec, scene, run: Path, seed: int, device: str, iterations: int):
+    """A cpu-small baseline of ``iterations`` steps in ``run`` (trained once), as a model."""
+    import torch
+
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.train import Trainer, make_config
 
-    scene_dir = root / "scene"
-    if not scene_dir.exists():
-        write_synthetic_scene(scene_dir, SynthConfig(seed=seed, num_cameras=16, num_frames=60, width=128, height=96),
-                              force=True)
-    scene = load_scene(scene_dir, progress=False)
-    run = root / "base"
     if not (run / "model.safetensors").exists():
-        cfg = make_config("cpu-small", iterations=1500, batch_size=2, max_gaussians=60_000, seed=seed,
-                          checkpoint_interval=0, device=device)
+        cfg = make_config("cpu-small", iterations=iterations, seed=seed, checkpoint_interval=0, device=device,
+                          **spec.train)
         torch.manual_seed(seed)
         Trainer(scene, cfg, run, progress=False, log=lambda s: None).run()
-    model = load_gaussians(run / "model.safetensors")[0]
+    return load_gaussians(run / "model.safetensors")[0]
+
+
+def baseline_and_scores(spec: SceneSpec, root: Path, seed: int, device: str):
+    """The seed's scene, trained baseline and SD scores (made once in ``root``)."""
+    from omg4.compress.score import SDScores, compute_sd_scores
+
+    scene = load_study_scene(spec, root, seed)
+    model = trained(spec, scene, root / "base", seed, device, BASELINE_ITERATIONS)
     scores_path = root / "scores.npz"
     if scores_path.exists():
         scores = SDScores.load(scores_path, model.num_gaussians)
     else:
-        scores = compute_sd_scores(model.to(device), scene.train_views, progress=False, batch_size=2, device=device)
+        batch = spec.train.get("batch_size", 2)
+        scores = compute_sd_scores(model.to(device), scene.train_views, progress=False, batch_size=batch,
+                                   device=device)
         scores.save(scores_path)
     return scene, model, scores, scores_path
 
@@ -97,55 +152,71 @@ def kept_shares(model, scene, scores, weighting: str) -> list[float]:
             / torch.zeros(frames).index_add_(0, geom.views, weight.float())).tolist()
 
 
-def run_seed(root: Path, seed: int, variants: list[str], device: str) -> dict:
-    from omg4.app.demo import DEMO_LENGTHS
+def run_seed(spec: SceneSpec, root: Path, seed: int, variants: list[str], device: str, control: bool) -> dict:
     from omg4.compress.api import compress_to_file
-    from omg4.compress.pipeline import CompressConfig
     from omg4.metrics.frames import frame_differences, frame_summary
     from omg4.models import load_model
 
-    scene, model, scores, scores_path = baseline_and_scores(root, seed, device)
+    scene, model, scores, scores_path = baseline_and_scores(spec, root, seed, device)
     base = frame_rows(model.to(device), scene.test_views, device)
     row = {"seed": seed, "baseline_psnr": statistics.fmean(r["psnr"] for r in base),
-           "baseline_gaussians": model.num_gaussians}
+           "baseline_gaussians": model.num_gaussians, "baseline_iterations": BASELINE_ITERATIONS}
+    reference = None
+    if control:  # the baseline trained for as long as the baseline and the compression's fine-tuning together
+        steps = BASELINE_ITERATIONS + compress_config(spec, seed, device, "paper").fine_tuning_iterations()
+        reference = frame_rows(trained(spec, scene, root / "control", seed, device, steps).to(device),
+                               scene.test_views, device)
+        row.update(control_iterations=steps, control_psnr=statistics.fmean(r["psnr"] for r in reference))
     for variant in variants:
         out = root / f"M_{variant}.omg4"
-        cfg = CompressConfig(preset="M", lengths=DEMO_LENGTHS, batch_size=2, seed=seed, baseline_iterations=1500,
-                             device=device, **VARIANTS[variant])
+        cfg = compress_config(spec, seed, device, variant)
         if not out.exists():
             compress_to_file(model, scene, cfg, out, scores_path=scores_path)
-        delta = frame_differences(frame_rows(load_model(out, device), scene.test_views, device), base, keys=("psnr",))
+        rows = frame_rows(load_model(out, device), scene.test_views, device)
+        delta = frame_differences(rows, base, keys=("psnr",))
         summary = frame_summary(delta, "psnr")
         row[variant] = {"file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
-                          "worst_delta_psnr": summary["min"], "worst_frame": summary["worst"]["frame"],
-                          "p5_delta_psnr": summary["p5"], "delta_psnr_per_frame": [r["psnr"] for r in delta],
-                          "kept_visible_share_per_frame": kept_shares(model, scene, scores, cfg.score_weighting)}
+                        "worst_delta_psnr": summary["min"], "worst_frame": summary["worst"]["frame"],
+                        "p5_delta_psnr": summary["p5"], "delta_psnr_per_frame": [r["psnr"] for r in delta],
+                        "kept_visible_share_per_frame": kept_shares(model, scene, scores, cfg.score_weighting)}
+        if reference is not None:
+            against = frame_summary(frame_differences(rows, reference, keys=("psnr",)), "psnr")
+            row[variant].update(mean_delta_psnr_control=against["mean"], worst_delta_psnr_control=against["min"],
+                                worst_frame_control=against["worst"]["frame"])
     return row
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", choices=list(SCENES), default="demo")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--work", type=Path, default=Path("runs/every_frame"))
     ap.add_argument("--variants", nargs="*", choices=list(VARIANTS), default=["paper", "deficit"])
+    ap.add_argument("--control", action="store_true", help="also train the equal-training control")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--json", type=Path, default=RESULTS)
+    ap.add_argument("--json", type=Path, help="record (default benchmarks/results/every_frame_<scene>.json)")
     args = ap.parse_args()
-    rows = [run_seed(args.work / f"seed{seed}", seed, args.variants, args.device) for seed in args.seeds]
+    spec = SCENES[args.scene]
+    work = args.work if args.scene == "demo" else args.work / args.scene
+    rows = [run_seed(spec, work / f"seed{seed}", seed, args.variants, args.device, args.control)
+            for seed in args.seeds]
     if not args.variants:
         return
-    save_record(args.json, {"command": "python benchmarks/studies/every_frame.py --seeds " + " ".join(map(str, args.seeds))
-                            + " --variants " + " ".join(args.variants) + f" --device {args.device}",
-                            "device": args.device, "seeds": rows})
-    print("| seed | variant | mean ΔPSNR | worst frame ΔPSNR (frame) | 5th percentile | file B "
-          "| visible weight kept: first / middle / last frame |")
-    print("|---|---|---|---|---|---|---|")
+    command = (f"python benchmarks/studies/every_frame.py --scene {args.scene} --seeds {' '.join(map(str, args.seeds))}"
+               f" --variants {' '.join(args.variants)}{' --control' if args.control else ''} --device {args.device}")
+    save_record(args.json or RESULTS / f"every_frame_{args.scene}.json",
+                {"command": command, "scene": args.scene, "device": args.device, "seeds": rows})
+    print("| seed | variant | mean ΔPSNR | worst frame ΔPSNR (frame) | 5th percentile | against the control: mean / "
+          "worst (frame) | file B | visible weight kept: first / middle / last frame |")
+    print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         for variant in args.variants:
             r = row[variant]
             shares = r["kept_visible_share_per_frame"]
+            control = (f"{r['mean_delta_psnr_control']:+.3f} / {r['worst_delta_psnr_control']:+.3f} "
+                       f"({r['worst_frame_control']})" if "mean_delta_psnr_control" in r else "-")
             print(f"| {row['seed']} | {variant} | {r['mean_delta_psnr']:+.3f} | {r['worst_delta_psnr']:+.3f} "
-                  f"({r['worst_frame']}) | {r['p5_delta_psnr']:+.3f} | {r['file_bytes']:,} | "
+                  f"({r['worst_frame']}) | {r['p5_delta_psnr']:+.3f} | {control} | {r['file_bytes']:,} | "
                   + " / ".join(f"{share:.3f}" for share in (shares[0], shares[len(shares) // 2], shares[-1])) + " |")
 
 
