@@ -89,17 +89,21 @@ def compress_config(spec: SceneSpec, seed: int, device: str, variant: str):
 
 
 def trained(spec: SceneSpec, scene, run: Path, seed: int, device: str, iterations: int):
-    """A cpu-small baseline of ``iterations`` steps in ``run`` (trained once), as a model."""
+    """A cpu-small baseline of ``iterations`` steps in ``run`` (trained once), as a model; a captured scene's
+    starts from ``--init auto``'s points, as ``omg4 train``'s, the demo's from its own points."""
     import torch
 
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.train import Trainer, make_config
+    from omg4.train.init import initial_points
 
     if not (run / "model.safetensors").exists():
         cfg = make_config("cpu-small", iterations=iterations, seed=seed, checkpoint_interval=0, device=device,
                           **spec.train)
         torch.manual_seed(seed)
-        Trainer(scene, cfg, run, progress=False, log=lambda s: None).run()
+        # a captured scene starts where omg4 train starts it (--init auto: plane-sweep stereo on multi-view video)
+        points = None if spec.data is None else initial_points(scene, "auto", cfg, log=lambda s: None)
+        Trainer(scene, cfg, run, points=points, progress=False, log=lambda s: None).run()
     return load_gaussians(run / "model.safetensors")[0]
 
 
