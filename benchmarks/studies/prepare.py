@@ -35,18 +35,11 @@ from pathlib import Path
 import numpy as np
 
 from omg4.errors import OMG4Error
+from omg4.prepare.check import pose_differences
 from omg4.testing.records import save_record
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
-
-
-def pose_errors(estimated: dict[str, tuple[np.ndarray, float]], truth: dict[str, tuple[np.ndarray, float]]) -> dict:
-    """Per-camera rotation (degrees) and centre (% of the rig's diameter) errors after one similarity alignment,
-    and focal-length errors (%); both maps: name → (w2c [4, 4], focal) (:func:`omg4.prepare.check.pose_differences`)."""
-    from omg4.prepare.check import pose_differences
-
-    return pose_differences(estimated, truth)
 
 
 def calibrated(record: dict) -> dict[str, tuple[np.ndarray, float]]:
@@ -84,7 +77,7 @@ def synthetic(args) -> dict:
                          enumerate(load_scene(tmp / "scene", decode=False, progress=False).cameras())}
                 row = {"rig": rig, "seed": seed, "frames": args.frames, "prepare_s": wall,
                        "shared_intrinsics": args.shared_intrinsics, "lens": record["lens"], "halves": record["halves"],
-                       **pose_errors(calibrated(record), truth)}
+                       **pose_differences(calibrated(record), truth)}
                 if args.train:
                     row.update(training_gap(tmp / "scene", tmp / "data", args.train, tmp))
                 rows.append(row)
@@ -133,7 +126,7 @@ def basketball(args) -> dict:
            "halves": record["halves"],
            "reregistered": [c["source"] for c in record["cameras"] if c.get("reregistered")],
            "left_out": [c["source"] for c in record["cameras"] if not c["reliable"]],
-           **pose_errors(calibrated(record), truth)}
+           **pose_differences(calibrated(record), truth)}
     print(_line(row), flush=True)
     return {"rows": [row]}
 
