@@ -81,7 +81,7 @@ def test_compress_writes_one_sequence_and_eval_of_it_weights_the_segments_by_fra
     assert main(["train", str(long_scene), "--out", str(run), *TRAIN, "--segment-frames", "8", "--overlap", "0"]) == 0
     out = tmp_path / "seq.omg4"
     assert main(["compress", str(long_scene), "--model", str(run), "--out", str(out), "--schedule", "tiny",
-                 "--batch-size", "2", "--backend", "cpu"]) == 0
+                 "--batch-size", "2", "--backend", "cpu", "--key-interval", "1"]) == 0  # each segment readable alone
     index = sequence.read_index(out)
     assert [e.frames for e in index.segments] == [(0, 8), (8, 16)]
     assert main(["eval", str(long_scene), "--model", str(out), "--backend", "cpu", "--lpips", "",
@@ -99,6 +99,29 @@ def test_compress_writes_one_sequence_and_eval_of_it_weights_the_segments_by_fra
         assert whole[key] == pytest.approx(sum(n * r[key] for n, r in parts) / total, rel=1e-9)
     assert whole["num_segments"] == 2 and whole["boundary"]["num_views"] == 2  # frames 7 and 8
     assert whole["bitrate_mbps"] == pytest.approx(8 * out.stat().st_size / (16 / 30) / 1e6)
+
+
+def test_info_shows_the_chain_of_a_sequence_with_predicted_segments(segmented_run, long_scene, tmp_path, capsys):
+    """Key interval 2 over three segments: 0 key, 1 predicted from 0, 2 key; info says so in its text and its JSON,
+    with each segment's bytes; --key-interval on one model is refused in one line."""
+    out = tmp_path / "seq.omg4"
+    assert main(["compress", str(long_scene), "--model", str(segmented_run), "--out", str(out), "--schedule", "tiny",
+                 "--batch-size", "2", "--backend", "cpu", "--key-interval", "2"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "3 segments (2 key, 1 predicted; key interval 2)" in text and "predicted from 0" in text
+    assert main(["info", str(out), "--json", str(tmp_path / "info.json")]) == 0
+    info = json.loads((tmp_path / "info.json").read_text())
+    index = sequence.read_index(out)
+    assert info["key_interval"] == 2 and [s["reference"] for s in info["segments"]] == [None, 0, None]
+    assert [s["total_bytes"] for s in info["segments"]] == [e.size for e in index.segments]
+    assert info["segments"][1]["groups"]["MLPs"] == 0 < info["segments"][0]["groups"]["MLPs"]
+    capsys.readouterr()
+    assert main(["compress", str(long_scene), "--model", str(segmented_run / "segment_000"), "--out",
+                 str(tmp_path / "one.omg4"), "--schedule", "tiny", "--key-interval", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--key-interval applies to a segmented training run" in err and "\n" not in err
 
 
 def test_the_library_calls_train_and_compress_a_long_capture_as_the_commands_do(long_scene, tmp_path):

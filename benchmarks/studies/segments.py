@@ -1,12 +1,12 @@
 """Long captures as segments: memory and time against capture length, and quality across boundaries.
 
 ``scaling``: synthetic captures of 60, 120, 240 and 480 frames, each trained and compressed once as a whole
-clip and once as segments of 60 frames (sharing 10): wall time and peak resident memory of the ``omg4 train``
+clip and once as segments of 60 frames (sharing 10, each coded alone): wall time and peak resident memory of the ``omg4 train``
 and ``omg4 compress`` processes (``ru_maxrss`` of each child), and the files' sizes. Every model (the whole clip,
 or each segment) gets the same iterations, so the segments' work grows with the length while one model's does
 not — the point is the memory.
 
-``quality``: one capture trained as segments, compressed with OMG4-M into a sequence file and evaluated on the
+``quality``: one capture trained as segments, compressed with OMG4-M into a sequence file (each segment alone) and evaluated on the
 test camera: PSNR and SSIM of the boundary frames (:func:`omg4.data.segments.near_boundary`) against the
 interior ones, and temporal flicker — the mean absolute difference between consecutive rendered frames minus
 that of the ground truth, over the pairs that touch a boundary frame against the others — and the bitrate.
@@ -18,6 +18,16 @@ Usage::
         [--iterations 1500] [--schedule cpu] [--name basketball]
     python benchmarks/studies/segments.py quality --synthetic 240 [--segment-frames 60] [--overlap 10] [--name synthetic240]
         [--whole-clip] [--compress-from-video]
+
+``prediction``: one capture trained as segments once, then compressed at each ``--key-intervals`` value (1: every
+segment coded alone; K: every K-th, the others predicted from the segment before, ``omg4 compress --key-interval``):
+bytes (per segment too), Mbit/s, PSNR/SSIM overall and on boundary and interior frames, flicker, and the time and
+bytes of a seek to the last segment (decoding its chain back to its key segment in a fresh process state); with
+``--whole-clip`` also one model of the whole capture trained for as many steps as all segments together (or
+``--whole-iterations``).
+
+    python benchmarks/studies/segments.py prediction --synthetic 240 [--key-intervals 1 4 8] [--whole-clip]
+    python benchmarks/studies/segments.py prediction DATA --downscale 2 --segment-frames 24 --overlap 6 --name bb
 
 ``--compress-from-video`` compresses segments trained as usual (taught by the segment before) from the video alone.
 ``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
@@ -81,7 +91,7 @@ def scaling(args) -> None:
             trained = _measure_in_fresh_process(["train", *train, "--out", str(run_dir), *extra])
             compressed = _measure_in_fresh_process(["compress", str(scene), "--model", str(
                 run_dir if extra else run_dir / "model.safetensors"), "--out", str(out), "--schedule", "tiny",
-                "--batch-size", "2", "--backend", "cpu", "--force"])
+                "--batch-size", "2", "--backend", "cpu", "--force", *(["--key-interval", "1"] if extra else [])])
             row = {"frames": frames, "mode": mode, "train": trained, "compress": compressed,
                    "file_bytes": out.stat().st_size}
             rows.append(row)
@@ -147,6 +157,7 @@ def quality(args) -> None:
     independent = ["--independent-segments"] if args.independent_segments else []
     segmented = ["--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), *independent]
     compress_independent = independent or (["--independent-segments"] if args.compress_from_video else [])
+    compress_independent = [*compress_independent, "--key-interval", "1"]  # segments coded alone, as its records
 
     def train_and_compress(run_dir: Path, out: Path, extra: list[str], model: Path, compress_extra: list[str],
                            iterations: int = args.iterations):
@@ -195,6 +206,91 @@ def quality(args) -> None:
     save_record(args.json or RESULTS / f"segments_quality_{args.name}.json", record)
 
 
+def _capture(args) -> Path:
+    """The capture: DATA, or a synthetic one of ``--synthetic`` frames written once in the work folder."""
+    data = Path(args.data) if args.data else Path(args.work) / args.name / "scene"
+    if args.synthetic and not data.exists():
+        subprocess.run([sys.executable, "-m", "omg4", "synth", str(data), "--cameras", str(args.cameras), "--frames",
+                        str(args.synthetic), "--width", str(args.width), "--height", str(args.height)], env=ENV,
+                       check=True, stdout=subprocess.DEVNULL)
+    return data
+
+
+def _omg4(*argv: str) -> float:
+    """Run ``omg4 argv``; its wall seconds."""
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "omg4", *argv], env=ENV, check=True, stdout=subprocess.DEVNULL)
+    return round(time.perf_counter() - t0, 1)
+
+
+def seek_to_last(path: Path) -> dict:
+    """Decode the last segment of a sequence file as a reader seeking there does (its chain back to its key
+    segment, then the model): seconds and segment bytes read."""
+    from omg4.codec.sequence import SegmentDecoder
+    from omg4.models.compact import CompactModel
+
+    t0 = time.perf_counter()
+    decoder = SegmentDecoder(path)
+    last = len(decoder.index.segments) - 1
+    CompactModel(decoder.payload(last))
+    return {"seconds": round(time.perf_counter() - t0, 3), "bytes_read": decoder.bytes_read,
+            "segments_decoded": len(decoder.index.chain(last))}
+
+
+def prediction(args) -> None:
+    from omg4.codec.sequence import read_index
+    from omg4.data import load_scene
+    from omg4.evaluate import evaluate
+    from omg4.models import load_model
+
+    work = Path(args.work) / args.name
+    data = _capture(args)
+    reader = ["--downscale", str(args.downscale)]
+    train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume"]
+    compress = ["--preset", "M", "--schedule", args.schedule, "--force"]
+    run_dir = work / "run"
+    train_s = _omg4("train", str(data), *reader, "--out", str(run_dir), "--iterations", str(args.iterations), *train,
+                    "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap))
+    scene = load_scene(data, downscale=args.downscale, progress=False)
+    record = {"command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]), "data": str(data),
+              "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
+              "iterations_per_segment": args.iterations, "schedule": args.schedule, "train_s": train_s, "rows": []}
+    for key_interval in args.key_intervals:
+        out = work / f"sequence_M_key{key_interval}.omg4"
+        compress_s = _omg4("compress", str(data), *reader, "--model", str(run_dir), "--out", str(out), *compress,
+                           "--key-interval", str(key_interval))
+        model = load_model(out)
+        result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)
+        split = frame_split(model, scene.test_views, model.ranges, model.meta["fps"])
+        index = read_index(out)
+        row = {"key_interval": key_interval, "file_bytes": out.stat().st_size,
+               "segment_bytes": [e.size for e in index.segments],
+               "references": [e.reference for e in index.segments], "bitrate_mbps": result["bitrate_mbps"],
+               "psnr": result["psnr"], "ssim": result["ssim"], "boundary": split["boundary"],
+               "interior": split["interior"], "flicker": split["flicker"], "compress_s": compress_s,
+               "seek_to_last": seek_to_last(out), "num_gaussians": result["num_gaussians"]}
+        record["rows"].append(row)
+        record["segments"] = len(index.segments)
+        print(f"key interval {key_interval}: {row['file_bytes']:,} B ({row['segment_bytes']}), PSNR {row['psnr']:.3f}, "
+              f"boundary {split['boundary']['psnr']:.2f} / interior {split['interior']['psnr']:.2f}, seek "
+              f"{row['seek_to_last']['seconds']:.3f} s", flush=True)
+    if args.whole_clip:  # one model of the whole capture, trained for as many steps as all the segments
+        whole_dir, whole_out = work / "whole", work / "whole_M.omg4"
+        iterations = args.whole_iterations or args.iterations * record["segments"]
+        whole_train_s = _omg4("train", str(data), *reader, "--out", str(whole_dir), "--iterations", str(iterations),
+                              *train)
+        whole_compress_s = _omg4("compress", str(data), *reader, "--model", str(whole_dir / "model.safetensors"),
+                                 "--out", str(whole_out), *compress)
+        model = load_model(whole_out)
+        result = evaluate(model, scene.test_views, storage_bytes=whole_out.stat().st_size, lpips_nets=(),
+                          progress=False)
+        record["whole_clip"] = {"iterations": iterations, "file_bytes": whole_out.stat().st_size,
+                                "bitrate_mbps": result["bitrate_mbps"], "psnr": result["psnr"], "ssim": result["ssim"],
+                                "train_s": whole_train_s, "compress_s": whole_compress_s}
+        print(f"whole clip: {record['whole_clip']['file_bytes']:,} B, PSNR {result['psnr']:.3f}", flush=True)
+    save_record(args.json or RESULTS / f"segments_prediction_{args.name}.json", record)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="mode", required=True)
@@ -217,7 +313,18 @@ def main() -> None:
                    help="also train (for as many steps as all segments together) and compress one model of the whole "
                         "capture and score it on the same boundary and interior frames (a control: how much harder "
                         "those frames are)")
-    for p in (s, q):
+    r = sub.add_parser("prediction")
+    r.add_argument("data", nargs="?")
+    r.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")
+    r.add_argument("--downscale", type=float, default=1.0)
+    r.add_argument("--segment-frames", type=int, default=60)
+    r.add_argument("--overlap", type=int, default=10)
+    r.add_argument("--schedule", default="short")
+    r.add_argument("--name", default="synthetic")
+    r.add_argument("--key-intervals", type=int, nargs="+", default=[1, 8])
+    r.add_argument("--whole-clip", action="store_true", help="also one model of the whole capture")
+    r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
+    for p in (s, q, r):
         p.add_argument("--cameras", type=int, default=6)
         p.add_argument("--width", type=int, default=96)
         p.add_argument("--height", type=int, default=64)
@@ -231,6 +338,8 @@ def main() -> None:
         print(json.dumps(run(args.argv)))
     elif args.mode == "scaling":
         scaling(args)
+    elif args.mode == "prediction":
+        prediction(args)
     else:
         quality(args)
 

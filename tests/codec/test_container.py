@@ -142,8 +142,8 @@ def test_future_version_and_unknown_flags():
     from omg4.codec.container import READABLE_VERSIONS
 
     doc = json.dumps({"header": {}, "sections": []}).encode()
-    newest = max(READABLE_VERSIONS)  # 6: sequences of segments, beyond the single-model FORMAT_VERSION
-    assert newest == FORMAT_VERSION + 1
+    newest = max(READABLE_VERSIONS)  # 7: a predicted segment of a sequence
+    assert newest == FORMAT_VERSION
     with pytest.raises(CorruptFileError, match=f"version {newest + 1} is from a newer"):
         read_container(_crafted(doc, version=newest + 1))
     with pytest.raises(CorruptFileError, match="version 0"):

@@ -217,3 +217,168 @@ def test_the_old_home_of_the_sequence_model_still_answers_with_a_warning():
         assert sequence.SequenceModel is SequenceModel
     with pytest.raises(AttributeError):
         sequence.no_such_name
+
+
+# ---------------------------------------------------------------- predicted segments
+
+
+def _predicted(tmp_path, segments=3, key_interval=3):
+    path = tmp_path / "pred.omg4"
+    forge.valid_sequence(path, segments, 300, codec="compact", codebook_scale=1 / 32, key_interval=key_interval)
+    return path
+
+
+def _reforged(tmp_path, path, header_edit=None, segment_edit=None):
+    """``path`` written again with its index edited, or with one segment's file replaced by
+    ``segment_edit(segment header, [(section, bytes)]) -> (index, bytes)``."""
+    header, sections = read_container(path)
+    if header_edit:
+        header_edit(header)
+    if segment_edit:
+        k, data = segment_edit(*forge.split_container(sections[f"segment.{segment_edit.k:03d}"]))
+        sections[f"segment.{k:03d}"] = data
+    forged = tmp_path / "forged.omg4"
+    write_container(forged, header, sections, version=sequence.SEQUENCE_VERSION)
+    return forged
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda h: h["segments"][1].update(reference=2), "predicted from segment 2"),      # a later segment
+    (lambda h: h["segments"][1].update(reference=1), "predicted from segment 1"),      # itself
+    (lambda h: h["segments"][0].update(reference=-1), "predicted from segment -1"),    # a missing one
+    (lambda h: h["segments"][2].update(reference=0), "predicted from segment 0"),      # not the one before
+    (lambda h: h["segments"][1].update(reference="0"), "predicted from segment '0'"),
+    (lambda h: h["segments"][1].update(reference=True), "predicted from segment True"),
+    (lambda h: h.update(key_interval=2), "segment 2 makes 2 predicted segments in a row, more than the key interval 2"),
+    (lambda h: h.update(key_interval=0), "key interval must be an integer"),
+    (lambda h: h.update(key_interval=2.5), "key interval must be an integer"),
+    (lambda h: h.update(key_interval=10**9), "key interval must be an integer"),
+])
+def test_a_forged_chain_is_a_one_line_error_before_any_segment_is_read(tmp_path, edit, message, monkeypatch):
+    forged = _reforged(tmp_path, _predicted(tmp_path), header_edit=edit)
+    monkeypatch.setattr(sequence, "read_segment", lambda *a: pytest.fail("a segment was read"))
+    with pytest.raises(CorruptFileError, match=message) as err:
+        sequence.read_index(forged)
+    assert "\n" not in str(err.value)
+
+
+def _edited_segment(k, edit):
+    def segment_edit(header, sections):
+        header, sections = edit(json_copy(header), dict(sections))
+        return k, forge.assemble_container(header, list(sections.items()))
+    segment_edit.k = k
+    return segment_edit
+
+
+def json_copy(value):
+    import json
+
+    return json.loads(json.dumps(value))
+
+
+def _weight_the_reference_lacks(header, sections):
+    header["mlp"]["extra.weight"] = [2, 2]
+    header["encodings"]["mlp.extra.weight"] = "reference"
+    sections["mlp.extra.weight"] = b""
+    return header, sections
+
+
+def _with_bytes(header, sections):
+    name = next(n for n, e in header["encodings"].items() if e == "reference")
+    sections[name] = b"\x00" * 16
+    return header, sections
+
+
+def _wrong_shape(header, sections):
+    name = next(n for n, e in header["encodings"].items() if e == "reference" and n.startswith("mlp."))
+    shape = header["mlp"][name[len("mlp."):]]
+    header["mlp"][name[len("mlp."):]] = [shape[0] + 1, *shape[1:]]
+    return header, sections
+
+
+@pytest.mark.parametrize("k, edit, message", [
+    (1, _with_bytes, "holds 16 bytes of its own"),
+    (1, _wrong_shape, "the reference's section has shape"),
+    (2, _weight_the_reference_lacks, "the reference segment has no such section"),
+])
+def test_a_forged_predicted_segment_is_a_one_line_error(tmp_path, k, edit, message):
+    from omg4.models import load_model
+    from omg4.models.summary import describe_sequence
+
+    forged = _reforged(tmp_path, _predicted(tmp_path), segment_edit=_edited_segment(k, edit))
+    with pytest.raises(CorruptFileError, match=message) as err:
+        describe_sequence(forged)
+    assert "\n" not in str(err.value) and f"segment {k}" in str(err.value)
+    with pytest.raises(CorruptFileError, match=message):
+        load_model(forged).segment(k)
+
+
+def test_a_key_segment_that_takes_sections_is_refused(tmp_path):
+    """Segment 1's file under an index that calls it a key segment: it has no reference to take from."""
+    forged = _reforged(tmp_path, _predicted(tmp_path, key_interval=2), header_edit=lambda h: h["segments"][1].update(
+        reference=None))
+    with pytest.raises(CorruptFileError, match="segment 1: .*decode it through its sequence"):
+        sequence.SegmentDecoder(forged).payload(1)
+
+
+def test_a_file_without_chain_fields_is_all_key_segments(tmp_path):
+    """Files written before predicted segments: no ``reference`` and no ``key_interval`` in the index."""
+    path = tmp_path / "old.omg4"
+    sequence.write_sequence(path, _segments(tmp_path), fps=10.0)
+
+    def strip(h):
+        h.pop("key_interval")
+        for seg in h["segments"]:
+            seg.pop("reference")
+
+    old = _reforged(tmp_path, path, header_edit=strip)
+    index = sequence.read_index(old)
+    assert index.key_interval == 1 and [e.reference for e in index.segments] == [None, None, None]
+    assert forge.exercise(old) == "ok"
+
+
+@pytest.mark.parametrize("key_interval", [1, 3])
+def test_forged_predicted_sequences_end_as_one_line_errors_or_decode(tmp_path, key_interval):
+    """The fuzz harness's forged-file classes on a sequence of predicted segments: each case decodes, or is one
+    CorruptFileError, in every reader."""
+    path = _predicted(tmp_path, key_interval=key_interval)
+    refused = 0
+    for i, (kind, data) in enumerate(forge.forged_files(path.read_bytes(), 24, seed=5)):
+        case = tmp_path / f"case{i}.omg4"
+        case.write_bytes(data)
+        try:
+            forge.exercise(case)
+        except CorruptFileError as exc:
+            assert "\n" not in str(exc)
+            refused += 1
+    assert refused > 10
+
+
+@pytest.mark.parametrize("codec", ["ans", "paper"])
+def test_a_predicted_segment_decodes_to_the_values_it_was_written_with(tmp_path, codec):
+    """Lossless codecs: a segment whose MLPs and non-rotation codebooks are its reference's decoded ones decodes,
+    with that reference, to exactly the payload written (in the codec's order); the taken sections cost no bytes,
+    and the file is smaller than the same payload coded alone by at least their bytes."""
+    import numpy as np
+
+    from omg4.codec.payload import decode_payload, encode_payload, reference_sections
+    from omg4.codec.sections import canonical_order
+
+    from tests.codec.test_payload import assert_payload_equal
+
+    encode_payload(forge.valid_payload(300, seed=0, codebook_scale=1 / 32), tmp_path / "key.omg4", codec=codec)
+    reference = reference_sections(decode_payload(tmp_path / "key.omg4"))
+    p = forge.valid_payload(250, seed=1, codebook_scale=1 / 32)
+    rng = np.random.default_rng(1)
+    p.mlp = {name: reference[f"mlp.{name}"] for name in p.mlp}
+    for attr, qa in p.attributes.items():
+        if attr not in p.rotations:
+            qa.codebooks = [reference[f"svq.{attr}.codebook{j}"] for j in range(len(qa.codebooks))]
+            qa.indices = [rng.integers(0, len(cb), 250) for cb in qa.codebooks]
+    predicted = encode_payload(p, tmp_path / "p.omg4", codec=codec, reference=reference)
+    alone = encode_payload(p, tmp_path / "alone.omg4", codec=codec)
+    expected = p.permuted(canonical_order(p.xyz)) if codec == "ans" else p
+    assert_payload_equal(decode_payload(tmp_path / "p.omg4", reference), expected.to_fp16())
+    taken = [name for name in reference if name in predicted]
+    assert taken and all(predicted[name] == 0 for name in taken)
+    assert sum(predicted.values()) <= sum(alone.values()) - sum(alone[name] for name in taken) + 64

@@ -50,7 +50,7 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_
     out = tmp_path / "new" / "seq.omg4"  # into a folder that does not exist yet
     report = compress_segments(root / "run", lambda a, b: load_scene(root / "scene", frames=range(a, b),
                                                                       progress=False), cfg, out, progress=False,
-                               log=lambda *_: None, teach=teach)
+                               log=lambda *_: None, teach=teach, key_interval=1)
     index = read_index(out)
     assert [e.frames for e in index.segments] == [(0, 6), (4, 10)]
     assert [e.time_range for e in index.segments] == [pytest.approx((0.0, 0.2)), pytest.approx((4 / 30, 10 / 30))]
@@ -83,3 +83,89 @@ def test_leftovers_of_an_interrupted_compression_do_not_block_the_next(segmented
     compress_segments(root / "run", lambda a, b: load_scene(root / "scene", frames=range(a, b), progress=False), cfg,
                       out, progress=False, log=lambda *_: None)
     assert len(read_index(out).segments) == 2 and not leftover.exists()
+
+
+@pytest.fixture(scope="module")
+def three_segments(tmp_path_factory):
+    """A segmented run of 14 frames as three segments of 6 sharing 2, and its scenes."""
+    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
+
+    root = tmp_path_factory.mktemp("three")
+    write_synthetic_scene(root / "scene", SynthConfig(num_cameras=4, num_frames=14, width=48, height=32,
+                                                      num_points=300), progress=False)
+    cfg = make_config("cpu-small", iterations=6, batch_size=1, checkpoint_interval=0, backend="cpu",
+                      num_random_points=300)
+    plan = segment_plan(plan_segments(14, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
+    write_plan(root / "run", plan)
+
+    def scenes(a, b):
+        return load_scene(root / "scene", frames=range(a, b), progress=False)
+
+    train_segments(root / "run", plan, cfg, scenes, lambda scene: initial_points(scene, "random", cfg),
+                   log=lambda *_: None)
+    return root, scenes
+
+
+def _sequence(three_segments, tmp_path, key_interval: int):
+    root, scenes = three_segments
+    out = tmp_path / f"seq{key_interval}.omg4"
+    compress_segments(root / "run", scenes, CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu"), out,
+                      progress=False, log=lambda *_: None, key_interval=key_interval)
+    return out
+
+
+def test_predicted_segments_take_the_mlps_and_codebooks_of_the_one_before(three_segments, tmp_path):
+    """With a key interval of 3 segments 1 and 2 are predicted: each stores none of its MLP weights, none of its
+    non-rotation codebooks (which decode to the segment before's decoded values bit for bit) and no camera rig, and
+    each is smaller than the same segment coded alone; alone a predicted segment does not decode."""
+    import numpy as np
+
+    from omg4.codec.container import read_versioned
+    from omg4.codec.payload import decode_payload
+    from omg4.codec.sequence import SegmentDecoder
+    from omg4.errors import CorruptFileError
+
+    predicted, alone = _sequence(three_segments, tmp_path, 3), _sequence(three_segments, tmp_path, 1)
+    index = read_index(predicted)
+    assert index.key_interval == 3 and [e.reference for e in index.segments] == [None, 0, 1]
+    assert [e.reference for e in read_index(alone).segments] == [None, None, None]
+    decoded = [SegmentDecoder(predicted).payload(k) for k in range(3)]
+    for k in (1, 2):
+        version, header, _ = read_versioned(read_segment(predicted, index.segments[k]))
+        assert version == 7
+        taken = sorted(name for name, e in header["encodings"].items() if e == "reference")
+        mlp = sorted(f"mlp.{name}" for name in header["mlp"])
+        codebooks = sorted(f"svq.{a}.codebook{j}" for a, shapes in header["attributes"].items()
+                           if a not in header["rotations"] for j in range(len(shapes)))
+        assert mlp and codebooks and taken == sorted(mlp + codebooks)
+        for name, w in decoded[k].mlp.items():
+            assert np.array_equal(w, decoded[k - 1].mlp[name]) and w.dtype == np.float16
+        for attr, qa in decoded[k].attributes.items():
+            if attr not in header["rotations"]:
+                assert all(np.array_equal(a, b) for a, b in zip(qa.codebooks, decoded[k - 1].attributes[attr].codebooks))
+        assert index.segments[k].size < read_index(alone).segments[k].size
+        assert "rig" not in decoded[k].meta and "rig" in decoded[0].meta  # the sequence's cameras: segment 0's
+        with pytest.raises(CorruptFileError, match="decode it through its sequence"):
+            decode_payload(read_segment(predicted, index.segments[k]))
+    assert read_segment(predicted, index.segments[0]) == read_segment(alone, read_index(alone).segments[0])
+
+
+def test_a_seek_decodes_only_the_chain_back_to_its_key_segment(three_segments, tmp_path):
+    """Key interval 2 over three segments: 0 key, 1 predicted from 0, 2 key. Decoding segment 2 reads its bytes
+    alone; segment 1 reads segment 0's and its own; playing 0, 1, 2 in order reads each segment once."""
+    from omg4.codec.sequence import SegmentDecoder
+
+    out = _sequence(three_segments, tmp_path, 2)
+    index = read_index(out)
+    sizes = [e.size for e in index.segments]
+    assert [e.reference for e in index.segments] == [None, 0, None]
+    seek = SegmentDecoder(out)
+    seek.payload(2)
+    assert seek.bytes_read == sizes[2]
+    seek = SegmentDecoder(out)
+    seek.payload(1)
+    assert seek.bytes_read == sizes[0] + sizes[1]
+    play = SegmentDecoder(out)
+    for k in range(3):
+        play.payload(k)
+    assert play.bytes_read == sum(sizes)

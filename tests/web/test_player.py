@@ -25,7 +25,17 @@ from omg4.testing import forge
 DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {
   const bytes = new Uint8Array(await (await fetch('model.omg4', { cache: 'no-store' })).arrayBuffer());
   const p = await decodePayload(bytes);
-  const hex = async (a) => Array.from(new Uint8Array(await crypto.subtle.digest('SHA-256', a))).map(
+  DIGEST_BODY
+})"""
+# the same of segment K of an exported sequence, decoded by the player's chain (sequence.js SegmentPayloads)
+SEGMENT_DIGESTS = """import('./sequence.js').then(async ({ SegmentPayloads }) => {
+  const listing = await (await fetch('sequence.json', { cache: 'no-store' })).json();
+  const segments = listing.segments.map((s) => ({ url: s.file, reference: s.reference }));
+  const fetchBytes = async (url) => new Uint8Array(await (await fetch(url, { cache: 'no-store' })).arrayBuffer());
+  const p = await new SegmentPayloads(segments, fetchBytes).payload(SEGMENT);
+  DIGEST_BODY
+})"""
+DIGEST_BODY = """const hex = async (a) => Array.from(new Uint8Array(await crypto.subtle.digest('SHA-256', a))).map(
     (b) => b.toString(16).padStart(2, '0')).join('');
   const out = { xyz: await hex(p.xyz), t: await hex(p.t) };
   for (const [k, a] of Object.entries(p.attributes)) {
@@ -34,14 +44,20 @@ DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {
   }
   for (const [k, q] of Object.entries(p.quaternions)) out[`quat.${k}`] = await hex(q);
   for (const [k, m] of Object.entries(p.mlp)) out[`mlp.${k}`] = await hex(m.values);
-  return out;
-})"""
+  return out;"""
+DIGESTS, SEGMENT_DIGESTS = (page.replace("DIGEST_BODY", DIGEST_BODY) for page in (DIGESTS, SEGMENT_DIGESTS))
 
 
-def _python_digests(path) -> dict[str, str]:
-    """The same digests of the Python decoder's arrays."""
-    header, _ = read_container(path)
-    payload = decode_payload(path)
+def _python_digests(path, segment: int | None = None) -> dict[str, str]:
+    """The same digests of the Python decoder's arrays (of one segment of a sequence file, decoded after its chain)."""
+    from omg4.codec.sequence import SegmentDecoder, read_index, read_segment
+
+    if segment is None:
+        header, _ = read_container(path)
+        payload = decode_payload(path)
+    else:
+        header, _ = read_container(read_segment(path, read_index(path).segments[segment]))
+        payload = SegmentDecoder(path).payload(segment)
     digest = lambda a: hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()  # noqa: E731
     fp16 = lambda a: digest(np.asarray(a, np.float16).view(np.uint16))  # noqa: E731
     out = {"xyz": fp16(payload.xyz), "t": fp16(payload.t)}
@@ -71,6 +87,20 @@ def test_the_page_decodes_every_value_as_the_python_decoder(chromium, tmp_path, 
         open_player(chromium, f"{url}/index.html?ui=0&time=0")  # paused: no frames compete with the decoding
         decoded = chromium.evaluate(DIGESTS)
     assert decoded == expected
+
+
+def test_the_page_decodes_a_predicted_sequence_as_the_python_decoder(chromium, tmp_path):
+    """Segments 1 and 2 predicted from the one before (key interval 3): the player's chain decodes every value of
+    each as the Python decoder does, the values taken from the reference included."""
+    model = tmp_path / "seq.omg4"
+    forge.valid_sequence(model, 3, 400, codec="compact", codebook_scale=0.25, key_interval=3)
+    export_web(tmp_path / "web", model)
+    listing = json.loads((tmp_path / "web" / "sequence.json").read_text())
+    assert listing["key_interval"] == 3 and [s["reference"] for s in listing["segments"]] == [None, 0, 1]
+    with served(tmp_path / "web") as url:
+        open_player(chromium, f"{url}/index.html?ui=0&time=0")
+        for k in (2, 1, 0):
+            assert chromium.evaluate(SEGMENT_DIGESTS.replace("SEGMENT", str(k))) == _python_digests(model, k), k
 
 
 def _canvas(browser) -> np.ndarray:
@@ -147,11 +177,14 @@ def test_export_web_refuses_what_the_player_cannot_play(tmp_path, capsys):
     assert not (tmp_path / "web").exists()
 
 
-def test_a_sequence_plays_segment_by_segment_crossfading_at_boundaries(chromium, tmp_path, tiny_scene_dir):
+@pytest.mark.parametrize("key_interval", [1, 2], ids=["key-segments", "predicted"])
+def test_a_sequence_plays_segment_by_segment_crossfading_at_boundaries(chromium, tmp_path, tiny_scene_dir,
+                                                                       key_interval):
     """Three segments of 1 s sharing 0.2 s (forge.valid_sequence): each fetched as playback reaches it; inside a
-    shared range both drawn and crossfaded as omg4's renderer blends them (omg4 render of the sequence file)."""
+    shared range both drawn and crossfaded as omg4's renderer blends them (omg4 render of the sequence file). With
+    a key interval of 2 segment 1 is predicted from segment 0 and segment 2 is a key segment again."""
     sequence = tmp_path / "seq.omg4"
-    forge.valid_sequence(sequence, 3, 600, codec="compact", codebook_scale=0.25)
+    forge.valid_sequence(sequence, 3, 600, codec="compact", codebook_scale=0.25, key_interval=key_interval)
     assert main(["export", str(sequence), "--format", "web", "--data", str(tiny_scene_dir), "--out",
                  str(tmp_path / "web")]) == 0
     index = json.loads((tmp_path / "web" / "sequence.json").read_text())

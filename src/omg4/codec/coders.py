@@ -61,8 +61,20 @@ class Coder:
         every codebook, then every index stream."""
         sections = {f"svq.{name}.codebook{j}": self.float_section(cb) for j, cb in enumerate(qa.codebooks)}
         for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            sections[f"svq.{name}.index{j}"] = (self.name, encode_indices(ix, cb.shape[0], self.name))
+            sections[f"svq.{name}.index{j}"] = self.index_section(ix, cb.shape[0])
         return [list(cb.shape) for cb in qa.codebooks], sections
+
+    def referenced_attribute(self, name: str, qa, encoding: str) -> tuple[list[list[int]], dict[str, Section]]:
+        """Attribute ``name`` of a predicted segment whose codebooks are its reference's: the codebook sections as
+        ``encoding`` (no bytes), the indices into those codebooks as they are."""
+        sections = {f"svq.{name}.codebook{j}": (encoding, b"") for j in range(len(qa.codebooks))}
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            sections[f"svq.{name}.index{j}"] = self.index_section(ix, cb.shape[0])
+        return [list(cb.shape) for cb in qa.codebooks], sections
+
+    def index_section(self, indices: np.ndarray, num_symbols: int) -> Section:
+        """An index stream into a codebook of ``num_symbols`` rows, coded as they are."""
+        return self.name, encode_indices(indices, num_symbols, self.name)
 
     def mlp_weight(self, w: np.ndarray, precision) -> Section:
         return self.float_section(w)
@@ -148,6 +160,10 @@ class CompactCoder(Coder):
         if quat is not None and (not slots or len(quat) < sum(len(b) for _, b in slots.values())):
             return None, {f"quat.{name}": (quaternions.encoding(precision.rotations), quat)}
         return shapes, slots
+
+    def index_section(self, indices: np.ndarray, num_symbols: int) -> Section:
+        """Indices as they are: the "ranks" encoding (an ANS stream) of codewords in the order given."""
+        return "ranks", encode_indices(indices, num_symbols, "ans")
 
     def mlp_weight(self, w: np.ndarray, precision) -> Section:
         if w.ndim == 2 and w.size and precision.weights <= weights.BITS:

@@ -32,16 +32,19 @@ from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAGIC = b"\x89OMG4\r\n\x1a"
-FORMAT_VERSION = 5
+FORMAT_VERSION = 7
 #: versions this build reads: 1 (plain JSON; the "ans" and "paper" codecs still write it, so older omg4
 #: builds read those files), 2 (deflated JSON; the first "compact" codec) and 3 (deflated JSON; the "compact"
 #: codec with grid-coded positions and time centres, which builds reading only 1-2 cannot decode) and 4 (version 3
 #: whose MLP weights may be coded in fewer than 8 bits, which builds reading only 1-3 cannot decode) and 5
 #: (version 4 whose grid positions may carry exact corrections, which builds reading only 1-4 cannot decode); 6 is
-#: a sequence of segments, each section a whole single-model file (:mod:`omg4.codec.sequence`)
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
+#: a sequence of segments, each section a whole single-model file (:mod:`omg4.codec.sequence`); 7 is a predicted
+#: segment of a sequence: a single model some of whose sections are its reference segment's
+#: (:data:`omg4.codec.payload.REFERENCE`), which builds reading only 1-6 cannot decode
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
 SEQUENCE_VERSION = 6
-DEFLATED_VERSIONS = (2, 3, 4, 5, 6)
+PREDICTED_VERSION = 7
+DEFLATED_VERSIONS = (2, 3, 4, 5, 6, 7)
 MAX_JSON_BYTES = 16 * 1024 * 1024
 MAX_SECTION_NAME = 200
 PREFIX = struct.Struct("<8sHHII")  # magic, version, flags, json length, json crc32

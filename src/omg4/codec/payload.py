@@ -51,13 +51,16 @@ import numpy as np
 from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import decode_first_use_indices, decode_sorted_codebook
 from omg4.codec.coders import CODERS, Coder
-from omg4.codec.container import SEQUENCE_VERSION, read_versioned, write_container
+from omg4.codec.container import PREDICTED_VERSION, SEQUENCE_VERSION, read_versioned, write_container
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices
 from omg4.codec.rig import check_rig
 from omg4.codec.sections import decode_f16, decode_xyz_morton
 from omg4.errors import CorruptFileError, OMG4Error
 
 KIND = "omg4-compressed-model"
+#: the encoding of a section a predicted segment takes from its reference segment: no bytes, the reference's decoded
+#: array (:func:`reference_sections`; docs/file-format.md §8a)
+REFERENCE = "reference"
 #: the built-in payload codecs, the default first (module docstring; every known one: :data:`omg4.codec.coders.CODERS`)
 CODECS = tuple(CODERS)
 MAX_GAUSSIANS = 1 << 27
@@ -215,10 +218,33 @@ class CompressedPayload:
 # ------------------------------------------------------------------------ encoding
 def container_version(codec: object, encodings: object = None) -> int:
     """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``):
-    :meth:`omg4.codec.coders.Coder.version` of its coder, 1 for an unknown one. Any ``encodings`` value is
-    accepted (a forged header's too)."""
+    :data:`~omg4.codec.container.PREDICTED_VERSION` for a predicted segment (a section encoded as
+    :data:`REFERENCE`), else :meth:`omg4.codec.coders.Coder.version` of its coder, 1 for an unknown one. Any
+    ``encodings`` value is accepted (a forged header's too)."""
+    if isinstance(encodings, dict) and REFERENCE in encodings.values():
+        return PREDICTED_VERSION
     coder = CODERS.get(codec) if isinstance(codec, str) else None
     return coder.version(encodings) if coder is not None else 1
+
+
+def reference_sections(p: CompressedPayload) -> dict[str, np.ndarray]:
+    """The decoded arrays of ``p`` (a decoder's output) that a segment predicted from it may take as its own, by
+    section name (docs/file-format.md §8a): every MLP weight (``mlp.NAME``) and every codebook of the
+    sub-vector-quantized attributes that are not rotations (``svq.ATTR.codebookJ``; a rotation may be stored one
+    quaternion per Gaussian, which is no codebook)."""
+    out = {f"mlp.{name}": w for name, w in p.mlp.items()}
+    for attr, qa in p.attributes.items():
+        if attr not in p.rotations:
+            out.update({f"svq.{attr}.codebook{j}": cb for j, cb in enumerate(qa.codebooks)})
+    return out
+
+
+def _takes_codebooks(qa: QuantizedAttribute, attr: str, reference: dict[str, np.ndarray]) -> bool:
+    """Whether every codebook of ``qa`` (fp16) is the reference's of the same slot, value for value."""
+    names = [f"svq.{attr}.codebook{j}" for j in range(len(qa.codebooks))]
+    return (f"svq.{attr}.codebook{len(names)}" not in reference and all(
+        n in reference and reference[n].shape == cb.shape and np.array_equal(reference[n], cb)
+        for n, cb in zip(names, qa.codebooks)))
 
 
 def _check_payload(p: CompressedPayload, coder: Coder, precision: CompactGrids) -> CompressedPayload:
@@ -273,9 +299,13 @@ def check_codec(codec: str, precision: CompactGrids = CompactGrids()) -> None:
 
 
 def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = CODECS[0],
-                   precision: CompactGrids = CompactGrids()) -> dict[str, int]:
+                   precision: CompactGrids = CompactGrids(),
+                   reference: dict[str, np.ndarray] | None = None) -> dict[str, int]:
     """Write ``p`` to ``path`` (atomically) with ``codec`` from :data:`CODECS`; ``precision``: the "compact" codec's
-    grids (any other is refused with another codec).
+    grids (any other is refused with another codec). ``reference``: the :func:`reference_sections` of the segment
+    this one is predicted from; every MLP weight and every attribute's codebooks equal to the reference's are
+    stored as :data:`REFERENCE` (no bytes; the attribute's indices then index the reference's codebooks), which
+    makes the file a predicted segment that decodes only with that reference.
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
@@ -294,15 +324,21 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     written: dict[str, tuple[str, bytes]] = {"xyz": coder.positions(q, precision), "t": coder.times(q, precision)}
     shapes: dict[str, list[list[int]]] = {}
     stored_as_quaternions: list[str] = []
+    reference = reference or {}
     for attr, qa in q.attributes.items():
-        attr_shapes, attr_sections = coder.attribute(attr, qa, q, precision)
+        if attr not in q.rotations and _takes_codebooks(qa, attr, reference):
+            attr_shapes, attr_sections = coder.referenced_attribute(attr, qa, REFERENCE)
+        else:
+            attr_shapes, attr_sections = coder.attribute(attr, qa, q, precision)
         written.update(attr_sections)
         if attr_shapes is None:
             stored_as_quaternions.append(attr)
         else:
             shapes[attr] = attr_shapes
     for name, w in q.mlp.items():
-        written[f"mlp.{name}"] = coder.mlp_weight(w, precision)
+        same = reference.get(f"mlp.{name}")
+        written[f"mlp.{name}"] = ((REFERENCE, b"") if same is not None and same.shape == w.shape
+                                  and np.array_equal(same, w) else coder.mlp_weight(w, precision))
     sections = {name: data for name, (_, data) in written.items()}
     encodings = {name: enc for name, (enc, _) in written.items()}
     header = {
@@ -321,7 +357,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         check_sections(header, sizes)
     except CorruptFileError as exc:
         raise OMG4Error(f"this model cannot be stored: {exc}") from None
-    total = write_container(path, header, sections, version=coder.version(encodings))
+    total = write_container(path, header, sections, version=container_version(codec, encodings))
     sizes["header"] = total - sum(sizes.values())
     return sizes
 
@@ -400,8 +436,10 @@ def check_sections(header: dict, section_sizes: dict[str, int]) -> None:
         raise CorruptFileError("section list does not match the header")
 
 
-def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
+def decode_payload(source: str | os.PathLike | bytes,
+                   reference: dict[str, np.ndarray] | None = None) -> CompressedPayload:
     """Read an ``.omg4`` file (path or bytes) written by :func:`encode_payload`; fp16 floats, int64 indices.
+    ``reference``: a predicted segment's reference, the :func:`reference_sections` of its decoded payload.
 
     Any damage raises a one-line :class:`CorruptFileError` naming the file and section.
     """
@@ -413,12 +451,30 @@ def decode_payload(source: str | os.PathLike | bytes) -> CompressedPayload:
                             "omg4.load_model (or any omg4 command)")
         raise CorruptFileError(f"{label}: a single-model header and a sequence's version or layout")
     try:
-        return _decode_sections(header, sections)
+        return _decode_sections(header, sections, reference)
     except CorruptFileError as exc:
         raise CorruptFileError(f"{label}: {exc}") from None
 
 
-def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayload:
+def _referenced(name: str, data: bytes, shape: tuple[int, ...] | None, reference: dict[str, np.ndarray] | None
+                ) -> np.ndarray:
+    """Section ``name`` of a predicted segment, taken from its reference (one-line errors on anything forged)."""
+    if reference is None:
+        raise CorruptFileError("a predicted segment takes its sections from the segment before: decode it through "
+                               "its sequence file")
+    if data:
+        raise CorruptFileError(f"a section taken from the reference holds {len(data)} bytes of its own")
+    if name not in reference:
+        raise CorruptFileError("the reference segment has no such section")
+    array = reference[name]
+    if shape is None or tuple(array.shape) != tuple(shape):
+        raise CorruptFileError(f"the reference's section has shape {tuple(array.shape)}, the header declares "
+                               f"{None if shape is None else tuple(shape)}")
+    return np.array(array, np.float16)
+
+
+def _decode_sections(header: dict, sections: dict[str, bytes],
+                     reference: dict[str, np.ndarray] | None = None) -> CompressedPayload:
     check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
     coder = CODERS[codec]
@@ -428,6 +484,8 @@ def _decode_sections(header: dict, sections: dict[str, bytes]) -> CompressedPayl
         """Decode section ``name``; each encoding is accepted only for the section kind it was made for."""
         try:
             data, encoding = sections[name], enc[name]
+            if encoding == REFERENCE and not num_symbols and name.split(".")[0] in ("mlp", "svq"):
+                return _referenced(name, data, shape, reference)
             if num_symbols:
                 if encoding not in coder.index_encodings:
                     raise CorruptFileError(f"encoding {encoding!r} is not an index encoding of the codec {codec!r}")

@@ -1,11 +1,18 @@
-"""A long capture as one ``.omg4`` sequence file: one compressed model per segment, each readable alone.
+"""A long capture as one ``.omg4`` sequence file: one compressed model per segment, seekable by key segments.
 
 Layout: an ``.omg4`` container of version :data:`SEQUENCE_VERSION` (``docs/file-format.md`` §8) whose
-header is the index — ``{"layout": "sequence", "fps", "segments": [{"frames": [start, stop],
-"time_range": [t0, t1]}, ...], "meta"}`` — and whose sections ``segment.000``, ``segment.001``, … each
-hold the bytes of a complete single-model ``.omg4`` file. The container's checksummed section table gives
-every segment's size and CRC-32, so its byte offset follows from the table: a reader takes the fixed prefix
+header is the index — ``{"layout": "sequence", "fps", "key_interval", "segments": [{"frames": [start, stop],
+"time_range": [t0, t1], "reference": k or null}, ...], "meta"}`` — and whose sections ``segment.000``,
+``segment.001``, … each hold the bytes of a single-model ``.omg4`` file. The container's checksummed section table
+gives every segment's size and CRC-32, so its byte offset follows from the table: a reader takes the fixed prefix
 and the index, then seeks to one segment and reads only its bytes (:func:`read_segment`).
+
+A key segment (``reference`` null) is a complete model. A predicted segment (``reference`` = the index of the
+segment just before it, beyond the paper) takes its appearance MLPs and codebooks from that segment's decoded
+values (:func:`omg4.codec.payload.reference_sections`), so it decodes only after it
+(:class:`SegmentDecoder`). At most ``key_interval - 1`` predicted segments follow a key segment, so a reader
+seeking to any time decodes at most ``key_interval`` segments. A file without these fields (written before
+predicted segments) is all key segments.
 
 The index is bounded and validated like every header: at most :data:`MAX_SEGMENTS` segments, one section
 per segment, frame ranges and time ranges that increase, and neighbours only sharing time — a forged
@@ -20,20 +27,26 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 from omg4.codec.container import (PREFIX, SEQUENCE_VERSION, ContainerSource, crc32, has_magic, read_container,
                                   read_prefix_and_table, write_container)
+from omg4.codec.payload import CompressedPayload, decode_payload, reference_sections
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAX_SEGMENTS = 100_000
 LAYOUT = "sequence"
+DEFAULT_KEY_INTERVAL = 8
+"""Segments from one key segment to the next unless told (``omg4 compress --key-interval``): a seek decodes at most
+this many; docs/results.md, "Predicted segments", measures the choice."""
 
 
 @dataclasses.dataclass(frozen=True)
 class SegmentEntry:
-    """One segment of a sequence: its capture frames ``[start, stop)``, time range ``[t0, t1)``, and where its bytes
-    lie (``offset``, ``size``, ``crc``) in the file."""
+    """One segment of a sequence: its capture frames ``[start, stop)``, time range ``[t0, t1)``, where its bytes
+    lie (``offset``, ``size``, ``crc``) in the file, and the segment it is predicted from (None: a key segment)."""
 
     index: int
     frames: tuple[int, int]
@@ -41,16 +54,27 @@ class SegmentEntry:
     offset: int
     size: int
     crc: int
+    reference: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
 class SequenceIndex:
-    """A sequence file's index: its segments, frame rate, metadata and total size."""
+    """A sequence file's index: its segments, frame rate, metadata, total size and key interval (the most segments
+    a reader decodes to show any one)."""
 
     segments: tuple[SegmentEntry, ...]
     fps: float
     meta: dict
     total_bytes: int
+    key_interval: int = 1
+
+    def chain(self, k: int) -> list[int]:
+        """The segments to decode, in order, to decode segment ``k``: its key segment, then each predicted one up to
+        ``k``."""
+        chain = [k]
+        while self.segments[chain[-1]].reference is not None:
+            chain.append(self.segments[chain[-1]].reference)
+        return chain[::-1]
 
     @property
     def time_range(self) -> tuple[float, float]:
@@ -68,11 +92,17 @@ class SequenceIndex:
 
 
 def write_sequence(path: str | os.PathLike, segments: list[tuple[tuple[int, int], tuple[float, float], bytes]], *,
-                   fps: float, meta: dict | None = None) -> int:
+                   fps: float, meta: dict | None = None, references: list[int | None] | None = None,
+                   key_interval: int = 1) -> int:
     """Write a sequence file: ``segments`` as (frames [start, stop), time range, bytes of its ``.omg4`` file), in
-    order. Returns the file size."""
-    index = [{"frames": list(frames), "time_range": [float(t) for t in times]} for frames, times, _ in segments]
-    header = {"layout": LAYOUT, "fps": float(fps), "segments": index, "meta": meta or {}}
+    order; ``references``: each segment's reference (None: a key segment; default all), at most ``key_interval - 1``
+    predicted in a row. Returns the file size."""
+    references = references or [None] * len(segments)
+    if len(references) != len(segments):
+        raise OMG4Error(f"{len(references)} references for {len(segments)} segments")
+    index = [{"frames": list(frames), "time_range": [float(t) for t in times], "reference": ref}
+             for (frames, times, _), ref in zip(segments, references)]
+    header = {"layout": LAYOUT, "fps": float(fps), "key_interval": key_interval, "segments": index, "meta": meta or {}}
     _check_index(str(path), header, len(segments))
     return write_container(path, header, {f"segment.{i:03d}": data for i, (_, _, data) in enumerate(segments)},
                            version=SEQUENCE_VERSION)
@@ -106,10 +136,10 @@ def read_index(path: str | os.PathLike) -> SequenceIndex:
     entries, offset = [], json_end
     for i, ((name, size, crc), seg) in enumerate(zip(table, header["segments"])):
         entries.append(SegmentEntry(i, tuple(seg["frames"]), tuple(float(t) for t in seg["time_range"]), offset, size,
-                                    crc))
+                                    crc, seg.get("reference")))
         offset += size
     meta = header.get("meta") if isinstance(header.get("meta"), dict) else {}
-    return SequenceIndex(tuple(entries), float(header["fps"]), meta, src.size)
+    return SequenceIndex(tuple(entries), float(header["fps"]), meta, src.size, header.get("key_interval", 1))
 
 
 def _check_index(label: str, header: dict, sections: int) -> None:
@@ -121,7 +151,10 @@ def _check_index(label: str, header: dict, sections: int) -> None:
     fps = header.get("fps")
     if not (isinstance(fps, (int, float)) and not isinstance(fps, bool) and math.isfinite(fps) and fps > 0):
         raise CorruptFileError(f"{label}: the sequence's frame rate must be a positive number")
-    previous = None
+    key_interval = header.get("key_interval", 1)
+    if type(key_interval) is not int or not 1 <= key_interval <= MAX_SEGMENTS:
+        raise CorruptFileError(f"{label}: the key interval must be an integer from 1 to {MAX_SEGMENTS}")
+    previous, predicted_in_a_row = None, 0
     for i, seg in enumerate(segments):
         frames, times = (seg.get("frames"), seg.get("time_range")) if isinstance(seg, dict) else (None, None)
         ok = (isinstance(frames, list) and len(frames) == 2 and all(type(f) is int and 0 <= f < 2**40 for f in frames)
@@ -130,6 +163,14 @@ def _check_index(label: str, header: dict, sections: int) -> None:
               and times[0] < times[1])
         if not ok:
             raise CorruptFileError(f"{label}: segment {i} has an invalid frame or time range")
+        reference = seg.get("reference")
+        if reference is not None and not (type(reference) is int and i >= 1 and reference == i - 1):
+            raise CorruptFileError(f"{label}: segment {i} is predicted from segment {reference!r}; a segment may only be "
+                                   "predicted from the one just before it")
+        predicted_in_a_row = 0 if reference is None else predicted_in_a_row + 1
+        if predicted_in_a_row >= key_interval:
+            raise CorruptFileError(f"{label}: segment {i} makes {predicted_in_a_row} predicted segments in a row, more "
+                                   f"than the key interval {key_interval} allows")
         if previous is not None:
             (f0, f1), (t0, t1) = previous
             if not (frames[0] > f0 and frames[1] > f1 and frames[0] <= f1 and times[0] > t0 and times[1] > t1
@@ -156,6 +197,44 @@ def read_segment(path: str | os.PathLike, entry: SegmentEntry) -> bytes:
     return data
 
 
+class SegmentDecoder:
+    """Decodes the segments of a sequence file, each predicted one after the segments of its chain
+    (:meth:`SequenceIndex.chain`); the last ``keep`` decoded payloads are held, so playing forward decodes every
+    segment once and a seek decodes at most the key interval. ``bytes_read`` counts the segment bytes read.
+    Thread-safe (a player decodes ahead on another thread)."""
+
+    def __init__(self, path: str | os.PathLike, index: SequenceIndex | None = None, keep: int = 3):
+        self.path = path
+        self.index = index or read_index(path)
+        self.keep = keep
+        self.bytes_read = 0
+        self._decoded: OrderedDict[int, CompressedPayload] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def payload(self, k: int) -> CompressedPayload:
+        """Segment ``k``'s decoded payload."""
+        with self._lock:
+            chain = self.index.chain(k)
+            start = max((j for j, s in enumerate(chain) if s in self._decoded), default=0)
+            payload = None
+            for s in chain[start:]:
+                payload = self._decoded.get(s) or self._decode(s, payload)
+                self._decoded[s] = payload
+                self._decoded.move_to_end(s)
+                while len(self._decoded) > self.keep:
+                    self._decoded.popitem(last=False)
+            return payload
+
+    def _decode(self, k: int, reference: CompressedPayload | None) -> CompressedPayload:
+        entry = self.index.segments[k]
+        data = read_segment(self.path, entry)
+        self.bytes_read += len(data)
+        try:
+            return decode_payload(data, None if reference is None else reference_sections(reference))
+        except CorruptFileError as exc:
+            raise CorruptFileError(f"{self.path}: segment {k}: {str(exc).removeprefix('data: ')}") from None
+
+
 def read_sequence(path: str | os.PathLike) -> tuple[SequenceIndex, list[bytes]]:
     """The index and every segment's bytes (the whole file, verified)."""
     index = read_index(path)
@@ -163,8 +242,8 @@ def read_sequence(path: str | os.PathLike) -> tuple[SequenceIndex, list[bytes]]:
     return index, [sections[f"segment.{i:03d}"] for i in range(len(index.segments))]
 
 
-__all__ = ["SEQUENCE_VERSION", "MAX_SEGMENTS", "SegmentEntry", "SequenceIndex", "write_sequence", "is_sequence",
-           "read_index", "read_segment", "read_sequence"]
+__all__ = ["SEQUENCE_VERSION", "MAX_SEGMENTS", "DEFAULT_KEY_INTERVAL", "SegmentDecoder", "SegmentEntry", "SequenceIndex", "write_sequence",
+           "is_sequence", "read_index", "read_segment", "read_sequence"]
 
 
 def __getattr__(name: str):

@@ -15,6 +15,7 @@ import numpy as np
 
 from omg4.codec.payload import CODECS, CompactGrids, CompressedPayload, check_codec, encode_payload
 from omg4.codec.rig import rig_json
+from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
 from omg4.compress.model import CompressibleModel
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
@@ -79,9 +80,14 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
 def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, out: str | Path, *,
                      codec: str = CODECS[0], stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
-                     progress: bool = False, log=None, check_replicas: int = 0) -> dict:
+                     progress: bool = False, log=None, check_replicas: int = 0,
+                     reference: dict[str, np.ndarray] | None = None) -> dict:
     """Run OMG4 on ``baseline`` and write ``out`` (``precision``: the compact codec's grids); returns a JSON-ready
     report.
+
+    ``reference``: for a predicted segment of a sequence, the :func:`~omg4.codec.payload.reference_sections` of the
+    segment before, decoded; the compression keeps its appearance MLPs and codebooks and the file stores them as
+    references to it, and no camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a).
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
     comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
@@ -101,7 +107,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log,
-                                   check_replicas=check_replicas)
+                                   check_replicas=check_replicas, reference=reference)
     scores_out, unsaved = out.with_name(out.name + ".scores.npz"), None
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         unsaved = pipeline.ensure_scores()
@@ -111,8 +117,9 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
             unsaved = None
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
-            "time_range": list(scene.time_range), "normalization": scene.normalization.to_json(),
-            "rig": rig_json(scene.cameras(), len(scene.test_cameras()))}
+            "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
+    if reference is None:  # a predicted segment leaves the rig to its sequence's first segment
+        meta["rig"] = rig_json(scene.cameras(), len(scene.test_cameras()))
     if cfg.rate_weight:  # provenance of entropy-constrained codebooks; paper-faithful files stay as they were
         meta["rate_weight"] = cfg.rate_weight
     paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written
@@ -123,9 +130,10 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
             save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
         else:
             payload = build_payload(model, meta)
-            sections = encode_payload(payload, out, codec=codec, precision=precision)
+            sections = encode_payload(payload, out, codec=codec, precision=precision, reference=reference)
             if paper_copy is not None:
-                paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper").values())
+                paper["paper_file_bytes"] = sum(encode_payload(payload, paper_copy, codec="paper",
+                                                               reference=reference).values())
         if unsaved is not None:  # an earlier run's scores give way only to a finished run's
             unsaved.save(scores_out)
         file_bytes = out.stat().st_size
@@ -150,9 +158,14 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
 
 def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
                       codec: str = CODECS[0], precision: CompactGrids = CompactGrids(), progress: bool = False,
-                      log=None, check_replicas: int = 0, teach: bool = True) -> dict:
+                      log=None, check_replicas: int = 0, teach: bool = True,
+                      key_interval: int = DEFAULT_KEY_INTERVAL) -> dict:
     """Compress every segment of a segmented training run (:mod:`omg4.train.segmented`) and write them as one
     sequence file (:mod:`omg4.codec.sequence`) at ``out``; ``load_scene(start, stop)`` gives a segment's scene.
+
+    Every ``key_interval``-th segment (the first included) is a key segment, coded alone; each other one is
+    predicted from the segment before (beyond the paper): compressed with that segment's decoded appearance MLPs
+    and codebooks, kept as they are, and stored without them (``compress_to_file``'s ``reference``).
 
     One segment's scene and models are held at a time, and the segment before's compressed model: with ``teach``
     a segment's training views of the frames it shares with the one before show the crossfade from that model's
@@ -163,14 +176,16 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     import shutil
 
     from omg4 import distributed
-    from omg4.codec.payload import decode_payload
-    from omg4.codec.sequence import read_index, write_sequence
+    from omg4.codec.payload import decode_payload, reference_sections
+    from omg4.codec.sequence import MAX_SEGMENTS, read_index, write_sequence
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.models.compact import CompactModel
     from omg4.train.segmented import shared_frames, taught_by
 
     log = log or logger.info
+    if type(key_interval) is not int or not 1 <= key_interval <= MAX_SEGMENTS:
+        raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_SEGMENTS}, got {key_interval!r}")
 
     run_dir, out = Path(run_dir), Path(out)
     plan = read_run_plan(run_dir)
@@ -178,11 +193,15 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     work = out.with_name(f".{out.name}.segments")  # each segment's file, until the sequence is written
     if main:
         work.mkdir(parents=True, exist_ok=True)
-    parts, reports, t0 = [], [], time.perf_counter()
-    teacher, before = None, None
+    parts, references, reports, t0 = [], [], [], time.perf_counter()
+    teacher, before, previous = None, None, None  # previous: the segment before's decoded payload
     try:
-        for seg in plan["segments"]:
-            log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}")
+        for i, seg in enumerate(plan["segments"]):
+            predicted = previous is not None and i % key_interval != 0
+            reference = reference_sections(previous) if predicted else None
+            references.append(i - 1 if predicted else None)
+            log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
+                + (f", predicted from segment {i - 1}" if predicted else ", a key segment" if key_interval > 1 else ""))
             scene = load_scene(*seg["frames"])
             shared = shared_frames(before, seg) if teacher is not None else None
             if shared is not None:
@@ -191,16 +210,21 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
             baseline, _ = load_gaussians(run_dir / seg["folder"] / "model.safetensors", cfg.device)
             path = work / f"segment_{seg['index']:03d}.omg4"
             reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
-                                            progress=progress, log=log, check_replicas=check_replicas))
+                                            progress=progress, log=log, check_replicas=check_replicas,
+                                            reference=reference))
             if main:
                 parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
-            if teach and seg is not plan["segments"][-1]:  # every rank decodes rank 0's file: the next's teacher
+            if (teach or key_interval > 1) and seg is not plan["segments"][-1]:
+                # every rank decodes rank 0's file: the next segment's teacher and reference
                 blob = distributed.gather_objects(parts[-1][2] if main else None, "sharing the segment")[0]
-                teacher, before = CompactModel(decode_payload(blob), cfg.device), seg
+                previous = decode_payload(blob, reference)
+                if teach:
+                    teacher, before = CompactModel(previous, cfg.device), seg
             del scene, baseline
         if main:
             write_sequence(out, parts, fps=plan["fps"], meta={"segment_frames": plan["segment_frames"],
-                                                              "overlap": plan["overlap"]})
+                                                              "overlap": plan["overlap"]},
+                           references=references, key_interval=key_interval)
     finally:
         if main:
             shutil.rmtree(work, ignore_errors=True)

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from omg4.errors import OMG4Error
+from omg4.gaussians.appearance import AppearanceMLP
 from omg4.train.config import TrainConfig
 
 FEATURE_LR = TrainConfig.feature_lr  # f_static / f_view in the main Adam (omg4 §9): the backbone table's
@@ -70,4 +71,13 @@ def make_mlp_optimizer(mlp: torch.nn.Module, lr: float = MLP_LR, total_iteration
     return optimizer, scheduler
 
 
-__all__ = ["FEATURE_LR", "MLP_LR", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule"]
+def reference_mlp(reference: dict | None, num_inputs: int) -> AppearanceMLP | None:
+    """A predicted segment's appearance MLPs: its reference segment's decoded weights (``mlp.NAME`` of
+    :func:`omg4.codec.payload.reference_sections`), which it keeps unchanged so the file stores none of them
+    (beyond the paper; docs/file-format.md §8a); None without a reference or one without MLPs."""
+    state = {name[len("mlp."):]: w for name, w in (reference or {}).items() if name.startswith("mlp.")}
+    return AppearanceMLP.from_fp16_state(state, num_inputs) if state else None
+
+
+__all__ = ["FEATURE_LR", "MLP_LR", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule",
+           "reference_mlp"]

@@ -137,7 +137,8 @@ class CompressionPipeline:
     """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
-                 progress: bool = True, log=None, check_replicas: int = 0):
+                 progress: bool = True, log=None, check_replicas: int = 0,
+                 reference: dict[str, np.ndarray] | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         if cfg.score_weighting not in SCORE_WEIGHTINGS:
@@ -150,6 +151,7 @@ class CompressionPipeline:
         self.scene, self.cfg = scene, cfg
         self.progress, self.log = progress and self.world.main, (log or logger.info) if self.world.main else (lambda *_: None)
         self.check_replicas = check_replicas
+        self.reference = reference
         self.schema: Backbone = baseline.config.schema
         self.size = cfg.size(baseline.config.backbone)
         self.device = resolve_device(cfg.device)
@@ -259,12 +261,16 @@ class CompressionPipeline:
             self.model.params.pop(name)
         for name, value in features.items():
             self.model.params[name] = value.detach().clone().requires_grad_(True)
-        torch.manual_seed(self.cfg.seed)
-        with torch.device("cpu"):  # initialized by the seeded CPU generator whatever the device
-            self.model.appearance = AppearanceMLP(num_inputs=self.schema.mlp_inputs).to(self.device)
-        remaining = self._remaining_after("appearance")
-        self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
-            self.model.appearance, total_iterations=remaining)
+        taken = appearance_stage.reference_mlp(self.reference, self.schema.mlp_inputs)
+        if taken is not None:  # a predicted segment: its reference's decoded MLPs, kept as they are
+            self.model.appearance = taken.to(self.device).requires_grad_(False)
+        else:
+            torch.manual_seed(self.cfg.seed)
+            with torch.device("cpu"):  # initialized by the seeded CPU generator whatever the device
+                self.model.appearance = AppearanceMLP(num_inputs=self.schema.mlp_inputs).to(self.device)
+            remaining = self._remaining_after("appearance")
+            self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
+                self.model.appearance, total_iterations=remaining)
         self._rebuild_main_optimizer()
 
     def _remaining_after(self, name: str) -> int:
@@ -280,13 +286,18 @@ class CompressionPipeline:
                 raise OMG4Error(f"SVQ of '{attr}' needs {names}: run the appearance stage first")
             values = torch.cat([self.model.params[n].detach().reshape(self.model.num_gaussians, -1) for n in names], 1)
             sub_len, k = self.size.codebook(attr)
-            self.model.quantizers[attr] = SubVectorQuantizer.fit(values, sub_len, k, seed=self.cfg.seed,
-                                                                 rate_weight=self.cfg.rate_weight)
+            taken = SubVectorQuantizer.reference_codebooks(self.reference, attr, sub_len, values.shape[1])
+            if taken is not None:  # a predicted segment: its reference's decoded codebooks, kept as they are
+                self.model.quantizers[attr] = SubVectorQuantizer.assign(values, taken).requires_grad_(False)
+            else:
+                self.model.quantizers[attr] = SubVectorQuantizer.fit(values, sub_len, k, seed=self.cfg.seed,
+                                                                     rate_weight=self.cfg.rate_weight)
             for n in names:
                 self.model.params.pop(n)
         self._rebuild_main_optimizer()
-        codebooks = [cb for q in self.model.quantizers.values() for cb in q.parameters()]
-        self.codebook_optimizer = torch.optim.Adam(codebooks, lr=self.cfg.codebook_lr, eps=1e-8, fused=True)
+        codebooks = [cb for q in self.model.quantizers.values() for cb in q.parameters() if cb.requires_grad]
+        self.codebook_optimizer = (torch.optim.Adam(codebooks, lr=self.cfg.codebook_lr, eps=1e-8, fused=True)
+                                   if codebooks else None)
 
     def stage_svq3d(self) -> None:
         """SVQ of scale, rotation and appearance features (paper §4.4, stage 3D)."""

@@ -90,9 +90,10 @@ def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list |
                 name = f"{SEGMENTS}/{entry.index:03d}.omg4"
                 write(name, data)
                 segments.append({"file": name, "time_range": list(entry.time_range), "frames": list(entry.frames),
-                                 "bytes": len(data)})
+                                 "bytes": len(data), "reference": entry.reference})
                 total, rewritten = total + len(data), rewritten or data != original
-            write(SEQUENCE, json.dumps({"fps": index.fps, "segments": segments}, indent=1).encode())
+            write(SEQUENCE, json.dumps({"fps": index.fps, "key_interval": index.key_interval, "segments": segments},
+                                       indent=1).encode())
         else:
             data = browser_decodable(model)
             write(MODEL, data)

@@ -15,8 +15,7 @@ from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
-from omg4.codec.payload import decode_payload
-from omg4.codec.sequence import read_index, read_segment
+from omg4.codec.sequence import SegmentDecoder
 from omg4.errors import OMG4Error
 from omg4.models.compact import CompactModel
 
@@ -101,11 +100,13 @@ class SequenceModel:
 
 
 def load_sequence(path: str | os.PathLike, device="cpu") -> SequenceModel:
-    """A :class:`SequenceModel` of a sequence file on ``device``: its index now, each segment when first shown."""
-    index = read_index(path)
+    """A :class:`SequenceModel` of a sequence file on ``device``: its index now, each segment when first shown (a
+    predicted one after the segments it is predicted from, :class:`~omg4.codec.sequence.SegmentDecoder`)."""
+    decoder = SegmentDecoder(path)
+    index = decoder.index
 
     def load(k: int):
-        return CompactModel(decode_payload(read_segment(path, index.segments[k])), device)
+        return CompactModel(decoder.payload(k), device)
 
     return SequenceModel([e.time_range for e in index.segments], load, meta={**index.meta, "fps": index.fps},
                          storage_bytes=index.total_bytes)

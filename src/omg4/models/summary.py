@@ -29,11 +29,12 @@ def section_group(name: str) -> str:
     return _PLAIN_GROUPS.get(parts[0], parts[0])
 
 
-def describe_file(path: str | os.PathLike) -> dict:
+def describe_file(path: str | os.PathLike, model=None) -> dict:
     """Codec, container version, backbone, Gaussian count, encodings, total bytes, bits per Gaussian, bitrate (megabits
     per second of the model's time range), bytes per group and per section, and the file's metadata — after
-    decoding the whole file (see the module docstring)."""
-    model = load_omg4(path)
+    decoding the whole file (see the module docstring), or given its decoded ``model`` (a predicted segment of a
+    sequence, decoded after its reference)."""
+    model = model or load_omg4(path)
     d = describe_container(path)
     header = d["header"]
     groups: dict[str, int] = {}
@@ -54,24 +55,29 @@ __all__ = ["section_group", "describe_file"]
 
 def describe_sequence(path: str | os.PathLike) -> dict:
     """The index of an ``.omg4`` sequence file and each segment's :func:`describe_file` (each segment decoded as
-    the decoder does), with the file's bitrate over the capture."""
+    the decoder does, a predicted one after its reference), with the file's bitrate over the capture and the
+    key interval; each segment's ``reference`` is the segment it is predicted from (None: a key segment)."""
     import tempfile
 
-    from omg4.codec.sequence import read_index, read_segment
+    from omg4.codec.sequence import SegmentDecoder, read_segment
+    from omg4.models.compact import CompactModel
 
-    index = read_index(path)
+    decoder = SegmentDecoder(path)
+    index = decoder.index
     segments = []
     with tempfile.TemporaryDirectory() as tmp:
         for entry in index.segments:
             part = Path(tmp) / f"segment_{entry.index:03d}.omg4"
             part.write_bytes(read_segment(path, entry))
-            d = describe_file(part)
+            d = describe_file(part, CompactModel(decoder.payload(entry.index)))
             segments.append({"index": entry.index, "frames": list(entry.frames), "time_range": list(entry.time_range),
-                             "offset": entry.offset, **{k: d[k] for k in ("codec", "version", "backbone",
-                                                                          "num_gaussians", "total_bytes", "groups")}})
+                             "offset": entry.offset, "reference": entry.reference,
+                             **{k: d[k] for k in ("codec", "version", "backbone", "num_gaussians", "total_bytes",
+                                                  "groups")}})
             part.unlink()
     total = index.total_bytes
-    return {"layout": "sequence", "path": str(Path(path)), "fps": index.fps, "time_range": list(index.time_range),
+    return {"layout": "sequence", "path": str(Path(path)), "fps": index.fps, "key_interval": index.key_interval,
+            "time_range": list(index.time_range),
             "duration_s": index.duration_s, "total_bytes": total, "storage_mb": total / 2**20,
             "bitrate_mbps": index.bitrate_mbps, "num_gaussians": sum(s["num_gaussians"] for s in segments),
             "segments": segments, "meta": index.meta}

@@ -270,19 +270,34 @@ def forged_files(base: bytes, count: int, seed: int = 0) -> Iterator[tuple[str, 
 
 # -------------------------------------------------------------------------- running
 def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: str = "ans", seed: int = 0,
-                   codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids()) -> bytes:
+                   codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids(), key_interval: int = 1) -> bytes:
     """A sequence file (:mod:`omg4.codec.sequence`) of ``segments`` valid models of ``num_gaussians`` each, segments of
-    10 frames sharing 2 at 10 fps; returns the file's bytes."""
+    10 frames sharing 2 at 10 fps; every ``key_interval``-th a key segment, each other one predicted from the one
+    before (its MLPs and non-rotation codebooks the decoded ones of that segment, its indices drawn anew); returns
+    the file's bytes."""
     import tempfile
 
+    from omg4.codec.payload import decode_payload, reference_sections
     from omg4.codec.sequence import write_sequence
 
-    parts = []
+    parts, references, previous = [], [], None
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(segments):
-            data = valid_file(Path(tmp) / f"s{i}.omg4", num_gaussians, codec, seed + i, codebook_scale, precision)
+            payload = valid_payload(num_gaussians, seed + i, codebook_scale)
+            reference = reference_sections(previous) if i % key_interval else None
+            if reference is not None:
+                rng = np.random.default_rng(seed + i)
+                payload.mlp = {name: reference[f"mlp.{name}"] for name in payload.mlp}
+                for attr, qa in payload.attributes.items():
+                    if attr not in payload.rotations:
+                        qa.codebooks = [reference[f"svq.{attr}.codebook{j}"] for j in range(len(qa.codebooks))]
+                        qa.indices = [rng.integers(0, len(cb), num_gaussians) for cb in qa.codebooks]
+            encode_payload(payload, Path(tmp) / f"s{i}.omg4", codec=codec, precision=precision, reference=reference)
+            data = (Path(tmp) / f"s{i}.omg4").read_bytes()
+            previous = decode_payload(data, reference)
             parts.append(((8 * i, 8 * i + 10), (0.8 * i, 0.8 * i + 1.0), data))
-    write_sequence(path, parts, fps=10.0)
+            references.append(None if reference is None else i - 1)
+    write_sequence(path, parts, fps=10.0, references=references, key_interval=key_interval)
     return Path(path).read_bytes()
 
 

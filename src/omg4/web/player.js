@@ -9,7 +9,7 @@ import { boundsCamera, cameraFromJson, framed, orbitControls, resized, rigCamera
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
 import { Compositor, context } from "./render/renderer.js";
-import { Playback } from "./sequence.js";
+import { Playback, checkChain } from "./sequence.js";
 
 const params = new URLSearchParams(location.search);
 const $ = (id) => document.getElementById(id);
@@ -68,9 +68,11 @@ async function main() {
   const started = performance.now();
   const files = await exportedFiles();
   const sequence = files.has("sequence.json") && params.get("model") === null;
+  const listing = sequence ? JSON.parse(new TextDecoder().decode(await fetchBytes("sequence.json"))) : null;
   const segments = sequence
-    ? (JSON.parse(new TextDecoder().decode(await fetchBytes("sequence.json")))).segments.map((s) => ({ url: s.file, range: s.time_range, bytes: s.bytes }))
-    : [{ url: params.get("model") ?? "model.omg4", range: null, bytes: null }];
+    ? listing.segments.map((s) => ({ url: s.file, range: s.time_range, bytes: s.bytes, reference: s.reference ?? null }))
+    : [{ url: params.get("model") ?? "model.omg4", range: null, bytes: null, reference: null }];
+  checkChain(segments, sequence ? listing.key_interval ?? 1 : 1);
   const bytes = await fetchBytes(segments[0].url);
   const fileBytes = sequence ? segments.reduce((sum, s) => sum + s.bytes, 0) : bytes.length;
   const payload = await decodePayload(bytes);
@@ -85,7 +87,7 @@ async function main() {
   if (!preset) preset = boundsCamera(model.xyz, 960, 540);
   const canvas = $("view");
   const gl = context(canvas);
-  const playback = new Playback(gl, new Compositor(gl), segments, model, fetchBytes);
+  const playback = new Playback(gl, new Compositor(gl), segments, model, fetchBytes, payload);
   const background = (params.get("background") ?? "0,0,0").split(",").map(Number);
   const state = { camera: fitted(preset, bare), distance: 1, time: t0, playing: true, dirty: true };
   const time = params.get("time");

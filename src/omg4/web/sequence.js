@@ -1,8 +1,10 @@
 // Playback of a model or of a long capture's sequence of segments (omg4/codec/sequence.py SequenceModel): each
 // segment its own .omg4 file, fetched and decoded when first shown (the next one ahead of playback), at most three
-// held; at a time inside two segments both are drawn and crossfaded (omg4/data/segments.py blend_weights).
+// held; at a time inside two segments both are drawn and crossfaded (omg4/data/segments.py blend_weights). A
+// predicted segment is decoded after the segment it is predicted from (omg4/codec/sequence.py SegmentDecoder).
 
-import { decodePayload } from "./decoder/payload.js";
+import { CorruptFileError } from "./decoder/streams.js";
+import { decodePayload, referenceSections } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
 import { Renderer } from "./render/renderer.js";
 
@@ -26,15 +28,57 @@ export function blendWeights(time, ranges) {
   return [[Math.max(...ranges.map(([t0], a) => (t0 <= time ? a : 0))), 1]];
 }
 
+/** Check each segment's `reference` (null: a key segment; else the segment just before it) and that no more than
+ * `keyInterval` - 1 predicted segments follow one another (omg4/codec/sequence.py _check_index). */
+export function checkChain(segments, keyInterval) {
+  if (!(Number.isInteger(keyInterval) && keyInterval >= 1)) throw new CorruptFileError("the key interval must be a positive integer");
+  let inARow = 0;
+  segments.forEach((s, k) => {
+    if (s.reference !== null && !(k >= 1 && s.reference === k - 1)) {
+      throw new CorruptFileError(`segment ${k} is predicted from segment ${s.reference}; a segment may only be predicted from the one just before it`);
+    }
+    inARow = s.reference === null ? 0 : inARow + 1;
+    if (inARow >= keyInterval) throw new CorruptFileError(`segment ${k} makes ${inARow} predicted segments in a row, more than the key interval ${keyInterval} allows`);
+  });
+}
+
+/** The decoded payloads of a sequence's segments (omg4/codec/sequence.py SegmentDecoder): a predicted segment is
+ * decoded after the segment it is predicted from; the last KEEP asked for are held, so playing forward decodes each
+ * segment once and a seek decodes at most the key interval. `segments`: [{url, reference}]; `firstPayload`: segment
+ * 0's, when already decoded. */
+export class SegmentPayloads {
+  constructor(segments, fetchBytes, firstPayload = null) {
+    this.segments = segments;
+    this.fetchBytes = fetchBytes;
+    this.held = new Map(firstPayload ? [[0, Promise.resolve(firstPayload)]] : []);
+  }
+
+  /** Segment `k`'s decoded payload (a promise). */
+  payload(k) {
+    if (!this.held.has(k)) {
+      const reference = this.segments[k].reference;
+      const sections = reference === null ? Promise.resolve(null) : this.payload(reference).then(referenceSections);
+      this.held.set(k, Promise.all([sections, this.fetchBytes(this.segments[k].url)])
+        .then(([taken, bytes]) => decodePayload(bytes, taken)));
+      for (const old of [...this.held.keys()]) {
+        if (this.held.size <= KEEP) break;
+        if (old !== k) this.held.delete(old);
+      }
+    }
+    return this.held.get(k);
+  }
+}
+
 export class Playback {
-  /** `segments`: [{url, range: [t0, t1), bytes}] in order; `first`: the first segment's model (buildModel). */
-  constructor(gl, compositor, segments, first, fetchBytes) {
+  /** `segments`: [{url, range: [t0, t1), bytes, reference}] in order (checkChain); `first`: the first segment's
+   * model (buildModel) and `firstPayload` its decoded payload. */
+  constructor(gl, compositor, segments, first, fetchBytes, firstPayload) {
     this.gl = gl;
     this.compositor = compositor;
     this.segments = segments;
-    this.fetchBytes = fetchBytes;
     this.ranges = segments.map((s) => s.range);
     this.loaded = new Map([[0, this._renderer(first)]]);
+    this.payloads = new SegmentPayloads(segments, fetchBytes, firstPayload);
     this.loading = new Map();
     this.error = null;
     this.shown = [0];
@@ -46,8 +90,7 @@ export class Playback {
 
   _load(k) {
     if (this.loaded.has(k) || this.loading.has(k) || k >= this.segments.length) return;
-    const promise = this.fetchBytes(this.segments[k].url)
-      .then((bytes) => decodePayload(bytes))
+    const promise = this.payloads.payload(k)
       .then((payload) => {
         this.loaded.set(k, this._renderer(buildModel(payload)));
         this.loading.delete(k);

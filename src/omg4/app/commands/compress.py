@@ -16,6 +16,7 @@ from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_backgr
                                   add_rate_weight_argument, add_scene_arguments, add_settings_arguments,
                                   compact_grids, device_from_args, fill_device_arguments, float_in, int_at_least,
                                   load_scene_from_args, seed, segment_scenes, settings_from_args)
+from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.score import SCORE_WEIGHTINGS
 from omg4.compress.time_balance import TIME_SAMPLINGS
@@ -82,6 +83,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="a segmented run: each segment learns every frame from the video (by default a segment "
                         "learns the frames it shares with the one before as the crossfade from that segment's "
                         "compressed renders into the video)")
+    p.add_argument("--key-interval", type=int, metavar="N",
+                   help="a segmented run: every N-th segment is coded alone and the others are predicted from the "
+                        "segment before (they keep its appearance MLPs and codebooks and store neither), so a seek "
+                        f"decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL})")
     add_force_argument(p)
     add_distributed_arguments(p)
     add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",
@@ -113,6 +118,8 @@ def run(args) -> int:
     record = args.out.with_name(args.out.name + ".config.json")
     check_outputs({"--out": args.out, "--json": args.json, "the SD scores": scores_out, "the config record": record},
                   inputs=[args.data, args.model, args.scores, args.config], datasets=[args.data], force=args.force)
+    if args.key_interval is not None and not is_segmented_run(args.model):
+        raise OMG4Error("--key-interval applies to a segmented training run (a sequence of segments), not one model")
     if is_segmented_run(args.model):
         return _compress_segments(args, cfg, codec, precision, record, world)
     baseline, metadata = read_baseline(args.model, device)
@@ -178,10 +185,11 @@ def _compress_segments(args, cfg, codec, precision, record, world) -> int:
 
     if args.stop_after or args.scores:
         raise OMG4Error("a segmented run compresses into one sequence file: --stop-after and --scores take one model")
+    key_interval = DEFAULT_KEY_INTERVAL if args.key_interval is None else args.key_interval
 
     report = compress_segments(args.model, segment_scenes(args, cfg.background), cfg, args.out, codec=codec,
                                precision=precision, check_replicas=args.check_replicas,
-                               teach=not args.independent_segments, progress=True)
+                               teach=not args.independent_segments, progress=True, key_interval=key_interval)
     if not world.main:
         return 0
     write_record(record, cfg, codec, precision)

@@ -134,17 +134,21 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
 
 
 def sequence_summary(path: Path, **_) -> tuple[dict, str]:
-    """An ``.omg4`` sequence file: its segments (frames, times, Gaussians, bytes), every one decoded first, and the
-    bitrate over the capture (:func:`omg4.models.summary.describe_sequence`)."""
+    """An ``.omg4`` sequence file: its segments (frames, times, Gaussians, bytes, the segment each is predicted from),
+    every one decoded first, the key interval and the bitrate over the capture
+    (:func:`omg4.models.summary.describe_sequence`)."""
     from omg4.models.summary import describe_sequence
 
     d = describe_sequence(path)
-    lines = [f"{printable(path)}: OMG4 sequence of {len(d['segments'])} segments, {d['duration_s']:.3g} s at "
+    keys = sum(s["reference"] is None for s in d["segments"])
+    lines = [f"{printable(path)}: OMG4 sequence of {len(d['segments'])} segments ({keys} key, "
+             f"{len(d['segments']) - keys} predicted; key interval {d['key_interval']}), {d['duration_s']:.3g} s at "
              f"{d['fps']:g} fps, {d['total_bytes']} bytes ({d['storage_mb']:.4f} MB), {d['bitrate_mbps']:.3g} Mbit/s, "
              f"{d['num_gaussians']} Gaussians"]
     for s in d["segments"]:
+        chain = "key" if s["reference"] is None else f"predicted from {s['reference']}"
         lines.append(f"  segment {s['index']:>3}: frames {s['frames'][0]}-{s['frames'][1] - 1}, "
-                     f"{s['num_gaussians']:>8} Gaussians, {s['total_bytes']:>10} B ({printable(s['codec'])})")
+                     f"{s['num_gaussians']:>8} Gaussians, {s['total_bytes']:>10} B ({printable(s['codec'])}, {chain})")
     return {"kind": "omg4-sequence", **d}, "\n".join(lines)
 
 

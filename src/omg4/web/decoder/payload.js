@@ -10,7 +10,7 @@ import {
 import { CorruptFileError, crc32, inflateRaw } from "./streams.js";
 
 const MAGIC = [0x89, 0x4f, 0x4d, 0x47, 0x34, 0x0d, 0x0a, 0x1a];
-const READABLE_VERSIONS = [1, 2, 3, 4, 5, 6];
+const READABLE_VERSIONS = [1, 2, 3, 4, 5, 6, 7];
 export const SEQUENCE_VERSION = 6;
 const MAX_JSON_BYTES = 16 * 1024 * 1024;
 const MAX_SECTION_NAME = 200;
@@ -177,10 +177,39 @@ export function checkHeader(h, sectionBytes) {
   return expected.sort();
 }
 
+/** The encoding of a section a predicted segment takes from the segment before (omg4/codec/payload.py REFERENCE). */
+const REFERENCE = "reference";
+
+/** The decoded arrays of `payload` a segment predicted from it may take, by section name, with their shapes
+ * (omg4/codec/payload.py reference_sections): every MLP weight, every codebook of a non-rotation attribute. */
+export function referenceSections(payload) {
+  const out = new Map();
+  for (const [name, w] of Object.entries(payload.mlp)) out.set(`mlp.${name}`, { shape: w.shape, values: w.values });
+  for (const [attr, q] of Object.entries(payload.attributes)) {
+    if (payload.rotations.includes(attr)) continue;
+    q.codebooks.forEach((cb, j) => out.set(`svq.${attr}.codebook${j}`, { shape: [cb.rows, cb.sub], values: cb.values }));
+  }
+  return out;
+}
+
+function referenced(name, data, shape, reference) {
+  if (reference === null) {
+    throw new CorruptFileError("a predicted segment takes its sections from the segment before: decode it through its sequence file");
+  }
+  if (data.length) throw new CorruptFileError(`a section taken from the reference holds ${data.length} bytes of its own`);
+  const taken = reference.get(name);
+  if (!taken) throw new CorruptFileError("the reference segment has no such section");
+  if (shape === null || JSON.stringify(taken.shape) !== JSON.stringify(shape)) {
+    throw new CorruptFileError(`the reference's section has shape [${taken.shape}], the header declares [${shape}]`);
+  }
+  return taken.values.slice();
+}
+
 /** Decode a single-model .omg4 file (bytes: Uint8Array) into fp16 bit patterns and int32 indices:
  * {numGaussians, xyz [3N], t [N], attributes: {name: {codebooks: [{rows, sub, values}], indices: [Int32Array]}},
- *  quaternions: {name: Uint16Array [4N]}, mlp: {name: {shape, values}}, meta, rotations, logScaled, codec}. */
-export async function decodePayload(bytes) {
+ *  quaternions: {name: Uint16Array [4N]}, mlp: {name: {shape, values}}, meta, rotations, logScaled, codec}.
+ * `reference`: a predicted segment's, referenceSections() of the segment before's decoded payload. */
+export async function decodePayload(bytes, reference = null) {
   const { version, header, sections } = await readContainer(bytes);
   if (version === SEQUENCE_VERSION || header.layout !== undefined) {
     throw new CorruptFileError("a sequence of segments, not one model (open it as a sequence)");
@@ -204,6 +233,9 @@ export async function decodePayload(bytes) {
     const data = sections.get(name);
     const encoding = encodings[name];
     try {
+      if (encoding === REFERENCE && !numSymbols && ["mlp", "svq"].includes(name.split(".")[0])) {
+        return referenced(name, data, shape, reference);
+      }
       if (numSymbols) {
         if (!indexEncodings.includes(encoding)) {
           throw new CorruptFileError(`encoding '${encoding}' is not an index encoding of the codec '${header.codec}'`);
