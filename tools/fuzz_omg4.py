@@ -11,7 +11,8 @@ size class's valid file is measured the same way; the target is every failure a
 
     python tools/fuzz_omg4.py [--cases 10000] [--seed 0] [--codecs compact,ans,paper]
                                    [--grid-bits 15,9,10]  # the compact files' grids (version 5 by default)
-                                   [--layouts single,sequence]  # single models, and sequences of three segments
+                                   [--layouts single,sequence,predicted]  # single models; sequences of three
+                                   # segments, each alone or predicted from the one before
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/fuzz_omg4.json``.
@@ -81,8 +82,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--codecs", default=",".join(CODECS), help="comma-separated codecs to fuzz")
     ap.add_argument("--grid-bits", default="15,9,10", help="the compact codec's grids (omg4 compress --grid-bits)")
-    ap.add_argument("--layouts", default="single,sequence",
-                    help="single models and/or sequences (three segments of the class's size)")
+    ap.add_argument("--layouts", default="single,sequence,predicted",
+                    help="single models and/or sequences of three segments of the class's size: each coded alone "
+                         "(sequence) or the last two predicted from the one before (predicted)")
     args = ap.parse_args()
 
     import torch
@@ -108,7 +110,8 @@ def main() -> None:
             precision = grids if codec == "compact" else CompactGrids()
             base = (valid_file(base_path, n, codec=codec, seed=1, codebook_scale=scale, precision=precision)
                     if layout == "single" else
-                    valid_sequence(base_path, 3, n, codec=codec, seed=1, codebook_scale=scale, precision=precision))
+                    valid_sequence(base_path, 3, n, codec=codec, seed=1, codebook_scale=scale, precision=precision,
+                                   key_interval=3 if layout == "predicted" else 1))
             valid_outcome, valid_s, valid_mb = run_case(base_path)
             assert valid_outcome == "ok", valid_outcome
             worst_s, worst_mb, slowest = 0.0, 0.0, None

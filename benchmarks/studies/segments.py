@@ -148,11 +148,7 @@ def quality(args) -> None:
     from omg4.models import load_model
 
     work = Path(args.work) / args.name
-    data = Path(args.data) if args.data else work / "scene"
-    if args.synthetic and not data.exists():
-        subprocess.run([sys.executable, "-m", "omg4", "synth", str(data), "--cameras", str(args.cameras), "--frames",
-                        str(args.synthetic), "--width", str(args.width), "--height", str(args.height)], env=ENV,
-                       check=True, stdout=subprocess.DEVNULL)
+    data = _capture(args)
     reader = ["--downscale", str(args.downscale)]
     independent = ["--independent-segments"] if args.independent_segments else []
     segmented = ["--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap), *independent]
@@ -298,13 +294,7 @@ def main() -> None:
     s.add_argument("--lengths", type=int, nargs="+", default=[60, 120, 240, 480])
     s.add_argument("--max-whole", type=int, default=480, help="longest capture also trained as one model")
     q = sub.add_parser("quality")
-    q.add_argument("data", nargs="?")
-    q.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")
-    q.add_argument("--downscale", type=float, default=1.0)
-    q.add_argument("--segment-frames", type=int, default=60)
-    q.add_argument("--overlap", type=int, default=10)
     q.add_argument("--schedule", default="cpu")
-    q.add_argument("--name", default="synthetic")
     q.add_argument("--independent-segments", action="store_true",
                    help="train and compress each segment on the video alone (--independent-segments)")
     q.add_argument("--compress-from-video", action="store_true",
@@ -314,16 +304,17 @@ def main() -> None:
                         "capture and score it on the same boundary and interior frames (a control: how much harder "
                         "those frames are)")
     r = sub.add_parser("prediction")
-    r.add_argument("data", nargs="?")
-    r.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")
-    r.add_argument("--downscale", type=float, default=1.0)
-    r.add_argument("--segment-frames", type=int, default=60)
-    r.add_argument("--overlap", type=int, default=10)
     r.add_argument("--schedule", default="short")
-    r.add_argument("--name", default="synthetic")
     r.add_argument("--key-intervals", type=int, nargs="+", default=[1, 8])
     r.add_argument("--whole-clip", action="store_true", help="also one model of the whole capture")
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
+    for p in (q, r):  # a capture cut into segments
+        p.add_argument("data", nargs="?")
+        p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")
+        p.add_argument("--downscale", type=float, default=1.0)
+        p.add_argument("--segment-frames", type=int, default=60)
+        p.add_argument("--overlap", type=int, default=10)
+        p.add_argument("--name", default="synthetic")
     for p in (s, q, r):
         p.add_argument("--cameras", type=int, default=6)
         p.add_argument("--width", type=int, default=96)

@@ -18,20 +18,30 @@ from omg4.train.segmented import segment_plan, train_segments, write_plan
 LENGTHS = StageLengths(sample=2, prune=2, merge=2, appearance=4, svq3d=2, svq4d=2)
 
 
-@pytest.fixture(scope="module")
-def segmented(tmp_path_factory):
+def trained_segments(root, frames: int):
+    """A synthetic capture of ``frames`` frames in ``root``, trained (6 steps a segment) as segments of 6 sharing 2
+    in ``root/run``; its plan and its scenes (``scenes(start, stop)``)."""
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
 
-    root = tmp_path_factory.mktemp("segmented")
-    write_synthetic_scene(root / "scene", SynthConfig(num_cameras=4, num_frames=10, width=48, height=32,
+    write_synthetic_scene(root / "scene", SynthConfig(num_cameras=4, num_frames=frames, width=48, height=32,
                                                       num_points=300), progress=False)
     cfg = make_config("cpu-small", iterations=6, batch_size=1, checkpoint_interval=0, backend="cpu",
                       num_random_points=300)
-    plan = segment_plan(plan_segments(10, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
+    plan = segment_plan(plan_segments(frames, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
     write_plan(root / "run", plan)
-    train_segments(root / "run", plan, cfg, lambda a, b: load_scene(root / "scene", frames=range(a, b),
-                                                                     progress=False),
-                   lambda scene: initial_points(scene, "random", cfg), log=lambda *_: None)
+
+    def scenes(a, b):
+        return load_scene(root / "scene", frames=range(a, b), progress=False)
+
+    train_segments(root / "run", plan, cfg, scenes, lambda scene: initial_points(scene, "random", cfg),
+                   log=lambda *_: None)
+    return plan, scenes
+
+
+@pytest.fixture(scope="module")
+def segmented(tmp_path_factory):
+    root = tmp_path_factory.mktemp("segmented")
+    plan, _ = trained_segments(root, 10)
     return root, plan
 
 
@@ -39,8 +49,6 @@ def segmented(tmp_path_factory):
 def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_path, teach):
     """Independent segments: each the file of its own scene; taught ones: segment 1's scene shows, for the shared
     frames 4 and 5, the crossfade from the renders of segment 0, as decoded from the sequence, into the video."""
-    import torch
-
     from omg4.codec.payload import decode_payload
     from omg4.models.compact import CompactModel
     from omg4.train.segmented import taught_by
@@ -88,22 +96,8 @@ def test_leftovers_of_an_interrupted_compression_do_not_block_the_next(segmented
 @pytest.fixture(scope="module")
 def three_segments(tmp_path_factory):
     """A segmented run of 14 frames as three segments of 6 sharing 2, and its scenes."""
-    from omg4.data.synthetic import SynthConfig, write_synthetic_scene
-
     root = tmp_path_factory.mktemp("three")
-    write_synthetic_scene(root / "scene", SynthConfig(num_cameras=4, num_frames=14, width=48, height=32,
-                                                      num_points=300), progress=False)
-    cfg = make_config("cpu-small", iterations=6, batch_size=1, checkpoint_interval=0, backend="cpu",
-                      num_random_points=300)
-    plan = segment_plan(plan_segments(14, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
-    write_plan(root / "run", plan)
-
-    def scenes(a, b):
-        return load_scene(root / "scene", frames=range(a, b), progress=False)
-
-    train_segments(root / "run", plan, cfg, scenes, lambda scene: initial_points(scene, "random", cfg),
-                   log=lambda *_: None)
-    return root, scenes
+    return root, trained_segments(root, 14)[1]
 
 
 def _sequence(three_segments, tmp_path, key_interval: int):
