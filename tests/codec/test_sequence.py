@@ -253,6 +253,7 @@ def _reforged(tmp_path, path, header_edit=None, segment_edit=None):
     (lambda h: h.update(key_interval=0), "key interval must be an integer"),
     (lambda h: h.update(key_interval=2.5), "key interval must be an integer"),
     (lambda h: h.update(key_interval=10**9), "key interval must be an integer"),
+    (lambda h: h.update(key_interval=1025), "key interval must be an integer from 1 to 1024"),  # a seek's bound
 ])
 def test_a_forged_chain_is_a_one_line_error_before_any_segment_is_read(tmp_path, edit, message, monkeypatch):
     forged = _reforged(tmp_path, _predicted(tmp_path), header_edit=edit)
@@ -382,3 +383,15 @@ def test_a_predicted_segment_decodes_to_the_values_it_was_written_with(tmp_path,
     taken = [name for name in reference if name in predicted]
     assert taken and all(predicted[name] == 0 for name in taken)
     assert sum(predicted.values()) <= sum(alone.values()) - sum(alone[name] for name in taken) + 64
+
+
+def test_an_attribute_stored_as_quaternions_must_be_a_rotation(tmp_path):
+    """Else a reader would offer its per-Gaussian quaternions as a codebook a predicted segment could take."""
+    from omg4.codec.payload import decode_payload
+
+    header, sections = forge.split_container(forge.valid_file(tmp_path / "m.omg4", 300, codec="compact", seed=2,
+                                                              codebook_scale=1 / 32))
+    assert header["quaternions"]
+    forged = forge.assemble_container({**header, "rotations": []}, sections)
+    with pytest.raises(CorruptFileError, match="invalid list of rotation attributes"):
+        decode_payload(forged)

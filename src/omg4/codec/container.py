@@ -9,7 +9,7 @@ Layout (all integers little-endian)::
     12      4     JSON length L (uint32, at most MAX_JSON_BYTES)
     16      4     CRC-32 of the JSON bytes
     20      L     JSON object {"header": <caller's dict>, "sections": [[name, size, crc32], ...]}
-                  (version 1: UTF-8 text; versions 2 to 5: that text raw-DEFLATE-compressed)
+                  (version 1: UTF-8 text; versions 2 to 7: that text raw-DEFLATE-compressed)
     20+L    ...   the sections' bytes, concatenated in table order
 
 The file must end exactly after the last section. The section table lives inside the
@@ -77,7 +77,7 @@ def deflate_raw(data: bytes) -> bytes:
 
 def stored_json(blob: bytes, version: int) -> bytes:
     """The container's start for the JSON text ``blob``: the prefix, then the JSON as ``version`` stores it
-    (versions 2 to 5 deflate it)."""
+    (versions 2 to 7 deflate it)."""
     stored = deflate_raw(blob) if version in DEFLATED_VERSIONS else blob
     return PREFIX.pack(MAGIC, version, 0, len(stored), crc32(stored)) + stored
 
@@ -95,7 +95,7 @@ def has_magic(path) -> bool:
 def write_container(path: str | os.PathLike, header: dict, sections: dict[str, bytes], version: int = 1) -> int:
     """Write ``header`` (a JSON-able dict) and named binary ``sections`` to ``path`` atomically.
 
-    Section order is the dict's order; versions 2 to 5 deflate the JSON. Returns the file size in bytes.
+    Section order is the dict's order; versions 2 to 7 deflate the JSON. Returns the file size in bytes.
     """
     head = _head(header, sections, version)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:

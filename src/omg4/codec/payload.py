@@ -392,7 +392,8 @@ def _check_header(h: dict, section_bytes: int) -> None:
         raise CorruptFileError("invalid list of quaternion attributes")
     named = h.get("rotations", [])
     if not (isinstance(named, list) and len(named) <= MAX_ATTRIBUTES
-            and all(isinstance(a, str) and (a in h["attributes"] or a in rotations) for a in named)):
+            and all(isinstance(a, str) and (a in h["attributes"] or a in rotations) for a in named)
+            and all(a in named for a in rotations)):  # an attribute stored as quaternions is a rotation
         raise CorruptFileError("invalid list of rotation attributes")
     if n > GAUSSIANS_ALWAYS_ALLOWED and n * MIN_BYTES_PER_GAUSSIAN > section_bytes:
         raise CorruptFileError(f"header claims {n} Gaussians, more than the file's {section_bytes} data bytes can hold")

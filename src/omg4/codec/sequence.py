@@ -38,6 +38,8 @@ from omg4.errors import CorruptFileError, OMG4Error
 
 MAX_SEGMENTS = 100_000
 LAYOUT = "sequence"
+MAX_KEY_INTERVAL = 1024
+"""The longest chain a reader decodes for one seek (a key interval beyond it is a forged index)."""
 DEFAULT_KEY_INTERVAL = 8
 """Segments from one key segment to the next unless told (``omg4 compress --key-interval``): a seek decodes at most
 this many; docs/results.md, "Predicted segments", measures the choice."""
@@ -152,8 +154,8 @@ def _check_index(label: str, header: dict, sections: int) -> None:
     if not (isinstance(fps, (int, float)) and not isinstance(fps, bool) and math.isfinite(fps) and fps > 0):
         raise CorruptFileError(f"{label}: the sequence's frame rate must be a positive number")
     key_interval = header.get("key_interval", 1)
-    if type(key_interval) is not int or not 1 <= key_interval <= MAX_SEGMENTS:
-        raise CorruptFileError(f"{label}: the key interval must be an integer from 1 to {MAX_SEGMENTS}")
+    if type(key_interval) is not int or not 1 <= key_interval <= MAX_KEY_INTERVAL:
+        raise CorruptFileError(f"{label}: the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}")
     previous, predicted_in_a_row = None, 0
     for i, seg in enumerate(segments):
         frames, times = (seg.get("frames"), seg.get("time_range")) if isinstance(seg, dict) else (None, None)
@@ -242,7 +244,7 @@ def read_sequence(path: str | os.PathLike) -> tuple[SequenceIndex, list[bytes]]:
     return index, [sections[f"segment.{i:03d}"] for i in range(len(index.segments))]
 
 
-__all__ = ["SEQUENCE_VERSION", "MAX_SEGMENTS", "DEFAULT_KEY_INTERVAL", "SegmentDecoder", "SegmentEntry", "SequenceIndex", "write_sequence",
+__all__ = ["SEQUENCE_VERSION", "MAX_SEGMENTS", "MAX_KEY_INTERVAL", "DEFAULT_KEY_INTERVAL", "SegmentDecoder", "SegmentEntry", "SequenceIndex", "write_sequence",
            "is_sequence", "read_index", "read_segment", "read_sequence"]
 
 

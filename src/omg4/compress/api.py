@@ -177,15 +177,15 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
 
     from omg4 import distributed
     from omg4.codec.payload import decode_payload, reference_sections
-    from omg4.codec.sequence import MAX_SEGMENTS, read_index, write_sequence
+    from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, write_sequence
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.models.compact import CompactModel
     from omg4.train.segmented import shared_frames, taught_by
 
     log = log or logger.info
-    if type(key_interval) is not int or not 1 <= key_interval <= MAX_SEGMENTS:
-        raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_SEGMENTS}, got {key_interval!r}")
+    if type(key_interval) is not int or not 1 <= key_interval <= MAX_KEY_INTERVAL:
+        raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}, got {key_interval!r}")
 
     run_dir, out = Path(run_dir), Path(out)
     plan = read_run_plan(run_dir)
@@ -230,6 +230,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
             shutil.rmtree(work, ignore_errors=True)
     distributed.barrier("writing the sequence")
     index = read_index(out)
-    return {"output": str(out), "file_bytes": index.total_bytes, "segments": reports,
+    return {"output": str(out), "file_bytes": index.total_bytes, "segments": reports, "key_interval": key_interval,
+            "references": [e.reference for e in index.segments],
             "num_gaussians": sum(r["num_gaussians"] for r in reports), "duration_s": index.duration_s,
             "bitrate_mbps": index.bitrate_mbps, "wall_time_s": time.perf_counter() - t0}

@@ -30,8 +30,12 @@ export function blendWeights(time, ranges) {
 
 /** Check each segment's `reference` (null: a key segment; else the segment just before it) and that no more than
  * `keyInterval` - 1 predicted segments follow one another (omg4/codec/sequence.py _check_index). */
+const MAX_KEY_INTERVAL = 1024;  // omg4/codec/sequence.py MAX_KEY_INTERVAL
+
 export function checkChain(segments, keyInterval) {
-  if (!(Number.isInteger(keyInterval) && keyInterval >= 1)) throw new CorruptFileError("the key interval must be a positive integer");
+  if (!(Number.isInteger(keyInterval) && keyInterval >= 1 && keyInterval <= MAX_KEY_INTERVAL)) {
+    throw new CorruptFileError(`the key interval must be an integer from 1 to ${MAX_KEY_INTERVAL}`);
+  }
   let inARow = 0;
   segments.forEach((s, k) => {
     if (s.reference !== null && !(k >= 1 && s.reference === k - 1)) {
@@ -43,7 +47,7 @@ export function checkChain(segments, keyInterval) {
 }
 
 /** The decoded payloads of a sequence's segments (omg4/codec/sequence.py SegmentDecoder): a predicted segment is
- * decoded after the segment it is predicted from; the last KEEP asked for are held, so playing forward decodes each
+ * decoded after the segment it is predicted from; the KEEP most recently asked for are held, so playing forward decodes each
  * segment once and a seek decodes at most the key interval. `segments`: [{url, reference}]; `firstPayload`: segment
  * 0's, when already decoded. */
 export class SegmentPayloads {
@@ -55,7 +59,11 @@ export class SegmentPayloads {
 
   /** Segment `k`'s decoded payload (a promise). */
   payload(k) {
-    if (!this.held.has(k)) {
+    if (this.held.has(k)) {  // the most recently asked for last
+      const held = this.held.get(k);
+      this.held.delete(k);
+      this.held.set(k, held);
+    } else {
       const reference = this.segments[k].reference;
       const sections = reference === null ? Promise.resolve(null) : this.payload(reference).then(referenceSections);
       this.held.set(k, Promise.all([sections, this.fetchBytes(this.segments[k].url)])

@@ -135,7 +135,8 @@ export function checkHeader(h, sectionBytes) {
   }
   const named = h.rotations ?? [];
   if (!(Array.isArray(named) && named.length <= MAX_ATTRIBUTES
-    && named.every((a) => typeof a === "string" && (a in h.attributes || rotations.includes(a))))) {
+    && named.every((a) => typeof a === "string" && (a in h.attributes || rotations.includes(a)))
+    && rotations.every((a) => named.includes(a)))) {  // an attribute stored as quaternions is a rotation
     throw new CorruptFileError("invalid list of rotation attributes");
   }
   if (n > GAUSSIANS_ALWAYS_ALLOWED && n * MIN_BYTES_PER_GAUSSIAN > sectionBytes) {
