@@ -144,6 +144,11 @@ def read_index(path: str | os.PathLike) -> SequenceIndex:
     return SequenceIndex(tuple(entries), float(header["fps"]), meta, src.size, header.get("key_interval", 1))
 
 
+def valid_key_interval(value: object) -> bool:
+    """Whether ``value`` is a key interval a sequence may declare: an integer from 1 to :data:`MAX_KEY_INTERVAL`."""
+    return type(value) is int and 1 <= value <= MAX_KEY_INTERVAL
+
+
 def _check_index(label: str, header: dict, sections: int) -> None:
     segments = header.get("segments")
     if not isinstance(segments, list) or not 1 <= len(segments) <= MAX_SEGMENTS:
@@ -154,7 +159,7 @@ def _check_index(label: str, header: dict, sections: int) -> None:
     if not (isinstance(fps, (int, float)) and not isinstance(fps, bool) and math.isfinite(fps) and fps > 0):
         raise CorruptFileError(f"{label}: the sequence's frame rate must be a positive number")
     key_interval = header.get("key_interval", 1)
-    if type(key_interval) is not int or not 1 <= key_interval <= MAX_KEY_INTERVAL:
+    if not valid_key_interval(key_interval):
         raise CorruptFileError(f"{label}: the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}")
     previous, predicted_in_a_row = None, 0
     for i, seg in enumerate(segments):

@@ -177,14 +177,14 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
 
     from omg4 import distributed
     from omg4.codec.payload import decode_payload, reference_sections
-    from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, write_sequence
+    from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
     from omg4.data.segments import read_run_plan
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.models.compact import CompactModel
     from omg4.train.segmented import shared_frames, taught_by
 
     log = log or logger.info
-    if type(key_interval) is not int or not 1 <= key_interval <= MAX_KEY_INTERVAL:
+    if not valid_key_interval(key_interval):
         raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}, got {key_interval!r}")
 
     run_dir, out = Path(run_dir), Path(out)
