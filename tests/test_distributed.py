@@ -217,3 +217,16 @@ def test_densification_statistics_are_summed_and_radii_maximized(monkeypatch):
     assert stats.grad_sum.flatten().tolist() == [3.0, 6.0, 0.0]
     assert stats.visible_views.flatten().tolist() == [3.0, 3.0, 3.0]
     assert stats.max_radii.tolist() == [6.0, 0.0, 10.0]
+
+
+def test_a_host_tally_is_reduced_on_the_gpu_under_nccl_and_where_it_is_under_gloo(monkeypatch):
+    """NCCL reduces CUDA tensors only: a tally kept on the CPU (the deficit draw's PSNR sums) goes to this rank's GPU;
+    under gloo it stays where it is."""
+    from omg4 import distributed
+
+    tally = torch.zeros(2, 10, dtype=torch.float64)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 3)
+    monkeypatch.setattr(torch.distributed, "get_backend", lambda: "nccl")
+    assert distributed._reduction_device(tally) == torch.device("cuda", 3)
+    monkeypatch.setattr(torch.distributed, "get_backend", lambda: "gloo")
+    assert distributed._reduction_device(tally) == torch.device("cpu")

@@ -38,9 +38,12 @@ from omg4.testing.records import save_record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
-VARIANTS = {"paper": {}, "lifetime": {"score_weighting": "lifetime"}, "deficit": {"time_sampling": "deficit"},
+VARIANTS = {"paper": {"score_weighting": "paper", "time_sampling": "uniform"},
+            "lifetime": {"score_weighting": "lifetime", "time_sampling": "uniform"},
+            "deficit": {"score_weighting": "paper", "time_sampling": "deficit"},
             "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit"}}
-"""Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the scene's."""
+"""Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the scene's: the paper's selection
+and draw, either change beyond it, and both (the default)."""
 BASELINE_ITERATIONS = 1500
 
 

@@ -222,6 +222,14 @@ def barrier(what: str = "waiting for the other ranks") -> None:
         _collective(what, torch.distributed.barrier)
 
 
+def _reduction_device(tensor: torch.Tensor) -> torch.device:
+    """Where a tensor is reduced: NCCL reduces CUDA tensors only, so a CPU tensor (a tally kept on the host) goes to
+    this rank's GPU; gloo reduces it where it is."""
+    if tensor.device.type != "cuda" and torch.distributed.get_backend() == "nccl":
+        return torch.device("cuda", torch.cuda.current_device())
+    return tensor.device
+
+
 def all_reduce_(tensors: list[torch.Tensor], op: str = "sum", what: str = "combining results") -> None:
     """Reduce ``tensors`` over the ranks in place (``op``: ``"sum"`` or ``"max"``), as one flat message per dtype."""
     if not world().parallel or not tensors:
@@ -231,7 +239,7 @@ def all_reduce_(tensors: list[torch.Tensor], op: str = "sum", what: str = "combi
     for t in tensors:
         by_dtype.setdefault(t.dtype, []).append(t)
     for group in by_dtype.values():
-        flat = torch.cat([t.reshape(-1) for t in group])
+        flat = torch.cat([t.reshape(-1) for t in group]).to(_reduction_device(group[0]))
         _collective(what, torch.distributed.all_reduce, flat, op=reduce_op)
         offset = 0
         for t in group:

@@ -101,10 +101,13 @@ def test_the_pipeline_measures_the_baseline_first_and_draws_every_batch_from_the
     assert pipeline.time_balance.reference is not None and np.isfinite(pipeline.time_balance.reference).any()
 
 
-def test_the_paper_draw_is_the_default_and_an_unknown_one_is_refused(tiny_scene):
-    assert CompressConfig().time_sampling == "uniform"
+def test_the_deficit_draw_is_the_default_the_paper_draw_a_switch_and_an_unknown_one_is_refused(tiny_scene):
+    assert CompressConfig().time_sampling == "deficit"
     model = initial_model(tiny_scene, make_config("cpu-small", num_random_points=50, max_gaussians=50, backend="cpu"))
-    assert CompressionPipeline(model, tiny_scene, CompressConfig(backend="cpu"), progress=False).time_balance is None
+    default = CompressionPipeline(model, tiny_scene, CompressConfig(backend="cpu"), progress=False)
+    assert isinstance(default.time_balance, DeficitSampler)
+    paper = CompressConfig(backend="cpu", time_sampling="uniform")
+    assert CompressionPipeline(model, tiny_scene, paper, progress=False).time_balance is None
     with pytest.raises(OMG4Error, match="unknown time sampling 'errors'"):
         CompressionPipeline(model, tiny_scene, CompressConfig(backend="cpu", time_sampling="errors"), progress=False)
 

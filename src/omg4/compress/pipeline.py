@@ -72,11 +72,11 @@ class CompressConfig:
     seed: int = knob(6666, "random seed (batches, MLP initialization, k-means)")
     merge: merging.MergeConfig = field(default_factory=merging.MergeConfig)
     official_score_quirk: bool = knob(False, "accumulate the time gradient without zeroing, as the official code")
-    score_weighting: str = knob("paper", "sampling and pruning rank by the paper's SD scores (paper) or by "
-                                         "lifetime-weighted ones (lifetime, beyond the paper)")
-    time_sampling: str = knob("uniform", "fine-tuning draws its views uniformly (uniform, the paper) or more often "
-                                         "in the spans of the clip that fell further below the baseline (deficit, "
-                                         "beyond the paper)")
+    score_weighting: str = knob("lifetime", "sampling and pruning rank by lifetime-weighted SD scores (lifetime, "
+                                            "beyond the paper) or by the paper's (paper)")
+    time_sampling: str = knob("deficit", "fine-tuning draws its views more often in the spans of the clip that fell "
+                                         "further below the baseline (deficit, beyond the paper) or uniformly "
+                                         "(uniform, the paper)")
     baseline_iterations: int = knob(30_000, "the baseline's steps: the position learning rate continues its decay")
     position_lr_init: float = knob(1.6e-4, "the baseline's initial position learning rate (× extent)")
     position_lr_final: float = knob(1.6e-6, "the baseline's final position learning rate (× extent)")

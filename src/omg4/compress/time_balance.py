@@ -6,7 +6,8 @@ lost nothing. With ``time_sampling="deficit"`` the compression measures, on a fe
 :data:`BUCKETS` equal spans of the clip, how far each span's PSNR has fallen below the baseline's (measured once,
 before the first stage), after every stage and every :data:`REFRESH` steps, and draws the views of a span
 ``2^(excess / TEMPERATURE_DB)`` times as often as uniform, ``excess`` its fall minus the mean fall over the spans
-(clipped to a ratio of :data:`MAX_RATIO` either way). ``"uniform"`` is the paper's draw.
+(clipped to a ratio of :data:`MAX_RATIO` either way). It is the default, with lifetime-weighted scores
+(:func:`omg4.compress.score.lifetime_weights`); ``"uniform"`` is the paper's draw.
 """
 
 from __future__ import annotations
@@ -50,13 +51,13 @@ class DeficitSampler:
                  probes_per_bucket: int = PROBES_PER_BUCKET):
         times = sorted({v.timestamp for v in views})
         frame = {t: i for i, t in enumerate(times)}
-        self.bucket_of_view = torch.tensor([frame[v.timestamp] * buckets // len(times) for v in views])
+        self.bucket_of_view = torch.tensor([frame[v.timestamp] * buckets // len(times) for v in views], device="cpu")
         self.buckets = buckets
         self.views, self.view_psnr = views, view_psnr
         self.probes = self._probes(probes_per_bucket)
         self.reference: np.ndarray | None = None
         self.weights = np.ones(buckets)  # per bucket, relative to uniform
-        self.view_weights = torch.ones(len(views), dtype=torch.float64)  # each view's bucket weight, for the draw
+        self.view_weights = torch.ones(len(views), dtype=torch.float64, device="cpu")  # each view's bucket weight
 
     def _probes(self, per_bucket: int) -> list[tuple[int, int]]:
         """(bucket, view index) pairs: ``per_bucket`` views of each bucket evenly spread in (time, camera) order."""
@@ -71,7 +72,7 @@ class DeficitSampler:
 
     def measure(self) -> np.ndarray:
         """Mean PSNR of each bucket's probe views now [buckets] (NaN for a bucket with no views)."""
-        sums = torch.zeros(2, self.buckets, dtype=torch.float64)
+        sums = torch.zeros(2, self.buckets, dtype=torch.float64, device="cpu")  # whatever the default device
         with torch.no_grad():
             for b, i in distributed.world().shard(self.probes):
                 sums[0, b] += self.view_psnr(self.views[i])

@@ -65,12 +65,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--official-score-quirk", action="store_true", default=None,
                    help="accumulate the time gradient without zeroing, as the official release does")
     p.add_argument("--score-weighting", choices=list(SCORE_WEIGHTINGS),
-                   help="what sampling and pruning rank by: the paper's SD scores (the default) or lifetime-weighted "
-                        "ones (beyond the paper: the clip's first and last frames keep as large a share of their "
-                        "Gaussians as its middle)")
+                   help="what sampling and pruning rank by: lifetime-weighted SD scores (beyond the paper, the "
+                        "default: the clip's first and last frames keep as large a share of their Gaussians as its "
+                        "middle) or the paper's")
     p.add_argument("--time-sampling", choices=list(TIME_SAMPLINGS),
-                   help="how fine-tuning draws its views: uniformly (the paper, the default) or more often in the "
-                        "spans of the clip that fell further below the baseline (beyond the paper: deficit)")
+                   help="how fine-tuning draws its views: more often in the spans of the clip that fell further "
+                        "below the baseline (beyond the paper, the default: deficit) or uniformly (the paper); "
+                        "--score-weighting paper --time-sampling uniform is the paper's selection and draw")
     p.add_argument("--baseline-iterations", type=int_at_least(1),
                    help="iterations the baseline was trained for (the position learning rate continues its decay; "
                         "default: what the baseline's checkpoint records, else "
