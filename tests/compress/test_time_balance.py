@@ -57,6 +57,20 @@ def test_a_span_that_fell_further_is_drawn_more_often_by_the_stated_rule():
     np.testing.assert_allclose(share, np.array(expected) / sum(expected), atol=0.01)
 
 
+def test_a_tenth_without_frames_is_logged_as_a_dash_not_nan():
+    vs = [SimpleNamespace(timestamp=f / 8, camera=SimpleNamespace(name="cam00"), frame=f) for f in range(8)]
+    quality = {"now": lambda v: 30.0}
+    sampler = DeficitSampler(vs, lambda v: quality["now"](v))
+    sampler.start()
+    quality["now"] = lambda v: 30.0 - (1.0 if v.frame == 0 else 0.0)
+    line = sampler.describe(sampler.update())
+    assert "nan" not in line
+    falls, weights = (part.split()[-10:] for part in line.split(";"))
+    # 8 frames in 10 tenths: frame f in tenth 10 f // 8, so tenths 4 and 9 hold none
+    assert [i for i, f in enumerate(falls) if f == "-"] == [4, 9] == [i for i, w in enumerate(weights) if w == "-"]
+    assert falls[0] == "+1.00" and weights[0] == "4.00" and falls[1] == "+0.00"
+
+
 def test_no_fall_anywhere_draws_uniformly():
     sampler = DeficitSampler(views(), lambda v: 25.0)
     sampler.start()

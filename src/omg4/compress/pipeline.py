@@ -348,8 +348,7 @@ class CompressionPipeline:
         """Re-weight the fine-tuning's draw over the clip (``time_sampling="deficit"``); ``log``: say how."""
         deficit = self.time_balance.update()
         if log:
-            self.log("fall below the baseline by tenth of the clip (dB) " + " ".join(f"{d:+.2f}" for d in deficit)
-                     + "; draw weights " + " ".join(f"{w:.2f}" for w in self.time_balance.weights))
+            self.log(self.time_balance.describe(deficit))
 
     # -------------------------------------------------------------------- training
     def finetune_step(self, step: int) -> float:

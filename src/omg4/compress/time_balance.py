@@ -94,6 +94,14 @@ class DeficitSampler:
         self.view_weights = torch.from_numpy(self.weights).index_select(0, self.bucket_of_view)
         return deficit
 
+    def describe(self, deficit: np.ndarray) -> str:
+        """One log line: each tenth's fall below the baseline (dB) and its draw weight; ``-`` for a tenth that holds
+        no frame (a clip of fewer than :data:`BUCKETS` frames)."""
+        empty = ~np.isfinite(deficit)
+        falls = " ".join("-" if e else f"{d:+.2f}" for d, e in zip(deficit, empty))
+        weights = " ".join("-" if e else f"{w:.2f}" for w, e in zip(self.weights, empty))
+        return f"fall below the baseline by tenth of the clip (dB) {falls}; draw weights {weights}"
+
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """``count`` view indices (with replacement), each view drawn with its bucket's weight."""
         return torch.multinomial(self.view_weights, count, replacement=True, generator=generator)
