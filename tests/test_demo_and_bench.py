@@ -144,10 +144,10 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):
         paper_file = first.with_name(first.stem + "_paper_codec.omg4")
         assert saved[row]["paper_codec_mb"] == paper_file.stat().st_size / 2**20 > saved[row]["storage_mb"]
         # and its images: the paper coder's copy evaluated on the same views. The coders' gate (0.05 dB, 0.002 SSIM)
-        # is the demo's, tested above; on these 120 Gaussians of a 20-step model the grids move SSIM by up to 0.0021,
-        # while another row's file, or other views, would be 0.03 or more away
-        assert abs(saved[row]["paper_codec_psnr"] - saved[row]["psnr"]) <= 0.05
-        assert abs(saved[row]["paper_codec_ssim"] - saved[row]["ssim"]) <= 0.004
+        # is the demo's, tested above; on these 120 Gaussians of a 20-step model the grids have moved PSNR by up to
+        # 0.09 dB and SSIM by 0.0021 from run to run, while another row's file is 0.9 dB and 0.03 or more away
+        assert abs(saved[row]["paper_codec_psnr"] - saved[row]["psnr"]) <= 0.25
+        assert abs(saved[row]["paper_codec_ssim"] - saved[row]["ssim"]) <= 0.005
     assert saved["OMG4-T, β=30"]["rate_weight"] == 30.0 and saved["OMG4-T"]["rate_weight"] == 0.0
     assert saved["GS+AC"]["bytes_per_gaussian"] > 0 and (tmp_path / "bench" / "rate_distortion.png").exists()
     points, curves = rate_distortion_curves(results, "compact")
