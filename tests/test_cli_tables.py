@@ -13,6 +13,7 @@ import pytest
 
 from omg4.app.cli import COMMANDS, _build_parser
 from omg4.codec.coders import CODERS
+from omg4.compress.appearance_stage import PREDICTED_MLPS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES
 from omg4.compress.score import SCORE_WEIGHTINGS
@@ -40,6 +41,7 @@ TABLES: dict[str, dict[str, object]] = {
     "import-rt4dgs": {"--sh-direction": SH_DIRECTIONS},
     "compress": {**SCENE, **DEVICE, "--schedule": SCHEDULES, "--stop-after": MINIMIZING_STAGES, "--codec": CODERS,
                  "--score-weighting": SCORE_WEIGHTINGS, "--time-sampling": TIME_SAMPLINGS,
+                 "--predicted-mlp": PREDICTED_MLPS,
                  "--preset": {name for b in BACKBONES.values() for name in b.size_presets}},
     "eval": {**SCENE, **DEVICE, "--split": SPLITS},
     "render": {**SCENE, **DEVICE},  # --path: a name of PATHS or a camera path file (test_render_path_names)

@@ -243,14 +243,15 @@ def prediction(args) -> None:
     data = _capture(args)
     reader = ["--downscale", str(args.downscale)]
     train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume"]
-    compress = ["--preset", "M", "--schedule", args.schedule, "--force"]
+    compress = ["--preset", "M", "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp]
     run_dir = work / "run"
     train_s = _omg4("train", str(data), *reader, "--out", str(run_dir), "--iterations", str(args.iterations), *train,
                     "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap))
     scene = load_scene(data, downscale=args.downscale, progress=False)
     record = {"command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]), "data": str(data),
               "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
-              "iterations_per_segment": args.iterations, "schedule": args.schedule, "train_s": train_s, "rows": []}
+              "iterations_per_segment": args.iterations, "schedule": args.schedule, "predicted_mlp": args.predicted_mlp,
+              "train_s": train_s, "rows": []}
     for key_interval in args.key_intervals:
         out = work / f"sequence_M_key{key_interval}.omg4"
         compress_s = _omg4("compress", str(data), *reader, "--model", str(run_dir), "--out", str(out), *compress,
@@ -308,6 +309,8 @@ def main() -> None:
     r.add_argument("--key-intervals", type=int, nargs="+", default=[1, 8])
     r.add_argument("--whole-clip", action="store_true", help="also one model of the whole capture")
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
+    r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
+                   help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
     for p in (q, r):  # a capture cut into segments
         p.add_argument("data", nargs="?")
         p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")

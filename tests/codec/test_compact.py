@@ -237,6 +237,51 @@ def test_weights_are_column_scaled_in_version_5_and_older_row_scaled_files_still
     assert sum(summary["groups"].values()) == model.stat().st_size
 
 
+def test_a_weight_change_decodes_to_an_independent_rounding_and_an_unmoved_weight_costs_almost_nothing():
+    """A matrix stored as its change from the reference's decoded one: each weight is the reference plus its change
+    rounded to steps of the reference column's largest magnitude / 15 (computed here), a column whose change is
+    too large for 8-bit codes in a coarser power-of-two step; a change of one weight in 8,192 costs a few bytes."""
+    rng = np.random.default_rng(3)
+    ref = (0.2 * rng.normal(size=(64, 128))).astype(np.float16)
+    ref[:, 7] = 0.0  # an all-zero column: the smallest step, 2^-14 / 15
+    change = 0.01 * rng.normal(size=ref.shape)
+    change[:, 9] *= 1000  # too large for 127 steps of this column
+    change[:, 7] = 0.0
+    w = (ref.astype(np.float64) + change).astype(np.float16)
+    encoding, data = weights.encode_delta(w, ref)
+    assert weights.parse_delta_encoding(encoding) is not None
+    decoded = weights.decode_delta(data, ref, encoding).astype(np.float64)
+    step = np.maximum(np.abs(ref.astype(np.float64)).max(axis=0), 2.0 ** -14) / 15
+    r64, w64 = ref.astype(np.float64), w.astype(np.float64)
+    expected = (r64 + np.rint((w64 - r64) / step) * step).astype(np.float16).astype(np.float64)
+    fine = [j for j in range(128) if j not in (7, 9)]
+    np.testing.assert_array_equal(decoded[:, fine], expected[:, fine])
+    assert (decoded[:, 7] == 0).all()
+    coarse = step[9] * 2.0 ** np.ceil(np.log2(np.abs(w64[:, 9] - r64[:, 9]).max() / (127 * step[9])))
+    np.testing.assert_array_equal(decoded[:, 9], (r64[:, 9] + np.rint((w64[:, 9] - r64[:, 9]) / coarse) * coarse
+                                                  ).astype(np.float16).astype(np.float64))
+    moved = ref.copy()
+    moved[3, 5] += np.float16(0.05)
+    encoding, data = weights.encode_delta(moved, ref)
+    assert len(data) <= 40 and weights.parse_delta_encoding(encoding) <= 4  # 0.05: a few steps of the column's
+    assert np.count_nonzero(weights.decode_delta(data, ref, encoding) != ref) == 1
+    for name in ("delta-int1-cols", "delta-int9-cols", "delta-int8-rows", "int8-cols", None, 8):
+        assert weights.parse_delta_encoding(name) is None
+
+
+def test_a_forged_weight_change_is_a_corrupt_file_error():
+    from omg4.codec.entropy import encode_indices
+    ref = np.full((2, 2), 60000.0, np.float16)
+    encoding, data = weights.encode_delta(ref, ref)
+    for truncated in (data[:3], (10**6).to_bytes(4, "little") + data[4:]):
+        with pytest.raises(CorruptFileError, match="truncated change"):
+            weights.decode_delta(truncated, ref, encoding)
+    head = encode_indices(np.full(2, 31), 32, "ans")
+    overflow = len(head).to_bytes(4, "little") + head + encode_indices(np.full(4, 254), 255, "ans")
+    with pytest.raises(CorruptFileError, match="beyond the fp16 range"):
+        weights.decode_delta(overflow, ref, "delta-int8-cols")
+
+
 def test_weight_scales_beyond_fp16_are_corrupt_file_errors():
     from omg4.codec.entropy import encode_indices
     forged = np.array([1e4, 1.0], "<f4").tobytes() + encode_indices(np.full(4, 254), 255, "ans")

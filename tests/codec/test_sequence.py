@@ -297,7 +297,22 @@ def _wrong_shape(header, sections):
     return header, sections
 
 
+def _truncated_change(header, sections):
+    name = next(n for n, e in header["encodings"].items() if e.startswith("delta-"))
+    sections[name] = sections[name][:3]
+    return header, sections
+
+
+def _change_of_a_weight_the_reference_lacks(header, sections):
+    header["mlp"]["extra.weight"] = [2, 2]
+    header["encodings"]["mlp.extra.weight"] = "delta-int8-cols"
+    sections["mlp.extra.weight"] = b"\x00" * 12
+    return header, sections
+
+
 @pytest.mark.parametrize("k, edit, message", [
+    (1, _truncated_change, "truncated change of a weight matrix"),
+    (2, _change_of_a_weight_the_reference_lacks, "the reference segment has no such section"),
     (1, _with_bytes, "holds 16 bytes of its own"),
     (1, _wrong_shape, "the reference's section has shape"),
     (2, _weight_the_reference_lacks, "the reference segment has no such section"),

@@ -100,18 +100,20 @@ def three_segments(tmp_path_factory):
     return root, trained_segments(root, 14)[1]
 
 
-def _sequence(three_segments, tmp_path, key_interval: int):
+def _sequence(three_segments, tmp_path, key_interval: int, predicted_mlp: str = "tune"):
     root, scenes = three_segments
-    out = tmp_path / f"seq{key_interval}.omg4"
-    compress_segments(root / "run", scenes, CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu"), out,
+    out = tmp_path / f"seq{key_interval}{predicted_mlp}.omg4"
+    compress_segments(root / "run", scenes, CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu",
+                                                           predicted_mlp=predicted_mlp), out,
                       progress=False, log=lambda *_: None, key_interval=key_interval)
     return out
 
 
 def test_predicted_segments_take_the_mlps_and_codebooks_of_the_one_before(three_segments, tmp_path):
-    """With a key interval of 3 segments 1 and 2 are predicted: each stores none of its MLP weights, none of its
-    non-rotation codebooks (which decode to the segment before's decoded values bit for bit) and no camera rig, and
-    each is smaller than the same segment coded alone; alone a predicted segment does not decode."""
+    """With a key interval of 3 segments 1 and 2 are predicted, keeping the MLPs (``predicted_mlp="keep"``): each
+    stores none of its MLP weights, none of its non-rotation codebooks (which decode to the segment before's decoded
+    values bit for bit) and no camera rig, and each is smaller than the same segment coded alone; alone a predicted
+    segment does not decode."""
     import numpy as np
 
     from omg4.codec.container import read_versioned
@@ -119,7 +121,7 @@ def test_predicted_segments_take_the_mlps_and_codebooks_of_the_one_before(three_
     from omg4.codec.sequence import SegmentDecoder
     from omg4.errors import CorruptFileError
 
-    predicted, alone = _sequence(three_segments, tmp_path, 3), _sequence(three_segments, tmp_path, 1)
+    predicted, alone = _sequence(three_segments, tmp_path, 3, "keep"), _sequence(three_segments, tmp_path, 1)
     index = read_index(predicted)
     assert index.key_interval == 3 and [e.reference for e in index.segments] == [None, 0, 1]
     assert [e.reference for e in read_index(alone).segments] == [None, None, None]
@@ -142,6 +144,30 @@ def test_predicted_segments_take_the_mlps_and_codebooks_of_the_one_before(three_
         with pytest.raises(CorruptFileError, match="decode it through its sequence"):
             decode_payload(read_segment(predicted, index.segments[k]))
     assert read_segment(predicted, index.segments[0]) == read_segment(alone, read_index(alone).segments[0])
+
+
+def test_predicted_segments_fine_tune_the_mlps_of_the_one_before_and_store_the_change(three_segments, tmp_path):
+    """By default (``predicted_mlp="tune"``) a predicted segment starts from the segment before's decoded MLPs and
+    trains them: its file stores each weight matrix as its change from that segment's (``delta-int<b>-cols``), the
+    decoded weights differ from the segment before's, and the changes cost fewer bytes than the same segment's
+    weights coded alone; its codebooks are still taken."""
+    import numpy as np
+
+    from omg4.codec.container import read_versioned
+    from omg4.codec.sequence import SegmentDecoder
+    from omg4.codec.weights import parse_delta_encoding
+
+    predicted, alone = _sequence(three_segments, tmp_path, 3), _sequence(three_segments, tmp_path, 1)
+    decoded = [SegmentDecoder(predicted).payload(k) for k in range(3)]
+    for k in (1, 2):
+        _, header, sections = read_versioned(read_segment(predicted, read_index(predicted).segments[k]))
+        _, _, alone_sections = read_versioned(read_segment(alone, read_index(alone).segments[k]))
+        mlp = [f"mlp.{name}" for name in header["mlp"]]
+        assert all(parse_delta_encoding(header["encodings"][n]) for n in mlp)
+        assert sum(len(sections[n]) for n in mlp) < sum(len(alone_sections[n]) for n in mlp)
+        assert any(not np.array_equal(w, decoded[k - 1].mlp[name]) for name, w in decoded[k].mlp.items())
+        assert all(e == "reference" for n, e in header["encodings"].items() if ".codebook" in n
+                   and n.split(".")[1] not in header["rotations"])
 
 
 def test_a_seek_decodes_only_the_chain_back_to_its_key_segment(three_segments, tmp_path):

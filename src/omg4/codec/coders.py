@@ -19,7 +19,7 @@ from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import encode_codewords
 from omg4.codec.entropy import MAX_SYMBOLS, encode_indices
 from omg4.codec.sections import canonical_order, encode_f16, encode_xyz_morton, smallest_f16
-from omg4.errors import OMG4Error
+from omg4.errors import CorruptFileError, OMG4Error
 
 Section = tuple[str, bytes]
 """(encoding, bytes) of one section."""
@@ -78,6 +78,11 @@ class Coder:
 
     def mlp_weight(self, w: np.ndarray, precision) -> Section:
         return self.float_section(w)
+
+    def mlp_change(self, w: np.ndarray, reference: np.ndarray, precision) -> Section | None:
+        """A predicted segment's MLP weight ``w`` as its change from the reference's decoded ``reference`` (same
+        shape), or None where this codec stores weights as they are."""
+        return None
 
     def any_length_rotation(self, qa, name: str, rotations: tuple[str, ...], precision) -> bool:
         """Whether attribute ``name`` may have codebooks longer than an index can address (stored another way)."""
@@ -169,6 +174,18 @@ class CompactCoder(Coder):
         if w.ndim == 2 and w.size and precision.weights <= weights.BITS:
             return weights.encoding(precision.weights), weights.encode_columns(w, precision.weights)
         return super().mlp_weight(w, precision)
+
+    def mlp_change(self, w: np.ndarray, reference: np.ndarray, precision) -> Section | None:
+        """A matrix whose weights are quantized (``precision.weights`` < 16) as :func:`omg4.codec.weights.encode_delta`
+        of it, when that decodes within the fp16 range."""
+        if w.ndim != 2 or not w.size or precision.weights > weights.BITS:
+            return None
+        encoding, data = weights.encode_delta(w, reference)
+        try:
+            weights.decode_delta(data, reference, encoding)
+        except CorruptFileError:
+            return None
+        return encoding, data
 
     def any_length_rotation(self, qa, name: str, rotations: tuple[str, ...], precision) -> bool:
         """A rotation, 4 wide, is stored as unit quaternions unless the grids keep rotation codebooks

@@ -219,9 +219,11 @@ class CompressedPayload:
 def container_version(codec: object, encodings: object = None) -> int:
     """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``):
     :data:`~omg4.codec.container.PREDICTED_VERSION` for a predicted segment (a section encoded as
-    :data:`REFERENCE`), else :meth:`omg4.codec.coders.Coder.version` of its coder, 1 for an unknown one. Any
-    ``encodings`` value is accepted (a forged header's too)."""
-    if isinstance(encodings, dict) and REFERENCE in encodings.values():
+    :data:`REFERENCE` or as a change from it, :func:`omg4.codec.weights.parse_delta_encoding`), else
+    :meth:`omg4.codec.coders.Coder.version` of its coder, 1 for an unknown one. Any ``encodings`` value is accepted
+    (a forged header's too)."""
+    if isinstance(encodings, dict) and any(e == REFERENCE or weights.parse_delta_encoding(e)
+                                           for e in encodings.values()):
         return PREDICTED_VERSION
     coder = CODERS.get(codec) if isinstance(codec, str) else None
     return coder.version(encodings) if coder is not None else 1
@@ -304,8 +306,9 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     """Write ``p`` to ``path`` (atomically) with ``codec`` from :data:`CODECS`; ``precision``: the "compact" codec's
     grids (any other is refused with another codec). ``reference``: the :func:`reference_sections` of the segment
     this one is predicted from; every MLP weight and every attribute's codebooks equal to the reference's are
-    stored as :data:`REFERENCE` (no bytes; the attribute's indices then index the reference's codebooks), which
-    makes the file a predicted segment that decodes only with that reference.
+    stored as :data:`REFERENCE` (no bytes; the attribute's indices then index the reference's codebooks), and an
+    MLP weight that differs as its change from the reference's where the codec codes changes and that is smaller
+    (:func:`_mlp_section`), which makes the file a predicted segment that decodes only with that reference.
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
@@ -336,9 +339,7 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
         else:
             shapes[attr] = attr_shapes
     for name, w in q.mlp.items():
-        same = reference.get(f"mlp.{name}")
-        written[f"mlp.{name}"] = ((REFERENCE, b"") if same is not None and same.shape == w.shape
-                                  and np.array_equal(same, w) else coder.mlp_weight(w, precision))
+        written[f"mlp.{name}"] = _mlp_section(coder, w, reference.get(f"mlp.{name}"), precision)
     sections = {name: data for name, (_, data) in written.items()}
     encodings = {name: enc for name, (enc, _) in written.items()}
     header = {
@@ -360,6 +361,18 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     total = write_container(path, header, sections, version=container_version(codec, encodings))
     sizes["header"] = total - sum(sizes.values())
     return sizes
+
+
+def _mlp_section(coder: Coder, w: np.ndarray, same: np.ndarray | None, precision: CompactGrids):
+    """MLP weight ``w``'s section: :data:`REFERENCE` where it equals the reference's ``same`` (None: no such
+    weight), else the smaller of its change from ``same`` (:meth:`omg4.codec.coders.Coder.mlp_change`, lossy in
+    its own way) and the weight itself."""
+    if same is None or same.shape != w.shape:
+        return coder.mlp_weight(w, precision)
+    if np.array_equal(same, w):
+        return REFERENCE, b""
+    whole, change = coder.mlp_weight(w, precision), coder.mlp_change(w, same, precision)
+    return change if change is not None and len(change[1]) < len(whole[1]) else whole
 
 
 # ------------------------------------------------------------------------ decoding
@@ -460,18 +473,24 @@ def decode_payload(source: str | os.PathLike | bytes,
 def _referenced(name: str, data: bytes, shape: tuple[int, ...] | None, reference: dict[str, np.ndarray] | None
                 ) -> np.ndarray:
     """Section ``name`` of a predicted segment, taken from its reference (one-line errors on anything forged)."""
+    if data:
+        raise CorruptFileError(f"a section taken from the reference holds {len(data)} bytes of its own")
+    return np.array(_reference_array(name, shape, reference), np.float16)
+
+
+def _reference_array(name: str, shape: tuple[int, ...] | None, reference: dict[str, np.ndarray] | None
+                     ) -> np.ndarray:
+    """The reference's decoded array behind section ``name`` of a predicted segment, of the declared ``shape``."""
     if reference is None:
         raise CorruptFileError("a predicted segment takes its sections from the segment before: decode it through "
                                "its sequence file")
-    if data:
-        raise CorruptFileError(f"a section taken from the reference holds {len(data)} bytes of its own")
     if name not in reference:
         raise CorruptFileError("the reference segment has no such section")
     array = reference[name]
     if shape is None or tuple(array.shape) != tuple(shape):
         raise CorruptFileError(f"the reference's section has shape {tuple(array.shape)}, the header declares "
                                f"{None if shape is None else tuple(shape)}")
-    return np.array(array, np.float16)
+    return array
 
 
 def _decode_sections(header: dict, sections: dict[str, bytes],
@@ -487,6 +506,8 @@ def _decode_sections(header: dict, sections: dict[str, bytes],
             data, encoding = sections[name], enc[name]
             if encoding == REFERENCE and not num_symbols and name.split(".")[0] in ("mlp", "svq"):
                 return _referenced(name, data, shape, reference)
+            if gridded and weights.parse_delta_encoding(encoding) and name.startswith("mlp.") and len(shape) == 2:
+                return weights.decode_delta(data, _reference_array(name, shape, reference), encoding)
             if num_symbols:
                 if encoding not in coder.index_encodings:
                     raise CorruptFileError(f"encoding {encoding!r} is not an index encoding of the codec {codec!r}")

@@ -8,6 +8,12 @@ names the bits (8 by default; 2-7 under coarser grids, :class:`omg4.codec.payloa
 Per-column scales follow the inputs: an appearance head (paper §4.4) takes 13 shared features and 3 Gaussian
 features of different ranges, which per-row scales give one step (the measured effect of both layouts on PSNR:
 ``docs/results.md``, coders).
+
+A predicted segment of a sequence (beyond the paper; docs/file-format.md §8a) may store a matrix as its change
+from the reference segment's decoded one (``delta-int<b>-cols``): integer codes of ``w − reference`` in steps of
+its reference column's largest magnitude / :data:`DELTA_LEVELS` (a power of two coarser where the change needs
+it), decoding to ``fp16(reference + codes · step)``; nothing of the step is stored but that power, so a weight
+that did not move costs the entropy coder's share of a zero code.
 """
 
 from __future__ import annotations
@@ -22,6 +28,11 @@ from omg4.errors import CorruptFileError
 BITS = 8
 MIN_BITS = 2
 F16_MAX = 65504.0
+#: a change's step is its reference column's largest magnitude / DELTA_LEVELS (a 5-bit grid where the matrices
+#: themselves take 8: the change of a fine-tuned appearance MLP needs no finer one, docs/results.md, predicted
+#: segments), times 2^shift (shift at most MAX_SHIFT) for a column whose change is too large for 8-bit codes
+DELTA_LEVELS = 15
+MAX_SHIFT = 31
 
 
 def levels(bits: int = BITS) -> int:
@@ -84,3 +95,59 @@ def decode_matrix(data: bytes, shape: tuple[int, int], name: str) -> np.ndarray:
     bits, columns = parse_encoding(name)
     rows, cols = shape
     return decode_rows(data, (cols, rows), bits).T.copy() if columns else decode_rows(data, shape, bits)
+
+
+def delta_encoding(bits: int) -> str:
+    """The section encoding's name of a matrix stored as its change from the reference's, codes of ``bits``."""
+    return f"delta-int{bits}-cols"
+
+
+def parse_delta_encoding(name: object) -> int | None:
+    """The code bits of a change's encoding name (``delta-int2-cols`` … ``delta-int8-cols``), or None."""
+    match = re.fullmatch(r"delta-int([2-8])-cols", name) if isinstance(name, str) else None
+    return int(match.group(1)) if match else None
+
+
+def delta_steps(reference: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """float64 ``[C]``: each column's step, its reference column's largest magnitude (at least 2^-14) /
+    :data:`DELTA_LEVELS` · 2^shift."""
+    largest = np.abs(np.asarray(reference, np.float16).astype(np.float64)).max(axis=0, initial=0.0)
+    return np.maximum(largest, 2.0 ** -14) / DELTA_LEVELS * np.exp2(np.asarray(shifts, np.float64))
+
+
+def encode_delta(w: np.ndarray, reference: np.ndarray) -> tuple[str, bytes]:
+    """(encoding, bytes) of the 2-D matrix ``w`` as its change from ``reference`` (same shape, the decoded fp16
+    values a reader holds): per column the smallest shift (:func:`delta_steps`) that keeps its codes within 8 bits,
+    then the integer codes in the fewest bits that hold them, both ANS-coded (a uint32 gives the shifts' bytes).
+    :func:`decode_delta` gives ``fp16(reference + codes · step)``."""
+    ref = np.asarray(reference, np.float16).astype(np.float64)
+    change = np.asarray(w, np.float16).astype(np.float64) - ref
+    base = delta_steps(ref, np.zeros(ref.shape[1]))
+    ratio = np.abs(change).max(axis=0, initial=0.0) / (levels(BITS) * base)
+    shifts = np.clip(np.ceil(np.log2(np.maximum(ratio, 1.0))), 0, MAX_SHIFT).astype(np.int64)
+    codes = np.clip(np.rint(change / delta_steps(ref, shifts)), -levels(BITS), levels(BITS)).astype(np.int64)
+    widest = int(np.abs(codes).max(initial=0))
+    code_bits = next(b for b in range(MIN_BITS, BITS + 1) if levels(b) >= widest)
+    top = levels(code_bits)
+    head = encode_indices(shifts, MAX_SHIFT + 1, "ans")
+    data = len(head).to_bytes(4, "little") + head + encode_indices((codes.T + top).ravel(), 2 * top + 1, "ans")
+    return delta_encoding(code_bits), data
+
+
+def decode_delta(data: bytes, reference: np.ndarray, name: str) -> np.ndarray:
+    """Inverse of :func:`encode_delta` for an encoding ``name`` (:func:`parse_delta_encoding`, checked by the
+    caller) over the reference's decoded matrix: ``float16 [R, C]``; a change that leaves the fp16 range is a
+    CorruptFileError."""
+    rows, cols = reference.shape
+    top = levels(parse_delta_encoding(name))
+    head = int.from_bytes(data[:4], "little")
+    if len(data) < 4 or head > len(data) - 4:
+        raise CorruptFileError("truncated change of a weight matrix")
+    shifts = decode_indices(data[4:4 + head], MAX_SHIFT + 1, cols, "ans")
+    codes = decode_indices(data[4 + head:], 2 * top + 1, rows * cols, "ans").reshape(cols, rows).T - top
+    ref = np.asarray(reference, np.float16).astype(np.float64)
+    with np.errstate(over="ignore"):
+        out = (ref + codes * delta_steps(ref, shifts)).astype(np.float16)
+    if not np.isfinite(out).all():
+        raise CorruptFileError("the change takes weights beyond the fp16 range")
+    return out

@@ -86,8 +86,9 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     report.
 
     ``reference``: for a predicted segment of a sequence, the :func:`~omg4.codec.payload.reference_sections` of the
-    segment before, decoded; the compression keeps its appearance MLPs and codebooks and the file stores them as
-    references to it, and no camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a).
+    segment before, decoded; the compression keeps its codebooks and starts from its appearance MLPs
+    (``cfg.predicted_mlp``), and the file stores what it kept as references to it, the MLPs as their change, and no
+    camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a).
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
     comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
@@ -164,8 +165,9 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     sequence file (:mod:`omg4.codec.sequence`) at ``out``; ``load_scene(start, stop)`` gives a segment's scene.
 
     Every ``key_interval``-th segment (the first included) is a key segment, coded alone; each other one is
-    predicted from the segment before (beyond the paper): compressed with that segment's decoded appearance MLPs
-    and codebooks, kept as they are, and stored without them (``compress_to_file``'s ``reference``).
+    predicted from the segment before (beyond the paper): compressed with that segment's decoded codebooks, kept as
+    they are, and its appearance MLPs as a start (``cfg.predicted_mlp``), and stored with references to them and
+    the MLPs' change (``compress_to_file``'s ``reference``).
 
     One segment's scene and models are held at a time, and the segment before's compressed model: with ``teach``
     a segment's training views of the frames it shares with the one before show the crossfade from that model's

@@ -71,13 +71,18 @@ def make_mlp_optimizer(mlp: torch.nn.Module, lr: float = MLP_LR, total_iteration
     return optimizer, scheduler
 
 
+#: what a predicted segment does with its reference segment's appearance MLPs (beyond the paper; docs/file-format.md
+#: §8a): fine-tunes them like its own and stores the change (``tune``), or keeps them as they are and stores none
+#: of them (``keep``: smaller, and below the segment coded alone; docs/results.md, predicted segments)
+PREDICTED_MLPS = ("tune", "keep")
+
+
 def reference_mlp(reference: dict | None, num_inputs: int) -> AppearanceMLP | None:
-    """A predicted segment's appearance MLPs: its reference segment's decoded weights (``mlp.NAME`` of
-    :func:`omg4.codec.payload.reference_sections`), which it keeps unchanged so the file stores none of them
-    (beyond the paper; docs/file-format.md §8a); None without a reference or one without MLPs."""
+    """A predicted segment's appearance MLPs to start from: its reference segment's decoded weights (``mlp.NAME`` of
+    :func:`omg4.codec.payload.reference_sections`); None without a reference or one without MLPs."""
     state = {name[len("mlp."):]: w for name, w in (reference or {}).items() if name.startswith("mlp.")}
     return AppearanceMLP.from_fp16_state(state, num_inputs) if state else None
 
 
-__all__ = ["FEATURE_LR", "MLP_LR", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule",
+__all__ = ["FEATURE_LR", "MLP_LR", "PREDICTED_MLPS", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule",
            "reference_mlp"]

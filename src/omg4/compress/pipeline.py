@@ -87,6 +87,8 @@ class CompressConfig:
     tau_gs: float | None = knob(None, "sampling ratio τ_GS, overriding the preset's")
     prune_quantile: float | None = knob(None, "pruning quantile p, overriding the preset's")
     rate_weight: float = knob(0.0, "β of entropy-constrained codebooks (beyond the paper; 0: its k-means)")
+    predicted_mlp: str = knob("tune", "a predicted segment fine-tunes the segment before's appearance MLPs and "
+                                      "stores the change (tune) or keeps them as they are (keep)")
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset, backbone)
@@ -145,6 +147,9 @@ class CompressionPipeline:
             raise OMG4Error(f"unknown score weighting '{cfg.score_weighting}' (choose from {', '.join(SCORE_WEIGHTINGS)})")
         if cfg.time_sampling not in TIME_SAMPLINGS:
             raise OMG4Error(f"unknown time sampling '{cfg.time_sampling}' (choose from {', '.join(TIME_SAMPLINGS)})")
+        if cfg.predicted_mlp not in appearance_stage.PREDICTED_MLPS:
+            raise OMG4Error(f"unknown predicted MLP mode '{cfg.predicted_mlp}' (choose from "
+                            f"{', '.join(appearance_stage.PREDICTED_MLPS)})")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
@@ -262,12 +267,13 @@ class CompressionPipeline:
         for name, value in features.items():
             self.model.params[name] = value.detach().clone().requires_grad_(True)
         taken = appearance_stage.reference_mlp(self.reference, self.schema.mlp_inputs)
-        if taken is not None:  # a predicted segment: its reference's decoded MLPs, kept as they are
-            self.model.appearance = taken.to(self.device).requires_grad_(False)
+        if taken is not None:  # a predicted segment: its reference's decoded MLPs, tuned or kept as they are
+            self.model.appearance = taken.to(self.device).requires_grad_(self.cfg.predicted_mlp == "tune")
         else:
             torch.manual_seed(self.cfg.seed)
             with torch.device("cpu"):  # initialized by the seeded CPU generator whatever the device
                 self.model.appearance = AppearanceMLP(num_inputs=self.schema.mlp_inputs).to(self.device)
+        if taken is None or self.cfg.predicted_mlp == "tune":
             remaining = self._remaining_after("appearance")
             self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
                 self.model.appearance, total_iterations=remaining)

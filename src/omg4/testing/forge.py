@@ -273,8 +273,9 @@ def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: s
                    codebook_scale: float = 1.0, precision: CompactGrids = CompactGrids(), key_interval: int = 1) -> bytes:
     """A sequence file (:mod:`omg4.codec.sequence`) of ``segments`` valid models of ``num_gaussians`` each, segments of
     10 frames sharing 2 at 10 fps; every ``key_interval``-th a key segment, each other one predicted from the one
-    before (its MLPs and non-rotation codebooks the decoded ones of that segment, its indices drawn anew); returns
-    the file's bytes."""
+    before (its MLPs and non-rotation codebooks the decoded ones of that segment, but its first MLP weight moved by
+    noise, one column of it far, which the compact codec stores as a change; its indices drawn anew); returns the
+    file's bytes."""
     import tempfile
 
     from omg4.codec.payload import decode_payload, reference_sections
@@ -288,6 +289,10 @@ def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: s
             if reference is not None:
                 rng = np.random.default_rng(seed + i)
                 payload.mlp = {name: reference[f"mlp.{name}"] for name in payload.mlp}
+                moved = next(iter(payload.mlp))
+                noise = rng.normal(0.0, 0.01, payload.mlp[moved].shape)
+                noise[:, 0] *= 1000  # a column whose change needs a coarser step
+                payload.mlp[moved] = payload.mlp[moved] + noise
                 for attr, qa in payload.attributes.items():
                     if attr not in payload.rotations:
                         qa.codebooks = [reference[f"svq.{attr}.codebook{j}"] for j in range(len(qa.codebooks))]

@@ -17,6 +17,7 @@ from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_backgr
                                   compact_grids, device_from_args, fill_device_arguments, float_in, int_at_least,
                                   load_scene_from_args, seed, segment_scenes, settings_from_args)
 from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
+from omg4.compress.appearance_stage import PREDICTED_MLPS
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.score import SCORE_WEIGHTINGS
 from omg4.compress.time_balance import TIME_SAMPLINGS
@@ -27,7 +28,7 @@ from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 #: the CompressConfig fields this command has its own flags for
 SHORTCUTS = ("preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
              "official_score_quirk", "score_weighting", "time_sampling", "baseline_iterations", "background", "backend",
-             "device", "seed")
+             "device", "seed", "predicted_mlp")
 #: options of the command itself that a config file may set (as the record beside the output does)
 COMMAND_KEYS = ("codec", "grid_bits")
 
@@ -86,8 +87,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "compressed renders into the video)")
     p.add_argument("--key-interval", type=int, metavar="N",
                    help="a segmented run: every N-th segment is coded alone and the others are predicted from the "
-                        "segment before (they keep its appearance MLPs and codebooks and store neither), so a seek "
-                        f"decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL})")
+                        "segment before (they take its codebooks and store its appearance MLPs as a change), so a "
+                        f"seek decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL})")
+    p.add_argument("--predicted-mlp", choices=list(PREDICTED_MLPS),
+                   help="what a predicted segment does with the segment before's appearance MLPs: fine-tune them and "
+                        "store the change (tune, the default) or keep them as they are and store nothing (keep: a "
+                        "smaller file, a little further below each segment coded alone)")
     add_force_argument(p)
     add_distributed_arguments(p)
     add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",

@@ -5,7 +5,7 @@
 import { decodeIndices, MAX_SYMBOLS } from "./entropy.js";
 import {
   decodeFirstUseIndices, decodeFloats, decodeMorton, decodePositions, decodeQuaternions, decodeSortedCodebook, decodeTimes,
-  decodeWeights, quaternionBits, weightEncoding,
+  decodeWeightChange, decodeWeights, deltaEncoding, quaternionBits, weightEncoding,
 } from "./sections.js";
 import { CorruptFileError, crc32, inflateRaw } from "./streams.js";
 
@@ -194,16 +194,21 @@ export function referenceSections(payload) {
 }
 
 function referenced(name, data, shape, reference) {
+  if (data.length) throw new CorruptFileError(`a section taken from the reference holds ${data.length} bytes of its own`);
+  return referenceValues(name, shape, reference).slice();
+}
+
+/** The reference's decoded values behind section `name` of a predicted segment, of the declared `shape`. */
+function referenceValues(name, shape, reference) {
   if (reference === null) {
     throw new CorruptFileError("a predicted segment takes its sections from the segment before: decode it through its sequence file");
   }
-  if (data.length) throw new CorruptFileError(`a section taken from the reference holds ${data.length} bytes of its own`);
   const taken = reference.get(name);
   if (!taken) throw new CorruptFileError("the reference segment has no such section");
   if (shape === null || JSON.stringify(taken.shape) !== JSON.stringify(shape)) {
     throw new CorruptFileError(`the reference's section has shape [${taken.shape}], the header declares [${shape}]`);
   }
-  return taken.values.slice();
+  return taken.values;
 }
 
 /** Decode a single-model .omg4 file (bytes: Uint8Array) into fp16 bit patterns and int32 indices:
@@ -236,6 +241,9 @@ export async function decodePayload(bytes, reference = null) {
     try {
       if (encoding === REFERENCE && !numSymbols && ["mlp", "svq"].includes(name.split(".")[0])) {
         return referenced(name, data, shape, reference);
+      }
+      if (compact && deltaEncoding(encoding) && name.startsWith("mlp.") && shape.length === 2) {
+        return await decodeWeightChange(data, referenceValues(name, shape, reference), shape[0], shape[1], encoding);
       }
       if (numSymbols) {
         if (!indexEncodings.includes(encoding)) {

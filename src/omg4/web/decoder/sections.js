@@ -1,11 +1,12 @@
 // Section decoders of the .omg4 payload (docs/file-format.md §3, §3a): fp16 float sections, grid positions and
-// time centres, "sorted" and "first-use" codebooks, unit quaternions and n-bit MLP weights. Floats come back as
-// Uint16Array fp16 bit patterns equal to the Python decoder's (omg4/codec/{payload,grids,codewords,quaternions,
-// weights}.py), computed in doubles and rounded to fp16 as numpy does.
+// time centres, "sorted" and "first-use" codebooks, unit quaternions, n-bit MLP weights and their changes from a
+// reference segment's. Floats come back as Uint16Array fp16 bit patterns equal to the Python decoder's
+// (omg4/codec/{payload,grids,codewords,quaternions,weights}.py), computed in doubles and rounded to fp16 as numpy
+// does.
 
 import { decodeIndices, decodeSortedCodes, decodeUints, MAX_SYMBOLS } from "./entropy.js";
 import {
-  CorruptFileError, halfIsFinite, keyToHalf, orderedKey, splitStreams, toHalfBits, unpackVarints,
+  CorruptFileError, halfIsFinite, halfToFloat, keyToHalf, orderedKey, splitStreams, toHalfBits, unpackVarints,
 } from "./streams.js";
 
 function checkFinite(bits, what) {
@@ -207,6 +208,40 @@ export async function decodeWeights(data, rows, cols, encoding) {
     for (let j = 0; j < c; j++) {
       const value = toHalfBits((codes[i * c + j] - top) * scale[i]);
       out[columns ? j * cols + i : i * cols + j] = value;
+    }
+  }
+  return out;
+}
+
+/** The code bits of a weight change's encoding name (`delta-int2-cols` … `delta-int8-cols`), or null
+ * (omg4/codec/weights.py parse_delta_encoding). */
+export function deltaEncoding(name) {
+  const m = /^delta-int([2-8])-cols$/.exec(name);
+  return m ? +m[1] : null;
+}
+
+const DELTA_LEVELS = 15; // omg4/codec/weights.py
+const MAX_SHIFT = 31;
+
+/** A predicted segment's 2-D MLP weight [rows, cols] stored as its change from the reference's decoded one
+ * (`reference`: fp16 bits): a uint32 byte count, the columns' ANS-coded shifts, then the ANS codes in [−L, L],
+ * column by column; each weight is fp16(reference + code · step), step = max(the column's largest |reference|,
+ * 2^-14) / 15 · 2^shift (omg4/codec/weights.py decode_delta). */
+export async function decodeWeightChange(data, reference, rows, cols, encoding) {
+  const top = 2 ** (deltaEncoding(encoding) - 1) - 1;
+  const head = data.length < 4 ? -1 : new DataView(data.buffer, data.byteOffset, data.byteLength).getUint32(0, true);
+  if (head < 0 || head > data.length - 4) throw new CorruptFileError("truncated change of a weight matrix");
+  const shifts = await decodeIndices(data.subarray(4, 4 + head), MAX_SHIFT + 1, cols);
+  const codes = await decodeIndices(data.subarray(4 + head), 2 * top + 1, rows * cols);
+  const out = new Uint16Array(rows * cols);
+  for (let j = 0; j < cols; j++) {
+    let largest = 0;
+    for (let i = 0; i < rows; i++) largest = Math.max(largest, Math.abs(halfToFloat(reference[i * cols + j])));
+    const step = Math.max(largest, 2 ** -14) / DELTA_LEVELS * 2 ** shifts[j];
+    for (let i = 0; i < rows; i++) {
+      const bits = toHalfBits(halfToFloat(reference[i * cols + j]) + (codes[j * rows + i] - top) * step);
+      if (!halfIsFinite(bits)) throw new CorruptFileError("the change takes weights beyond the fp16 range");
+      out[i * cols + j] = bits;
     }
   }
   return out;
