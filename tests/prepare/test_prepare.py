@@ -77,8 +77,10 @@ def test_a_rig_is_calibrated_from_renamed_unposed_videos(prepared, rig):
     assert (out / "rig.png").stat().st_size > 10_000 and (out / "points3d.ply").exists()
     # the rig calibrated again from a half of the instants reproduces it
     assert len(record["halves"]) == 2
-    assert any(h["cameras"] == 6 and h["rotation_deg_median"] < 1.0 and h["focal_pct_median"] < 5.0
-               for h in record["halves"]), record["halves"]  # the half with more data: 0.1-0.5° and 0.4-3.3 %
+    # the half with more data: 0.1-0.5° and 0.4-3.3 % in most runs, 2.4° in one (pycolmap's threads); a wrong rig's
+    # halves lie 6-20° off (check.HALVES_ROTATION_DEG)
+    assert any(h["cameras"] == 6 and h["rotation_deg_median"] < 3.0 and h["focal_pct_median"] < 5.0
+               for h in record["halves"]), record["halves"]
     assert "calibrated again from each half of the instants" in printed
 
 
