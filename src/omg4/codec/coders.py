@@ -19,7 +19,7 @@ from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import encode_codewords
 from omg4.codec.entropy import MAX_SYMBOLS, encode_indices
 from omg4.codec.sections import canonical_order, encode_f16, encode_xyz_morton, smallest_f16
-from omg4.errors import CorruptFileError, OMG4Error
+from omg4.errors import OMG4Error
 
 Section = tuple[str, bytes]
 """(encoding, bytes) of one section."""
@@ -180,12 +180,7 @@ class CompactCoder(Coder):
         of it, when that decodes within the fp16 range."""
         if w.ndim != 2 or not w.size or precision.weights > weights.BITS:
             return None
-        encoding, data = weights.encode_delta(w, reference)
-        try:
-            weights.decode_delta(data, reference, encoding)
-        except CorruptFileError:
-            return None
-        return encoding, data
+        return weights.encode_delta(w, reference)
 
     def any_length_rotation(self, qa, name: str, rotations: tuple[str, ...], precision) -> bool:
         """A rotation, 4 wide, is stored as unit quaternions unless the grids keep rotation codebooks

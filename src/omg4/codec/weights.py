@@ -108,24 +108,33 @@ def parse_delta_encoding(name: object) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def delta_steps(reference: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    """float64 ``[C]``: each column's step, its reference column's largest magnitude (at least 2^-14) /
-    :data:`DELTA_LEVELS` · 2^shift."""
-    largest = np.abs(np.asarray(reference, np.float16).astype(np.float64)).max(axis=0, initial=0.0)
+def _steps(ref: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """float64 ``[C]``: column j's step, the largest magnitude of the reference's column (float64 ``ref``; at
+    least 2^-14) / :data:`DELTA_LEVELS` · 2^shifts[j], as the browser computes it too."""
+    largest = np.abs(ref).max(axis=0, initial=0.0)
     return np.maximum(largest, 2.0 ** -14) / DELTA_LEVELS * np.exp2(np.asarray(shifts, np.float64))
 
 
-def encode_delta(w: np.ndarray, reference: np.ndarray) -> tuple[str, bytes]:
+def _changed(reference: np.ndarray, codes: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """``fp16(reference + codes · step)`` (:func:`_steps`), float16 ``[R, C]``; a weight beyond the fp16 range comes
+    out infinite."""
+    ref = np.asarray(reference, np.float16).astype(np.float64)
+    with np.errstate(over="ignore"):
+        return (ref + codes * _steps(ref, shifts)).astype(np.float16)
+
+
+def encode_delta(w: np.ndarray, reference: np.ndarray) -> tuple[str, bytes] | None:
     """(encoding, bytes) of the 2-D matrix ``w`` as its change from ``reference`` (same shape, the decoded fp16
-    values a reader holds): per column the smallest shift (:func:`delta_steps`) that keeps its codes within 8 bits,
-    then the integer codes in the fewest bits that hold them, both ANS-coded (a uint32 gives the shifts' bytes).
-    :func:`decode_delta` gives ``fp16(reference + codes · step)``."""
+    values a reader holds), or None where the change would decode beyond the fp16 range: per column the smallest
+    shift (:func:`_steps`) that keeps its codes within 8 bits, then the integer codes in the fewest bits that hold
+    them, both ANS-coded (a uint32 gives the shifts' bytes). :func:`decode_delta` gives ``_changed``."""
     ref = np.asarray(reference, np.float16).astype(np.float64)
     change = np.asarray(w, np.float16).astype(np.float64) - ref
-    base = delta_steps(ref, np.zeros(ref.shape[1]))
-    ratio = np.abs(change).max(axis=0, initial=0.0) / (levels(BITS) * base)
+    ratio = np.abs(change).max(axis=0, initial=0.0) / (levels(BITS) * _steps(ref, np.zeros(ref.shape[1])))
     shifts = np.clip(np.ceil(np.log2(np.maximum(ratio, 1.0))), 0, MAX_SHIFT).astype(np.int64)
-    codes = np.clip(np.rint(change / delta_steps(ref, shifts)), -levels(BITS), levels(BITS)).astype(np.int64)
+    codes = np.clip(np.rint(change / _steps(ref, shifts)), -levels(BITS), levels(BITS)).astype(np.int64)
+    if not np.isfinite(_changed(ref, codes, shifts)).all():
+        return None
     widest = int(np.abs(codes).max(initial=0))
     code_bits = next(b for b in range(MIN_BITS, BITS + 1) if levels(b) >= widest)
     top = levels(code_bits)
@@ -145,9 +154,7 @@ def decode_delta(data: bytes, reference: np.ndarray, name: str) -> np.ndarray:
         raise CorruptFileError("truncated change of a weight matrix")
     shifts = decode_indices(data[4:4 + head], MAX_SHIFT + 1, cols, "ans")
     codes = decode_indices(data[4 + head:], 2 * top + 1, rows * cols, "ans").reshape(cols, rows).T - top
-    ref = np.asarray(reference, np.float16).astype(np.float64)
-    with np.errstate(over="ignore"):
-        out = (ref + codes * delta_steps(ref, shifts)).astype(np.float16)
+    out = _changed(reference, codes, shifts)
     if not np.isfinite(out).all():
         raise CorruptFileError("the change takes weights beyond the fp16 range")
     return out

@@ -267,13 +267,14 @@ class CompressionPipeline:
         for name, value in features.items():
             self.model.params[name] = value.detach().clone().requires_grad_(True)
         taken = appearance_stage.reference_mlp(self.reference, self.schema.mlp_inputs)
+        trained = taken is None or self.cfg.predicted_mlp == "tune"
         if taken is not None:  # a predicted segment: its reference's decoded MLPs, tuned or kept as they are
-            self.model.appearance = taken.to(self.device).requires_grad_(self.cfg.predicted_mlp == "tune")
+            self.model.appearance = taken.to(self.device).requires_grad_(trained)
         else:
             torch.manual_seed(self.cfg.seed)
             with torch.device("cpu"):  # initialized by the seeded CPU generator whatever the device
                 self.model.appearance = AppearanceMLP(num_inputs=self.schema.mlp_inputs).to(self.device)
-        if taken is None or self.cfg.predicted_mlp == "tune":
+        if trained:
             remaining = self._remaining_after("appearance")
             self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
                 self.model.appearance, total_iterations=remaining)
