@@ -103,11 +103,11 @@ def test_compress_writes_one_sequence_and_eval_of_it_weights_the_segments_by_fra
 
 def test_info_shows_the_chain_of_a_sequence_with_predicted_segments(segmented_run, long_scene, tmp_path, capsys):
     """Key interval 2 over three segments: 0 key, 1 predicted from 0, 2 key; info says so in its text and its JSON,
-    with each segment's bytes (the predicted one's MLPs stored as their change, in fewer); --key-interval on one
-    model is refused in one line."""
+    with each segment's bytes (the predicted one's MLPs stored as their change, in fewer) and how many Gaussians it
+    carries from the one before (a loose --carry, so some are); --key-interval on one model is refused in one line."""
     out = tmp_path / "seq.omg4"
     assert main(["compress", str(long_scene), "--model", str(segmented_run), "--out", str(out), "--schedule", "tiny",
-                 "--batch-size", "2", "--backend", "cpu", "--key-interval", "2"]) == 0
+                 "--batch-size", "2", "--backend", "cpu", "--key-interval", "2", "--carry", "4"]) == 0
     capsys.readouterr()
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
@@ -118,6 +118,9 @@ def test_info_shows_the_chain_of_a_sequence_with_predicted_segments(segmented_ru
     assert info["key_interval"] == 2 and [s["reference"] for s in info["segments"]] == [None, 0, None]
     assert [s["total_bytes"] for s in info["segments"]] == [e.size for e in index.segments]
     assert 0 < info["segments"][1]["groups"]["MLPs"] < info["segments"][0]["groups"]["MLPs"]  # their change
+    carried = [s["carried"] for s in info["segments"]]
+    assert carried[0] == carried[2] == 0 and 0 < carried[1] < info["segments"][1]["num_gaussians"]
+    assert f"predicted from 0, {carried[1]} of them carried)" in text
     capsys.readouterr()
     assert main(["compress", str(long_scene), "--model", str(segmented_run / "segment_000"), "--out",
                  str(tmp_path / "one.omg4"), "--schedule", "tiny", "--key-interval", "2"]) == 2

@@ -233,6 +233,14 @@ def seek_to_last(path: Path) -> dict:
             "segments_decoded": len(decoder.index.chain(last))}
 
 
+def carried(path: Path, entry) -> int:
+    """How many Gaussians of the segment before a segment of a sequence file carries."""
+    from omg4.codec.container import read_versioned
+    from omg4.codec.sequence import read_segment
+
+    return read_versioned(read_segment(path, entry))[1].get("carried", 0)
+
+
 def prediction(args) -> None:
     from omg4.codec.sequence import read_index
     from omg4.data import load_scene
@@ -243,7 +251,8 @@ def prediction(args) -> None:
     data = _capture(args)
     reader = ["--downscale", str(args.downscale)]
     train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume"]
-    compress = ["--preset", "M", "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp]
+    compress = ["--preset", "M", "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp,
+                "--carry", str(args.carry)]
     run_dir = work / "run"
     train_s = _omg4("train", str(data), *reader, "--out", str(run_dir), "--iterations", str(args.iterations), *train,
                     "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap))
@@ -251,7 +260,7 @@ def prediction(args) -> None:
     record = {"command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]), "data": str(data),
               "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
               "iterations_per_segment": args.iterations, "schedule": args.schedule, "predicted_mlp": args.predicted_mlp,
-              "train_s": train_s, "rows": []}
+              "carry": args.carry, "train_s": train_s, "rows": []}
     for key_interval in args.key_intervals:
         out = work / f"sequence_M_key{key_interval}.omg4"
         compress_s = _omg4("compress", str(data), *reader, "--model", str(run_dir), "--out", str(out), *compress,
@@ -265,7 +274,8 @@ def prediction(args) -> None:
                "references": [e.reference for e in index.segments], "bitrate_mbps": result["bitrate_mbps"],
                "psnr": result["psnr"], "ssim": result["ssim"], "boundary": split["boundary"],
                "interior": split["interior"], "flicker": split["flicker"], "compress_s": compress_s,
-               "seek_to_last": seek_to_last(out), "num_gaussians": result["num_gaussians"]}
+               "seek_to_last": seek_to_last(out), "num_gaussians": result["num_gaussians"],
+               "carried_gaussians": [carried(out, e) for e in index.segments]}
         record["rows"].append(row)
         record["segments"] = len(index.segments)
         print(f"key interval {key_interval}: {row['file_bytes']:,} B ({row['segment_bytes']}), PSNR {row['psnr']:.3f}, "
@@ -311,6 +321,8 @@ def main() -> None:
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
+    r.add_argument("--carry", type=float, default=0.0,
+                   help="how close a Gaussian of the segment before must lie to be carried (omg4 compress --carry)")
     for p in (q, r):  # a capture cut into segments
         p.add_argument("data", nargs="?")
         p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")

@@ -189,3 +189,47 @@ def test_a_seek_decodes_only_the_chain_back_to_its_key_segment(three_segments, t
     for k in range(3):
         play.payload(k)
     assert play.bytes_read == sum(sizes)
+
+
+def test_a_predicted_segment_carries_the_segment_befores_gaussians_as_they_decoded(three_segments, tmp_path):
+    """Segment 1 compressed against segment 0's decoded file with a loose carry tolerance: some of its Gaussians are
+    segment 0's, fixed at their decoded values through the fine-tuning; its file names them, and decoding it gives
+    those values first, bit for bit, then its own; with no tolerance nothing is carried."""
+    import numpy as np
+    import torch
+
+    from omg4.codec.container import read_versioned
+    from omg4.codec.payload import decode_payload, encode_payload, reference_sections
+    from omg4.compress.api import build_payload
+    from omg4.compress.pipeline import CompressionPipeline
+    from omg4.models.compact import payload_values
+
+    root, scenes = three_segments
+    cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu")
+    key, _ = load_gaussians(root / "run" / "segment_000" / "model.safetensors")
+    compress_to_file(key, scenes(0, 6), cfg, tmp_path / "key.omg4", progress=False, log=lambda *_: None)
+    reference = reference_sections(decode_payload(tmp_path / "key.omg4"))
+    baseline, _ = load_gaussians(root / "run" / "segment_001" / "model.safetensors")
+    for tolerance in (0.0, 4.0):
+        pipeline = CompressionPipeline(baseline, scenes(4, 10), CompressConfig(lengths=LENGTHS, batch_size=1,
+                                       backend="cpu", carry=tolerance), progress=False, log=lambda *_: None,
+                                       reference=reference)
+        model = pipeline.run()
+        encode_payload(build_payload(model, {"time_range": [4 / 30, 10 / 30]}), tmp_path / "p.omg4",
+                       reference=reference)
+        _, header, _ = read_versioned(tmp_path / "p.omg4")
+        if not tolerance:
+            assert model.num_carried == 0 and "carried" not in header
+            continue
+        carried = model.num_carried
+        assert 0 < carried < reference["gaussians.xyz"].shape[0] and header["carried"] == carried
+        rows = model.carried_rows
+        assert np.array_equal(rows, np.sort(rows))
+        decoded = payload_values(decode_payload(tmp_path / "p.omg4", reference), model.config.schema)
+        for name, values in model.carried.items():
+            expected = torch.from_numpy(np.asarray(reference[f"gaussians.{name}"], np.float32)) if name in (
+                "xyz", "t") else None
+            if expected is not None:
+                assert torch.equal(values.reshape(expected[rows].shape), expected[rows]), name
+            assert torch.equal(decoded[name][:carried], values), name
+        assert decoded["xyz"].shape[0] == carried + model.num_gaussians

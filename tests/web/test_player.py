@@ -16,7 +16,8 @@ from PIL import Image
 
 from omg4.app.cli import main
 from omg4.codec.container import read_container
-from omg4.codec.payload import CompactGrids, decode_payload
+from omg4.codec.payload import CompactGrids, decode_payload, reference_sections
+from omg4.errors import CorruptFileError
 from omg4.io.web_player import MANIFEST, export_web
 from omg4.metrics import psnr
 from omg4.testing import forge
@@ -91,9 +92,15 @@ def test_the_page_decodes_every_value_as_the_python_decoder(chromium, tmp_path, 
 
 def test_the_page_decodes_a_predicted_sequence_as_the_python_decoder(chromium, tmp_path):
     """Segments 1 and 2 predicted from the one before (key interval 3): the player's chain decodes every value of
-    each as the Python decoder does, the values taken from the reference included."""
+    each as the Python decoder does, the values taken from the reference — codebooks, the MLPs' change and the
+    carried Gaussians, put first — included."""
+    from omg4.codec.container import read_versioned
+    from omg4.codec.sequence import read_index, read_segment
+
     model = tmp_path / "seq.omg4"
     forge.valid_sequence(model, 3, 400, codec="compact", codebook_scale=0.25, key_interval=3)
+    carried = [read_versioned(read_segment(model, e))[1].get("carried", 0) for e in read_index(model).segments]
+    assert carried[0] == 0 and carried[1] > 0 and carried[2] > 0
     export_web(tmp_path / "web", model)
     listing = json.loads((tmp_path / "web" / "sequence.json").read_text())
     assert listing["key_interval"] == 3 and [s["reference"] for s in listing["segments"]] == [None, 0, 1]
@@ -102,6 +109,35 @@ def test_the_page_decodes_a_predicted_sequence_as_the_python_decoder(chromium, t
         for k in (2, 1, 0):
             assert chromium.evaluate(SEGMENT_DIGESTS.replace("SEGMENT", str(k))) == _python_digests(model, k), k
 
+
+
+def test_the_page_refuses_forged_carried_gaussians_in_one_line(chromium, tmp_path):
+    """A predicted segment whose carried Gaussians are forged (docs/file-format.md §8b): the page's message is the
+    Python decoder's."""
+    from omg4.codec.sequence import SegmentDecoder, read_index, read_segment
+
+    model = tmp_path / "seq.omg4"
+    forge.valid_sequence(model, 2, 300, codec="compact", codebook_scale=0.25, key_interval=2)
+    export_web(tmp_path / "web", model)
+    segment = tmp_path / "web" / json.loads((tmp_path / "web" / "sequence.json").read_text())["segments"][1]["file"]
+    header, sections = forge.split_container(read_segment(model, read_index(model).segments[1]))
+    reference = reference_sections(SegmentDecoder(model).payload(0))
+    forgeries = {
+        "count": forge.assemble_container({**header, "carried": header["carried"] + 1}, sections),
+        "encoding": forge.assemble_container({**header, "encodings": {**header["encodings"], "carry": "ranks"}},
+                                             sections),
+        "truncated": forge.assemble_container(header, [(n, b[:-2] if n == "carry" else b) for n, b in sections]),
+    }
+    decode = SEGMENT_DIGESTS.replace("DIGEST_BODY", "").replace("SEGMENT", "1").replace(
+        "const p = await", "try { await").replace("payload(1);", "payload(1); return 'ok'; } catch (e) { return e.message; }")
+    with served(tmp_path / "web") as url:
+        open_player(chromium, f"{url}/index.html?ui=0&time=0")
+        for kind, data in forgeries.items():
+            segment.write_bytes(data)
+            with pytest.raises(CorruptFileError) as python:
+                decode_payload(data, reference)
+            message = chromium.evaluate(decode)
+            assert message == str(python.value).removeprefix("data: ") and "\n" not in message, kind
 
 def _canvas(browser) -> np.ndarray:
     url = browser.evaluate("document.getElementById('view').toDataURL('image/png')")

@@ -48,7 +48,7 @@ from dataclasses import astuple, dataclass, field
 
 import numpy as np
 
-from omg4.codec import grids, quaternions, weights
+from omg4.codec import carry, grids, quaternions, weights
 from omg4.codec.codewords import decode_first_use_indices, decode_sorted_codebook
 from omg4.codec.coders import CODERS, Coder
 from omg4.codec.container import PREDICTED_VERSION, SEQUENCE_VERSION, read_versioned, write_container
@@ -182,7 +182,9 @@ class CompressedPayload:
     rotation, app, scale_t, rotation_r) → :class:`QuantizedAttribute`; mlp: weight name →
     array (any shape); meta: JSON-able settings; rotations: the attributes that are one rotation
     quaternion each, normalized at use (the backbone's ``quaternion_groups``; the "compact" codec
-    may store them as unit quaternions). Floats are stored in fp16.
+    may store them as unit quaternions). Floats are stored in fp16. carried: for a predicted segment about to be
+    written, the rows of the reference segment's decoded Gaussians it also holds as they are (:mod:`omg4.codec.carry`;
+    the arrays then hold only its own Gaussians); a decoded payload holds them in its arrays and carried is None.
     """
 
     xyz: np.ndarray
@@ -192,6 +194,7 @@ class CompressedPayload:
     meta: dict = field(default_factory=dict)
     rotations: tuple[str, ...] = ()
     log_scaled: tuple[str, ...] = ()
+    carried: np.ndarray | None = None
 
     @property
     def num_gaussians(self) -> int:
@@ -202,7 +205,7 @@ class CompressedPayload:
         attrs = {a: QuantizedAttribute(list(q.codebooks), [ix[order] for ix in q.indices])
                  for a, q in self.attributes.items()}
         return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta), self.rotations,
-                                 self.log_scaled)
+                                 self.log_scaled, self.carried)
 
     def to_fp16(self) -> "CompressedPayload":
         """What a decoder returns: floats rounded to fp16 (float16 arrays), indices as int64."""
@@ -212,18 +215,19 @@ class CompressedPayload:
         return CompressedPayload(np.asarray(self.xyz, np.float16).reshape(-1, 3),
                                  np.asarray(self.t, np.float16).reshape(-1), attrs,
                                  {k: np.asarray(v, np.float16) for k, v in self.mlp.items()}, dict(self.meta),
-                                 tuple(self.rotations), tuple(self.log_scaled))
+                                 tuple(self.rotations), tuple(self.log_scaled), self.carried)
 
 
 # ------------------------------------------------------------------------ encoding
 def container_version(codec: object, encodings: object = None) -> int:
     """The container version of a file of ``codec`` whose sections have ``encodings`` (``{section: name}``):
     :data:`~omg4.codec.container.PREDICTED_VERSION` for a predicted segment (a section encoded as
-    :data:`REFERENCE` or as a change from it, :func:`omg4.codec.weights.parse_delta_encoding`), else
+    :data:`REFERENCE` or as a change from it, :func:`omg4.codec.weights.parse_delta_encoding`, or one that carries
+    Gaussians, :mod:`omg4.codec.carry`), else
     :meth:`omg4.codec.coders.Coder.version` of its coder, 1 for an unknown one. Any ``encodings`` value is accepted
     (a forged header's too)."""
-    if isinstance(encodings, dict) and any(e == REFERENCE or weights.parse_delta_encoding(e)
-                                           for e in encodings.values()):
+    if isinstance(encodings, dict) and (carry.SECTION in encodings or any(
+            e == REFERENCE or weights.parse_delta_encoding(e) for e in encodings.values())):
         return PREDICTED_VERSION
     coder = CODERS.get(codec) if isinstance(codec, str) else None
     return coder.version(encodings) if coder is not None else 1
@@ -233,8 +237,9 @@ def reference_sections(p: CompressedPayload) -> dict[str, np.ndarray]:
     """The decoded arrays of ``p`` (a decoder's output) that a segment predicted from it may take as its own, by
     section name (docs/file-format.md §8a): every MLP weight (``mlp.NAME``) and every codebook of the
     sub-vector-quantized attributes that are not rotations (``svq.ATTR.codebookJ``; a rotation may be stored one
-    quaternion per Gaussian, which is no codebook)."""
-    out = {f"mlp.{name}": w for name, w in p.mlp.items()}
+    quaternion per Gaussian, which is no codebook), and the per-Gaussian arrays it may carry
+    (:func:`omg4.codec.carry.gaussian_sections`)."""
+    out = {**{f"mlp.{name}": w for name, w in p.mlp.items()}, **carry.gaussian_sections(p)}
     for attr, qa in p.attributes.items():
         if attr not in p.rotations:
             out.update({f"svq.{attr}.codebook{j}": cb for j, cb in enumerate(qa.codebooks)})
@@ -340,6 +345,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
             shapes[attr] = attr_shapes
     for name, w in q.mlp.items():
         written[f"mlp.{name}"] = _mlp_section(coder, w, reference.get(f"mlp.{name}"), precision)
+    if q.carried is not None:
+        written[carry.SECTION] = _carry_section(q, reference, written)
     sections = {name: data for name, (_, data) in written.items()}
     encodings = {name: enc for name, (enc, _) in written.items()}
     header = {
@@ -353,6 +360,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     }
     if coder.quaternion_sections:
         header["quaternions"] = stored_as_quaternions
+    if q.carried is not None:
+        header["carried"] = int(len(q.carried))
     sizes = {name: len(data) for name, data in sections.items()}
     try:  # the decoder's limits hold for every file written, so no written file is refused on reading
         check_sections(header, sizes)
@@ -373,6 +382,24 @@ def _mlp_section(coder: Coder, w: np.ndarray, same: np.ndarray | None, precision
         return REFERENCE, b""
     whole, change = coder.mlp_weight(w, precision), coder.mlp_change(w, same, precision)
     return change if change is not None and len(change[1]) < len(whole[1]) else whole
+
+
+def _carry_section(q: CompressedPayload, reference: dict[str, np.ndarray], written: dict):
+    """The ``carry`` section of ``q.carried`` (OMG4Error where the reference lacks them or an attribute of ``q`` has
+    codebooks of its own: carried Gaussians index the reference's)."""
+    try:
+        count = carry.reference_count(reference or None)
+    except CorruptFileError as exc:
+        raise OMG4Error(f"carried Gaussians: {exc}") from None
+    rows = np.asarray(q.carried)
+    if (rows.ndim != 1 or not rows.size or not np.issubdtype(rows.dtype, np.integer) or rows.min() < 0
+            or rows.max() >= count or np.unique(rows).size != rows.size):
+        raise OMG4Error(f"carried Gaussians must be 1 or more distinct rows of the reference's {count}")
+    own = [a for a in q.attributes if a not in q.rotations and any(
+        enc != REFERENCE for name, (enc, _) in written.items() if name.startswith(f"svq.{a}.codebook"))]
+    if own:
+        raise OMG4Error(f"carried Gaussians index the reference's codebooks, and {', '.join(own)} has its own")
+    return carry.ENCODING, carry.encode_mask(rows, count)
 
 
 # ------------------------------------------------------------------------ decoding
@@ -408,6 +435,8 @@ def _check_header(h: dict, section_bytes: int) -> None:
             and all(isinstance(a, str) and (a in h["attributes"] or a in rotations) for a in named)
             and all(a in named for a in rotations)):  # an attribute stored as quaternions is a rotation
         raise CorruptFileError("invalid list of rotation attributes")
+    if "carried" in h and not _is_int(h["carried"], 1, MAX_GAUSSIANS):
+        raise CorruptFileError("invalid count of carried Gaussians")
     if n > GAUSSIANS_ALWAYS_ALLOWED and n * MIN_BYTES_PER_GAUSSIAN > section_bytes:
         raise CorruptFileError(f"header claims {n} Gaussians, more than the file's {section_bytes} data bytes can hold")
     if len(h["attributes"]) > MAX_ATTRIBUTES or len(h["mlp"]) > MAX_MLP_WEIGHTS:
@@ -444,6 +473,7 @@ def check_sections(header: dict, section_sizes: dict[str, int]) -> None:
                  for kind in ("codebook", "index") for j in range(len(shapes))]
     expected += [f"mlp.{name}" for name in header["mlp"]]
     expected += [f"quat.{attr}" for attr in header.get("quaternions", [])]
+    expected += [carry.SECTION] if "carried" in header else []
     encodings = header["encodings"]
     if (sorted(expected) != sorted(section_sizes) or sorted(expected) != sorted(encodings)
             or not all(isinstance(e, str) for e in encodings.values())):
@@ -546,5 +576,6 @@ def _decode_sections(header: dict, sections: dict[str, bytes],
         attributes[attr] = QuantizedAttribute([decode(f"quat.{attr}", n).reshape(n, 4)], [np.arange(n)])
     mlp = {name: decode(f"mlp.{name}", math.prod(shape), shape=tuple(shape)).reshape(shape)
            for name, shape in header["mlp"].items()}
-    return CompressedPayload(xyz, t, attributes, mlp, header["meta"], tuple(header.get("rotations", [])),
-                             tuple(header.get("log_scaled", [])))
+    own = CompressedPayload(xyz, t, attributes, mlp, header["meta"], tuple(header.get("rotations", [])),
+                            tuple(header.get("log_scaled", [])))
+    return own if "carried" not in header else carry.with_carried(own, header, sections[carry.SECTION], reference)

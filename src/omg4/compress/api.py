@@ -74,6 +74,7 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
         meta=payload_meta,
         rotations=model.config.schema.quaternion_groups(),
         log_scaled=model.config.schema.log_scaled_groups(),
+        carried=model.carried_rows if model.num_carried else None,
     )
 
 
@@ -145,7 +146,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "file_bytes": file_bytes,
         "sections": sections,
         **paper,
-        "num_gaussians": model.num_gaussians,
+        "num_gaussians": model.num_gaussians + model.num_carried,
+        "carried_gaussians": model.num_carried,
         "baseline_gaussians": baseline.num_gaussians,
         "wall_time_s": time.perf_counter() - t0,
         "stages": [asdict(r) for r in pipeline.records],

@@ -30,6 +30,8 @@ class CompressibleModel(ViewSlicer):
         self.merge = None  # omg4.compress.merging.MergeProxy during a merge round
         self.appearance = None  # omg4.gaussians.appearance.AppearanceMLP after attribute compression
         self.quantizers: dict = {}  # SVQ attribute name -> SubVectorQuantizer
+        self.carried: dict[str, torch.Tensor] = {}  # a predicted segment's Gaussians of the segment before, fixed
+        self.carried_rows = None  # their rows there (numpy int64, ascending; omg4.codec.carry)
 
     @staticmethod
     def from_gaussians(model: Gaussians4D) -> "CompressibleModel":
@@ -40,14 +42,23 @@ class CompressibleModel(ViewSlicer):
     def num_gaussians(self) -> int:
         return int(self.params["xyz"].shape[0])
 
+    @property
+    def num_carried(self) -> int:
+        """How many of the segment before's Gaussians render with this model's own (none but in a predicted
+        segment)."""
+        return int(self.carried["xyz"].shape[0]) if self.carried else 0
+
     def explicit_values(self) -> dict[str, torch.Tensor]:
-        """Per-Gaussian values with quantized attributes replaced by their codebook reconstructions."""
+        """Per-Gaussian values with quantized attributes replaced by their codebook reconstructions, the carried
+        Gaussians (fixed) after the model's own rows."""
         values = dict(self.params)
         for attr, q in self.quantizers.items():
             recon, start = q.values(), 0
             for name, width in self.config.schema.svq_widths(attr):
                 values[name] = recon[:, start:start + width]
                 start += width
+        if self.carried:
+            values = {k: torch.cat([v, self.carried[k]]) for k, v in values.items()}
         return values
 
     def merged_values(self) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
@@ -69,7 +80,7 @@ class CompressibleModel(ViewSlicer):
                           camera_centers, appearance=self.appearance)
         if keep is not None:
             sl.index = keep[sl.index]
-        sl.num_total = self.num_gaussians
+        sl.num_total = self.num_gaussians + self.num_carried
         return sl
 
     def to_gaussians(self) -> Gaussians4D:

@@ -25,7 +25,9 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4 import distributed
+from omg4.codec.carry import carried_gaussians, reference_count
 from omg4.compress import appearance_stage, merging
+from omg4.compress.carry_stage import carry_matches
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
@@ -41,6 +43,7 @@ from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
 from omg4.metrics import psnr
+from omg4.models.compact import payload_values
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_image, view_image
 from omg4.settings import knob
@@ -89,6 +92,9 @@ class CompressConfig:
     rate_weight: float = knob(0.0, "β of entropy-constrained codebooks (beyond the paper; 0: its k-means)")
     predicted_mlp: str = knob("tune", "a predicted segment fine-tunes the segment before's appearance MLPs and "
                                       "stores the change (tune) or keeps them as they are (keep)")
+    carry: float = knob(0.0, "a predicted segment takes the segment before's decoded Gaussians in place of its own "
+                             "that lie this close (in units of their size; 0, the default: none) and names them with "
+                             "a bit each")
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset, backbone)
@@ -150,6 +156,8 @@ class CompressionPipeline:
         if cfg.predicted_mlp not in appearance_stage.PREDICTED_MLPS:
             raise OMG4Error(f"unknown predicted MLP mode '{cfg.predicted_mlp}' (choose from "
                             f"{', '.join(appearance_stage.PREDICTED_MLPS)})")
+        if not (math.isfinite(cfg.carry) and cfg.carry >= 0):
+            raise OMG4Error(f"the carry tolerance must be a finite number >= 0, got {cfg.carry}")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
@@ -279,6 +287,26 @@ class CompressionPipeline:
             self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
                 self.model.appearance, total_iterations=remaining)
         self._rebuild_main_optimizer()
+        if taken is not None and self.cfg.carry > 0:
+            self._carry()
+
+    def _carry(self) -> None:
+        """A predicted segment takes the segment before's decoded Gaussians in place of its own where they are within
+        ``cfg.carry`` (:mod:`omg4.compress.carry_stage`); they render from now on, fixed."""
+        reference = payload_values(carried_gaussians(self.reference), self.schema)
+        if set(reference) != set(self.model.params):
+            raise OMG4Error(f"the segment before has the attributes {sorted(reference)}, this one "
+                            f"{sorted(self.model.params)}: no Gaussian can be carried")
+        own_rows, ref_rows = carry_matches(self.model.params, reference, self.schema, self.cfg.carry)
+        own_rows, ref_rows = own_rows[:self.model.num_gaussians - 1], ref_rows[:self.model.num_gaussians - 1]
+        keep = torch.ones(self.model.num_gaussians, dtype=torch.bool)
+        keep[torch.from_numpy(own_rows)] = False
+        self._remove(keep)
+        order = np.sort(ref_rows)
+        self.model.carried_rows = order
+        self.model.carried = {k: v[torch.from_numpy(order)].to(self.device) for k, v in reference.items()}
+        self.log(f"carry: {order.size:,} of the segment before's {reference_count(self.reference):,} Gaussians replace "
+                 f"as many of this segment's")
 
     def _remaining_after(self, name: str) -> int:
         """Fine-tuning iterations from the event ``name`` to the end of the pipeline."""

@@ -33,28 +33,36 @@ class CompactModel(WindowedModel):
         meta = payload.meta
         config, active_sh_degree, active_sh_degree_t = model_settings(meta)
         schema = config.schema
-        n = payload.num_gaussians
-        values = {"xyz": torch.from_numpy(np.asarray(payload.xyz, np.float32).reshape(n, 3)),
-                  "t": torch.from_numpy(np.asarray(payload.t, np.float32).reshape(n, 1))}
-        for attr in (g.name for g in schema.svq_groups):
-            targets = schema.svq_widths(attr)
-            if attr not in payload.attributes:
-                raise CorruptFileError(f"compressed model lacks the quantized attribute '{attr}'")
-            quantized = payload.attributes[attr]
-            width, stored = sum(w for _, w in targets), sum(cb.shape[1] for cb in quantized.codebooks)
-            if stored != width:
-                raise CorruptFileError(f"quantized attribute '{attr}' has width {stored}, expected {width}")
-            recon = torch.from_numpy(quantized.reconstruct())
-            start = 0
-            for name, w in targets:
-                values[name] = recon[:, start:start + w]
-                start += w
+        values = payload_values(payload, schema)
         appearance = AppearanceMLP.from_fp16_state(payload.mlp, schema.mlp_inputs).eval().to(device)
         if appearance.num_rest < config.num_coeffs - 1:
             raise CorruptFileError(f"appearance MLP predicts {appearance.num_rest} SH coefficients, the model "
                                    f"config needs {config.num_coeffs - 1}")
         super().__init__({k: v.to(device) for k, v in values.items()}, config, active_sh_degree, active_sh_degree_t,
                          appearance, meta=meta)
+
+
+def payload_values(payload: CompressedPayload, schema) -> dict[str, torch.Tensor]:
+    """The per-Gaussian parameters of a decoded payload, float32 CPU tensors by the backbone ``schema``'s names:
+    positions, time centres and every quantized attribute looked up in its codebooks (one-line CorruptFileError where
+    an attribute is missing or of the wrong width)."""
+    n = payload.num_gaussians
+    values = {"xyz": torch.from_numpy(np.asarray(payload.xyz, np.float32).reshape(n, 3)),
+              "t": torch.from_numpy(np.asarray(payload.t, np.float32).reshape(n, 1))}
+    for attr in (g.name for g in schema.svq_groups):
+        targets = schema.svq_widths(attr)
+        if attr not in payload.attributes:
+            raise CorruptFileError(f"compressed model lacks the quantized attribute '{attr}'")
+        quantized = payload.attributes[attr]
+        width, stored = sum(w for _, w in targets), sum(cb.shape[1] for cb in quantized.codebooks)
+        if stored != width:
+            raise CorruptFileError(f"quantized attribute '{attr}' has width {stored}, expected {width}")
+        recon = torch.from_numpy(quantized.reconstruct())
+        start = 0
+        for name, w in targets:
+            values[name] = recon[:, start:start + w]
+            start += w
+    return values
 
 
 def model_settings(meta: dict) -> tuple[GaussianConfig, int, int]:
@@ -78,4 +86,4 @@ def load_omg4(path: str | os.PathLike, device: torch.device | str = "cpu") -> Co
     return CompactModel(decode_payload(path), device)
 
 
-__all__ = ["CompactModel", "load_omg4", "model_settings"]
+__all__ = ["CompactModel", "load_omg4", "model_settings", "payload_values"]

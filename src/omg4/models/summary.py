@@ -15,7 +15,7 @@ from pathlib import Path
 from omg4.codec.container import describe_container
 from omg4.models.compact import load_omg4
 
-_PLAIN_GROUPS = {"xyz": "positions", "t": "time centres", "mlp": "MLPs"}
+_PLAIN_GROUPS = {"xyz": "positions", "t": "time centres", "mlp": "MLPs", "carry": "carried Gaussians"}
 
 
 def section_group(name: str) -> str:
@@ -30,7 +30,8 @@ def section_group(name: str) -> str:
 
 
 def describe_file(path: str | os.PathLike, model=None) -> dict:
-    """Codec, container version, backbone, Gaussian count, encodings, total bytes, bits per Gaussian, bitrate (megabits
+    """Codec, container version, backbone, Gaussian count (``carried``: how many of them a predicted segment takes
+    from the segment before, docs/file-format.md §8b), encodings, total bytes, bits per Gaussian, bitrate (megabits
     per second of the model's time range), bytes per group and per section, and the file's metadata — after
     decoding the whole file (see the module docstring), or given its decoded ``model`` (a predicted segment of a
     sequence, decoded after its reference)."""
@@ -47,7 +48,7 @@ def describe_file(path: str | os.PathLike, model=None) -> dict:
             "backbone_title": model.config.schema.title, "num_gaussians": n, "encodings": header.get("encodings"),
             "total_bytes": total, "storage_mb": total / 2**20, "bits_per_gaussian": 8 * total / n if n else None,
             "bitrate_mbps": 8 * total / (t1 - t0) / 1e6, "groups": groups, "sections": d["sections"],
-            "meta": header.get("meta", {}), "path": str(Path(path))}
+            "meta": header.get("meta", {}), "path": str(Path(path)), "carried": header.get("carried", 0)}
 
 
 __all__ = ["section_group", "describe_file"]
@@ -56,7 +57,8 @@ __all__ = ["section_group", "describe_file"]
 def describe_sequence(path: str | os.PathLike) -> dict:
     """The index of an ``.omg4`` sequence file and each segment's :func:`describe_file` (each segment decoded as
     the decoder does, a predicted one after its reference), with the file's bitrate over the capture and the
-    key interval; each segment's ``reference`` is the segment it is predicted from (None: a key segment)."""
+    key interval; each segment's ``reference`` is the segment it is predicted from (None: a key segment) and
+    ``carried`` how many of its Gaussians are that segment's, as they decoded there (docs/file-format.md §8b)."""
     import tempfile
 
     from omg4.codec.sequence import SegmentDecoder, read_segment
@@ -73,7 +75,7 @@ def describe_sequence(path: str | os.PathLike) -> dict:
             segments.append({"index": entry.index, "frames": list(entry.frames), "time_range": list(entry.time_range),
                              "offset": entry.offset, "reference": entry.reference,
                              **{k: d[k] for k in ("codec", "version", "backbone", "num_gaussians", "total_bytes",
-                                                  "groups")}})
+                                                  "groups", "carried")}})
             part.unlink()
     total = index.total_bytes
     return {"layout": "sequence", "path": str(Path(path)), "fps": index.fps, "key_interval": index.key_interval,

@@ -274,8 +274,8 @@ def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: s
     """A sequence file (:mod:`omg4.codec.sequence`) of ``segments`` valid models of ``num_gaussians`` each, segments of
     10 frames sharing 2 at 10 fps; every ``key_interval``-th a key segment, each other one predicted from the one
     before (its MLPs and non-rotation codebooks the decoded ones of that segment, but its first MLP weight moved by
-    noise, one column of it far, which the compact codec stores as a change; its indices drawn anew); returns the
-    file's bytes."""
+    noise, one column of it far, which the compact codec stores as a change; its indices drawn anew; a third of that
+    segment's decoded Gaussians carried as they are, :mod:`omg4.codec.carry`); returns the file's bytes."""
     import tempfile
 
     from omg4.codec.payload import decode_payload, reference_sections
@@ -297,6 +297,8 @@ def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: s
                     if attr not in payload.rotations:
                         qa.codebooks = [reference[f"svq.{attr}.codebook{j}"] for j in range(len(qa.codebooks))]
                         qa.indices = [rng.integers(0, len(cb), num_gaussians) for cb in qa.codebooks]
+                count = previous.num_gaussians
+                payload.carried = np.sort(rng.choice(count, size=max(1, count // 3), replace=False))
             encode_payload(payload, Path(tmp) / f"s{i}.omg4", codec=codec, precision=precision, reference=reference)
             data = (Path(tmp) / f"s{i}.omg4").read_bytes()
             previous = decode_payload(data, reference)

@@ -147,6 +147,7 @@ def sequence_summary(path: Path, **_) -> tuple[dict, str]:
              f"{d['num_gaussians']} Gaussians"]
     for s in d["segments"]:
         chain = "key" if s["reference"] is None else f"predicted from {s['reference']}"
+        chain += f", {s['carried']} of them carried" if s["carried"] else ""
         lines.append(f"  segment {s['index']:>3}: frames {s['frames'][0]}-{s['frames'][1] - 1}, "
                      f"{s['num_gaussians']:>8} Gaussians, {s['total_bytes']:>10} B ({printable(s['codec'])}, {chain})")
     return {"kind": "omg4-sequence", **d}, "\n".join(lines)

@@ -139,6 +139,7 @@ export function checkHeader(h, sectionBytes) {
     && rotations.every((a) => named.includes(a)))) {  // an attribute stored as quaternions is a rotation
     throw new CorruptFileError("invalid list of rotation attributes");
   }
+  if ("carried" in h && !isInt(h.carried, 1, MAX_GAUSSIANS)) throw new CorruptFileError("invalid count of carried Gaussians");
   if (n > GAUSSIANS_ALWAYS_ALLOWED && n * MIN_BYTES_PER_GAUSSIAN > sectionBytes) {
     throw new CorruptFileError(`header claims ${n} Gaussians, more than the file's ${sectionBytes} data bytes can hold`);
   }
@@ -175,22 +176,111 @@ export function checkHeader(h, sectionBytes) {
   }
   for (const [name] of mlp) expected.push(`mlp.${name}`);
   for (const attr of rotations) expected.push(`quat.${attr}`);
+  if ("carried" in h) expected.push(CARRY);
   return expected.sort();
 }
 
 /** The encoding of a section a predicted segment takes from the segment before (omg4/codec/payload.py REFERENCE). */
 const REFERENCE = "reference";
 
+/** The section that names a predicted segment's carried Gaussians, and its encoding (omg4/codec/carry.py). */
+const CARRY = "carry";
+const CARRY_ENCODING = "mask";
+
+/** One quaternion per Gaussian (fp16 bits, [4N]) of rotation attribute `attr` of a decoded payload. */
+function rotationValues(payload, attr) {
+  if (payload.quaternions[attr]) return payload.quaternions[attr];
+  const { codebooks, indices } = payload.attributes[attr];
+  const width = codebooks.reduce((sum, cb) => sum + cb.sub, 0);
+  if (width !== 4) throw new CorruptFileError(`rotation ${attr} is ${width} wide, not 4`);
+  const out = new Uint16Array(4 * payload.numGaussians);
+  let column = 0;
+  codebooks.forEach((cb, j) => {
+    for (let g = 0; g < payload.numGaussians; g++) {
+      for (let c = 0; c < cb.sub; c++) out[4 * g + column + c] = cb.values[indices[j][g] * cb.sub + c];
+    }
+    column += cb.sub;
+  });
+  return out;
+}
+
 /** The decoded arrays of `payload` a segment predicted from it may take, by section name, with their shapes
- * (omg4/codec/payload.py reference_sections): every MLP weight, every codebook of a non-rotation attribute. */
+ * (omg4/codec/payload.py reference_sections): every MLP weight, every codebook of a non-rotation attribute, and the
+ * per-Gaussian arrays it may carry (omg4/codec/carry.py gaussian_sections). */
 export function referenceSections(payload) {
   const out = new Map();
   for (const [name, w] of Object.entries(payload.mlp)) out.set(`mlp.${name}`, { shape: w.shape, values: w.values });
+  const n = payload.numGaussians;
+  out.set("gaussians.xyz", { shape: [n, 3], values: payload.xyz });
+  out.set("gaussians.t", { shape: [n], values: payload.t });
+  for (const attr of payload.rotations) {
+    out.set(`gaussians.rotation.${attr}`, { shape: [n, 4], values: rotationValues(payload, attr) });
+  }
   for (const [attr, q] of Object.entries(payload.attributes)) {
     if (payload.rotations.includes(attr)) continue;
     q.codebooks.forEach((cb, j) => out.set(`svq.${attr}.codebook${j}`, { shape: [cb.rows, cb.sub], values: cb.values }));
+    q.indices.forEach((ix, j) => out.set(`gaussians.svq.${attr}.index${j}`, { shape: [n], values: ix }));
   }
   return out;
+}
+
+/** The carried `rows` of the reference's per-Gaussian array `what`, `width` values per Gaussian. */
+function carriedRows(reference, what, rows, width) {
+  const taken = reference.get(`gaussians.${what}`);
+  if (!taken) throw new CorruptFileError(`the reference segment has no ${what} to carry`);
+  if ((taken.shape[1] ?? 1) !== width) throw new CorruptFileError(`the reference's ${what} is not ${width} wide`);
+  const out = new taken.values.constructor(rows.length * width);
+  rows.forEach((r, i) => out.set(taken.values.subarray(r * width, (r + 1) * width), i * width));
+  return out;
+}
+
+function joined(head, tail) {
+  const out = new head.constructor(head.length + tail.length);
+  out.set(head);
+  out.set(tail, head.length);
+  return out;
+}
+
+/** A predicted segment's Gaussians (omg4/codec/payload.py _with_carried): the reference's carried ones as they decoded
+ * there, then its own; rotations become one quaternion per Gaussian. */
+async function withCarried(own, header, data, reference) {
+  const count = reference?.get("gaussians.xyz")?.shape[0];
+  if (count === undefined) {
+    throw new CorruptFileError("a segment that carries Gaussians takes them from the segment before: decode it through its sequence file");
+  }
+  if (header.encodings[CARRY] !== CARRY_ENCODING) {
+    throw new CorruptFileError(`section ${CARRY}: encoding '${header.encodings[CARRY]}' is not '${CARRY_ENCODING}'`);
+  }
+  let mask;
+  try {
+    mask = await decodeIndices(data, 2, count);
+  } catch (err) {
+    if (err instanceof CorruptFileError) throw new CorruptFileError(`section ${CARRY}: ${err.message}`);
+    throw err;
+  }
+  const rows = [];
+  mask.forEach((bit, r) => { if (bit) rows.push(r); });
+  if (rows.length !== header.carried) {
+    throw new CorruptFileError(`section ${CARRY} marks ${rows.length} carried Gaussians, the header declares ${header.carried}`);
+  }
+  const attributes = {};
+  const quaternions = {};
+  for (const attr of own.rotations) {
+    const carried = carriedRows(reference, `rotation.${attr}`, rows, 4);
+    quaternions[attr] = joined(carried, rotationValues(own, attr));
+  }
+  for (const [attr, q] of Object.entries(own.attributes)) {
+    if (own.rotations.includes(attr)) continue;
+    if (q.codebooks.some((_, j) => header.encodings[`svq.${attr}.codebook${j}`] !== REFERENCE)) {
+      throw new CorruptFileError(`carried Gaussians index the reference's codebooks, and ${attr} has its own`);
+    }
+    const indices = q.indices.map((ix, j) => joined(carriedRows(reference, `svq.${attr}.index${j}`, rows, 1), ix));
+    attributes[attr] = { codebooks: q.codebooks, indices };
+  }
+  return {
+    ...own, numGaussians: rows.length + own.numGaussians, attributes, quaternions,
+    xyz: joined(carriedRows(reference, "xyz", rows, 3), own.xyz), t: joined(carriedRows(reference, "t", rows, 1), own.t),
+  };
 }
 
 function referenced(name, data, shape, reference) {
@@ -293,8 +383,9 @@ export async function decodePayload(bytes, reference = null) {
   for (const [name, shape] of Object.entries(header.mlp)) {
     mlp[name] = { shape, values: await decode(`mlp.${name}`, shape.reduce((a, b) => a * b, 1), shape) };
   }
-  return {
+  const own = {
     numGaussians: n, codec: header.codec, xyz, t, attributes, quaternions, mlp, meta: header.meta,
     rotations: header.rotations ?? [], logScaled: header.log_scaled ?? [],
   };
+  return "carried" in header ? await withCarried(own, header, sections.get(CARRY), reference) : own;
 }
