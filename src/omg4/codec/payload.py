@@ -314,6 +314,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     stored as :data:`REFERENCE` (no bytes; the attribute's indices then index the reference's codebooks), and an
     MLP weight that differs as its change from the reference's where the codec codes changes and that is smaller
     (:func:`_mlp_section`), which makes the file a predicted segment that decodes only with that reference.
+    ``p.carried``: the rows of the reference's Gaussians the segment also holds as they are, named in a ``carry``
+    section (:mod:`omg4.codec.carry`; its attributes' codebooks must then be the reference's).
 
     With "ans" the Gaussians are stored in :func:`canonical_order`, so the decoded payload
     equals ``p.permuted(canonical_order(p.xyz)).to_fp16()``; with "paper" it equals
