@@ -331,12 +331,15 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     check_codec(codec, precision)
     coder = CODERS[codec]
     q = coder.arrange(_check_payload(p, coder, precision), precision)
+    reference = reference or {}
+    taken = {attr for attr, qa in q.attributes.items()
+             if attr not in q.rotations and _takes_codebooks(qa, attr, reference)}
+    carried = None if q.carried is None else _carry_section(q, reference, taken)  # refused before any coding
     written: dict[str, tuple[str, bytes]] = {"xyz": coder.positions(q, precision), "t": coder.times(q, precision)}
     shapes: dict[str, list[list[int]]] = {}
     stored_as_quaternions: list[str] = []
-    reference = reference or {}
     for attr, qa in q.attributes.items():
-        if attr not in q.rotations and _takes_codebooks(qa, attr, reference):
+        if attr in taken:
             attr_shapes, attr_sections = coder.referenced_attribute(attr, qa, REFERENCE)
         else:
             attr_shapes, attr_sections = coder.attribute(attr, qa, q, precision)
@@ -347,8 +350,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
             shapes[attr] = attr_shapes
     for name, w in q.mlp.items():
         written[f"mlp.{name}"] = _mlp_section(coder, w, reference.get(f"mlp.{name}"), precision)
-    if q.carried is not None:
-        written[carry.SECTION] = _carry_section(q, reference, written)
+    if carried is not None:
+        written[carry.SECTION] = carried
     sections = {name: data for name, (_, data) in written.items()}
     encodings = {name: enc for name, (enc, _) in written.items()}
     header = {
@@ -386,9 +389,10 @@ def _mlp_section(coder: Coder, w: np.ndarray, same: np.ndarray | None, precision
     return change if change is not None and len(change[1]) < len(whole[1]) else whole
 
 
-def _carry_section(q: CompressedPayload, reference: dict[str, np.ndarray], written: dict):
-    """The ``carry`` section of ``q.carried`` (OMG4Error where the reference lacks them or an attribute of ``q`` has
-    codebooks of its own: carried Gaussians index the reference's)."""
+def _carry_section(q: CompressedPayload, reference: dict[str, np.ndarray], taken: set[str]):
+    """The ``carry`` section of ``q.carried`` (OMG4Error where the reference lacks them or an attribute of ``q`` that is
+    not a rotation has codebooks of its own, not among those ``taken`` from the reference: carried Gaussians index the
+    reference's)."""
     try:
         count = carry.reference_count(reference or None)
     except CorruptFileError as exc:
@@ -397,8 +401,7 @@ def _carry_section(q: CompressedPayload, reference: dict[str, np.ndarray], writt
     if (rows.ndim != 1 or not rows.size or not np.issubdtype(rows.dtype, np.integer) or rows.min() < 0
             or rows.max() >= count or np.unique(rows).size != rows.size):
         raise OMG4Error(f"carried Gaussians must be 1 or more distinct rows of the reference's {count}")
-    own = [a for a in q.attributes if a not in q.rotations and any(
-        enc != REFERENCE for name, (enc, _) in written.items() if name.startswith(f"svq.{a}.codebook"))]
+    own = [a for a in q.attributes if a not in q.rotations and a not in taken]
     if own:
         raise OMG4Error(f"carried Gaussians index the reference's codebooks, and {', '.join(own)} has its own")
     return carry.ENCODING, carry.encode_mask(rows, count)
