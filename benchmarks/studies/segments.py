@@ -24,10 +24,12 @@ segment coded alone; K: every K-th, the others predicted from the segment before
 bytes (per segment too), Mbit/s, PSNR/SSIM overall and on boundary and interior frames, flicker, and the time and
 bytes of a seek to the last segment (decoding its chain back to its key segment in a fresh process state); with
 ``--whole-clip`` also one model of the whole capture trained for as many steps as all segments together (or
-``--whole-iterations``).
+``--whole-iterations``; ``--key-intervals --whole-clip`` with no interval: that model alone). Every model is
+compressed with ``--preset`` (default M).
 
     python benchmarks/studies/segments.py prediction --synthetic 240 [--key-intervals 1 4 8] [--whole-clip]
     python benchmarks/studies/segments.py prediction DATA --downscale 2 --segment-frames 24 --overlap 6 --name bb
+        [--preset T] [--carry 0.5]
 
 ``--compress-from-video`` compresses segments trained as usual (taught by the segment before) from the video alone.
 ``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
@@ -251,7 +253,7 @@ def prediction(args) -> None:
     data = _capture(args)
     reader = ["--downscale", str(args.downscale)]
     train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume"]
-    compress = ["--preset", "M", "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp,
+    compress = ["--preset", args.preset, "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp,
                 "--carry", str(args.carry)]
     run_dir = work / "run"
     train_s = _omg4("train", str(data), *reader, "--out", str(run_dir), "--iterations", str(args.iterations), *train,
@@ -259,10 +261,10 @@ def prediction(args) -> None:
     scene = load_scene(data, downscale=args.downscale, progress=False)
     record = {"command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]), "data": str(data),
               "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
-              "iterations_per_segment": args.iterations, "schedule": args.schedule, "predicted_mlp": args.predicted_mlp,
-              "carry": args.carry, "train_s": train_s, "rows": []}
+              "iterations_per_segment": args.iterations, "schedule": args.schedule, "preset": args.preset,
+              "predicted_mlp": args.predicted_mlp, "carry": args.carry, "train_s": train_s, "rows": []}
     for key_interval in args.key_intervals:
-        out = work / f"sequence_M_key{key_interval}.omg4"
+        out = work / f"sequence_{args.preset}_key{key_interval}.omg4"
         compress_s = _omg4("compress", str(data), *reader, "--model", str(run_dir), "--out", str(out), *compress,
                            "--key-interval", str(key_interval))
         model = load_model(out)
@@ -282,8 +284,9 @@ def prediction(args) -> None:
               f"boundary {split['boundary']['psnr']:.2f} / interior {split['interior']['psnr']:.2f}, seek "
               f"{row['seek_to_last']['seconds']:.3f} s", flush=True)
     if args.whole_clip:  # one model of the whole capture, trained for as many steps as all the segments
-        whole_dir, whole_out = work / "whole", work / "whole_M.omg4"
-        iterations = args.whole_iterations or args.iterations * record["segments"]
+        whole_dir, whole_out = work / "whole", work / f"whole_{args.preset}.omg4"
+        segments = len(json.loads((run_dir / "segments.json").read_text())["segments"])
+        iterations = args.whole_iterations or args.iterations * segments
         whole_train_s = _omg4("train", str(data), *reader, "--out", str(whole_dir), "--iterations", str(iterations),
                               *train)
         whole_compress_s = _omg4("compress", str(data), *reader, "--model", str(whole_dir / "model.safetensors"),
@@ -316,7 +319,9 @@ def main() -> None:
                         "those frames are)")
     r = sub.add_parser("prediction")
     r.add_argument("--schedule", default="short")
-    r.add_argument("--key-intervals", type=int, nargs="+", default=[1, 8])
+    r.add_argument("--preset", default="M", help="the size preset of every model (omg4 compress --preset)")
+    r.add_argument("--key-intervals", type=int, nargs="*", default=[1, 8],
+                   help="key intervals to compress the trained segments at (none: only the --whole-clip control)")
     r.add_argument("--whole-clip", action="store_true", help="also one model of the whole capture")
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
