@@ -9,8 +9,9 @@ is replaced by that one, as it decoded (a snap to the reference): from then on i
 with about a bit (:mod:`omg4.codec.carry`), and the fine-tuning that follows lets the segment's own Gaussians
 and MLPs make up the difference.
 
-``omg4 compress --carry TOLERANCE`` turns it on (the default 0 carries none: on the segments measured in
-``docs/results.md``, "Carried Gaussians", the pairs this close are too few to pay for the fine-tuning they cost).
+``omg4 compress --carry TOLERANCE`` turns it on. The default 0 carries none: in ``docs/results.md``, "Carried
+Gaussians", a tolerance of 0.5 saves 5 % of a real capture whose background stays put at the same PSNR, but costs
+PSNR where the content moves on, and larger tolerances cost more than they save.
 Close means within ``tolerance`` on each of: the distance of the centres in units of the Gaussian's largest
 scale, of the time centres in units of its time scale, the largest difference of their sorted log-scales, and
 the largest difference of their static appearance features (an SH base colour at this point). One-to-one: the

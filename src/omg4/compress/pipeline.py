@@ -94,7 +94,7 @@ class CompressConfig:
                                       "stores the change (tune) or keeps them as they are (keep)")
     carry: float = knob(0.0, "a predicted segment takes the segment before's decoded Gaussians in place of its own "
                              "that lie this close (in units of their size; 0, the default: none) and names them with "
-                             "a bit each")
+                             "a bit each; 0.5 pays where the scene stays put between segments")
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset, backbone)
