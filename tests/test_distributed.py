@@ -96,7 +96,8 @@ def test_world_size_one_under_torchrun_writes_the_plain_commands_bytes(tiny_scen
 
 def test_a_run_checkpointed_with_two_ranks_resumes_with_one(tiny_scene_dir, single_run, tmp_path):
     out = tmp_path / "run"
-    ok(omg4("train", str(tiny_scene_dir), "--out", str(out), *TRAIN, nproc=2))
+    trained = ok(omg4("train", str(tiny_scene_dir), "--out", str(out), *TRAIN, nproc=2))
+    assert "trained 30 iterations" in trained.stdout  # printed before the rank leaves without the teardown
     for name in ("model.safetensors", "checkpoints/model_0000030.safetensors", "checkpoints/state_0000030.pt"):
         (out / name).unlink()  # as if stopped after the checkpoint of step 20
     ok(omg4("train", str(tiny_scene_dir), "--out", str(out), *TRAIN, "--resume"))

@@ -27,6 +27,7 @@ import hashlib
 import os
 import threading
 from dataclasses import dataclass
+from typing import NoReturn
 
 import torch
 
@@ -121,6 +122,23 @@ def finish() -> None:
     if world().parallel:
         barrier()
         torch.distributed.destroy_process_group()
+
+
+def leave(status: int) -> NoReturn:
+    """End this rank of a job that has finished its work (after :func:`finish`) without the interpreter's teardown.
+
+    Torch's gloo backend may destroy its worker threads while the interpreter finalizes and abort the process
+    ("terminate called without an active exception", SIGABRT) after everything was computed and written: the
+    launcher would report a finished run as a failed one. Measured with 2 ranks on 2 CPUs under load: 3 of 90
+    training runs. The standard streams and logging handlers are flushed first, so nothing printed is lost."""
+    import logging
+    import sys
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
 
 
 def record_failure(exc: BaseException) -> None:
@@ -341,6 +359,6 @@ def check_replicas(tensors: list[torch.Tensor], step: int) -> None:
         raise OMG4Error(f"the replicas diverged by step {step}: {which} from rank 0")
 
 
-__all__ = ["World", "SINGLE", "RankLost", "world", "alone", "launched", "init", "finish", "record_failure", "reports_failures", "main_first", "barrier",
+__all__ = ["World", "SINGLE", "RankLost", "world", "alone", "launched", "init", "finish", "leave", "record_failure", "reports_failures", "main_first", "barrier",
            "all_reduce_", "all_reduce_gradients", "broadcast_", "gather_objects", "interleave", "reduce_statistics",
            "parameter_digest", "check_replicas"]

@@ -99,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
         with library_messages_shown():
             status = int(modules[args.command].run(args) or 0)
         distributed.finish()
+        if distributed.launched():
+            distributed.leave(status)
         return status
     except OMG4Error as e:
         return _fail(args.command, printable(e), e)
