@@ -246,6 +246,7 @@ def carried(path: Path, entry) -> int:
 def prediction(args) -> None:
     from omg4.codec.sequence import read_index
     from omg4.data import load_scene
+    from omg4.data.segments import read_run_plan
     from omg4.evaluate import evaluate
     from omg4.models import load_model
 
@@ -262,7 +263,8 @@ def prediction(args) -> None:
     record = {"command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]), "data": str(data),
               "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
               "iterations_per_segment": args.iterations, "schedule": args.schedule, "preset": args.preset,
-              "predicted_mlp": args.predicted_mlp, "carry": args.carry, "train_s": train_s, "rows": []}
+              "predicted_mlp": args.predicted_mlp, "carry": args.carry, "train_s": train_s,
+              "segments": len(read_run_plan(run_dir)["segments"]), "rows": []}
     for key_interval in args.key_intervals:
         out = work / f"sequence_{args.preset}_key{key_interval}.omg4"
         compress_s = _omg4("compress", str(data), *reader, "--model", str(run_dir), "--out", str(out), *compress,
@@ -279,14 +281,12 @@ def prediction(args) -> None:
                "seek_to_last": seek_to_last(out), "num_gaussians": result["num_gaussians"],
                "carried_gaussians": [carried(out, e) for e in index.segments]}
         record["rows"].append(row)
-        record["segments"] = len(index.segments)
         print(f"key interval {key_interval}: {row['file_bytes']:,} B ({row['segment_bytes']}), PSNR {row['psnr']:.3f}, "
               f"boundary {split['boundary']['psnr']:.2f} / interior {split['interior']['psnr']:.2f}, seek "
               f"{row['seek_to_last']['seconds']:.3f} s", flush=True)
     if args.whole_clip:  # one model of the whole capture, trained for as many steps as all the segments
         whole_dir, whole_out = work / "whole", work / f"whole_{args.preset}.omg4"
-        segments = len(json.loads((run_dir / "segments.json").read_text())["segments"])
-        iterations = args.whole_iterations or args.iterations * segments
+        iterations = args.whole_iterations or args.iterations * record["segments"]
         whole_train_s = _omg4("train", str(data), *reader, "--out", str(whole_dir), "--iterations", str(iterations),
                               *train)
         whole_compress_s = _omg4("compress", str(data), *reader, "--model", str(whole_dir / "model.safetensors"),
