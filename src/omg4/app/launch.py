@@ -45,7 +45,9 @@ def launch(command: str, argv: list[str], nproc: int) -> int:
     try:
         elastic_launch(config, sys.executable)("-m", "omg4", *without_nproc(argv))
     except ChildFailedError as exc:
-        print(f"omg4 {command}: error: {root_cause(exc.failures)}", file=sys.stderr)
+        # a rank stopped by the launcher may have left its progress bar mid-line: the report takes a line of its own
+        fresh_line = "\r\033[K" if sys.stderr.isatty() else "\n"
+        print(f"{fresh_line}omg4 {command}: error: {root_cause(exc.failures)}", file=sys.stderr)
         return 2
     return 0
 
