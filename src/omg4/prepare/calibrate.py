@@ -11,7 +11,8 @@ solution (docs/prepare.md).
 Intrinsics are per camera (``shared_intrinsics``: one for all), with radial distortion (k1, k2; COLMAP's
 ``RADIAL`` model); the principal point stays at the image centre, as pycolmap's default bundle adjustment
 keeps it. The distortion is kept only where the observations ask for it (:func:`simplest_lens`): on a lens
-without distortion, two free coefficients per camera trade focal length for distortion and pull the poses.
+without distortion, two free coefficients per camera trade focal length for distortion and pull the poses. A
+calibration made to check another (``distortion`` given) takes that one's lens model instead of choosing its own.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ class Calibration:
     names it could not register; the evidence behind it: each camera's pooled ``keypoints`` [P, 2], the verified
     ``matches`` of each camera pair [M, 2] (indices into those) and, per camera, which point each reconstructed
     keypoint observes (``observations``: keypoint index → point index); ``lens``: whether the distortion was
-    kept and the reprojection RMS with and without it (:func:`simplest_lens`)."""
+    kept and, when it was chosen here, the reprojection RMS with and without it (:func:`simplest_lens`)."""
 
     cameras: dict[str, CalibratedCamera]
     points: np.ndarray
@@ -84,11 +85,13 @@ class Calibration:
 
 
 def calibrate(frames: dict[str, list[np.ndarray]], work: str | os.PathLike, *, max_features: int = 8192,
-              shared_intrinsics: bool = False, instants: list[int] | None = None, threads: int = -1) -> Calibration:
+              shared_intrinsics: bool = False, instants: list[int] | None = None, distortion: bool | None = None,
+              threads: int = -1) -> Calibration:
     """Calibrate the cameras whose frames at the same instants are ``frames[name]`` (uint8 [H, W, 3] each, equal
     counts), working in the folder ``work`` (created; its contents are the caller's to remove). ``instants``
-    selects the instants used (default all). Raises a one-line :class:`OMG4Error` when no two cameras can be
-    reconstructed together.
+    selects the instants used (default all). ``distortion``: estimate the lens distortion (True), map without it
+    from the start (False), or choose from the observations (None, :func:`simplest_lens`). Raises a one-line
+    :class:`OMG4Error` when no two cameras can be reconstructed together.
     """
     import pycolmap
 
@@ -122,8 +125,12 @@ def calibrate(frames: dict[str, list[np.ndarray]], work: str | os.PathLike, *, m
     keypoints, matches, starts = _pooled(database, names, chosen)
     if not matches:
         raise OMG4Error("calibration failed: no two cameras share verified matches (do the views overlap?)")
-    rec = _reconstruct(work / f"pooled-{tag}", frames, names, keypoints, matches, shared_intrinsics, threads)
-    rec, lens = simplest_lens(rec, keypoints)
+    rec = _reconstruct(work / f"pooled-{tag}", frames, names, keypoints, matches, shared_intrinsics,
+                       distortion is not False, threads)
+    if distortion is None:
+        rec, lens = simplest_lens(rec, keypoints)
+    else:
+        lens = {"distortion": "kept" if distortion else "dropped"}
     return _calibration(rec, names, starts, keypoints, matches, lens)
 
 
@@ -173,8 +180,9 @@ def _pooled(database: Path, names: list[str], instants: list[int]
 
 def _reconstruct(folder: Path, frames: dict[str, list[np.ndarray]], names: list[str],
                  keypoints: dict[str, np.ndarray], matches: dict[tuple[str, str], np.ndarray],
-                 shared_intrinsics: bool, threads: int):
-    """One image per camera holding its pooled keypoints, the pooled matches verified and mapped."""
+                 shared_intrinsics: bool, distortion: bool, threads: int):
+    """One image per camera holding its pooled keypoints, the pooled matches verified and mapped (with the lens
+    distortion estimated, or held at zero)."""
     import pycolmap
 
     shutil.rmtree(folder, ignore_errors=True)
@@ -208,6 +216,8 @@ def _reconstruct(folder: Path, frames: dict[str, list[np.ndarray]], names: list[
     _quiet(pycolmap.verify_matches, database, pairs, options=_verification())
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads
+    options.ba_refine_extra_params = distortion
+    options.mapper.abs_pose_refine_extra_params = distortion
     options.random_seed = 0
     options.mapper.random_seed = 0
     reconstructions = _quiet(pycolmap.incremental_mapping, database, images, folder / "sparse", options=options)

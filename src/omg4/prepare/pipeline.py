@@ -73,7 +73,8 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
               for s, off in zip(_bar(sources, progress, "reading instants"), offsets.frames)}
     with tempfile.TemporaryDirectory(prefix="omg4-prepare-") as work:
         calibration = calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics)
-        halves = _halves(frames, work, len(chosen), max_features, shared_intrinsics)
+        halves = _halves(frames, work, len(chosen), max_features, shared_intrinsics,
+                         calibration.lens["distortion"] == "kept")
     calibration, checks = check_and_repair(calibration, {s.stem: (s.width, s.height) for s in sources})
     checks = _reprojection_checks(calibration, checks)
     kept = [s for s in sources if checks[s.stem].reliable]
@@ -114,10 +115,12 @@ def _check_target(src: Path, out: Path, force: bool) -> None:
 
 
 def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_features: int,
-            shared_intrinsics: bool) -> list[dict[str, CalibratedCamera]]:
+            shared_intrinsics: bool, distortion: bool) -> list[dict[str, CalibratedCamera]]:
     """The rig calibrated again from the even and from the odd ones of its ``count`` instants (the features and
-    matches already in ``work``), for :func:`~omg4.prepare.check.rig_disagreement`; none when there are fewer
-    than four instants, an empty rig for a half that cannot be reconstructed."""
+    matches already in ``work``; the whole rig's lens model, ``distortion``), for
+    :func:`~omg4.prepare.check.rig_disagreement`; none when there are fewer than four instants, an empty rig for a
+    half that cannot be reconstructed. A half left to choose its own lens model can keep a distortion the whole
+    rig dropped, and trade focal length for it (10 % on a synthetic rig)."""
     if count < 4:
         logger.info("fewer than four instants: the rig is not calibrated again from each half of them")
         return []
@@ -125,7 +128,7 @@ def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_feat
     for part in (list(range(0, count, 2)), list(range(1, count, 2))):
         try:
             halves.append(calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics,
-                                    instants=part).cameras)
+                                    instants=part, distortion=distortion).cameras)
         except OMG4Error:
             halves.append({})
     return halves
