@@ -134,3 +134,13 @@ def test_bad_inputs_are_one_line_errors(rig, tmp_path, capsys):
     _refused(["prepare", str(good), "--out", str(tmp_path / "d5"), "--sync", "audio"], capsys, "has no audio track")
     assert sorted(p.name for p in good.iterdir()) == ["phone_A.mkv", "phone_B.mkv"]
     assert not any((tmp_path / f"d{i}").exists() for i in range(1, 6))
+
+
+def test_a_calibration_given_no_distortion_maps_without_it(rig, tmp_path):
+    """What each half of the instants is calibrated with when the whole rig dropped the distortion."""
+    from omg4.prepare.calibrate import calibrate
+
+    frames = {f"cam{i:02d}": decoded(rig / f"cam{i:02d}.mp4")[::3] for i in range(6)}
+    calibration = calibrate(frames, tmp_path, distortion=False)
+    assert calibration.lens == {"distortion": "dropped"} and len(calibration.cameras) == 6
+    assert all(camera.distortion == (0.0, 0.0) for camera in calibration.cameras.values())

@@ -30,11 +30,11 @@ AGREEMENT_RATIO = 0.5
 
 HALVES_ROTATION_DEG = 8.0
 """A calibration from half the instants that turns the rig's cameras by more than this (median) does not reproduce
-it. Halves of good calibrations lie 0.04–0.24° from the whole on synthetic rigs and 2–3° on the Panoptic dome; the
-wrong rigs seen lay 6–20° off, and far off in focal length too."""
+it. Halves of good calibrations (mapped with the whole rig's lens model) lie 0.05–0.40° from the whole on synthetic
+rigs and 2–3° on the Panoptic dome; the wrong rigs seen lay 6–20° off, and far off in focal length too."""
 
 HALVES_FOCAL_PCT = 20.0
-"""... nor one that changes their focal lengths by more than this many percent (median): good halves 0.1–2 %, the
+"""... nor one that changes their focal lengths by more than this many percent (median): good halves 0.2–2.8 %, the
 wrong rigs seen 33–96 %."""
 
 
