@@ -24,7 +24,9 @@ from __future__ import annotations
 import contextlib
 import datetime
 import hashlib
+import logging
 import os
+import sys
 import threading
 from dataclasses import dataclass
 from typing import NoReturn
@@ -131,9 +133,6 @@ def leave(status: int) -> NoReturn:
     ("terminate called without an active exception", SIGABRT) after everything was computed and written: the
     launcher would report a finished run as a failed one. Measured with 2 ranks on 2 CPUs under load: 3 of 90
     training runs. The standard streams and logging handlers are flushed first, so nothing printed is lost."""
-    import logging
-    import sys
-
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
