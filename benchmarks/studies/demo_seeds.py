@@ -78,17 +78,21 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--equal-training-control", action="store_true",
                     help="also train and report the equal-training control (record demo_seeds_control.json)")
+    ap.add_argument("--paper", action="store_true", help="compress the paper's way (omg4 demo --paper)")
     args = ap.parse_args()
     control = args.equal_training_control
     rows = {}
     t0 = time.perf_counter()
     for seed in args.seeds:
-        results = run_demo(args.work / f"seed{seed}", DemoSettings(seed=seed, equal_training_control=control))
+        results = run_demo(args.work / f"seed{seed}", DemoSettings(seed=seed, equal_training_control=control,
+                                                                   paper=args.paper))
         rows[seed] = row_of(results)
-    save_record(args.json or RESULTS.with_name("demo_seeds_control.json" if control else RESULTS.name), {
+    name = "demo_seeds" + ("_control" if control else "") + ("_paper" if args.paper else "") + ".json"
+    save_record(args.json or RESULTS.with_name(name), {
         "command": "python benchmarks/studies/demo_seeds.py --seeds " + " ".join(map(str, args.seeds))
-                   + (" --equal-training-control" if control else ""),
-        "settings": {k: str(v) for k, v in DemoSettings().__dict__.items() if k != "seed"},
+                   + (" --equal-training-control" if control else "") + (" --paper" if args.paper else ""),
+        "mode": results["mode"],
+        "settings": {k: str(v) for k, v in DemoSettings(paper=args.paper).__dict__.items() if k != "seed"},
         "seeds": {str(s): r for s, r in rows.items()},
         "spread": spread(list(rows.values())),
         "wall_time_s": round(time.perf_counter() - t0, 1),

@@ -43,7 +43,8 @@ VARIANTS = {"paper": {"score_weighting": "paper", "time_sampling": "uniform"},
             "deficit": {"score_weighting": "paper", "time_sampling": "deficit"},
             "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit"}}
 """Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the scene's: the paper's selection
-and draw, either change beyond it, and both (the default)."""
+and draw (``omg4 compress --paper`` but for the coder: every variant is coded alike), either change beyond it, and both
+(the default)."""
 BASELINE_ITERATIONS = 1500
 
 
@@ -182,7 +183,7 @@ def run_seed(spec: SceneSpec, root: Path, seed: int, variants: list[str], device
         rows = frame_rows(load_model(out, device), scene.test_views, device)
         delta = frame_differences(rows, base, keys=("psnr",))
         summary = frame_summary(delta, "psnr")
-        row[variant] = {"file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
+        row[variant] = {"mode": cfg.mode(), "file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
                         "worst_delta_psnr": summary["min"], "worst_frame": summary["worst"]["frame"],
                         "p5_delta_psnr": summary["p5"], "delta_psnr_per_frame": [r["psnr"] for r in delta],
                         "kept_visible_share_per_frame": kept_shares(model, scene, scores, cfg.score_weighting)}

@@ -72,6 +72,7 @@ def main() -> None:
     ap.add_argument("--schedule", default="cpu", help="OMG4 fine-tuning lengths for the bench rows")
     ap.add_argument("--rows", default="AC only,OMG4-FTGS-L")
     ap.add_argument("--reuse", action="store_true", help="keep baselines already trained and evaluated in --work")
+    ap.add_argument("--paper", action="store_true", help="compress the paper's way (omg4 bench --paper)")
     args = ap.parse_args()
     work = args.work or Path("runs") / f"freetimegs_{args.scene}"
     work.mkdir(parents=True, exist_ok=True)
@@ -98,7 +99,7 @@ def main() -> None:
     bench = work / "bench"
     wall = omg4("bench", str(data), *reader, "--model", str(work / "freetimegs" / "model.safetensors"), "--out",
                 str(bench), "--schedule", args.schedule, "--batch-size", "2", "--baseline-iterations",
-                training[training.index("--iterations") + 1], "--rows", args.rows)
+                training[training.index("--iterations") + 1], "--rows", args.rows, *(["--paper"] if args.paper else []))
     results["bench"] = json.loads((bench / "bench.json").read_text())
     results["bench_command_s"] = wall
     out = ROOT / "benchmarks" / "results" / f"freetimegs_{args.scene}"

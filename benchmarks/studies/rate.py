@@ -103,7 +103,8 @@ def main() -> int:
           f"size {rows['compact']['bytes'] / rows['paper']['bytes']:.3f}x")
     result = {"command": shlex.join(["python", "benchmarks/studies/rate.py", *sys.argv[1:]]), "benchmark": "rate",
               "name": args.name, "paper_file": str(args.paper_file), "data": str(args.data),
-              "downscale": args.downscale, "num_gaussians": payload.num_gaussians, "rows": rows,
+              "downscale": args.downscale, "num_gaussians": payload.num_gaussians,
+              "mode": payload.meta.get("mode", "not recorded in the file"), "rows": rows,
               "compact_minus_paper": delta, "table": table}
     write_text_atomic(out_json.with_suffix(".md"), table + "\n")
     save_record(out_json, result)

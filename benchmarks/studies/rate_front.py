@@ -136,7 +136,8 @@ def main() -> int:
                 r.update(paper_codec_mb=paper["storage_mb"], paper_codec_psnr=paper["psnr"],
                          paper_codec_ssim=paper["ssim"], paper_codec_B_per_G=paper["bytes_per_gaussian"],
                          rate_weight=beta, grids=asdict(g),
-                         preset=preset, full_pipeline=True, source=str(paper_file))
+                         preset=preset, full_pipeline=True, source=str(paper_file),
+                         mode=meta.get("mode", "not recorded in the file"))
                 results[row_label(f"OMG4-{preset}", beta, g)] = r
                 print(f"  grids {g.label}: {r['storage_mb']:.4f} MB, per-Gaussian {r['per_gaussian_B_per_G']:.1f} B/G, "
                       f"{r['psnr']:.3f} dB, SSIM {r['ssim']:.4f}", flush=True)

@@ -93,7 +93,8 @@ def scaling(args) -> None:
             trained = _measure_in_fresh_process(["train", *train, "--out", str(run_dir), *extra])
             compressed = _measure_in_fresh_process(["compress", str(scene), "--model", str(
                 run_dir if extra else run_dir / "model.safetensors"), "--out", str(out), "--schedule", "tiny",
-                "--batch-size", "2", "--backend", "cpu", "--force", *(["--key-interval", "1"] if extra else [])])
+                "--batch-size", "2", "--backend", "cpu", "--force", *(["--key-interval", "1"] if extra else []),
+                *paper_flag(args)])
             row = {"frames": frames, "mode": mode, "train": trained, "compress": compressed,
                    "file_bytes": out.stat().st_size}
             rows.append(row)
@@ -166,7 +167,8 @@ def quality(args) -> None:
         train_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "omg4", "compress", str(data), *reader, "--model", str(model), "--out",
-                        str(out), "--preset", "M", "--schedule", args.schedule, "--force", *compress_extra], env=ENV,
+                        str(out), "--preset", "M", "--schedule", args.schedule, "--force", *compress_extra,
+                        *paper_flag(args)], env=ENV,
                        check=True, stdout=subprocess.DEVNULL)
         return round(train_s, 1), round(time.perf_counter() - t0, 1)
 
@@ -214,6 +216,11 @@ def _capture(args) -> Path:
     return data
 
 
+def paper_flag(args) -> list[str]:
+    """``omg4 compress``'s flag for the study's mode (the paper's way with ``--paper``)."""
+    return ["--paper"] if getattr(args, "paper", False) else []
+
+
 def _omg4(*argv: str) -> float:
     """Run ``omg4 argv``; its wall seconds."""
     t0 = time.perf_counter()
@@ -255,7 +262,7 @@ def prediction(args) -> None:
     reader = ["--downscale", str(args.downscale)]
     train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume"]
     compress = ["--preset", args.preset, "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp,
-                "--carry", str(args.carry)]
+                "--carry", str(args.carry), *paper_flag(args)]
     run_dir = work / "run"
     train_s = _omg4("train", str(data), *reader, "--out", str(run_dir), "--iterations", str(args.iterations), *train,
                     "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap))
@@ -336,6 +343,8 @@ def main() -> None:
         p.add_argument("--overlap", type=int, default=10)
         p.add_argument("--name", default="synthetic")
     for p in (s, q, r):
+        p.add_argument("--paper", action="store_true",
+                       help="compress the paper's way (omg4 compress --paper; a key interval named here still holds)")
         p.add_argument("--cameras", type=int, default=6)
         p.add_argument("--width", type=int, default=96)
         p.add_argument("--height", type=int, default=64)

@@ -59,7 +59,8 @@ def row_file(out: Path, name: str, rate_weight: float, grids: CompactGrids = Com
 
 
 def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str = "cpu", batch_size: int = 4,
-              baseline_iterations: int = 30000, rows: list[str] | None = None, codec: str = "compact",
+              baseline_iterations: int = 30000, rows: list[str] | None = None, paper: bool = False,
+              codec: str | None = None,
               backend: str = "auto", device: torch.device | str = "cpu", rate_weights: tuple[float, ...] = (0.0,),
               grids: tuple[CompactGrids, ...] = (CompactGrids(),), control: tuple[Path, int | None] | None = None,
               log=print) -> dict:
@@ -67,13 +68,15 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     at every compact grid of ``grids`` (the first by the pipeline run, the others re-encoded from its paper-coder
     copy), and evaluate everything on the test views, computing on ``device``. ``baseline_path`` must be the checkpoint
     ``baseline`` was loaded from: its row is evaluated as a render-only model loaded from that file, as the compressed
-    rows are from theirs. ``control``: the checkpoint of the equal-training control (a baseline trained for as many
+    rows are from theirs. ``paper``: every row compressed the paper's way (:mod:`omg4.compress.modes`; ``codec``
+    None: the mode's coder). ``control``: the checkpoint of the equal-training control (a baseline trained for as many
     steps as the baseline and the full pipeline's fine-tuning together) and the steps it records, evaluated as the
     baseline is, its row recording how many steps equal training takes. In a distributed job every rank compresses
     and evaluates its share of the views (:mod:`omg4.distributed`) and rank 0 alone writes and prints."""
     from omg4 import distributed
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
+    from omg4.compress.modes import choice_value
     from omg4.compress.pipeline import FULL_STAGES, CompressConfig
     from omg4.compress.score import compute_sd_scores
     from omg4.errors import OMG4Error
@@ -81,6 +84,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.models import load_model
     from omg4.models.compact import load_omg4
 
+    codec = codec or choice_value("codec", paper)
     table_rows = baseline.config.schema.paper_rows
     names = rows or list(table_rows)
     for g in grids:
@@ -127,7 +131,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
         preset, stages = table_rows[name]
         path = row_file(out, name, beta, grids[0])
         log(f"row {row_label(name, beta)}: preset {preset}, stages {','.join(stages)}")
-        cfg = CompressConfig(preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
+        cfg = CompressConfig(paper=paper, preset=preset, stages=stages, schedule=schedule, batch_size=batch_size,
                              baseline_iterations=baseline_iterations, backend=backend, device=str(device),
                              rate_weight=beta)
         paper_copy = path.with_name(path.stem + "_paper_codec.omg4")
@@ -149,7 +153,8 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
             r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=path.stat().st_size / r["num_gaussians"],
                      paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper["psnr"],
                      paper_codec_ssim=paper["ssim"], rate_weight=beta, grids=asdict(g), preset=preset,
-                     full_pipeline=stages == FULL_STAGES, stages=report["stages"], file=str(path))
+                     full_pipeline=stages == FULL_STAGES, stages=report["stages"], file=str(path),
+                     mode=report["config"]["mode"])
             results[row_label(name, beta, g)] = r
             if main:
                 write_text_atomic(out / "bench.json", json.dumps(_strip(results), indent=2))

@@ -43,7 +43,8 @@ DEMO_LENGTHS = StageLengths(sample=300, prune=600, merge=300, appearance=2400, s
 class DemoSettings:
     """Sizes of the demo run (defaults: 16 cameras × 60 frames at 128×96, a 60k-Gaussian baseline);
     ``equal_training_control``: also train a baseline for as many steps as the baseline and the compression's
-    fine-tuning together, the control that tells what compression costs from what more training gives."""
+    fine-tuning together, the control that tells what compression costs from what more training gives; ``paper``:
+    compress the paper's way (:mod:`omg4.compress.modes`: its selection, view sampling and coder)."""
 
     cameras: int = 16
     frames: int = 60
@@ -56,6 +57,7 @@ class DemoSettings:
     seed: int = 0
     smoke_check: bool = False
     equal_training_control: bool = False
+    paper: bool = False
 
 
 QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=60, max_gaussians=20_000,
@@ -152,9 +154,10 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    log(f"[{next(step)}/{steps}] compressing with OMG4 (M preset)")
+    way = ", the paper's way" if settings.paper else ""
+    log(f"[{next(step)}/{steps}] compressing with OMG4 (M preset{way})")
     omg4_path = out / "scene_M.omg4"
-    ccfg = CompressConfig(preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
+    ccfg = CompressConfig(paper=settings.paper, preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
                           seed=settings.seed, baseline_iterations=settings.train_iterations,
                           device=str(device))
     paper_path = out / "scene_M_paper_codec.omg4"  # the same pipeline result with the paper-faithful coder
@@ -225,6 +228,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
         "dynamic_region": {"fraction": {cam: float(m.mean()) for cam, m in masks.items()},
                            "rule": "pixels whose value leaves the clip's temporal median by > 0.1, dilated 2 px"},
         "device": str(device),
+        "mode": report["config"]["mode"],
         "smoke_check": settings.smoke_check,
         "timings": timings,
         "table": table,

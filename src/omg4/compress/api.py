@@ -13,10 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from omg4.codec.payload import CODECS, CompactGrids, CompressedPayload, check_codec, encode_payload
+from omg4.codec.payload import CompactGrids, CompressedPayload, check_codec, encode_payload
 from omg4.codec.rig import rig_json
-from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
+from omg4.compress import modes
 from omg4.compress.model import CompressibleModel
+from omg4.compress.modes import choice_value
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
 from omg4.data.scene import Scene
@@ -79,12 +80,13 @@ def build_payload(model: CompressibleModel, meta: dict) -> CompressedPayload:
 
 
 def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, out: str | Path, *,
-                     codec: str = CODECS[0], stop_after: str | None = None, scores_path: str | Path | None = None,
+                     codec: str | None = None, stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
                      progress: bool = False, log=None, check_replicas: int = 0,
                      reference: dict[str, np.ndarray] | None = None) -> dict:
-    """Run OMG4 on ``baseline`` and write ``out`` (``precision``: the compact codec's grids); returns a JSON-ready
-    report.
+    """Run OMG4 on ``baseline`` and write ``out`` (``codec``: None, the coder of ``cfg``'s mode; ``precision``: the
+    compact codec's grids); returns a JSON-ready report. The file's header and the report name the mode of the
+    run (:meth:`CompressConfig.mode`: ``"paper"``, ``"omg4"`` or which choices were mixed).
 
     ``reference``: for a predicted segment of a sequence, the :func:`~omg4.codec.payload.reference_sections` of the
     segment before, decoded; the compression keeps its codebooks and starts from its appearance MLPs
@@ -105,6 +107,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
 
     main = distributed.world().main
     out = Path(out)
+    codec = codec or choice_value("codec", cfg.paper)
     check_codec(codec, precision)  # before the pipeline's minutes, not after
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
@@ -118,7 +121,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
                 unsaved.save(scores_out)
             unsaved = None
     model = pipeline.run(stop_after=stop_after)
-    meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "scene": scene.name,
+    meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "mode": cfg.mode(codec), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
     if reference is None:  # a predicted segment leaves the rig to its sequence's first segment
         meta["rig"] = rig_json(scene.cameras(), len(scene.test_cameras()))
@@ -152,6 +155,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "wall_time_s": time.perf_counter() - t0,
         "stages": [asdict(r) for r in pipeline.records],
         "config": {"preset": pipeline.size.name, "backbone": baseline.config.backbone, "stages": list(cfg.stages),
+                   "mode": meta["mode"],
                    "schedule": cfg.schedule, "codec": codec, "grids": asdict(precision),
                    "tau_gs": pipeline.size.tau_gs, "prune_quantile": pipeline.size.prune_quantile,
                    "rate_weight": cfg.rate_weight,
@@ -160,11 +164,12 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
 
 
 def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
-                      codec: str = CODECS[0], precision: CompactGrids = CompactGrids(), progress: bool = False,
+                      codec: str | None = None, precision: CompactGrids = CompactGrids(), progress: bool = False,
                       log=None, check_replicas: int = 0, teach: bool = True,
-                      key_interval: int = DEFAULT_KEY_INTERVAL) -> dict:
+                      key_interval: int | None = None) -> dict:
     """Compress every segment of a segmented training run (:mod:`omg4.train.segmented`) and write them as one
     sequence file (:mod:`omg4.codec.sequence`) at ``out``; ``load_scene(start, stop)`` gives a segment's scene.
+    ``codec`` and ``key_interval`` left None follow ``cfg``'s mode (:mod:`omg4.compress.modes`).
 
     Every ``key_interval``-th segment (the first included) is a key segment, coded alone; each other one is
     predicted from the segment before (beyond the paper): compressed with that segment's decoded codebooks, kept as
@@ -188,6 +193,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     from omg4.train.segmented import shared_frames, taught_by
 
     log = log or logger.info
+    key_interval = choice_value("key_interval", cfg.paper) if key_interval is None else key_interval
     if not valid_key_interval(key_interval):
         raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}, got {key_interval!r}")
 
@@ -225,9 +231,11 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
                 if teach:
                     teacher, before = CompactModel(previous, cfg.device), seg
             del scene, baseline
+        mode = modes.mode_of({**modes.choices_of(cfg), "codec": reports[0]["config"]["codec"],
+                              "key_interval": key_interval})
         if main:
             write_sequence(out, parts, fps=plan["fps"], meta={"segment_frames": plan["segment_frames"],
-                                                              "overlap": plan["overlap"]},
+                                                              "overlap": plan["overlap"], "mode": mode},
                            references=references, key_interval=key_interval)
     finally:
         if main:
@@ -235,6 +243,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     distributed.barrier("writing the sequence")
     index = read_index(out)
     return {"output": str(out), "file_bytes": index.total_bytes, "segments": reports, "key_interval": key_interval,
+            "mode": mode,
             "references": [e.reference for e in index.segments],
             "num_gaussians": sum(r["num_gaussians"] for r in reports), "duration_s": index.duration_s,
             "bitrate_mbps": index.bitrate_mbps, "wall_time_s": time.perf_counter() - t0}

@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from omg4 import distributed
 from omg4.codec.carry import carried_gaussians, reference_count
-from omg4.compress import appearance_stage, merging
+from omg4.compress import appearance_stage, merging, modes
 from omg4.compress.carry_stage import carry_matches
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
@@ -74,12 +74,15 @@ class CompressConfig:
     batch_size: int = knob(4, "views per fine-tuning step")
     seed: int = knob(6666, "random seed (batches, MLP initialization, k-means)")
     merge: merging.MergeConfig = field(default_factory=merging.MergeConfig)
+    paper: bool = knob(False, "the paper's way: every choice of omg4.compress.modes.CHOICES that is not set itself "
+                              "takes the paper's value (selection, view sampling, coder, segments coded alone)")
     official_score_quirk: bool = knob(False, "accumulate the time gradient without zeroing, as the official code")
-    score_weighting: str = knob("lifetime", "sampling and pruning rank by lifetime-weighted SD scores (lifetime, "
-                                            "beyond the paper) or by the paper's (paper)")
-    time_sampling: str = knob("deficit", "fine-tuning draws its views more often in the spans of the clip that fell "
-                                         "further below the baseline (deficit, beyond the paper) or uniformly "
-                                         "(uniform, the paper)")
+    score_weighting: str | None = knob(None, "sampling and pruning rank by lifetime-weighted SD scores (lifetime, "
+                                             "beyond the paper) or by the paper's (paper); unset: lifetime, or "
+                                             "paper with paper=true")
+    time_sampling: str | None = knob(None, "fine-tuning draws its views more often in the spans of the clip that "
+                                           "fell further below the baseline (deficit, beyond the paper) or uniformly "
+                                           "(uniform, the paper); unset: deficit, or uniform with paper=true")
     baseline_iterations: int = knob(30_000, "the baseline's steps: the position learning rate continues its decay")
     position_lr_init: float = knob(1.6e-4, "the baseline's initial position learning rate (× extent)")
     position_lr_final: float = knob(1.6e-6, "the baseline's final position learning rate (× extent)")
@@ -95,6 +98,18 @@ class CompressConfig:
     carry: float = knob(0.0, "a predicted segment takes the segment before's decoded Gaussians in place of its own "
                              "that lie this close (in units of their size; 0, the default: none) and names them with "
                              "a bit each; 0.5 pays where the scene stays put between segments")
+
+    def __post_init__(self):
+        for name in ("score_weighting", "time_sampling"):  # the choices whose paper value is not the default
+            if getattr(self, name) is None:
+                setattr(self, name, modes.choice_value(name, self.paper))
+
+    def mode(self, codec: str | None = None) -> str:
+        """The mode these settings (and ``codec``, when given) amount to (:func:`omg4.compress.modes.mode_of`)."""
+        values = modes.choices_of(self)
+        if codec is not None:
+            values["codec"] = codec
+        return modes.mode_of(values)
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset, backbone)

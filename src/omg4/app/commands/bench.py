@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_codec_argument, add_device_arguments,
+from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_codec_argument, add_device_arguments, add_paper_argument,
                                   add_distributed_arguments, add_scene_arguments,
                                   compact_grids, device_from_args, int_at_least, load_scene_from_args,
                                   rate_weight_list)
@@ -31,7 +31,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                         f"{CompressConfig.baseline_iterations})")
     p.add_argument("--rows", help="comma-separated subset of rows (default: all of the baseline's backbone): "
                    + "; ".join(f"{b}: {', '.join(rows)}" for b, rows in _row_names().items()))
-    add_codec_argument(p)
+    add_paper_argument(p)
+    add_codec_argument(p, from_settings=True)
     p.add_argument("--rate-weights", type=rate_weight_list, default=(0.0,), metavar="BETA[,BETA...]",
                    help="beyond the paper: run every row once per rate weight of entropy-constrained codebooks "
                         "(see omg4 compress --help, --rate-weight), e.g. 0,30; the figure then shows each coder's "
@@ -55,13 +56,15 @@ def run(args) -> int:
     from omg4.app.outputs import check_outputs
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.api import baseline_file, read_baseline, trained_iterations
+    from omg4.compress.modes import choice_value
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import describe_checkpoint
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
+    codec = args.codec or choice_value("codec", bool(args.paper))
     for g in grids:
-        check_codec(args.codec, g)
+        check_codec(codec, g)
     check_outputs({"--out": args.out}, inputs=[args.data, args.model, args.control], datasets=[args.data],
                   folders=["--out"])
     world, device = distributed.init(device_from_args(args))
@@ -86,6 +89,6 @@ def run(args) -> int:
                         f"{', '.join(known)}")
     scene = distributed.main_first(lambda: load_scene_from_args(args))
     run_bench(scene, baseline, args.model, args.out, schedule=args.schedule or default_schedule(device), batch_size=args.batch_size,
-              baseline_iterations=iterations, rows=rows, codec=args.codec, backend=args.backend,
+              baseline_iterations=iterations, rows=rows, paper=bool(args.paper), codec=codec, backend=args.backend,
               device=device, rate_weights=args.rate_weights, grids=grids, control=control)
     return 0

@@ -96,6 +96,14 @@ def add_format_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=list(READERS), help="force the dataset reader")
 
 
+def add_paper_argument(p: argparse.ArgumentParser) -> None:
+    """``--paper``: the paper's way in one switch (:mod:`omg4.compress.modes`)."""
+    p.add_argument("--paper", action="store_true", default=None,
+                   help="the paper's way: every choice where omg4 goes beyond the paper takes the paper's value "
+                        "(SD-score ranking and uniform view sampling, the paper's coder, segments coded alone; "
+                        "docs/paper-map.md, Part E); a flag naming one of them still sets it")
+
+
 def add_codec_argument(p: argparse.ArgumentParser, *, from_settings: bool = False) -> None:
     """``--codec``: the ``.omg4`` file coder (:data:`omg4.codec.coders.CODERS`, the first is the default; with
     ``from_settings`` an unset flag stays None, for a config file to choose)."""

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_background_argument, add_codec_argument,
                                   add_device_arguments, add_distributed_arguments, add_force_argument,
-                                  add_rate_weight_argument, add_scene_arguments, add_settings_arguments,
+                                  add_paper_argument, add_rate_weight_argument, add_scene_arguments, add_settings_arguments,
                                   compact_grids, device_from_args, fill_device_arguments, float_in, int_at_least,
                                   load_scene_from_args, seed, segment_scenes, settings_from_args)
 from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
@@ -26,7 +26,7 @@ from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 
 
 #: the CompressConfig fields this command has its own flags for
-SHORTCUTS = ("preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
+SHORTCUTS = ("paper", "preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
              "official_score_quirk", "score_weighting", "time_sampling", "baseline_iterations", "background", "backend",
              "device", "seed", "predicted_mlp")
 #: options of the command itself that a config file may set (as the record beside the output does)
@@ -35,6 +35,7 @@ COMMAND_KEYS = ("codec", "grid_bits")
 
 def configure(p: argparse.ArgumentParser) -> None:
     add_scene_arguments(p)
+    add_paper_argument(p)
     p.add_argument("--model", required=True, type=Path,
                    help="trained baseline checkpoint (.safetensors), or a segmented run's folder (train "
                         "--segment-frames): every segment is compressed into one sequence file")
@@ -88,7 +89,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--key-interval", type=int, metavar="N",
                    help="a segmented run: every N-th segment is coded alone and the others are predicted from the "
                         "segment before (they take its codebooks and store its appearance MLPs as a change), so a "
-                        f"seek decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL})")
+                        f"seek decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL}; 1 with --paper)")
     p.add_argument("--predicted-mlp", choices=list(PREDICTED_MLPS),
                    help="what a predicted segment does with the segment before's appearance MLPs: fine-tune them and "
                         "store the change (tune, the default) or keep them as they are and store nothing (keep: a "
@@ -106,19 +107,22 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CODECS, CompactGrids, check_codec
     from omg4.compress.api import compress_to_file, read_baseline, trained_iterations
+    from omg4.compress.modes import choice_value
     from omg4.data.segments import is_segmented_run
     from omg4.errors import OMG4Error
 
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
-    codec = args.codec or settings.pop("codec", None) or CODECS[0]
+    codec = args.codec or settings.pop("codec", None)
     grid_text = settings.pop("grid_bits", None)
     precision = args.grid_bits or (compact_grids(grid_text) if grid_text else CompactGrids())
-    check_codec(codec, precision)
+    check_codec(codec or CODECS[0], precision)
     if args.stop_after and args.grid_bits:
         raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
     fill_device_arguments(args, settings)
     world, device = distributed.init(device_from_args(args))
     cfg = pipeline_config(args, settings, device)
+    codec = codec or choice_value("codec", cfg.paper)
+    check_codec(codec, precision)
     computes_scores = args.scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune"))
     scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
     record = args.out.with_name(args.out.name + ".config.json")
@@ -145,7 +149,7 @@ def run(args) -> int:
     report["world_size"] = world.size
     write_record(record, cfg, codec, precision)
     print(f"wrote {args.out} ({report['file_bytes'] / 2**20:.3f} MB, {report['num_gaussians']} Gaussians, "
-          f"{report['wall_time_s']:.0f} s) and its settings {record}")
+          f"{report['wall_time_s']:.0f} s, mode {report['config']['mode']}) and its settings {record}")
     if args.json:
         write_text_atomic(args.json, json.dumps(report, indent=2))
     return 0
@@ -166,7 +170,9 @@ def pipeline_config(args, settings: dict, device) -> CompressConfig:
     lengths = {k: v for k, v in settings.items() if k.startswith("lengths.")}
     given = {**{k: v for k, v in settings.items() if k not in lengths},
              **{k: v for k, v in flags.items() if v is not None}}
-    cfg = apply_settings(CompressConfig(schedule=default_schedule(device)), given)
+    # the mode first: the choices no setting names take its values
+    cfg = apply_settings(CompressConfig(schedule=default_schedule(device), paper=bool(given.pop("paper", False))),
+                         given)
     if lengths:
         if cfg.lengths is None:
             cfg = replace(cfg, lengths=cfg.stage_lengths())
@@ -179,7 +185,7 @@ def write_record(path, cfg: CompressConfig, codec: str, precision) -> None:
     from omg4.atomic import write_text_atomic
     from omg4.settings import config_dict
 
-    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg), "codec": codec,
+    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg), "mode": cfg.mode(codec), "codec": codec,
                                         "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
 
 
@@ -191,15 +197,14 @@ def _compress_segments(args, cfg, codec, precision, record, world) -> int:
 
     if args.stop_after or args.scores:
         raise OMG4Error("a segmented run compresses into one sequence file: --stop-after and --scores take one model")
-    key_interval = DEFAULT_KEY_INTERVAL if args.key_interval is None else args.key_interval
-
     report = compress_segments(args.model, segment_scenes(args, cfg.background), cfg, args.out, codec=codec,
                                precision=precision, check_replicas=args.check_replicas,
-                               teach=not args.independent_segments, progress=True, key_interval=key_interval)
+                               teach=not args.independent_segments, progress=True, key_interval=args.key_interval)
     if not world.main:
         return 0
     write_record(record, cfg, codec, precision)
-    print(f"wrote {args.out}: {len(report['segments'])} segments, {report['file_bytes'] / 2**20:.3f} MB, "
+    print(f"wrote {args.out}: {len(report['segments'])} segments (mode {report['mode']}), "
+          f"{report['file_bytes'] / 2**20:.3f} MB, "
           f"{report['bitrate_mbps']:.2f} Mbit/s over {report['duration_s']:.2f} s, {report['wall_time_s']:.0f} s")
     if args.json:
         write_text_atomic(args.json, json.dumps({**report, "world_size": world.size}, indent=2))

@@ -123,10 +123,11 @@ def omg4_summary(path: Path, **_) -> tuple[dict, str]:
 
     d = describe_file(path)
     n, total, groups = d["num_gaussians"], d["total_bytes"], d["groups"]
-    summary = {"kind": "omg4", **{k: v for k, v in d.items() if k != "backbone_title"}}
+    summary = {"kind": "omg4", **{k: v for k, v in d.items() if k != "backbone_title"}, "mode": _mode(d["meta"])}
     lines = [f"{printable(path)}: OMG4 file ({printable(d['backbone_title'])}), codec {printable(d['codec'])} "
              f"(container version {d['version']}), {n} Gaussians, {total} bytes ({d['storage_mb']:.4f} MB), "
-             f"{d['bits_per_gaussian'] or 0:.1f} bits/Gaussian, {d['bitrate_mbps']:.3g} Mbit/s"]
+             f"{d['bits_per_gaussian'] or 0:.1f} bits/Gaussian, {d['bitrate_mbps']:.3g} Mbit/s",
+             f"  mode: {printable(summary['mode'] or 'not recorded (a file from before modes were recorded)')}"]
     for key, size in groups.items():
         lines.append(f"  {printable(key):<22} {size:>10} B  {100 * size / total:5.1f}%  "
                      f"{8 * size / n if n else 0:7.2f} bits/G")
@@ -144,13 +145,20 @@ def sequence_summary(path: Path, **_) -> tuple[dict, str]:
     lines = [f"{printable(path)}: OMG4 sequence of {len(d['segments'])} segments ({keys} key, "
              f"{len(d['segments']) - keys} predicted; key interval {d['key_interval']}), {d['duration_s']:.3g} s at "
              f"{d['fps']:g} fps, {d['total_bytes']} bytes ({d['storage_mb']:.4f} MB), {d['bitrate_mbps']:.3g} Mbit/s, "
-             f"{d['num_gaussians']} Gaussians"]
+             f"{d['num_gaussians']} Gaussians",
+             f"  mode: {printable(_mode(d['meta']) or 'not recorded (a file from before modes were recorded)')}"]
     for s in d["segments"]:
         chain = "key" if s["reference"] is None else f"predicted from {s['reference']}"
         chain += f", {s['carried']} of them carried" if s["carried"] else ""
         lines.append(f"  segment {s['index']:>3}: frames {s['frames'][0]}-{s['frames'][1] - 1}, "
                      f"{s['num_gaussians']:>8} Gaussians, {s['total_bytes']:>10} B ({printable(s['codec'])}, {chain})")
-    return {"kind": "omg4-sequence", **d}, "\n".join(lines)
+    return {"kind": "omg4-sequence", **d, "mode": _mode(d["meta"])}, "\n".join(lines)
+
+
+def _mode(meta) -> str | None:
+    """The mode a file's metadata records (:mod:`omg4.compress.modes`: ``paper``, ``omg4`` or ``mixed (…)``)."""
+    mode = meta.get("mode") if isinstance(meta, dict) else None
+    return mode if isinstance(mode, str) else None
 
 
 def segmented_run_summary(path: Path, **_) -> tuple[dict, str]:
