@@ -89,3 +89,25 @@ def tiny_scene(tiny_scene_dir):
     from omg4.data import load_scene
 
     return load_scene(tiny_scene_dir, progress=False)
+
+
+def pytest_collection_modifyitems(items):
+    """The tests that drive Chromium (the web player's, through the ``chromium`` fixture, and those marked so) carry
+    the ``browser`` marker, for the count :func:`pytest_terminal_summary` prints."""
+    for item in items:
+        if "chromium" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.browser)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line of how many browser tests ran, so a run whose browser tests all skipped says so."""
+    ran, skipped = 0, 0
+    for category in ("passed", "failed", "error", "skipped"):
+        for report in terminalreporter.stats.get(category, ()):
+            if "browser" not in getattr(report, "keywords", {}):
+                continue
+            if category == "skipped":
+                skipped += 1
+            elif report.when == "call" or category == "error":
+                ran += 1
+    terminalreporter.write_line(f"browser tests: {ran} ran, {skipped} skipped")

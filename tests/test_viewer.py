@@ -34,6 +34,7 @@ def _scene_pixels(image: Image.Image) -> np.ndarray:
     return pixels[h // 2:, : w // 2]
 
 
+@pytest.mark.browser
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium to drive (Debian package 'chromium')")
 def test_the_page_shows_frames_and_follows_the_time_slider(viser, model_file, tmp_path):
     from omg4.app.viewer import Viewer, ViewerSettings, view_presets

@@ -9,7 +9,7 @@ import pytest
 from omg4.data.scene import look_at_viewmat
 from omg4.prepare.camera_model import project
 
-pycolmap = pytest.importorskip("pycolmap")
+import pycolmap
 
 from omg4.prepare.calibrate import simplest_lens  # noqa: E402
 

@@ -69,7 +69,7 @@ def test_sampson_error_closed_form_for_rectified_pair():
 
 @pytest.fixture(scope="module")
 def synth_result(synth_scene):
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401
     return triangulate_views(synth_scene.first_frame_views(), progress=False)
 
 
@@ -117,7 +117,7 @@ def test_triangulation_is_repeatable(synth_scene, synth_result):
 # -- real data ---------------------------------------------------------------------------------
 
 def test_basketball_points_are_consistent_with_the_held_out_camera(n3dv_basketball):
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401
     scene = load_scene(n3dv_basketball, downscale=2, frames=range(0, 1), progress=False)
     result = triangulate_views(scene.first_frame_views(), progress=False)
     xyz, rgb = result.points.xyz, result.points.rgb
@@ -152,14 +152,14 @@ def test_basketball_points_are_consistent_with_the_held_out_camera(n3dv_basketba
 # -- bad input -------------------------------------------------------------------------------
 
 def test_missing_pycolmap_is_a_one_line_error(synth_scene, monkeypatch):
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # makes ``import pycolmap`` raise ImportError
     with pytest.raises(OMG4Error, match="pip install pycolmap"):
         triangulate_first_frame(synth_scene, progress=False)
 
 
 def test_too_few_views_or_points(synth_scene):
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401
     with pytest.raises(OMG4Error, match="at least 2 training cameras"):
         triangulate_views(synth_scene.first_frame_views()[:1], progress=False)
     with pytest.raises(OMG4Error, match="kept only .* points"):

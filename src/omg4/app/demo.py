@@ -44,7 +44,8 @@ class DemoSettings:
     """Sizes of the demo run (defaults: 16 cameras × 60 frames at 128×96, a 60k-Gaussian baseline);
     ``equal_training_control``: also train a baseline for as many steps as the baseline and the compression's
     fine-tuning together, the control that tells what compression costs from what more training gives; ``paper``:
-    compress the paper's way (:mod:`omg4.compress.modes`: its selection, view sampling and coder)."""
+    compress the paper's way (:mod:`omg4.compress.modes`: its selection, view sampling and coder); ``codec``: the
+    main file's coder (None: the mode's; the paper coder's copy is written beside it either way)."""
 
     cameras: int = 16
     frames: int = 60
@@ -58,6 +59,7 @@ class DemoSettings:
     smoke_check: bool = False
     equal_training_control: bool = False
     paper: bool = False
+    codec: str | None = None
 
 
 QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=60, max_gaussians=20_000,
@@ -161,7 +163,8 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
                           seed=settings.seed, baseline_iterations=settings.train_iterations,
                           device=str(device))
     paper_path = out / "scene_M_paper_codec.omg4"  # the same pipeline result with the paper-faithful coder
-    report = compress_to_file(baseline.model, scene, ccfg, omg4_path, paper_copy=paper_path, progress=True)
+    report = compress_to_file(baseline.model, scene, ccfg, omg4_path, codec=settings.codec, paper_copy=paper_path,
+                              progress=True)
     timings["compress_s"] = time.perf_counter() - t
 
     control, fine_tuning = None, ccfg.fine_tuning_iterations()

@@ -1,9 +1,12 @@
 """The machine and commit a measurement ran on, and its result file as a record of runs.
 
 Every ``benchmarks/results/<name>.json`` holds ``latest`` (the newest run) and ``history``: the runs
-before it, keyed by ``"<date> <commit>"``. Each run carries its commit (``+dirty`` when the working
-tree differed from it), its date (UTC) and the machine. The benchmarks (``benchmarks/speed``,
-``benchmarks/studies``) and the tools (``tools/``) of a checkout write through it.
+before it, keyed by ``"<date> <commit>"``. Each run carries its commit, its date (UTC), the machine and the
+command that made it, so that the figure can be made again from that commit. A run from a tree whose sources,
+benchmarks or tools differ from its commit is refused for the project's records (``+dirty`` is written only
+to records elsewhere); a run that the project keeps but that could not be made from a clean commit says so in
+its ``provenance``. The benchmarks (``benchmarks/speed``, ``benchmarks/studies``) and the tools (``tools/``) of a
+checkout write through it; ``tests/test_records.py`` checks every record's latest run.
 """
 
 from __future__ import annotations
@@ -12,13 +15,19 @@ import datetime
 import json
 import os
 import platform
+import shlex
 import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 from omg4.atomic import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[3]
 """The checkout this package runs from (an editable install; elsewhere git finds no commit: "unknown")."""
+
+RESULTS = REPO / "benchmarks" / "results"
+"""Where the project's records live."""
 
 
 def machine() -> dict:
@@ -38,26 +47,45 @@ def _processor() -> str:
 
 
 def commit() -> str:
-    """The checked-out commit (short hash), ``+dirty`` when sources, benchmarks or tools differ from it."""
+    """The checked-out commit (short hash), ``+dirty`` when sources, benchmarks or tools (records aside) differ
+    from it."""
     def git(*args):
         return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout.strip()
 
     head = git("rev-parse", "--short=10", "HEAD") or "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "src", "benchmarks", "tools")
+    dirty = git("status", "--porcelain", "--untracked-files=normal", "--", "src", "benchmarks", "tools",
+                ":!benchmarks/results")
     return head + ("+dirty" if dirty else "")
 
 
+def command_line() -> str:
+    """The command this process runs, as a shell would take it (``python <script> <arguments>``)."""
+    script = Path(sys.argv[0])
+    try:
+        script = script.resolve().relative_to(REPO)
+    except ValueError:
+        pass
+    return shlex.join(["python", str(script), *sys.argv[1:]])
+
+
 def stamp() -> dict:
-    """Commit, date and machine of a run starting now."""
+    """Commit, date, machine and command of a run starting now."""
     return {"commit": commit(), "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "machine": machine()}
+            "machine": machine(), "command": command_line()}
 
 
 def save_record(path: Path, result: dict) -> dict:
-    """Add ``result`` (with :func:`stamp`) as the latest run of the record at ``path``; the previous latest run
-    moves into the history. Written atomically; returns the stamped run."""
+    """Add ``result`` (with :func:`stamp`; a ``command`` of its own wins) as the latest run of the record at
+    ``path``; the previous latest run moves into the history. Written atomically; returns the stamped run. While
+    the code differs from its commit, a project record (under :data:`RESULTS`) is written to the system's
+    temporary folder instead, so that the project's records name only code that exists."""
     path = Path(path)
     run = {**stamp(), **result}
+    if "dirty" in run["commit"] and path.resolve().parent == RESULTS.resolve():
+        aside = Path(tempfile.gettempdir()) / "omg4-records" / path.name
+        print(f"the sources, benchmarks or tools differ from commit {run['commit'].split('+')[0]}: the record goes "
+              f"to {aside}, not {path} (commit, then run again for the project's record)")
+        path = aside
     record = load_record(path)
     if record.get("latest"):
         previous = record["latest"]

@@ -16,7 +16,7 @@ module does the sparse part of that with ``pycolmap``, in the scene's normalized
 4. ``pycolmap.triangulate_points`` with the poses and intrinsics fixed, then a filter on the
    reprojection error and track length of every point.
 
-pycolmap is an optional dependency (the ``colmap`` extra of the package).
+pycolmap is a dependency of the package (``omg4 prepare`` calibrates with it too); it is imported when used.
 """
 
 from __future__ import annotations
@@ -139,8 +139,8 @@ def triangulate_views(views: list[View], options: TriangulationOptions = Triangu
     try:
         import pycolmap
     except ImportError:
-        raise OMG4Error("--init colmap needs pycolmap: pip install pycolmap "
-                        "(or the package's 'colmap' extra)") from None
+        raise OMG4Error("--init colmap needs pycolmap, a dependency of omg4 missing here: "
+                        "pip install 'pycolmap>=4.0,<5'") from None
     from tqdm import tqdm
 
     if len(views) < 2:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omg4.app.commands.common import add_device_arguments, add_paper_argument, device_from_args, seed
+from omg4.app.commands.common import (add_codec_argument, add_device_arguments, add_paper_argument, device_from_args,
+                                      seed)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -13,6 +14,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="a tiny run (seconds) to check the installation")
     p.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     add_paper_argument(p)
+    add_codec_argument(p, from_settings=True)
     p.add_argument("--equal-training-control", action="store_true",
                    help="also train a baseline for as many steps as the baseline and the compression's fine-tuning "
                         "together, and report OMG4-M against it (about twice the demo's time)")
@@ -28,6 +30,6 @@ def run(args) -> int:
     check_outputs({"--out": args.out}, folders=["--out"])
     device = device_from_args(args)
     settings = replace(QUICK if args.quick else DemoSettings(), seed=args.seed,
-                       equal_training_control=args.equal_training_control, paper=bool(args.paper))
+                       equal_training_control=args.equal_training_control, paper=bool(args.paper), codec=args.codec)
     run_demo(args.out, settings, device=device)
     return 0

@@ -35,11 +35,17 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    import importlib.util
+
     from omg4.app.commands.common import printable
+    from omg4.errors import OMG4Error
     from omg4.app.outputs import check_outputs
     from omg4.prepare import prepare_capture
     from omg4.prepare.calibrate import DISTORTION_GAIN
 
+    if importlib.util.find_spec("pycolmap") is None:  # before any video is read
+        raise OMG4Error("omg4 prepare calibrates with pycolmap, a dependency of omg4 missing here: "
+                        "pip install 'pycolmap>=4.0,<5'")
     check_outputs({"--out": args.out}, inputs=[args.src], folders=["--out"])  # writable, before any work
     record = prepare_capture(args.src, args.out, sync=args.sync, test_camera=args.test_camera,
                              shared_intrinsics=args.shared_intrinsics, instants=args.instants,
