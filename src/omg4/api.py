@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from omg4.compress import api as compress_api
-from omg4.compress.api import DEFAULT_KEY_INTERVAL, compress_to_file
+from omg4.compress.api import compress_to_file
 from omg4.compress.pipeline import CompressConfig
 from omg4.data import load_scene
 from omg4.data.scene import Camera, Scene
@@ -81,11 +81,12 @@ def train_segments(data: str | os.PathLike, run_dir: str | os.PathLike, segment_
 
 
 def compress_segments(run_dir: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike,
-                      config: CompressConfig | None = None, *, codec: str = "compact", teach: bool = True,
-                      key_interval: int = DEFAULT_KEY_INTERVAL, progress: bool = False, **scene_options) -> dict:
+                      config: CompressConfig | None = None, *, codec: str | None = None, teach: bool = True,
+                      key_interval: int | None = None, progress: bool = False, **scene_options) -> dict:
     """Compress every segment of a run of :func:`train_segments` into one sequence file ``out`` (``omg4 compress``
-    of a segmented run; every ``key_interval``-th segment coded alone, the others predicted from the one before);
-    the report gives each segment's and the file's bytes, duration and bitrate."""
+    of a segmented run; every ``key_interval``-th segment coded alone, the others predicted from the one before;
+    ``codec`` and ``key_interval`` left None follow the config's mode, :mod:`omg4.compress.modes`); the report gives
+    each segment's and the file's bytes, duration and bitrate."""
     cfg = config or CompressConfig()
     return compress_api.compress_segments(run_dir, _segment_scenes(data, cfg.background, scene_options), cfg, out,
                                           codec=codec, teach=teach, key_interval=key_interval, progress=progress)

@@ -89,7 +89,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--key-interval", type=int, metavar="N",
                    help="a segmented run: every N-th segment is coded alone and the others are predicted from the "
                         "segment before (they take its codebooks and store its appearance MLPs as a change), so a "
-                        f"seek decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL}; 1 with --paper)")
+                        f"seek decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL}; "
+                        "1 with --paper)")
     p.add_argument("--predicted-mlp", choices=list(PREDICTED_MLPS),
                    help="what a predicted segment does with the segment before's appearance MLPs: fine-tune them and "
                         "store the change (tune, the default) or keep them as they are and store nothing (keep: a "
