@@ -154,7 +154,7 @@ def test_basketball_points_are_consistent_with_the_held_out_camera(n3dv_basketba
 def test_missing_pycolmap_is_a_one_line_error(synth_scene, monkeypatch):
     import pycolmap  # noqa: F401
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # makes ``import pycolmap`` raise ImportError
-    with pytest.raises(OMG4Error, match="pip install pycolmap"):
+    with pytest.raises(OMG4Error, match="pip install .pycolmap"):
         triangulate_first_frame(synth_scene, progress=False)
 
 
