@@ -12,6 +12,7 @@ import argparse
 import pytest
 
 from omg4.compress.modes import choice_value
+from omg4.kernels import KERNEL_MODES
 
 from omg4.app.cli import COMMANDS, _build_parser
 from omg4.codec.coders import CODERS
@@ -32,9 +33,9 @@ from omg4.train.init import INIT_MODES
 from omg4.train.segmented import PARALLEL_MODES
 
 SCENE = {"--format": READERS}
-DEVICE = {"--backend": BACKENDS}
+DEVICE = {"--backend": BACKENDS, "--kernels": KERNEL_MODES}
 TABLES: dict[str, dict[str, object]] = {
-    "demo": {"--codec": CODERS},
+    "demo": {"--codec": CODERS, "--kernels": KERNEL_MODES},
     "synth": {},
     "prepare": {},
     "info": {**SCENE},

@@ -27,6 +27,8 @@ _PUBLIC = {
     "BACKBONES": "omg4.gaussians.backbone",
     "register_backbone": "omg4.gaussians.backbone",
     "DensityStrategy": "omg4.train.strategy",
+    "using_kernels": "omg4.kernels",
+    "set_kernel_mode": "omg4.kernels",
     "OMG4Error": "omg4.errors",
     "CorruptFileError": "omg4.errors",
 }

@@ -56,11 +56,45 @@ def as_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
+KERNEL_MODES = ("fused", "reference")
+"""``fused``: the per-Gaussian numba kernels run where they can (the default); ``reference``: their pure-torch forms
+everywhere (the reference the kernels are tested against; the rasterizer's kernels run in both)."""
+
+_chosen_mode: str | None = None
+
+
+def kernel_mode() -> str:
+    """The kernels in use: :func:`set_kernel_mode`'s choice, else ``$OMG4_KERNELS``, else ``fused``."""
+    mode = _chosen_mode or os.environ.get("OMG4_KERNELS") or KERNEL_MODES[0]
+    if mode not in KERNEL_MODES:
+        raise ValueError(f"unknown kernels '{mode}' (OMG4_KERNELS): choose from {', '.join(KERNEL_MODES)}")
+    return mode
+
+
+def set_kernel_mode(mode: str | None) -> None:
+    """Use the ``mode`` kernels from now on (None: back to ``$OMG4_KERNELS`` or the default)."""
+    global _chosen_mode
+    if mode is not None and mode not in KERNEL_MODES:
+        raise ValueError(f"unknown kernels '{mode}': choose from {', '.join(KERNEL_MODES)}")
+    _chosen_mode = mode
+
+
+@contextlib.contextmanager
+def using_kernels(mode: str) -> Iterator[None]:
+    """Run the body with the ``mode`` kernels (:data:`KERNEL_MODES`)."""
+    before = _chosen_mode
+    set_kernel_mode(mode)
+    try:
+        yield
+    finally:
+        set_kernel_mode(before)
+
+
 def runs_cpu_kernels(*tensors: torch.Tensor) -> bool:
-    """Whether the numba kernels take ``tensors``: all on the CPU, all float32 or all float64 (else the
-    torch forms run)."""
+    """Whether the numba kernels take ``tensors``: the fused kernels in use, all on the CPU, all float32 or all
+    float64 (else the torch forms run)."""
     dtype = tensors[0].dtype
-    return dtype in (torch.float32, torch.float64) and all(
+    return kernel_mode() == "fused" and dtype in (torch.float32, torch.float64) and all(
         t.device.type == "cpu" and t.dtype == dtype for t in tensors)
 
 
@@ -76,5 +110,5 @@ def keeping_torch_threads() -> Iterator[None]:
             torch.set_num_threads(torch_threads)
 
 
-__all__ = ["FAST_MATH", "as_numpy", "configure_numba_cache", "keeping_torch_threads", "resolve_cache_dir",
-           "runs_cpu_kernels"]
+__all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
+           "resolve_cache_dir", "runs_cpu_kernels", "set_kernel_mode", "using_kernels"]

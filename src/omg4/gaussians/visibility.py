@@ -56,12 +56,18 @@ class VisibilityIndex:
     def __post_init__(self):
         self._edge_list = self.edges.tolist()  # a frame looks its windows up in Python: no tensor operations
 
+    def windows_at(self, times: list[float]) -> list[int] | None:
+        """The windows (sorted) that hold ``times``; None when a time lies outside the range (NaN too)."""
+        edges, last = self._edge_list, len(self.rows) - 1
+        if not all(edges[0] <= x <= edges[-1] for x in times):
+            return None
+        return sorted({min(bisect.bisect_right(edges, x) - 1, last) for x in times})
+
     def rows_at(self, timestamps: torch.Tensor) -> torch.Tensor | None:
         """The candidate rows for all of ``timestamps`` (sorted, unique); None when a time lies outside the range."""
-        times, edges, last = timestamps.detach().reshape(-1).tolist(), self._edge_list, len(self.rows) - 1
-        if not all(edges[0] <= x <= edges[-1] for x in times):  # NaN too
+        k = self.windows_at(timestamps.detach().reshape(-1).tolist())
+        if k is None:
             return None
-        k = sorted({min(bisect.bisect_right(edges, x) - 1, last) for x in times})
         if len(k) == 1:
             return self.rows[k[0]]
         return torch.cat([self.rows[i] for i in k]).unique()

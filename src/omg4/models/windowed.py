@@ -11,6 +11,7 @@ from omg4.errors import CorruptFileError
 from omg4.gaussians.covariance import condition_and_cull
 from omg4.gaussians.model import GaussianConfig, slice_values
 from omg4.gaussians.visibility import DEFAULT_WINDOWS, VisibilityIndex
+from omg4.models.frame_arrays import FrameKernel
 from omg4.render.view import TimeSlice, ViewSlicer
 
 MAX_CACHED_TERMS = 2**27
@@ -30,6 +31,8 @@ class WindowedModel(ViewSlicer):
     :func:`omg4.gaussians.model.slice_values`). For time-conditioned
     MLPs the positions' share of the first layer is computed once here (beyond the paper:
     :meth:`~omg4.gaussians.appearance.AppearanceMLP.position_term`), so a frame encodes only its time.
+    On the CPU a frame runs as numba kernels on arrays made here too (``frame_kernel``,
+    :class:`~omg4.models.frame_arrays.FrameKernel`; :func:`omg4.render.view.render_view` uses it).
     The index and these caches are built from ``values`` and ``appearance`` at load: they must
     not change afterwards (load the model again instead).
     """
@@ -56,6 +59,8 @@ class WindowedModel(ViewSlicer):
                 and self.num_gaussians * appearance.shared[0].weight.shape[0] <= MAX_CACHED_TERMS):
             with torch.no_grad():
                 self.position_term = appearance.position_term(v["xyz"])
+        # the same frame as one cull and one slice launch on numpy arrays, where the fused kernels serve the model
+        self.frame_kernel = FrameKernel.build(self)
 
     @property
     def num_gaussians(self) -> int:

@@ -20,11 +20,12 @@ import torch
 
 from omg4.errors import OMG4Error
 from omg4.kernels import as_numpy, keeping_torch_threads
+from omg4.render.arrays import composite_arrays, project_bin_arrays, tile_lists
 from omg4.render.rendered import BACKENDS, Rendered
 from omg4.render.binning import TileBins, sigma_cutoff, tile_grid
-from omg4.render.cpu_kernels import composite_backward, composite_forward
-from omg4.render.forward_kernels import CONSTS, bin_projected, group_by_tile, project_forward
-from omg4.render.projection import (ALPHA_THRESHOLD, RADIUS_MAX, Projected, max_radius, opacity_extend,
+from omg4.render.cpu_kernels import composite_backward
+from omg4.render.forward_kernels import bin_projected
+from omg4.render.projection import (ALPHA_THRESHOLD, Projected, max_radius, opacity_extend,
                                     project_gaussians)
 
 def rasterize(means: torch.Tensor, covars: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
@@ -205,27 +206,20 @@ def project_and_bin(means: torch.Tensor, covars: torch.Tensor, opacities: torch.
     from the numba kernel :func:`omg4.render.forward_kernels.project_forward`. ``means``, ``covars`` and
     ``opacities`` are float32 or float64 CPU tensors of one dtype; ``views`` as :func:`rasterize_views` (None: one
     view)."""
-    n, dtype = means.shape[0], means.dtype
-    np_dtype = np.float64 if dtype == torch.float64 else np.float32
-    tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    settings = dict(near=near, far=far, eps2d=eps2d, one=1.0, fov_margin=0.3, half_width=0.5 * width,
-                    half_height=0.5 * height, width=width, height=height, radius_max=RADIUS_MAX)
-    consts = np.array([settings[name] for name in CONSTS], dtype=np_dtype)
+    dtype = means.dtype
     cutoff = sigma_cutoff(opacities)
-    means2d, conics = np.empty((n, 2), np_dtype), np.empty((n, 3), np_dtype)
-    depths, cov_diag = np.empty(n, np_dtype), np.empty((n, 2), np_dtype)
-    radii, boxes, tiles = np.empty((n, 2), np.int32), np.empty((n, 4), np.int32), np.empty((n, 4), np.int64)
-    view_of = _row_views(views, n)
-    with keeping_torch_threads():
-        project_forward(as_numpy(means), as_numpy(covars), as_numpy(opacity_extend(opacities)), as_numpy(cutoff),
-                        view_of, as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), consts, width, height,
-                        tile_size, tiles_x, tiles_y, means2d, conics, depths, cov_diag, radii, boxes, tiles)
-    radii_t = torch.from_numpy(radii)
-    projected = Projected(means2d=torch.from_numpy(means2d), conics=torch.from_numpy(conics),
-                          depths=torch.from_numpy(depths), cov2d_diag=torch.from_numpy(cov_diag), radii=radii_t,
-                          visible=(radii_t > 0).any(dim=-1))
-    bins = _tile_lists(tiles, depths, view_of, viewmats.shape[0], tiles_x, tiles_y, tile_size)
-    return projected, bins, cutoff, torch.from_numpy(boxes)
+    view_of = _row_views(views, means.shape[0])
+    p = project_bin_arrays(as_numpy(means), as_numpy(covars), as_numpy(opacity_extend(opacities)), as_numpy(cutoff),
+                           view_of, as_numpy(viewmats.to(dtype)), as_numpy(Ks.to(dtype)), width, height, near=near,
+                           far=far, eps2d=eps2d, tile_size=tile_size)
+    radii_t = torch.from_numpy(p["radii"])
+    projected = Projected(means2d=torch.from_numpy(p["means2d"]), conics=torch.from_numpy(p["conics"]),
+                          depths=torch.from_numpy(p["depths"]), cov2d_diag=torch.from_numpy(p["cov2d_diag"]),
+                          radii=radii_t, visible=(radii_t > 0).any(dim=-1))
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    bins = TileBins(gaussian_ids=torch.from_numpy(p["gaussian_ids"]), tile_offsets=torch.from_numpy(p["tile_offsets"]),
+                    tiles_x=tiles_x, tiles_y=tiles_y, tile_size=tile_size)
+    return projected, bins, cutoff, torch.from_numpy(p["boxes"])
 
 
 def bin_gaussians(projected: Projected, cutoff: torch.Tensor, views: torch.Tensor | None, num_views: int, width: int,
@@ -248,24 +242,15 @@ def bin_gaussians(projected: Projected, cutoff: torch.Tensor, views: torch.Tenso
     with keeping_torch_threads():
         bin_projected(as_numpy(projected.means2d), as_numpy(projected.radii), as_numpy(projected.cov2d_diag),
                       as_numpy(cutoff), width, height, tile_size, tiles_x, tiles_y, boxes, tiles)
-    view_of = _row_views(views, n)
-    bins = _tile_lists(tiles, as_numpy(projected.depths), view_of, num_views, tiles_x, tiles_y, tile_size)
+    ids, offsets = tile_lists(tiles, as_numpy(projected.depths), _row_views(views, n), num_views, tiles_x, tiles_y)
+    bins = TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
+                    tiles_y=tiles_y, tile_size=tile_size)
     return bins, torch.from_numpy(boxes)
 
 
 def _row_views(views: torch.Tensor | None, n: int) -> np.ndarray:
     """Each row's view as int64 numpy (all 0 for one view)."""
     return np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
-
-
-def _tile_lists(tiles: np.ndarray, depths: np.ndarray, view_of: np.ndarray, num_views: int, tiles_x: int,
-                tiles_y: int, tile_size: int) -> TileBins:
-    """The :class:`TileBins` of the tile rectangles ``tiles [N, 4]`` of rows in views ``view_of [N]``, ordered by
-    the float32 ``depths``."""
-    depth_bits = depths.astype(np.float32).view(np.uint32).astype(np.int64)
-    ids, offsets = group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y, tiles_x * tiles_y * num_views)
-    return TileBins(gaussian_ids=torch.from_numpy(ids), tile_offsets=torch.from_numpy(offsets), tiles_x=tiles_x,
-                    tiles_y=tiles_y, tile_size=tile_size)
 
 
 @contextlib.contextmanager
@@ -283,16 +268,8 @@ class _Composite(torch.autograd.Function):
         width, height, alpha_max, num_views = settings
         params = torch.cat([means2d, conics, opacities[:, None], cutoff[:, None]], dim=1)
         gauss = (as_numpy(params), as_numpy(feats), as_numpy(boxes), as_numpy(bins.gaussian_ids))
-        np_dtype = gauss[0].dtype
-        grid = (as_numpy(bins.tile_offsets), bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size,
-                np.arange(width, dtype=np_dtype) + 0.5, np.arange(height, dtype=np_dtype) + 0.5,
-                np.array([0.5, alpha_max, ALPHA_THRESHOLD], dtype=np_dtype))
-        rows = num_views * height
-        out_feat = np.empty((rows, width, feats.shape[1]), dtype=np_dtype)
-        out_t = np.empty((rows, width), dtype=np.float64)
-        out_last = np.empty((rows, width), dtype=np.int32)
-        with _kernel_launch():
-            composite_forward(*gauss, *grid, out_feat, out_t, out_last)
+        out_feat, out_t, out_last, grid = composite_arrays(*gauss, as_numpy(bins.tile_offsets), width, height,
+                                                           bins.tile_size, alpha_max, num_views)
         ctx.gauss, ctx.grid, ctx.out_t, ctx.out_last = gauss, grid, out_t, out_last
         ctx.ids = bins.gaussian_ids
         return torch.from_numpy(out_feat), torch.from_numpy(out_t).to(feats.dtype)[..., None]

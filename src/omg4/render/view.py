@@ -19,6 +19,7 @@ import torch
 from omg4.data.scene import Camera, View
 from omg4.device import to_device
 from omg4.errors import OMG4Error
+from omg4.render.rendered import Rendered
 
 
 @dataclass
@@ -91,6 +92,8 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
     if hasattr(model, "parts_at"):
         return _render_blend(model.parts_at(timestamp), camera, timestamp, background=background, backend=backend,
                              device=device, **raster_kwargs)
+    if _fused_frame(model, backend, device):
+        return _render_arrays(model, [camera], [timestamp], background, batch=False, **raster_kwargs)
     from omg4.render import rasterize
 
     viewmat, K, center = camera_tensors(camera, device)
@@ -130,6 +133,8 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
+    if _fused_frame(model, backend, device):
+        return _render_arrays(model, cameras, timestamps, background, batch=True, **raster_kwargs)
     tensors = [camera_tensors(c) for c in cameras]
     viewmats, Ks, centers = (to_device(torch.stack(parts), device) for parts in zip(*tensors))
     times = to_device(torch.tensor(timestamps, dtype=torch.float64, device="cpu"), device)
@@ -139,6 +144,42 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     rendered = rasterize_views(sl.means, sl.covars, sl.colors, sl.opacities, views, viewmats, Ks, width, height,
                                background=background, backend=backend, **raster_kwargs)
     return rendered, sl
+
+
+def _fused_frame(model, backend: str, device) -> bool:
+    """Whether ``model``'s frames run as the fused CPU kernels on arrays (a render-only model's ``frame_kernel``, the
+    cpu rasterizer, the fused kernels in use; :mod:`omg4.kernels`)."""
+    from omg4.kernels import kernel_mode
+    from omg4.render.api import resolve_backend
+
+    return (getattr(model, "frame_kernel", None) is not None and kernel_mode() == "fused"
+            and resolve_backend(backend, torch.device(device)) == "cpu")
+
+
+def _render_arrays(model, cameras: list[Camera], timestamps: list[float], background, *, batch: bool,
+                   **raster_kwargs):
+    """:func:`render_views` (``batch``: images with a leading view axis) or :func:`render_view` of a model with a
+    ``frame_kernel``: its slice and the rasterizer on numpy arrays, no torch operation (the results wrap them)."""
+    from omg4.render.arrays import rasterize_arrays
+
+    kernel = model.frame_kernel
+
+    def stacked(name: str) -> np.ndarray:  # float32 first, as camera_tensors gives them to the torch forms
+        return np.stack([np.asarray(getattr(c, name), dtype=np.float32) for c in cameras]).astype(kernel.np_dtype)
+
+    sl = kernel.frame(np.asarray(timestamps, dtype=np.float64), stacked("center"))
+    out = rasterize_arrays(sl.means, sl.covars, sl.colors, sl.opacities, sl.views, stacked("viewmat"), stacked("K"),
+                           cameras[0].width, cameras[0].height,
+                           background=None if background is None else background.detach().cpu().numpy(),
+                           **raster_kwargs)
+    first = slice(None) if batch else 0
+    rendered = Rendered(**{k: torch.from_numpy(out[k][first]) for k in ("image", "alpha", "depth")},
+                        means2d=torch.from_numpy(out["means2d"]), radii=torch.from_numpy(out["radii"]))
+    time_slice = TimeSlice(means=torch.from_numpy(sl.means), covars=torch.from_numpy(sl.covars),
+                           colors=torch.from_numpy(sl.colors), opacities=torch.from_numpy(sl.opacities),
+                           index=torch.from_numpy(sl.index), num_total=kernel.xyz.shape[0],
+                           views=torch.from_numpy(sl.views))
+    return rendered, time_slice
 
 
 def views_by_size(cameras: list[Camera]) -> list[list[int]]:

@@ -162,6 +162,7 @@ def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, fr
     ``from_settings``: unset flags stay None, so a command's config file can choose them
     (:func:`fill_device_arguments`)."""
     from omg4.device import DEVICE_HELP
+    from omg4.kernels import KERNEL_MODES
     from omg4.render.rendered import BACKENDS
 
     if backend:
@@ -170,6 +171,9 @@ def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, fr
                             "or gsplat (cuda only)")
     p.add_argument("--device", default=None if from_settings else "cpu",
                    help=f"where to compute (default cpu): {DEVICE_HELP}")
+    p.add_argument("--kernels", choices=list(KERNEL_MODES), default=None,
+                   help="per-Gaussian work on the fused CPU kernels where they serve (fused, the default; "
+                        "$OMG4_KERNELS) or as the pure-torch reference they are tested against (reference)")
 
 
 def fill_device_arguments(args, settings: dict) -> None:
@@ -182,15 +186,23 @@ def fill_device_arguments(args, settings: dict) -> None:
 
 
 def device_from_args(args):
-    """The torch device of ``--device``, checked against ``--backend`` when the command has one.
+    """The torch device of ``--device``, checked against ``--backend`` when the command has one; ``--kernels`` chosen
+    for the process (:func:`omg4.kernels.set_kernel_mode`).
 
     Raises a one-line :class:`OMG4Error` for an unusable device or a backend that cannot
     render there (the cpu rasterizer on CUDA, gsplat off CUDA).
     """
     from omg4.device import resolve_device
     from omg4.errors import OMG4Error
+    from omg4.kernels import kernel_mode, set_kernel_mode
     from omg4.render.api import resolve_backend
 
+    if getattr(args, "kernels", None):
+        set_kernel_mode(args.kernels)
+    try:
+        kernel_mode()
+    except ValueError as exc:
+        raise OMG4Error(str(exc)) from None
     device = resolve_device(args.device)
     backend = getattr(args, "backend", "auto")
     if backend == "gsplat" and device.type != "cuda":
