@@ -19,12 +19,13 @@ import numpy as np
 import torch
 
 from omg4.errors import OMG4Error
-from omg4.kernels import as_numpy, keeping_torch_threads
-from omg4.render.arrays import composite_arrays, project_bin_arrays, tile_lists
+from omg4.kernels import as_numpy, keeping_torch_threads, runs_cpu_kernels
+from omg4.render.arrays import composite_arrays, project_bin_arrays, projection_consts, tile_lists
 from omg4.render.rendered import BACKENDS, Rendered
 from omg4.render.binning import TileBins, sigma_cutoff, tile_grid
 from omg4.render.cpu_kernels import composite_backward
 from omg4.render.forward_kernels import bin_projected
+from omg4.render.projection_kernels import project_backward
 from omg4.render.projection import (ALPHA_THRESHOLD, Projected, max_radius, opacity_extend,
                                     project_gaussians)
 
@@ -174,7 +175,17 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
     means, covars, colors, opacities = (t.to(dtype) for t in (means, covars, colors, opacities))
     num_views = viewmats.shape[0]
     row_views = None if num_views == 1 else views
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities, viewmats, Ks)):
+    grads = torch.is_grad_enabled() and any(t.requires_grad for t in (means, covars, colors, opacities, viewmats, Ks))
+    if grads and runs_cpu_kernels(means, covars) and not (viewmats.requires_grad or Ks.requires_grad):
+        side: dict = {}  # the projection's results that carry no gradient
+        settings = (width, height, near, far, eps2d, tile_size)
+        means2d, conics, depths = _Projection.apply(means, covars, opacities, row_views, viewmats, Ks, settings, side)
+        proj, bins, cutoff, boxes = side["projected"], side["bins"], side["cutoff"], side["boxes"]
+        proj = Projected(means2d=means2d, conics=conics, depths=depths, cov2d_diag=proj.cov2d_diag, radii=proj.radii,
+                         visible=proj.visible)
+        if means2d.requires_grad:
+            means2d.retain_grad()
+    elif grads:
         viewmat, K = (viewmats[0], Ks[0]) if num_views == 1 else (viewmats[views], Ks[views])
         proj = project_gaussians(means, covars, viewmat.to(dtype), K.to(dtype), width, height,
                                  opacities=opacities, near=near, far=far, eps2d=eps2d)
@@ -258,6 +269,38 @@ def _kernel_launch() -> Iterator[None]:
     """Run a numba kernel with tiles handed out one at a time (their costs differ widely)."""
     with keeping_torch_threads(), numba.parallel_chunksize(1):
         yield
+
+
+class _Projection(torch.autograd.Function):
+    """(means [N, 3], covars [N, 3, 3]) → (means2d [N, 2], conics [N, 3], depths [N]) by the numba projection
+    (:func:`project_and_bin`, which also leaves the boxes, tile lists and σ cutoffs in ``side``) and its numba
+    backward (:func:`omg4.render.projection_kernels.project_backward`): the torch projection's values and gradients,
+    without its hundred-odd operations each way."""
+
+    @staticmethod
+    def forward(ctx, means, covars, opacities, views, viewmats, Ks, settings, side):
+        width, height, near, far, eps2d, tile_size = settings
+        proj, bins, cutoff, boxes = project_and_bin(means.detach(), covars.detach(), opacities.detach(), views,
+                                                    viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d,
+                                                    tile_size=tile_size)
+        side.update(projected=proj, bins=bins, cutoff=cutoff, boxes=boxes)
+        dtype = means.dtype
+        ctx.arrays = (as_numpy(means), as_numpy(covars), _row_views(views, means.shape[0]),
+                      as_numpy(viewmats.detach().to(dtype)), as_numpy(Ks.detach().to(dtype)),
+                      projection_consts(width, height, near, far, eps2d, as_numpy(means).dtype),
+                      as_numpy(proj.visible))
+        return proj.means2d, proj.conics, proj.depths
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths):
+        means, covars = ctx.arrays[0], ctx.arrays[1]
+        g_means, g_covars = np.empty_like(means), np.empty_like(covars)
+        zero = np.zeros(means.shape[0], means.dtype)
+        with keeping_torch_threads():
+            project_backward(*ctx.arrays, np.zeros((len(means), 2), means.dtype) if g_means2d is None else
+                             as_numpy(g_means2d), np.zeros((len(means), 3), means.dtype) if g_conics is None else
+                             as_numpy(g_conics), zero if g_depths is None else as_numpy(g_depths), g_means, g_covars)
+        return torch.from_numpy(g_means), torch.from_numpy(g_covars), None, None, None, None, None, None
 
 
 class _Composite(torch.autograd.Function):

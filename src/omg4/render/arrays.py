@@ -27,9 +27,7 @@ def project_bin_arrays(means: np.ndarray, covars: np.ndarray, extend: np.ndarray
     radii [N, 2], boxes [N, 4], gaussian_ids, tile_offsets``."""
     n, dtype = means.shape[0], means.dtype
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    settings = dict(near=near, far=far, eps2d=eps2d, one=1.0, fov_margin=0.3, half_width=0.5 * width,
-                    half_height=0.5 * height, width=width, height=height, radius_max=RADIUS_MAX)
-    consts = np.array([settings[name] for name in CONSTS], dtype=dtype)
+    consts = projection_consts(width, height, near, far, eps2d, dtype)
     out = {"means2d": np.empty((n, 2), dtype), "conics": np.empty((n, 3), dtype), "depths": np.empty(n, dtype),
            "cov2d_diag": np.empty((n, 2), dtype), "radii": np.empty((n, 2), np.int32),
            "boxes": np.empty((n, 4), np.int32)}
@@ -41,6 +39,13 @@ def project_bin_arrays(means: np.ndarray, covars: np.ndarray, extend: np.ndarray
     out["gaussian_ids"], out["tile_offsets"] = tile_lists(tiles, out["depths"], view_of, viewmats.shape[0], tiles_x,
                                                           tiles_y)
     return out
+
+
+def projection_consts(width: int, height: int, near: float, far: float, eps2d: float, dtype) -> np.ndarray:
+    """The projection kernels' constants (:data:`omg4.render.forward_kernels.CONSTS`) in ``dtype``."""
+    settings = dict(near=near, far=far, eps2d=eps2d, one=1.0, fov_margin=0.3, half_width=0.5 * width,
+                    half_height=0.5 * height, width=width, height=height, radius_max=RADIUS_MAX)
+    return np.array([settings[name] for name in CONSTS], dtype=dtype)
 
 
 def tile_lists(tiles: np.ndarray, depths: np.ndarray, view_of: np.ndarray, num_views: int, tiles_x: int,
@@ -96,4 +101,4 @@ def rasterize_arrays(means: np.ndarray, covars: np.ndarray, colors: np.ndarray, 
             "radii": p["radii"].max(axis=1).astype(np.int32)}
 
 
-__all__ = ["composite_arrays", "project_bin_arrays", "rasterize_arrays", "tile_lists"]
+__all__ = ["composite_arrays", "project_bin_arrays", "projection_consts", "rasterize_arrays", "tile_lists"]
