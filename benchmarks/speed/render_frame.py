@@ -165,7 +165,16 @@ def main(argv: list[str] | None = None) -> int:
                                                  "folder's name)")
     ap.add_argument("--json", type=Path, default=None,
                     help="record file (default benchmarks/results/render_frame_<name>[_cuda].json)")
+    ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
+                    help="time that checkout's code too, the two taking turns in separate processes (alternate.py)")
+    ap.add_argument("--repeats", type=int, default=2, help="with --against: runs of each side")
     args = ap.parse_args(argv)
+    command = shlex.join(["python", "benchmarks/speed/render_frame.py", *(sys.argv[1:] if argv is None else argv)])
+    name = args.name or args.data.name
+    suffix = "" if args.device == "cpu" else "_" + args.device.split(":")[0]
+    record = args.json or RESULTS / f"render_frame_{name}{suffix}.json"
+    if args.against is not None:
+        return _before_and_after(args, command, record)
     keep_freed_memory_if_present()
     scene = load_scene(args.data, downscale=args.downscale, progress=False)
     timed = frame_views(scene.test_views, args.frames)
@@ -185,12 +194,34 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['fps']:.1f} | {r['speedup_vs_first']:.2f}x | {r['aten_ops_per_frame']:,} | "
               f"{r['slice_ops_torch_forms']} | "
               f"{r['visible_fraction']:.3f} | {r['visited_per_pixel']:.1f} | {r['blended_per_pixel']:.1f} |")
-    name = args.name or args.data.name
-    suffix = "" if args.device == "cpu" else "_" + args.device.split(":")[0]
-    save_record(args.json or RESULTS / f"render_frame_{name}{suffix}.json", {
-        "command": shlex.join(["python", "benchmarks/speed/render_frame.py", *(sys.argv[1:] if argv is None else argv)]),
-        **code_under_test(), "scene": name, "device": args.device, "downscale": args.downscale,
+    save_record(record, {
+        "command": command, **code_under_test(), "scene": name, "device": args.device, "downscale": args.downscale,
         "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "rows": rows})
+    return 0
+
+
+def _before_and_after(args, command: str, record: Path) -> int:
+    """``--against``: the benchmark on both codes in alternating processes, one record with every run and the medians
+    (ms per frame, aten operations, and each model's frames per second over the first model's)."""
+    from alternate import alternating, commit_of, median_of
+
+    argv = [str(args.data), "--models", *map(str, args.models), "--downscale", str(args.downscale), "--device",
+            args.device, "--frames", str(args.frames), "--rounds", str(args.rounds), "--name", args.name or args.data.name]
+    runs = alternating(Path(__file__), argv, args.against, args.repeats)
+    summary = {}
+    for i, path in enumerate(args.models):
+        row = {}
+        for code in ("before", "after"):
+            row[f"ms_{code}"] = median_of(runs, code, lambda r: r["rows"][i]["ms_per_frame"])
+            row[f"speedup_vs_first_{code}"] = median_of(runs, code, lambda r: r["rows"][i]["speedup_vs_first"])
+            row[f"aten_ops_{code}"] = next(r["rows"][i]["aten_ops_per_frame"] for r in runs if r["code"] == code)
+        summary[path.name] = row
+        print(f"{path.name}: {row['ms_before']:.2f} → {row['ms_after']:.2f} ms/frame, aten ops {row['aten_ops_before']} "
+              f"→ {row['aten_ops_after']}, × the first model's FPS {row['speedup_vs_first_before']:.2f} → "
+              f"{row['speedup_vs_first_after']:.2f}")
+    save_record(record, {"command": command, "method": "alternating processes, before (the --against checkout's code "
+                         "through PYTHONPATH) then after, each --repeats times; medians of the runs' medians",
+                         "before_commit": commit_of(args.against), "summary": summary, "measurements": runs})
     return 0
 
 

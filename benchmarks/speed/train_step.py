@@ -231,9 +231,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", type=Path, default=None, help="a trained checkpoint for the demo workload")
     ap.add_argument("--json", type=Path, default=None,
                     help="record file (default benchmarks/results/train_step.json, train_step_cuda.json on CUDA)")
+    ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
+                    help="time that checkout's code too, the two taking turns in separate processes (alternate.py)")
+    ap.add_argument("--repeats", type=int, default=2, help="with --against: runs of each side")
     args = ap.parse_args(argv)
-    keep_freed_memory_if_present()
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    command = shlex.join(["python", "benchmarks/speed/train_step.py", *(sys.argv[1:] if argv is None else argv)])
+    record = args.json or RESULTS / ("train_step.json" if kind == "cpu" else f"train_step_{kind}.json")
+    if args.against is not None:
+        return _before_and_after(args, command, record)
+    keep_freed_memory_if_present()
     names = args.workloads or [k for k, w in WORKLOADS.items() if kind in w[3]]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -251,19 +258,44 @@ def main(argv: list[str] | None = None) -> int:
                           f"per step, {r['host_syncs_per_step']} host synchronizations, "
                           f"GPU busy {r['gpu_busy_ms']:.1f} ms ({100 * r['gpu_busy_share']:.0f}%); "
                           f"top {r['top_kernels']}; GPU ms {r['top_kernels_ms']}", flush=True)
-    result = {"command": shlex.join(["python", "benchmarks/speed/train_step.py", *(sys.argv[1:] if argv is None else argv)]),
-              **code_under_test(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+    result = {"command": command, **code_under_test(), "torch": torch.__version__,
+              "torch_threads": torch.get_num_threads()}
     if kind == "cuda":
         result["gpu"] = torch.cuda.get_device_name()
     result["rows"] = {f"{row['workload']}/{row['device']}"
                       f"{'/trained' if row['model'] != 'random initialization' else ''}": row for row in rows}
-    save_record(args.json or RESULTS / ("train_step.json" if kind == "cpu" else f"train_step_{kind}.json"), result)
+    save_record(record, result)
     print("| workload | device | N | batch | train ms/step | train aten ops | compress ms/step | compress aten ops |")
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         cells = [f"{row[part]['ms_per_step']:.1f} | {row[part]['aten_ops_per_step']:,}" if part in row else "– | –"
                  for part in ("train", "compress")]
         print(f"| {row['workload']} | {row['device']} | {row['gaussians']:,} | {row['batch']} | {' | '.join(cells)} |")
+    return 0
+
+
+def _before_and_after(args, command: str, record: Path) -> int:
+    """``--against``: the benchmark on both codes in alternating processes, one record with every run and the medians."""
+    from alternate import alternating, commit_of, median_of
+
+    argv = ["--device", args.device, "--steps", str(args.steps), "--warmup", str(args.warmup), "--parts", *args.parts,
+            *(["--workloads", *args.workloads] if args.workloads else []),
+            *(["--model", str(args.model)] if args.model else [])]
+    runs = alternating(Path(__file__), argv, args.against, args.repeats)
+    summary = {}
+    for key in runs[0]["rows"]:
+        for part in args.parts:
+            before, after = (median_of(runs, code, lambda r: r["rows"][key][part]["ms_per_step"])
+                             for code in ("before", "after"))
+            ops = {code: next(r["rows"][key][part]["aten_ops_per_step"] for r in runs if r["code"] == code)
+                   for code in ("before", "after")}
+            summary[f"{key}/{part}"] = {"ms_before": before, "ms_after": after, "speedup": before / after,
+                                        "aten_ops_before": ops["before"], "aten_ops_after": ops["after"]}
+            print(f"{key} {part}: {before:.1f} → {after:.1f} ms ({before / after:.2f}×), aten ops {ops['before']} → "
+                  f"{ops['after']}")
+    save_record(record, {"command": command, "method": "alternating processes, before (the --against checkout's code "
+                         "through PYTHONPATH) then after, each --repeats times; medians of the runs' medians",
+                         "before_commit": commit_of(args.against), "summary": summary, "measurements": runs})
     return 0
 
 
