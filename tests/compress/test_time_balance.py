@@ -29,7 +29,7 @@ def views():
 
 def test_each_view_falls_in_its_tenth_of_the_clip_and_every_tenth_has_its_probes():
     vs = views()
-    sampler = DeficitSampler(vs, lambda v: 0.0)
+    sampler = DeficitSampler(vs, lambda batch: [0.0] * len(batch))
     assert sampler.bucket_of_view.tolist() == [v.frame // 2 for v in vs]  # 20 frames, 10 spans of 2 frames
     per_bucket = {}
     for b, i in sampler.probes:
@@ -42,7 +42,7 @@ def test_each_view_falls_in_its_tenth_of_the_clip_and_every_tenth_has_its_probes
 def test_a_span_that_fell_further_is_drawn_more_often_by_the_stated_rule():
     vs = views()
     quality = {"now": lambda v: 30.0}
-    sampler = DeficitSampler(vs, lambda v: quality["now"](v))
+    sampler = DeficitSampler(vs, lambda batch: [quality["now"](v) for v in batch])
     sampler.start()
     # span 0 now 1 dB below its baseline, span 9 0.1 dB, the rest unchanged: mean fall 0.11 dB
     quality["now"] = lambda v: 30.0 - {0: 1.0, 9: 0.1}.get(v.frame // 2, 0.0)
@@ -60,7 +60,7 @@ def test_a_span_that_fell_further_is_drawn_more_often_by_the_stated_rule():
 def test_a_tenth_without_frames_is_logged_as_a_dash_not_nan():
     vs = [SimpleNamespace(timestamp=f / 8, camera=SimpleNamespace(name="cam00"), frame=f) for f in range(8)]
     quality = {"now": lambda v: 30.0}
-    sampler = DeficitSampler(vs, lambda v: quality["now"](v))
+    sampler = DeficitSampler(vs, lambda batch: [quality["now"](v) for v in batch])
     sampler.start()
     quality["now"] = lambda v: 30.0 - (1.0 if v.frame == 0 else 0.0)
     line = sampler.describe(sampler.update())
@@ -72,7 +72,7 @@ def test_a_tenth_without_frames_is_logged_as_a_dash_not_nan():
 
 
 def test_no_fall_anywhere_draws_uniformly():
-    sampler = DeficitSampler(views(), lambda v: 25.0)
+    sampler = DeficitSampler(views(), lambda batch: [25.0] * len(batch))
     sampler.start()
     sampler.update()
     np.testing.assert_array_equal(sampler.weights, np.ones(10))
@@ -81,7 +81,7 @@ def test_no_fall_anywhere_draws_uniformly():
 def test_a_span_better_than_the_rest_is_drawn_less_but_never_below_the_floor():
     vs = views()
     quality = {"now": lambda v: 30.0}
-    sampler = DeficitSampler(vs, lambda v: quality["now"](v))
+    sampler = DeficitSampler(vs, lambda batch: [quality["now"](v) for v in batch])
     sampler.start()
     quality["now"] = lambda v: 30.0 + (3.0 if v.frame < 2 else 0.0)  # span 0 gained 3 dB
     sampler.update()

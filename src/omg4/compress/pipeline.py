@@ -45,7 +45,7 @@ from omg4.gaussians.backbone import Backbone
 from omg4.metrics import psnr
 from omg4.models.compact import payload_values
 from omg4.render.api import resolve_backend
-from omg4.render.view import render_image, view_image
+from omg4.render.view import render_views, view_image, views_by_size
 from omg4.settings import knob
 from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
                               step_optimizers)
@@ -196,7 +196,7 @@ class CompressionPipeline:
         self.mlp_optimizer = None
         self.mlp_scheduler = None
         self.codebook_optimizer = None
-        self.time_balance = (DeficitSampler(scene.train_views, self._view_psnr) if cfg.time_sampling == "deficit"
+        self.time_balance = (DeficitSampler(scene.train_views, self._views_psnr) if cfg.time_sampling == "deficit"
                              else None)
         self.events, self.total_iterations = build_events(cfg.stages, cfg.stage_lengths(), cfg.num_merge)
         if cfg.stage_lengths() == SCHEDULES["tiny"] and self.world.main:
@@ -379,20 +379,22 @@ class CompressionPipeline:
             return None
         views = sorted(self.scene.train_views, key=lambda v: (v.timestamp, v.camera.name))
         edges = np.linspace(0, len(views), TIME_BUCKETS + 1).astype(int)
-        out = []
-        with torch.no_grad():
-            for start, stop in zip(edges[:-1], edges[1:]):
-                if stop <= start:
-                    out.append(float("nan"))
-                    continue
-                picks = np.linspace(start, stop - 1, min(VIEWS_PER_BUCKET, stop - start)).round().astype(int)
-                out.append(float(np.mean([self._view_psnr(views[i]) for i in picks])))
-        return out
+        buckets = [np.linspace(start, stop - 1, min(VIEWS_PER_BUCKET, stop - start)).round().astype(int)
+                   if stop > start else [] for start, stop in zip(edges[:-1], edges[1:])]
+        values = iter(self._views_psnr([views[i] for picks in buckets for i in picks]))
+        return [float(np.mean([next(values) for _ in picks])) if len(picks) else float("nan") for picks in buckets]
 
-    def _view_psnr(self, view) -> float:
-        """PSNR of the current model's render of a training view."""
-        return float(psnr(render_image(self.model, view, self.background, self.cfg.backend, self.device),
-                          view_image(view, self.device)))
+    def _views_psnr(self, views: list) -> list[float]:
+        """PSNRs of the current model's renders of training ``views``, rendered together (one pass per image size)."""
+        out = [0.0] * len(views)
+        with torch.no_grad():
+            for group in views_by_size([v.camera for v in views]):
+                rendered, _ = render_views(self.model, [views[i].camera for i in group],
+                                           [views[i].timestamp for i in group], background=self.background,
+                                           backend=self.cfg.backend, device=self.device)
+                for image, i in zip(rendered.image, group):
+                    out[i] = float(psnr(image.clamp(0.0, 1.0), view_image(views[i], self.device)))
+        return out
 
     def rebalance(self, log: bool) -> None:
         """Re-weight the fine-tuning's draw over the clip (``time_sampling="deficit"``); ``log``: say how."""

@@ -42,18 +42,18 @@ MAX_RATIO = 4.0
 class DeficitSampler:
     """Draws fine-tuning views weighted by how far each span of the clip fell below its baseline.
 
-    ``views``: the training views; ``view_psnr(view) -> float``: the PSNR of the current model's render of a
+    ``views``: the training views; ``views_psnr(views) -> [float]``: the PSNRs of the current model's renders of
     view (called under ``torch.no_grad``). In a distributed job each rank renders its share of the probe views
     and the sums are combined, so every rank holds the same weights and draws the same batch.
     """
 
-    def __init__(self, views: list[View], view_psnr: Callable[[View], float], buckets: int = BUCKETS,
+    def __init__(self, views: list[View], views_psnr: Callable[[list[View]], list[float]], buckets: int = BUCKETS,
                  probes_per_bucket: int = PROBES_PER_BUCKET):
         times = sorted({v.timestamp for v in views})
         frame = {t: i for i, t in enumerate(times)}
         self.bucket_of_view = torch.tensor([frame[v.timestamp] * buckets // len(times) for v in views], device="cpu")
         self.buckets = buckets
-        self.views, self.view_psnr = views, view_psnr
+        self.views, self.views_psnr = views, views_psnr
         self.probes = self._probes(probes_per_bucket)
         self.reference: np.ndarray | None = None
         self.weights = np.ones(buckets)  # per bucket, relative to uniform
@@ -73,9 +73,10 @@ class DeficitSampler:
     def measure(self) -> np.ndarray:
         """Mean PSNR of each bucket's probe views now [buckets] (NaN for a bucket with no views)."""
         sums = torch.zeros(2, self.buckets, dtype=torch.float64, device="cpu")  # whatever the default device
-        with torch.no_grad():
-            for b, i in distributed.world().shard(self.probes):
-                sums[0, b] += self.view_psnr(self.views[i])
+        mine = distributed.world().shard(self.probes)
+        with torch.no_grad():  # the probe views rendered together (one pass per image size)
+            for (b, _), value in zip(mine, self.views_psnr([self.views[i] for _, i in mine])):
+                sums[0, b] += value
                 sums[1, b] += 1
         distributed.all_reduce_([sums], "sum", "measuring quality over the clip")
         with np.errstate(invalid="ignore"):
