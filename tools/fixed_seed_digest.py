@@ -5,11 +5,13 @@ For Real-Time4DGS and FreeTimeGS: trains a baseline on a tiny synthetic scene (5
 iterations each), decodes the file and renders the test view, then prints SHA-256 digests of the trained
 parameters, of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image.
 With ``--against CHECKOUT`` the same runs are made with that checkout's code too (its ``src`` first on
-``PYTHONPATH``) and the record says which digests are equal: refactorings that must not change behaviour keep
-every digest. The file's bytes are listed too, but its header may legitimately change (new metadata fields).
+``PYTHONPATH``) and the record says which digests are equal — refactorings that must not change behaviour keep
+every digest — and, where they differ, by how much the trained parameters and the rendered view do. The file's
+bytes are listed too, but its header may legitimately change (new metadata fields).
 
-Usage: ``python tools/fixed_seed_digest.py [--against CHECKOUT] [--work DIR] [--print]``; about 40 s a
-version. Recorded in ``benchmarks/results/fixed_seed_digest.json`` (``--print``: printed only).
+Usage: ``python tools/fixed_seed_digest.py [--against CHECKOUT [--against-kernels reference]] [--work DIR]
+[--print]``; about 40 s a version. Recorded in ``benchmarks/results/fixed_seed_digest.json`` (``--print``: printed
+only).
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("runs/fixed_seed_digest"))
     ap.add_argument("--against", type=Path, help="another checkout whose code makes the same runs for comparison")
+    ap.add_argument("--against-kernels", choices=("fused", "reference"), default=None,
+                    help="the --against side's per-Gaussian kernels (OMG4_KERNELS; e.g. this checkout against itself "
+                         "on the pure-torch reference)")
     ap.add_argument("--print", action="store_true", help="print the digests as JSON and record nothing")
     args = ap.parse_args()
     scene_dir = args.work / "scene"
@@ -59,32 +64,48 @@ def main() -> None:
         path = args.work / f"model_{backbone}.omg4"
         compress_to_file(trained.model, scene, CompressConfig(lengths=lengths, batch_size=2, backend="cpu"), path,
                          progress=False, log=lambda *_: None)
-        results[backbone] = digests(trained, path, scene)
+        results[backbone] = digests(trained, path, scene, args.work / f"arrays_{backbone}.npz")
     if args.print:
         print(json.dumps(results))
         return
-    record = {"command": "python tools/fixed_seed_digest.py" + (f" --against {args.against}" if args.against
-                                                                     else ""), "digests": results}
+    record = {"command": "python tools/fixed_seed_digest.py" + (f" --against {args.against}" if args.against else "")
+              + (f" --against-kernels {args.against_kernels}" if args.against_kernels else ""), "digests": results}
     if args.against:
         import os
         import subprocess
 
-        env = {**os.environ, "PYTHONPATH": str(args.against.resolve() / "src")}
+        env = {**os.environ, "PYTHONPATH": str(args.against.resolve() / "src"),
+               **({"OMG4_KERNELS": args.against_kernels} if args.against_kernels else {})}
         out = subprocess.run([sys.executable, __file__, "--print", "--work", str(args.work / "against")], env=env,
                              check=True, capture_output=True, text=True).stdout
         other = json.loads(out.strip().splitlines()[-1])
         commit = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=args.against, capture_output=True,
                                 text=True).stdout.strip()
         record.update(against_commit=commit, against=other,
-                      equal={b: {k: results[b][k] == other.get(b, {}).get(k) for k in results[b]} for b in results})
+                      equal={b: {k: results[b][k] == other.get(b, {}).get(k) for k in results[b]} for b in results},
+                      differences={b: differences(args.work / f"arrays_{b}.npz",
+                                                  args.work / "against" / f"arrays_{b}.npz") for b in results})
     from omg4.testing.records import save_record
 
     save_record(Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "fixed_seed_digest.json", record)
     print(json.dumps(record.get("equal", results), indent=2))
 
 
-def digests(trained, path: Path, scene) -> dict:
-    """The digests of one backbone's run: trained parameters, decoded values, rendered test view, file."""
+def differences(mine: Path, other: Path) -> dict:
+    """How far apart two runs' arrays lie: the largest difference of the trained parameters relative to each
+    parameter's largest magnitude, and of the rendered test view's pixels (absolute, in [0, 1])."""
+    a, b = np.load(mine), np.load(other)
+    params = [k for k in a.files if k != "image" and k in b.files and a[k].shape == b[k].shape]
+    rel = max((float(np.abs(a[k] - b[k]).max() / max(np.abs(b[k]).max(), 1e-30)) for k in params if a[k].size),
+              default=0.0)
+    same_shape = a["image"].shape == b["image"].shape
+    return {"trained_params_max_relative": rel, "compared_params": len(params),
+            "rendered_image_max_abs": float(np.abs(a["image"] - b["image"]).max()) if same_shape else None}
+
+
+def digests(trained, path: Path, scene, arrays: Path) -> dict:
+    """The digests of one backbone's run: trained parameters, decoded values, rendered test view, file; the trained
+    parameters and the rendered view are kept at ``arrays`` (.npz) for :func:`differences`."""
     from omg4 import load_model  # the public name: the same in every version compared
     from omg4.codec.payload import decode_payload
     from omg4.render.view import render_view
@@ -94,6 +115,7 @@ def digests(trained, path: Path, scene) -> dict:
     view = scene.test_views[0]
     image = render_view(decoded, view.camera, view.timestamp, backend="cpu")[0].image
     params = trained.model.params
+    np.savez(arrays, image=image.numpy(), **{k: v.detach().numpy() for k, v in params.items()})
     result = {
         "trained_gaussians": trained.model.num_gaussians,
         "trained_params": digest(*(params[k] for k in sorted(params))),
