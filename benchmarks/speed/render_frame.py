@@ -42,10 +42,14 @@ RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 @contextlib.contextmanager
 def timing_compositing() -> Iterator[list[float]]:
-    """Inside, the CPU compositing kernel adds its seconds to the yielded one-item list (``omg4.render.api``'s
-    reference to :func:`~omg4.render.cpu_kernels.composite_forward` is wrapped, and restored on exit)."""
-    import omg4.render.api as render_api
+    """Inside, the CPU compositing kernel adds its seconds to the yielded one-item list (the rasterizer's reference to
+    :func:`~omg4.render.cpu_kernels.composite_forward` — in ``omg4.render.arrays``, or ``omg4.render.api`` in code
+    from before it — is wrapped, and restored on exit)."""
+    import importlib
+    import importlib.util
 
+    caller = "omg4.render.arrays" if importlib.util.find_spec("omg4.render.arrays") else "omg4.render.api"
+    render_api = importlib.import_module(caller)
     kernel, total = render_api.composite_forward, [0.0]
 
     def timed(*args):
