@@ -2,8 +2,8 @@
 
 Per candidate Gaussian g and view v (rt4dgs §1.4, §2; paper §4.4 for the appearance MLPs), everything that
 :func:`omg4.gaussians.covariance.condition_and_cull` and :func:`omg4.gaussians.model.slice_values` compute in torch
-for a render-only model, as three numba launches (cull, move, colour) with the appearance MLPs' layers between them
-(the networks' own torch layers, on the arrays' memory: a dozen products, as fast as torch makes them):
+for a render-only model, as three numba launches (cull, move, colour) with the appearance MLPs between them (their
+weights joined at load, :mod:`omg4.models.frame_arrays`: five products in torch on the arrays' memory):
 
     Δ = τ_v − μ_t,   p_t = exp(−½ Δ² / Σtt)   (kept where p_t > the cull, views in order, rows ascending)
     μ = xyz + gain·Δ,   Σ = Σ_3D,   opacity = sigmoid(logit) · p_t
@@ -13,9 +13,9 @@ for a render-only model, as three numba launches (cull, move, colour) with the a
     rgb = max(Σ_n cos(2π n (μ_t − τ)/T) Σ_k Y_k(d) c[band·n + k] + ½, 0),   d = (μ or xyz) − camera centre, unit
 
 The arithmetic of the geometry and the encoding's phases is in the model's dtype, as the torch forms run it; the
-harmonics accumulate in float64 (so a float32 model's colours may differ from the torch forms' in the
-last bits; a float64 model's agree to rounding). ``omg4.kernels`` decides
-when the torch forms run instead (``OMG4_KERNELS=reference``).
+harmonics accumulate in float64 (so a float32 model's colours may differ from the torch forms' in the last bits; a
+float64 model's agree to rounding). ``omg4.kernels`` decides when the torch forms run instead
+(``OMG4_KERNELS=reference``).
 """
 
 from __future__ import annotations
@@ -33,7 +33,6 @@ view's time term (Real-Time4DGS); the MLPs from the encoded conditional position
 
 CHUNK = 256
 """Slice rows per parallel task (the task's scratch vectors are made once)."""
-
 
 CONSTS = ("half", "time_cull", "one", "two", "four")
 """The constants the kernels take in the model's dtype (``consts``), so that their arithmetic stays in it."""
