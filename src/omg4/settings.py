@@ -124,6 +124,8 @@ def check_settings(cls, values: dict[str, Any], *, extra: tuple[str, ...] = ()) 
         if key in extra:
             out[key] = value
             continue
+        if key not in table and value is None and any(name.startswith(key + ".") for name in table):
+            continue  # an optional nested config left unset (a record's ``"lengths": null``)
         if key not in table:
             close = difflib.get_close_matches(key, [*table, *extra], n=3, cutoff=0.5)
             hint = f"; did you mean {' or '.join(close)}?" if close else f" (see the {cls.__name__} fields)"

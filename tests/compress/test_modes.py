@@ -139,3 +139,33 @@ def test_a_paper_run_writes_the_papers_file_and_says_so(tiny_scene_dir, tmp_path
     assert main(["info", str(out), "--json", str(info)]) == 0
     assert "mode: paper" in capsys.readouterr().out
     assert json.loads(info.read_text())["mode"] == "paper" and json.loads(info.read_text())["codec"] == "paper"
+
+
+def test_the_switch_outranks_a_records_choices_and_a_recorded_codec_can_be_overridden(tiny_scene_dir, tmp_path):
+    """``--config <an omg4-mode record> --paper`` is the paper's way (the record's resolved choices give way), a flag
+    naming a choice still wins, and ``--config <record> --codec X`` takes X."""
+    from omg4.app.commands.common import settings_from_args
+    from omg4.app.commands.compress import COMMAND_KEYS, write_record
+    from omg4.codec.payload import CompactGrids
+
+    record = tmp_path / "run.omg4.config.json"
+    write_record(record, CompressConfig(), "compact", CompactGrids())
+    for extra, expected in ((("--paper",), ("paper", "uniform")),
+                            (("--paper", "--carry", "0.5"), ("paper", "uniform")),
+                            (("--paper", "--time-sampling", "deficit"), ("paper", "deficit")),
+                            ((), ("lifetime", "deficit"))):
+        args = _compress_args("--config", str(record), *extra)
+        settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
+        settings.pop("codec"), settings.pop("grid_bits")
+        cfg = pipeline_config(args, settings, "cpu")
+        assert (cfg.score_weighting, cfg.time_sampling) == expected, extra
+        if "--carry" in extra:
+            assert cfg.carry == 0.5
+    run = tmp_path / "r"
+    assert main(["train", str(tiny_scene_dir), "--out", str(run), "--iterations", "4", "--backend", "cpu",
+                 "--preset", "cpu-small"]) == 0
+    out = tmp_path / "x.omg4"
+    assert main(["compress", str(tiny_scene_dir), "--model", str(run / "model.safetensors"), "--backend", "cpu",
+                 "--out", str(out), "--schedule", "tiny", "--batch-size", "1", "--config", str(record),
+                 "--codec", "ans"]) == 0
+    assert json.loads(out.with_name("x.omg4.config.json").read_text())["codec"] == "ans"

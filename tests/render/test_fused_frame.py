@@ -142,3 +142,21 @@ def test_the_reference_switch_turns_the_fused_frame_off():
         with using_kernels("fast"):
             pass
     assert m.frame_kernel is not None
+
+
+def test_the_active_sh_degrees_are_read_per_frame():
+    m = model("rt4dgs", False, torch.float64, seed=6)
+    m.active_sh_degree, m.active_sh_degree_t = 1, 0
+    fused, reference = both(lambda: render_view(m, camera(), 0.9, backend="cpu"))
+    assert_same_frame(fused, reference, 1e-9)
+
+
+def test_a_camera_with_nan_is_refused_as_the_reference_refuses_it():
+    from omg4.errors import OMG4Error
+
+    m = model("rt4dgs", True, torch.float32, seed=7)
+    bad = camera()
+    bad.K[0, 0] = float("nan")
+    for mode in ("fused", "reference"):
+        with using_kernels(mode), pytest.raises(OMG4Error, match="contains NaN or infinite values"):
+            render_view(m, bad, 0.5, backend="cpu")

@@ -117,6 +117,10 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into a pager or `head` that closed early
         sys.stderr.close()
         return 0
+    finally:
+        from omg4.kernels import set_kernel_mode
+
+        set_kernel_mode(None)  # --kernels held for this command only (main may be called again in one process)
 
 
 class _AboveProgressBars(logging.Handler):

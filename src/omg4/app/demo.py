@@ -125,6 +125,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
 
     Refuses (:func:`check_demo_folder`) a folder that holds anything but an earlier demo's outputs."""
     from omg4.compress.api import compress_to_file
+    from omg4.compress.modes import choice_value
     from omg4.compress.pipeline import CompressConfig
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
@@ -162,9 +163,11 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     ccfg = CompressConfig(paper=settings.paper, preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
                           seed=settings.seed, baseline_iterations=settings.train_iterations,
                           device=str(device))
-    paper_path = out / "scene_M_paper_codec.omg4"  # the same pipeline result with the paper-faithful coder
-    report = compress_to_file(baseline.model, scene, ccfg, omg4_path, codec=settings.codec, paper_copy=paper_path,
-                              progress=True)
+    codec = settings.codec or choice_value("codec", settings.paper)
+    # the same pipeline result with the paper-faithful coder (the main file itself when it is coded so)
+    paper_path = omg4_path if codec == "paper" else out / "scene_M_paper_codec.omg4"
+    report = compress_to_file(baseline.model, scene, ccfg, omg4_path, codec=codec,
+                              paper_copy=None if paper_path == omg4_path else paper_path, progress=True)
     timings["compress_s"] = time.perf_counter() - t
 
     control, fine_tuning = None, ccfg.fine_tuning_iterations()

@@ -385,15 +385,19 @@ class CompressionPipeline:
         return [float(np.mean([next(values) for _ in picks])) if len(picks) else float("nan") for picks in buckets]
 
     def _views_psnr(self, views: list) -> list[float]:
-        """PSNRs of the current model's renders of training ``views``, rendered together (one pass per image size)."""
+        """PSNRs of the current model's renders of training ``views``, rendered together (a pass per image size and
+        batch of ``batch_size`` views, so the memory stays a training step's)."""
         out = [0.0] * len(views)
+        size = self.cfg.batch_size
         with torch.no_grad():
-            for group in views_by_size([v.camera for v in views]):
-                rendered, _ = render_views(self.model, [views[i].camera for i in group],
-                                           [views[i].timestamp for i in group], background=self.background,
-                                           backend=self.cfg.backend, device=self.device)
-                for image, i in zip(rendered.image, group):
-                    out[i] = float(psnr(image.clamp(0.0, 1.0), view_image(views[i], self.device)))
+            for same_size in views_by_size([v.camera for v in views]):
+                for start in range(0, len(same_size), size):
+                    group = same_size[start:start + size]
+                    rendered, _ = render_views(self.model, [views[i].camera for i in group],
+                                               [views[i].timestamp for i in group], background=self.background,
+                                               backend=self.cfg.backend, device=self.device)
+                    for image, i in zip(rendered.image, group):
+                        out[i] = float(psnr(image.clamp(0.0, 1.0), view_image(views[i], self.device)))
         return out
 
     def rebalance(self, log: bool) -> None:

@@ -77,8 +77,7 @@ class FrameKernel:
         self.conditioned = config.sh_direction == "conditioned"
         terms = _basis_terms()
         self.basis = (terms[0], terms[1], terms[2])
-        self.num_basis = num_sh_coeffs(model.active_sh_degree)
-        self.bands = model.active_sh_degree_t + 1
+        self.model = model  # its active SH degrees are read per frame, as the torch form reads them
         mlp = model.appearance
         if mode == sk.EXPLICIT:
             self.logits, self.dc = array(v["opacity"], (n,)), array(v["features_dc"], (n, 3))
@@ -118,7 +117,8 @@ class FrameKernel:
                      out.covars, marginals)
         logits, dc, rest = (self.logits, self.dc, self.rest) if self.mode == sk.EXPLICIT else self._mlp(out, timestamps)
         sk.color_rows(index, views, times, centers, self.xyz, self.t, out.means, marginals,
-                      self.mode == sk.EXPLICIT, logits, dc, rest, *self.basis, self.num_basis, self.band, self.bands,
+                      self.mode == sk.EXPLICIT, logits, dc, rest, *self.basis,
+                      num_sh_coeffs(self.model.active_sh_degree), self.band, self.model.active_sh_degree_t + 1,
                       self.period, self.conditioned, out.colors, out.opacities)
         return out
 

@@ -60,7 +60,8 @@ class WindowedModel(ViewSlicer):
             with torch.no_grad():
                 self.position_term = appearance.position_term(v["xyz"])
         # the same frame as one cull and one slice launch on numpy arrays, where the fused kernels serve the model
-        self.frame_kernel = FrameKernel.build(self)
+        # (a subclass that slices otherwise keeps its own slice)
+        self.frame_kernel = FrameKernel.build(self) if type(self).slice_views is WindowedModel.slice_views else None
 
     @property
     def num_gaussians(self) -> int:

@@ -17,6 +17,7 @@ from typing import Iterator
 import numba
 import numpy as np
 import torch
+from torch.autograd.function import once_differentiable
 
 from omg4.errors import OMG4Error
 from omg4.kernels import as_numpy, keeping_torch_threads, runs_cpu_kernels
@@ -165,9 +166,10 @@ def rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, 
                   far=1e10, eps2d=0.3, alpha_max=0.999, tile_size=16) -> Rendered:
     """CPU backend of :func:`rasterize_views` (same arguments).
 
-    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. When an input
-    needs a gradient the torch projection runs, then :func:`bin_gaussians`; otherwise :func:`project_and_bin`
-    projects in numba (the same values) and bins in the same pass.
+    Computes in float64 when ``means`` is float64, else in float32; all tensors must be on the CPU. The projection and
+    binning run in numba (:func:`project_and_bin`); when an input needs a gradient, through :class:`_Projection`, whose
+    backward is numba too — or, with the reference kernels (:mod:`omg4.kernels`) or a camera that needs a gradient,
+    the torch projection then :func:`bin_gaussians`.
     """
     if means.device.type != "cpu":
         raise ValueError(f"the cpu rasterizer backend needs CPU tensors, got {means.device}")
@@ -285,21 +287,23 @@ class _Projection(torch.autograd.Function):
                                                     tile_size=tile_size)
         side.update(projected=proj, bins=bins, cutoff=cutoff, boxes=boxes)
         dtype = means.dtype
-        ctx.arrays = (as_numpy(means), as_numpy(covars), _row_views(views, means.shape[0]),
-                      as_numpy(viewmats.detach().to(dtype)), as_numpy(Ks.detach().to(dtype)),
-                      projection_consts(width, height, near, far, eps2d, as_numpy(means).dtype),
+        ctx.save_for_backward(means, covars)  # autograd's version check guards them until the backward
+        ctx.arrays = (_row_views(views, means.shape[0]), as_numpy(viewmats.detach().to(dtype)),
+                      as_numpy(Ks.detach().to(dtype)), projection_consts(width, height, near, far, eps2d,
+                                                                          as_numpy(means).dtype),
                       as_numpy(proj.visible))
         return proj.means2d, proj.conics, proj.depths
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, g_means2d, g_conics, g_depths):
-        means, covars = ctx.arrays[0], ctx.arrays[1]
+        means, covars = (as_numpy(t) for t in ctx.saved_tensors)
         g_means, g_covars = np.empty_like(means), np.empty_like(covars)
-        zero = np.zeros(means.shape[0], means.dtype)
+        n, dtype = len(means), means.dtype
+        grads = [np.zeros(shape, dtype) if g is None else as_numpy(g)
+                 for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)))]
         with keeping_torch_threads():
-            project_backward(*ctx.arrays, np.zeros((len(means), 2), means.dtype) if g_means2d is None else
-                             as_numpy(g_means2d), np.zeros((len(means), 3), means.dtype) if g_conics is None else
-                             as_numpy(g_conics), zero if g_depths is None else as_numpy(g_depths), g_means, g_covars)
+            project_backward(means, covars, *ctx.arrays, *grads, g_means, g_covars)
         return torch.from_numpy(g_means), torch.from_numpy(g_covars), None, None, None, None, None, None
 
 

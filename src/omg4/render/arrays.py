@@ -11,6 +11,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from omg4.errors import OMG4Error
 from omg4.kernels import keeping_torch_threads
 from omg4.render.binning import SIGMA_MARGIN, tile_grid
 from omg4.render.cpu_kernels import composite_forward
@@ -80,8 +81,19 @@ def rasterize_arrays(means: np.ndarray, covars: np.ndarray, colors: np.ndarray, 
                      alpha_max: float = 0.999, tile_size: int = 16) -> dict[str, np.ndarray]:
     """:func:`omg4.render.api.rasterize_views` on numpy arrays of one dtype, without gradients:
     ``image [V, H, W, C]``, ``alpha``, ``depth [V, H, W, 1]``, ``means2d [N, 2]``, ``radii [N]`` int32.
-    The inputs must be finite (a render-only model checks its values at load)."""
+    Settings, the background's shape and non-finite inputs are refused as :func:`~omg4.render.api.rasterize_views`
+    refuses them."""
     dtype = means.dtype
+    if background is not None and background.shape != (colors.shape[1],):
+        raise ValueError(f"background must be [{colors.shape[1]}], got {list(background.shape)}")
+    if width < 1 or height < 1 or tile_size < 1 or not 0 < near <= far or not ALPHA_THRESHOLD < alpha_max < 1:
+        raise ValueError(f"invalid rasterizer settings: {width}x{height}, tile {tile_size}, near {near}, far {far}, "
+                         f"alpha_max {alpha_max}")
+    named = {"means": means, "covars": covars, "colors": colors, "opacities": opacities, "viewmat": viewmats,
+             "K": Ks, **({"background": background} if background is not None else {})}
+    bad = next((name for name, value in named.items() if not np.isfinite(value).all()), None)
+    if bad is not None:
+        raise OMG4Error(f"rasterize: {bad} contains NaN or infinite values")
     o = np.maximum(opacities.astype(np.float64), 1e-30)
     cutoff = np.log(o / ALPHA_THRESHOLD) + SIGMA_MARGIN
     ratio = np.maximum(opacities, dtype.type(ALPHA_THRESHOLD)) / dtype.type(ALPHA_THRESHOLD)

@@ -92,7 +92,7 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
     if hasattr(model, "parts_at"):
         return _render_blend(model.parts_at(timestamp), camera, timestamp, background=background, backend=backend,
                              device=device, **raster_kwargs)
-    if _fused_frame(model, backend, device):
+    if _fused_frame(model, backend, device, background):
         return _render_arrays(model, [camera], [timestamp], background, batch=False, **raster_kwargs)
     from omg4.render import rasterize
 
@@ -133,7 +133,7 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
-    if _fused_frame(model, backend, device):
+    if _fused_frame(model, backend, device, background):
         return _render_arrays(model, cameras, timestamps, background, batch=True, **raster_kwargs)
     tensors = [camera_tensors(c) for c in cameras]
     viewmats, Ks, centers = (to_device(torch.stack(parts), device) for parts in zip(*tensors))
@@ -146,13 +146,14 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     return rendered, sl
 
 
-def _fused_frame(model, backend: str, device) -> bool:
+def _fused_frame(model, backend: str, device, background) -> bool:
     """Whether ``model``'s frames run as the fused CPU kernels on arrays (a render-only model's ``frame_kernel``, the
-    cpu rasterizer, the fused kernels in use; :mod:`omg4.kernels`)."""
+    cpu rasterizer, the fused kernels in use, :mod:`omg4.kernels`; no gradient asked of the background)."""
     from omg4.kernels import kernel_mode
     from omg4.render.api import resolve_backend
 
     return (getattr(model, "frame_kernel", None) is not None and kernel_mode() == "fused"
+            and not (background is not None and background.requires_grad)
             and resolve_backend(backend, torch.device(device)) == "cpu")
 
 

@@ -75,12 +75,13 @@ def stamp() -> dict:
 
 
 def save_record(path: Path, result: dict) -> dict:
-    """Add ``result`` (with :func:`stamp`; a ``command`` of its own wins) as the latest run of the record at
-    ``path``; the previous latest run moves into the history. Written atomically; returns the stamped run. While
-    the code differs from its commit, a project record (under :data:`RESULTS`) is written to the system's
-    temporary folder instead, so that the project's records name only code that exists."""
+    """Add ``result`` (with :func:`stamp`: a ``command`` or ``machine`` of its own wins, never a commit or date) as the
+    latest run of the record at ``path``; the previous latest run moves into the history. Written atomically; returns
+    the stamped run. While the code differs from its commit, a project record (under :data:`RESULTS`) is written to
+    the system's temporary folder instead, so that the project's records name only code that exists."""
     path = Path(path)
-    run = {**stamp(), **result}
+    stamped = stamp()
+    run = {**stamped, **result, "commit": stamped["commit"], "date": stamped["date"]}
     if "dirty" in run["commit"] and path.resolve().parent == RESULTS.resolve():
         aside = Path(tempfile.gettempdir()) / "omg4-records" / path.name
         print(f"the sources, benchmarks or tools differ from commit {run['commit'].split('+')[0]}: the record goes "

@@ -18,6 +18,7 @@ from omg4.app.commands.common import (GRID_BITS_HELP, MAX_BATCH_SIZE, add_backgr
                                   load_scene_from_args, seed, segment_scenes, settings_from_args)
 from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
 from omg4.compress.appearance_stage import PREDICTED_MLPS
+from omg4.compress.modes import BY_SETTING
 from omg4.compress.pipeline import FULL_STAGES, CompressConfig
 from omg4.compress.score import SCORE_WEIGHTINGS
 from omg4.compress.time_balance import TIME_SAMPLINGS
@@ -106,17 +107,18 @@ def run(args) -> int:
     from omg4 import distributed
     from omg4.app.outputs import check_outputs
     from omg4.atomic import write_text_atomic
-    from omg4.codec.payload import CODECS, CompactGrids, check_codec
+    from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.api import compress_to_file, read_baseline, trained_iterations
     from omg4.compress.modes import choice_value
     from omg4.data.segments import is_segmented_run
     from omg4.errors import OMG4Error
 
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
-    codec = args.codec or settings.pop("codec", None)
+    file_codec = settings.pop("codec", None)
+    codec = args.codec or (None if args.paper else file_codec)  # --paper: the paper's coder unless --codec names one
     grid_text = settings.pop("grid_bits", None)
     precision = args.grid_bits or (compact_grids(grid_text) if grid_text else CompactGrids())
-    check_codec(codec or CODECS[0], precision)
+    check_codec(codec or choice_value("codec", bool(args.paper or settings.get("paper"))), precision)
     if args.stop_after and args.grid_bits:
         raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
     fill_device_arguments(args, settings)
@@ -159,7 +161,8 @@ def run(args) -> int:
 def pipeline_config(args, settings: dict, device) -> CompressConfig:
     """The run's :class:`CompressConfig`: the defaults, the file and ``--set`` (``settings``), then the flags; the
     device's default schedule (:func:`~omg4.compress.schedule.default_schedule`) unless one is named; stage
-    lengths set one by one start from the schedule's."""
+    lengths set one by one start from the schedule's. ``--paper`` sets every choice of
+    :data:`omg4.compress.modes.CHOICES` that no flag of its own names, whatever a file or ``--set`` says of it."""
     from omg4.compress.schedule import default_schedule
     from omg4.settings import apply_settings
 
@@ -171,6 +174,10 @@ def pipeline_config(args, settings: dict, device) -> CompressConfig:
     lengths = {k: v for k, v in settings.items() if k.startswith("lengths.")}
     given = {**{k: v for k, v in settings.items() if k not in lengths},
              **{k: v for k, v in flags.items() if v is not None}}
+    if args.paper:  # the switch outranks a file's (a record's) choices; a flag naming one still sets it
+        named = {k for k, v in flags.items() if v is not None} | {
+            k[len("setting:"):] for k, v in vars(args).items() if k.startswith("setting:") and v is not None}
+        given = {k: v for k, v in given.items() if k not in BY_SETTING or k in named}
     # the mode first: the choices no setting names take its values
     cfg = apply_settings(CompressConfig(schedule=default_schedule(device), paper=bool(given.pop("paper", False))),
                          given)
