@@ -64,6 +64,9 @@ class CompressConfig:
     ``rate_weight`` β > 0 (beyond the paper) fits the SVQ codebooks by entropy-constrained k-means
     (:func:`omg4.compress.kmeans.kmeans`: an index bit costs β times the mean k-means distortion), so index
     usage becomes skewed and the entropy-coded indices shrink; 0 keeps the paper's k-means.
+
+    ``paper=True`` (:mod:`omg4.compress.modes`) gives every choice left unset at construction the paper's value; a
+    config holds the values it resolved, so ``dataclasses.replace(cfg, paper=True)`` keeps them: build a new one.
     """
 
     preset: str | None = knob(None, "size preset (L, M, S, T; None: the backbone's default)")
