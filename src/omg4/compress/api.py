@@ -15,7 +15,6 @@ import numpy as np
 
 from omg4.codec.payload import CompactGrids, CompressedPayload, check_codec, encode_payload
 from omg4.codec.rig import rig_json
-from omg4.compress import modes
 from omg4.compress.model import CompressibleModel
 from omg4.compress.modes import choice_value
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
@@ -193,6 +192,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     from omg4.train.segmented import shared_frames, taught_by
 
     log = log or logger.info
+    codec = codec or choice_value("codec", cfg.paper)
     key_interval = choice_value("key_interval", cfg.paper) if key_interval is None else key_interval
     if not valid_key_interval(key_interval):
         raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}, got {key_interval!r}")
@@ -231,8 +231,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
                 if teach:
                     teacher, before = CompactModel(previous, cfg.device), seg
             del scene, baseline
-        mode = modes.mode_of({**modes.choices_of(cfg), "codec": reports[0]["config"]["codec"],
-                              "key_interval": key_interval})
+        mode = cfg.mode(codec, key_interval=key_interval)
         if main:
             write_sequence(out, parts, fps=plan["fps"], meta={"segment_frames": plan["segment_frames"],
                                                               "overlap": plan["overlap"], "mode": mode},

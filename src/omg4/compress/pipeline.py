@@ -107,12 +107,11 @@ class CompressConfig:
             if getattr(self, name) is None:
                 setattr(self, name, modes.choice_value(name, self.paper))
 
-    def mode(self, codec: str | None = None) -> str:
-        """The mode these settings (and ``codec``, when given) amount to (:func:`omg4.compress.modes.mode_of`)."""
-        values = modes.choices_of(self)
-        if codec is not None:
-            values["codec"] = codec
-        return modes.mode_of(values)
+    def mode(self, codec: str | None = None, key_interval: int | None = None) -> str:
+        """The mode these settings (and ``codec``, a sequence's ``key_interval``, when given) amount to
+        (:func:`omg4.compress.modes.mode_of`)."""
+        options = {"codec": codec, "key_interval": key_interval}
+        return modes.mode_of({**modes.choices_of(self), **{k: v for k, v in options.items() if v is not None}})
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset, backbone)

@@ -1,6 +1,6 @@
-"""A render-only model's frame without torch: its per-Gaussian arrays made once at load, then per frame the kernels
-of :mod:`omg4.gaussians.slice_kernels` (cull, move, colour; the MLPs between them in numpy), ready for
-:func:`omg4.render.arrays.rasterize_arrays`.
+"""A render-only model's frame on arrays: its per-Gaussian arrays made once at load, then per frame the kernels of
+:mod:`omg4.gaussians.slice_kernels` (cull, move, colour; the appearance MLPs between them as a few torch products on
+the arrays' memory), ready for :func:`omg4.render.arrays.rasterize_arrays`.
 
 Part of the render-only decoder: it imports no training or compression code.
 """
@@ -124,8 +124,8 @@ class FrameKernel:
 
     def _mlp(self, out: FrameArrays, timestamps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(logits [M], dc [M, 3], rest [M, K − 1, 3])`` of the slice rows from the appearance MLPs (paper §4.4):
-        the networks' own layers on the rows' first-layer responses — the cached position term plus the view's time
-        term, or the encoded moved positions."""
+        the joined layers (:func:`_joined_layers`) on the rows' first-layer responses — the cached position term plus
+        the view's time term, or the encoded moved positions."""
         index, (w1, w2, w_static, w_static2, w_rest, w_rest2) = out.index, self.layers
         if self.mode == sk.MLP_POSITION_TERM:
             t0, t1 = self.time_range

@@ -11,17 +11,13 @@ to the 3D means and covariances. View depth is composited as one more feature ch
 
 from __future__ import annotations
 
-import contextlib
-from typing import Iterator
-
-import numba
 import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
 from omg4.errors import OMG4Error
 from omg4.kernels import as_numpy, keeping_torch_threads, runs_cpu_kernels
-from omg4.render.arrays import composite_arrays, project_bin_arrays, projection_consts, tile_lists
+from omg4.render.arrays import composite_arrays, kernel_launch, project_bin_arrays, projection_consts, tile_lists
 from omg4.render.rendered import BACKENDS, Rendered
 from omg4.render.binning import TileBins, sigma_cutoff, tile_grid
 from omg4.render.cpu_kernels import composite_backward
@@ -266,13 +262,6 @@ def _row_views(views: torch.Tensor | None, n: int) -> np.ndarray:
     return np.zeros(n, np.int64) if views is None else as_numpy(views).astype(np.int64, copy=False)
 
 
-@contextlib.contextmanager
-def _kernel_launch() -> Iterator[None]:
-    """Run a numba kernel with tiles handed out one at a time (their costs differ widely)."""
-    with keeping_torch_threads(), numba.parallel_chunksize(1):
-        yield
-
-
 class _Projection(torch.autograd.Function):
     """(means [N, 3], covars [N, 3, 3]) → (means2d [N, 2], conics [N, 3], depths [N]) by the numba projection
     (:func:`project_and_bin`, which also leaves the boxes, tile lists and σ cutoffs in ``side``) and its numba
@@ -327,7 +316,7 @@ class _Composite(torch.autograd.Function):
         n_isect = ctx.ids.shape[0]
         g_params = np.zeros((n_isect, 6), dtype=params.dtype)
         g_feats = np.zeros((n_isect, feats.shape[1]), dtype=feats.dtype)
-        with _kernel_launch():
+        with kernel_launch():
             composite_backward(*ctx.gauss, *ctx.grid, ctx.out_t, ctx.out_last, as_numpy(grad_feat),
                                as_numpy(grad_t[..., 0]), g_params, g_feats)
         n, dtype = params.shape[0], grad_feat.dtype

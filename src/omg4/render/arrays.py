@@ -8,6 +8,9 @@ rules are gsplat 1.5.3's, as :mod:`omg4.render.api` states them.
 
 from __future__ import annotations
 
+import contextlib
+from typing import Iterator
+
 import numba
 import numpy as np
 
@@ -57,6 +60,13 @@ def tile_lists(tiles: np.ndarray, depths: np.ndarray, view_of: np.ndarray, num_v
     return group_by_tile(tiles, view_of, depth_bits, tiles_x, tiles_x * tiles_y, tiles_x * tiles_y * num_views)
 
 
+@contextlib.contextmanager
+def kernel_launch() -> Iterator[None]:
+    """Run a compositing kernel with tiles handed out one at a time (their costs differ widely)."""
+    with keeping_torch_threads(), numba.parallel_chunksize(1):
+        yield
+
+
 def composite_arrays(params: np.ndarray, feats: np.ndarray, boxes: np.ndarray, gaussian_ids: np.ndarray,
                      tile_offsets: np.ndarray, width: int, height: int, tile_size: int, alpha_max: float,
                      num_views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
@@ -70,7 +80,7 @@ def composite_arrays(params: np.ndarray, feats: np.ndarray, boxes: np.ndarray, g
     out_feat = np.empty((rows, width, feats.shape[1]), dtype=dtype)
     out_t = np.empty((rows, width), dtype=np.float64)
     out_last = np.empty((rows, width), dtype=np.int32)
-    with keeping_torch_threads(), numba.parallel_chunksize(1):  # tiles one at a time: their costs differ widely
+    with kernel_launch():
         composite_forward(params, feats, boxes, gaussian_ids, *grid, out_feat, out_t, out_last)
     return out_feat, out_t, out_last, grid
 
@@ -113,4 +123,4 @@ def rasterize_arrays(means: np.ndarray, covars: np.ndarray, colors: np.ndarray, 
             "radii": p["radii"].max(axis=1).astype(np.int32)}
 
 
-__all__ = ["composite_arrays", "project_bin_arrays", "projection_consts", "rasterize_arrays", "tile_lists"]
+__all__ = ["composite_arrays", "kernel_launch", "project_bin_arrays", "projection_consts", "rasterize_arrays", "tile_lists"]
