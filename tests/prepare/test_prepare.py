@@ -144,16 +144,3 @@ def test_a_calibration_given_no_distortion_maps_without_it(rig, tmp_path):
     calibration = calibrate(frames, tmp_path, distortion=False)
     assert calibration.lens == {"distortion": "dropped"} and len(calibration.cameras) == 6
     assert all(camera.distortion == (0.0, 0.0) for camera in calibration.cameras.values())
-
-
-def test_prepare_without_pycolmap_says_the_pip_command_before_reading_a_video(tmp_path, monkeypatch, capsys):
-    import sys
-
-    raw = tmp_path / "videos"
-    raw.mkdir()
-    (raw / "cam_a.mp4").write_bytes(b"not a video: reading it would fail with another message")
-    monkeypatch.setitem(sys.modules, "pycolmap", None)  # as if it were not installed
-    assert main(["prepare", str(raw), "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "pip install 'pycolmap" in err
-    assert not (tmp_path / "out").exists()

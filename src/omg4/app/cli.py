@@ -118,9 +118,10 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.close()
         return 0
     finally:
-        from omg4.kernels import set_kernel_mode
+        if getattr(args, "kernels", None):  # --kernels holds for this command only (main may run again in a process)
+            from omg4.kernels import set_kernel_mode
 
-        set_kernel_mode(None)  # --kernels held for this command only (main may be called again in one process)
+            set_kernel_mode(None)
 
 
 class _AboveProgressBars(logging.Handler):
