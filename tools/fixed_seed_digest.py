@@ -6,7 +6,8 @@ iterations each), decodes the file and renders the test view, then prints SHA-25
 parameters, of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image.
 With ``--against CHECKOUT`` the same runs are made with that checkout's code too (its ``src`` first on
 ``PYTHONPATH``) and the record says which digests are equal — refactorings that must not change behaviour keep
-every digest — and, where they differ, by how much the trained parameters and the rendered view do. The file's
+every digest — and, where they differ, by how much the trained parameters (after the run, and after its first
+step) and the rendered view do. The file's
 bytes are listed too, but its header may legitimately change (new metadata fields).
 
 Usage: ``python tools/fixed_seed_digest.py [--against CHECKOUT [--against-kernels reference]] [--work DIR]
@@ -60,11 +61,14 @@ def main() -> None:
         cfg = make_config("cpu-small", iterations=120, batch_size=2, checkpoint_interval=0, densify_from=20,
                           densify_interval=40, densify_until=100, backend="cpu", backbone=backbone, **extra)
         trained = Trainer(scene, cfg, args.work / f"run_{backbone}", progress=False, log=lambda *_: None).run()
+        one_step = Trainer(scene, make_config("cpu-small", iterations=1, batch_size=2, checkpoint_interval=0,
+                                              backend="cpu", backbone=backbone, **extra),
+                           args.work / f"run1_{backbone}", progress=False, log=lambda *_: None).run()
         lengths = StageLengths(sample=3, prune=3, merge=3, appearance=6, svq3d=3, svq4d=3)
         path = args.work / f"model_{backbone}.omg4"
         compress_to_file(trained.model, scene, CompressConfig(lengths=lengths, batch_size=2, backend="cpu"), path,
                          progress=False, log=lambda *_: None)
-        results[backbone] = digests(trained, path, scene, args.work / f"arrays_{backbone}.npz")
+        results[backbone] = digests(trained, one_step, path, scene, args.work / f"arrays_{backbone}.npz")
     if args.print:
         print(json.dumps(results))
         return
@@ -92,20 +96,31 @@ def main() -> None:
 
 
 def differences(mine: Path, other: Path) -> dict:
-    """How far apart two runs' arrays lie: the largest difference of the trained parameters relative to each
-    parameter's largest magnitude, and of the rendered test view's pixels (absolute, in [0, 1])."""
+    """How far apart two runs' arrays lie: the largest difference of the trained parameters (after the whole run,
+    and after its first step from the same initialization) relative to each parameter's largest magnitude, and of
+    the rendered test view's pixels (absolute, in [0, 1])."""
     a, b = np.load(mine), np.load(other)
+
+    def largest_relative(keys) -> float:
+        return max((float(np.abs(a[k] - b[k]).max() / max(np.abs(b[k]).max(), 1e-30)) for k in keys if a[k].size),
+                   default=0.0)
+
     params = [k for k in a.files if k != "image" and k in b.files and a[k].shape == b[k].shape]
-    rel = max((float(np.abs(a[k] - b[k]).max() / max(np.abs(b[k]).max(), 1e-30)) for k in params if a[k].size),
-              default=0.0)
+    trained = [k for k in params if not k.startswith(ONE_STEP)]
     same_shape = a["image"].shape == b["image"].shape
-    return {"trained_params_max_relative": rel, "compared_params": len(params),
+    return {"trained_params_max_relative": largest_relative(trained), "compared_params": len(trained),
+            "one_step_params_max_relative": largest_relative([k for k in params if k.startswith(ONE_STEP)]),
             "rendered_image_max_abs": float(np.abs(a["image"] - b["image"]).max()) if same_shape else None}
 
 
-def digests(trained, path: Path, scene, arrays: Path) -> dict:
+ONE_STEP = "one_step/"
+"""Prefix of the parameters after the first training step in a run's arrays."""
+
+
+def digests(trained, one_step, path: Path, scene, arrays: Path) -> dict:
     """The digests of one backbone's run: trained parameters, decoded values, rendered test view, file; the trained
-    parameters and the rendered view are kept at ``arrays`` (.npz) for :func:`differences`."""
+    parameters, those after ``one_step`` (a run of one step) and the rendered view are kept at ``arrays`` (.npz)
+    for :func:`differences`."""
     from omg4 import load_model  # the public name: the same in every version compared
     from omg4.codec.payload import decode_payload
     from omg4.render.view import render_view
@@ -115,7 +130,8 @@ def digests(trained, path: Path, scene, arrays: Path) -> dict:
     view = scene.test_views[0]
     image = render_view(decoded, view.camera, view.timestamp, backend="cpu")[0].image
     params = trained.model.params
-    np.savez(arrays, image=image.numpy(), **{k: v.detach().numpy() for k, v in params.items()})
+    np.savez(arrays, image=image.numpy(), **{k: v.detach().numpy() for k, v in params.items()},
+             **{ONE_STEP + k: v.detach().numpy() for k, v in one_step.model.params.items()})
     result = {
         "trained_gaussians": trained.model.num_gaussians,
         "trained_params": digest(*(params[k] for k in sorted(params))),

@@ -1,6 +1,7 @@
 """The numba runtime every CPU kernel shares (the rasterizer's and the Gaussians' SH and conditioning kernels):
 where numba caches compiled code, the fast-math flags, handing tensors to kernels, and keeping torch's thread
-count while numba's OpenMP pool runs.
+count while numba's OpenMP pool runs; and which kernels do the per-Gaussian work (:func:`kernel_mode`: the
+numba ones, the pure-torch reference, or that reference compiled by ``torch.compile``, :func:`torch_form`).
 
 numba's on-disk cache goes to ``NUMBA_CACHE_DIR`` when set, else beside each kernel's module, or to
 ``~/.cache/omg4/numba`` when the package directory is read-only; importing this module decides it, before any
@@ -10,7 +11,9 @@ kernel is defined (numba binds the cache location at decoration time).
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
+import warnings
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
 
@@ -59,9 +62,11 @@ def as_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-KERNEL_MODES = ("fused", "reference")
-"""``fused``: the per-Gaussian numba kernels run where they can (the default); ``reference``: their pure-torch forms
-everywhere (the reference the kernels are tested against; the rasterizer's kernels run in both)."""
+KERNEL_MODES = ("fused", "reference", "compiled")
+"""``fused``: the per-Gaussian numba kernels run where they can, the torch forms elsewhere (the default);
+``reference``: the pure-torch forms everywhere (the reference the kernels are tested against); ``compiled``: the
+torch forms compiled by ``torch.compile`` (:func:`torch_form`: inductor's Triton kernels on CUDA, its C++ kernels on
+the CPU, which need a C++ compiler). The rasterizer's kernels run in all three."""
 
 _chosen_mode: str | None = None
 
@@ -101,6 +106,33 @@ def runs_cpu_kernels(*tensors: torch.Tensor) -> bool:
         t.device.type == "cpu" and t.dtype == dtype for t in tensors)
 
 
+def torch_form(fn: Callable) -> Callable:
+    """``fn``, a per-Gaussian function of torch operations, as the kernels in use run it: itself, or with the
+    ``compiled`` kernels its ``torch.compile`` form (shapes dynamic; compiled on first use per dtype and device, a
+    few seconds to tens of seconds, then cached by torch on disk). A call with an empty tensor, or whose first
+    tensor (the Gaussians or rows) has one row, runs ``fn`` itself: the compiler specializes sizes 0 and 1, and
+    such edge cases would each compile anew."""
+    if kernel_mode() != "compiled":
+        return fn
+    compiled = _compiled(fn)
+
+    def run(*args, **kwargs):
+        tensors = [a for a in args if isinstance(a, torch.Tensor)]
+        if tensors[0].shape[0] < 2 or any(t.numel() == 0 for t in tensors):
+            return fn(*args, **kwargs)
+        with warnings.catch_warnings():  # the forms' constant tables come from lru_cache'd builders, traced as such
+            warnings.filterwarnings("ignore", message="Dynamo detected a call to a `functools.lru_cache`")
+            return compiled(*args, **kwargs)
+
+    return run
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled(fn: Callable) -> Callable:
+    """``torch.compile(fn)`` with dynamic shapes, made once per function."""
+    return torch.compile(fn, dynamic=True)
+
+
 @contextlib.contextmanager
 def keeping_torch_threads() -> Iterator[None]:
     """Run numba parallel kernels inside: numba's OpenMP pool shares the OpenMP runtime with torch and
@@ -114,4 +146,4 @@ def keeping_torch_threads() -> Iterator[None]:
 
 
 __all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
-           "resolve_cache_dir", "runs_cpu_kernels", "set_kernel_mode", "using_kernels"]
+           "resolve_cache_dir", "runs_cpu_kernels", "set_kernel_mode", "torch_form", "using_kernels"]

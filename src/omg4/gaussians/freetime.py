@@ -21,6 +21,7 @@ import torch
 from omg4.gaussians.covariance import SliceGeometry, temporal_marginal
 from omg4.gaussians.initial import log_time_scale, neighbour_log_scales, spatial_params
 from omg4.gaussians.rotation import build_rotation_3d
+from omg4.kernels import torch_form
 from omg4.render.small_matmul import small_matmul
 
 
@@ -62,11 +63,20 @@ def slice_geometry_ftgs(xyz: torch.Tensor, t: torch.Tensor, log_duration: torch.
     var_t = duration_variance(log_duration)
     p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
     views, index = (p_t > time_cull).nonzero(as_tuple=True)
-    dt = times.index_select(0, views) - t[:, 0].index_select(0, index)  # τ − μt
+    means, covars, marginal, dt = torch_form(moving_rows)(xyz, t[:, 0], var_t, velocity, log_scales, quaternions,
+                                                          times, views, index)
+    return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=dt, views=views)
+
+
+def moving_rows(xyz: torch.Tensor, t: torch.Tensor, var_t: torch.Tensor, velocity: torch.Tensor,
+                log_scales: torch.Tensor, quaternions: torch.Tensor, times: torch.Tensor, views: torch.Tensor,
+                index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(means [M, 3], covariances [M, 3, 3], temporal opacities [M], μt − τ [M]) of the (view, Gaussian) rows
+    ``(views, index)``: μx + v·(τ − μt), R diag(scale²) Rᵀ, p_t(τ). ``t``, ``var_t``: [N]."""
+    dt = times.index_select(0, views) - t.index_select(0, index)  # τ − μt
     means = moved_means(xyz.index_select(0, index), velocity.index_select(0, index), dt)
     covars = covariance_3d(log_scales.index_select(0, index), quaternions.index_select(0, index))
-    marginal = temporal_marginal(dt, var_t.index_select(0, index))
-    return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=-dt, views=views)
+    return means, covars, temporal_marginal(dt, var_t.index_select(0, index)), -dt
 
 
 def opacity_regularizer(opacity_logit: torch.Tensor, t: torch.Tensor, log_duration: torch.Tensor,
@@ -99,5 +109,5 @@ def initialize_ftgs(xyz: torch.Tensor, rgb: torch.Tensor, config, generator: tor
     return params
 
 
-__all__ = ["initialize_ftgs", "scaled_rotation_3d", "covariance_3d", "duration_variance", "moved_means", "opacity_regularizer",
-           "slice_geometry_ftgs"]
+__all__ = ["initialize_ftgs", "scaled_rotation_3d", "covariance_3d", "duration_variance", "moved_means", "moving_rows",
+           "opacity_regularizer", "slice_geometry_ftgs"]
