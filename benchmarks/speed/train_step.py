@@ -22,7 +22,7 @@ Times are the median of ``--steps`` steps after ``--warmup``; the aten count is 
 under a ``TorchDispatchMode`` that counts every dispatched operator.
 
     python benchmarks/speed/train_step.py [--workloads demo basketball] [--device cpu|cuda]
-                                    [--steps 10] [--parts train compress] [--model CKPT] [--json PATH]
+                                    [--steps 10] [--parts train compress] [--model CKPT] [--kernels MODE] [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/train_step.json`` (``train_step_cuda.json`` with ``--device cuda``). To time another
@@ -234,7 +234,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
                     help="time that checkout's code too, the two taking turns in separate processes (alternate.py)")
     ap.add_argument("--repeats", type=int, default=2, help="with --against: runs of each side")
+    ap.add_argument("--kernels", default=None, help="the per-Gaussian kernels (omg4's --kernels: fused, reference, "
+                                                     "compiled; default: $OMG4_KERNELS or fused)")
     args = ap.parse_args(argv)
+    if args.kernels:
+        os.environ["OMG4_KERNELS"] = args.kernels  # read by omg4.kernels; inherited by --against's processes
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     command = shlex.join(["python", "benchmarks/speed/train_step.py", *(sys.argv[1:] if argv is None else argv)])
     record = args.json or RESULTS / ("train_step.json" if kind == "cpu" else f"train_step_{kind}.json")
@@ -258,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                           f"per step, {r['host_syncs_per_step']} host synchronizations, "
                           f"GPU busy {r['gpu_busy_ms']:.1f} ms ({100 * r['gpu_busy_share']:.0f}%); "
                           f"top {r['top_kernels']}; GPU ms {r['top_kernels_ms']}", flush=True)
-    result = {"command": command, **code_under_test(), "torch": torch.__version__,
+    result = {"command": command, **code_under_test(), "kernels": os.environ.get("OMG4_KERNELS", "fused"),
+              "torch": torch.__version__,
               "torch_threads": torch.get_num_threads()}
     if kind == "cuda":
         result["gpu"] = torch.cuda.get_device_name()
