@@ -73,8 +73,8 @@ def test_original_world_undoes_the_files_normalization(omg4_file, tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--out", "x.obj"], "must end in .ply or .splatv"),
-    (["--out", "x.splatv", "--time", "0.5"], "apply to ply slices"),
+    (["--out", "x.obj"], "must end in .ply, .glb or .splatv"),
+    (["--out", "x.splatv", "--time", "0.5"], "apply to time slices"),
     (["--out", "x.ply", "--times", "0:1"], "expects A:B:N"),
     (["--out", "x.ply", "--times", "0:1:0"], "1 <= N"),
     (["--out", "x.ply", "--time", "99"], "outside the model's time range"),

@@ -1,8 +1,10 @@
-"""``omg4 export MODEL --out FILE [--time T | --times A:B:N] [--format ply|splatv|web] [--original-world]``.
+"""``omg4 export MODEL --out FILE [--time T | --times A:B:N] [--format ply|gltf|splatv|web] [--original-world]``.
 
 ``ply``: the standard 3DGS ``.ply`` of one time slice (or ``--times A:B:N``: N slices from A to
 B, written as ``<stem>_0000.ply``, ``<stem>_0001.ply``, … beside ``--out``) for the 3DGS viewers
 users already have (SuperSplat, PlayCanvas, …): :func:`omg4.io.ply_export.export_ply`.
+``gltf``: the same slices as glTF 2.0 binaries (``.glb``) with Khronos's ``KHR_gaussian_splatting``
+(:func:`omg4.io.gltf_export.export_gltf`), for engines that read splats from glTF.
 ``splatv``: the whole 4D model for the splaTV web viewer (:mod:`omg4.io.splatv`), with the
 dataset's cameras as presets when ``--data`` is given. MODEL is a checkpoint or an ``.omg4`` file.
 ``web``: a static folder (``--out DIR``) that plays the ``.omg4`` file in any browser, decoded and rendered on
@@ -25,16 +27,19 @@ MAX_SLICES = 100_000
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path, help="checkpoint (.safetensors) or compressed .omg4 file")
     p.add_argument("--out", required=True, type=Path,
-                   help="output: .ply (a time slice), .splatv (the 4D model) or, with --format web, a folder")
+                   help="output: .ply or .glb (a time slice), .splatv (the 4D model) or, with --format web, a "
+                        "folder")
     p.add_argument("--format", choices=sorted({*EXPORT_FORMATS.values(), *EXPORT_FOLDERS}),
                    help="output format (default: from --out's suffix); web: a folder that plays the .omg4 file in a "
                         "browser")
     when = p.add_mutually_exclusive_group()
-    when.add_argument("--time", type=finite_float, help="ply: the slice's time (default: the start of the time range)")
-    when.add_argument("--times", metavar="A:B:N", help="ply: N slices at evenly spaced times from A to B (inclusive)")
+    when.add_argument("--time", type=finite_float,
+                      help="ply, gltf: the slice's time (default: the start of the time range)")
+    when.add_argument("--times", metavar="A:B:N",
+                      help="ply, gltf: N slices at evenly spaced times from A to B (inclusive)")
     p.add_argument("--original-world", action="store_true",
-                   help="ply: write in the dataset's original world (the model file's normalization) instead of "
-                        "the normalized one")
+                   help="ply, gltf: write in the dataset's original world (the model file's normalization) instead "
+                        "of the normalized one")
     p.add_argument("--data", type=Path, help="splatv, web: dataset folder whose cameras become the viewer's presets "
                                              "(default: one camera framing the model)")
     add_force_argument(p)
@@ -83,14 +88,14 @@ def run(args) -> int:
 
     fmt = args.format or EXPORT_FORMATS.get(args.out.suffix.lower())
     if fmt is None:
-        raise OMG4Error(f"--out must end in .ply or .splatv (or give --format), got '{args.out.name}'")
+        raise OMG4Error(f"--out must end in .ply, .glb or .splatv (or give --format), got '{args.out.name}'")
     if fmt in ("splatv", "web") and (args.time is not None or args.times or args.original_world):
-        raise OMG4Error(f"--time, --times and --original-world apply to ply slices; a {fmt} export holds the whole "
-                        "4D model in the normalized world")
+        raise OMG4Error(f"--time, --times and --original-world apply to time slices (ply, gltf); a {fmt} export "
+                        "holds the whole 4D model in the normalized world")
     if fmt == "web":
         return _export_web(args)
-    if fmt == "ply" and args.data is not None:
-        raise OMG4Error("--data gives a .splatv its camera presets; a ply slice needs none")
+    if fmt in SLICE_FORMATS and args.data is not None:
+        raise OMG4Error(f"--data gives a .splatv its camera presets; a {fmt} slice needs none")
     requested = _requested_times(args)
     planned = _outputs(args.out, requested[2] if requested else 1)
     check_outputs({f"--out ({p.name})": p for p in planned}, inputs=[args.model, args.data],
@@ -107,10 +112,12 @@ def run(args) -> int:
     normalization = _normalization(args, model) if args.original_world else None
     from tqdm.auto import tqdm
 
+    from omg4.io.gltf_export import export_gltf
     from omg4.io.ply_export import export_ply
 
+    export_slice = {"ply": export_ply, "gltf": export_gltf}[fmt]
     outputs = _outputs(args.out, len(times))
-    counts = [export_ply(path, model, t, normalization=normalization)
+    counts = [export_slice(path, model, t, normalization=normalization)
               for path, t in tqdm(list(zip(outputs, times)), desc="export", disable=len(times) == 1)]
     world = "original" if normalization is not None else "normalized"
     if len(outputs) == 1:
@@ -119,6 +126,10 @@ def run(args) -> int:
         print(f"wrote {outputs[0]} … {outputs[-1].name} ({len(outputs)} slices, {min(counts)}–{max(counts)} "
               f"Gaussians, t {times[0]:g} to {times[-1]:g}, {world} world)")
     return 0
+
+
+SLICE_FORMATS = ("ply", "gltf")
+"""Formats that hold one time slice a file."""
 
 
 def _normalization(args, model):
