@@ -18,10 +18,10 @@ from __future__ import annotations
 import json
 import os
 import struct
+from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 
-from omg4 import __version__
 from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import CorruptFileError, OMG4Error
@@ -75,7 +75,7 @@ def write_gltf_splats(path: str | os.PathLike, means: np.ndarray, covars: np.nda
         accessors.append(accessor)
         blob += a.tobytes()
     document = {
-        "asset": {"version": "2.0", "generator": f"omg4 {__version__}", **({"extras": extras} if extras else {})},
+        "asset": {"version": "2.0", "generator": _generator(), **({"extras": extras} if extras else {})},
         "extensionsUsed": [EXTENSION],
         "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
         "meshes": [{"primitives": [{"mode": POINTS, "attributes": attributes, "extensions": {
@@ -91,6 +91,14 @@ def write_gltf_splats(path: str | os.PathLike, means: np.ndarray, covars: np.nda
             f.write(struct.pack("<III", MAGIC, 2, total))
             f.write(struct.pack("<II", len(text), JSON_CHUNK) + text)
             f.write(struct.pack("<II", len(blob), BIN_CHUNK) + bytes(blob))
+
+
+def _generator() -> str:
+    """``omg4 <installed version>`` (the package's metadata: this module sits below the package's top)."""
+    try:
+        return f"omg4 {version('omg4')}"
+    except PackageNotFoundError:
+        return "omg4"
 
 
 def read_gltf_splats(path: str | os.PathLike) -> dict[str, np.ndarray | dict]:
