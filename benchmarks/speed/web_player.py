@@ -93,7 +93,7 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
     with served(folder) as url:
         height, width = reference.shape[:2]
         open_player(browser, f"{url}/index.html?ui=0&width={width}&height={height}&time={time_}")
-        png = browser.evaluate("document.getElementById('view').toDataURL('image/png')")
+        png = browser.evaluate("document.querySelector('omg4-player').canvas.toDataURL('image/png')")
     page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
     return {"psnr_vs_omg4_render_db": psnr(page / 255.0, reference / 255.0), "psnr_time": time_,
             "psnr_size": list(reference.shape[1::-1])}

@@ -140,7 +140,7 @@ def test_the_page_refuses_forged_carried_gaussians_in_one_line(chromium, tmp_pat
             assert message == str(python.value).removeprefix("data: ") and "\n" not in message, kind
 
 def _canvas(browser) -> np.ndarray:
-    url = browser.evaluate("document.getElementById('view').toDataURL('image/png')")
+    url = browser.evaluate("document.querySelector('omg4-player').canvas.toDataURL('image/png')")
     return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), np.float64)
 
 
@@ -303,7 +303,7 @@ def test_loading_asks_only_for_files_the_export_wrote(chromium, tmp_path, sequen
     requests = []
     with served(tmp_path / "web", requests) as url:
         result = open_player(chromium, f"{url}/index.html?ui=0&time=0")
-        stats = chromium.evaluate("document.getElementById('stats').textContent")
+        stats = chromium.evaluate("document.querySelector('omg4-player').stats")
     assert "ready" in result
     assert requests and all(status == 200 for _, status in requests), [r for r in requests if r[1] != 200]
     asked = {path.split("?")[0].rsplit("/", 1)[-1] for path, _ in requests}
