@@ -9,7 +9,7 @@ import {
 } from "./shaders.js";
 
 const TEXTURE_WIDTH = 2048;
-const SLICED = 52; // floats the slice pass writes per Gaussian
+export const SLICED = 52; // floats the slice pass writes per Gaussian
 const PRESENT_UNIT = 14; // the present pass's two texture units, above every renderer's own
 
 // real spherical harmonics up to degree 3 (3DGS eval_sh; omg4/gaussians/sh.py)
@@ -249,38 +249,57 @@ export class Renderer {
       if (depth[g] >= 0.2) order.push(g);
     }
     order.sort((a, b) => depth[b] - depth[a] || b - a);
-    const conditioned = this.model.config.sh_direction !== "canonical";
-    const xyz = this.model.xyz;
-    const [cx, cy, cz] = camera.center;
-    const y = new Float64Array(16);
     const vertices = new Float32Array(32 * order.length);
     const index = new Int32Array(4 * order.length);
+    const rgb = new Float64Array(3);
+    const y = new Float64Array(16);
     order.forEach((g, i) => {
       const o = SLICED * g;
-      const origin = conditioned ? [s[o], s[o + 1], s[o + 2]] : [xyz[3 * g], xyz[3 * g + 1], xyz[3 * g + 2]];
-      const dx = origin[0] - cx;
-      const dy = origin[1] - cy;
-      const dz = origin[2] - cz;
-      const length = Math.max(Math.hypot(dx, dy, dz), 1e-12);
-      basis(dx / length, dy / length, dz / length, this.model.activeSh[0], y);
-      const rgb = [0.5, 0.5, 0.5];
-      for (let k = 0; k < 16; k++) {
-        if (y[k] === 0) continue;
-        for (let c = 0; c < 3; c++) rgb[c] += y[k] * s[o + 4 + 3 * k + c];
-      }
+      this.color(g, camera.center, rgb, y);
       for (let c = 0; c < 4; c++) {
         const at = 32 * i + 8 * c;
         vertices[at] = s[o];
         vertices[at + 1] = s[o + 1];
         vertices[at + 2] = s[o + 2];
         vertices[at + 3] = s[o + 3];
-        vertices[at + 4] = Math.max(rgb[0], 0);
-        vertices[at + 5] = Math.max(rgb[1], 0);
-        vertices[at + 6] = Math.max(rgb[2], 0);
+        vertices[at + 4] = rgb[0];
+        vertices[at + 5] = rgb[1];
+        vertices[at + 6] = rgb[2];
         index[4 * i + c] = g;
       }
     });
     return { vertices, index, count: order.length };
+  }
+
+  /** Gaussian `g`'s colour at the slice's time seen from `center`, max(Σ_k Y_k(d)·Q_k + 0.5, 0) where d runs from
+   * the camera to the mean at τ (or the canonical mean), into `rgb` [3] (`y`: scratch [16]). */
+  color(g, center, rgb, y) {
+    const s = this.sliced;
+    const o = SLICED * g;
+    const xyz = this.model.xyz;
+    const conditioned = this.model.config.sh_direction !== "canonical";
+    const dx = (conditioned ? s[o] : xyz[3 * g]) - center[0];
+    const dy = (conditioned ? s[o + 1] : xyz[3 * g + 1]) - center[1];
+    const dz = (conditioned ? s[o + 2] : xyz[3 * g + 2]) - center[2];
+    const length = Math.max(Math.hypot(dx, dy, dz), 1e-12);
+    basis(dx / length, dy / length, dz / length, this.model.activeSh[0], y);
+    rgb.fill(0.5);
+    for (let k = 0; k < 16; k++) {
+      if (y[k] === 0) continue;
+      for (let c = 0; c < 3; c++) rgb[c] += y[k] * s[o + 4 + 3 * k + c];
+    }
+    for (let c = 0; c < 3; c++) rgb[c] = Math.max(rgb[c], 0);
+    return rgb;
+  }
+
+  /** The Gaussians at time `tau` (the slice pass, skipped when it is the time sliced last): `sliced`, per Gaussian
+   * μ at τ, opacity (0: culled), then the colour's coefficients Q_0..Q_15 (rgb each), for any view. */
+  sliceAt(tau) {
+    if (this.slicedAt === tau) return this.sliced;
+    this._bind();
+    this._sliceAt(tau);
+    this.slicedAt = tau;
+    return this.sliced;
   }
 
   /** Draw the model at time `tau` from `camera` into this renderer's float image, over `background` (not yet on
@@ -288,11 +307,8 @@ export class Renderer {
   draw(tau, camera, background) {
     const gl = this.gl;
     const { width, height } = camera;
+    this.sliceAt(tau);  // a new view alone reuses the slice
     this._bind();
-    if (this.slicedAt !== tau) {  // a new time; a new view alone reuses the slice
-      this._sliceAt(tau);
-      this.slicedAt = tau;
-    }
     const { vertices, index, count } = this._sort(camera);
     this.visible = count;
     this._ensureTarget(width, height);

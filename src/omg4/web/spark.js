@@ -1,0 +1,144 @@
+// omg4 in a three.js scene of one's own, drawn by Spark (@sparkjsdev/spark: it sorts and rasterizes the splats):
+// Omg4Splats decodes an .omg4 file and keeps a Spark SplatMesh holding its Gaussians at the time it plays.
+//
+//   import { Omg4Splats } from "./omg4/spark.js";   // "three" and "@sparkjsdev/spark" from the page's import map
+//   const splats = await Omg4Splats.load("omg4/model.omg4");
+//   scene.add(splats.mesh);                                   // the model's world, +z up: rotate the mesh to taste
+//   renderer.setAnimationLoop((ms) => { splats.update(t, camera); renderer.render(scene, camera); });
+//
+// Per new time the slice pass of the player's renderer (render/renderer.js, in a WebGL2 context of its own) gives
+// each Gaussian's mean and opacity at τ and its colour coefficients; per frame each colour is evaluated for the
+// camera's position (the 4D SH and the appearance MLPs' view-dependent terms, as the player does) and written, with
+// the mean and opacity, into the SplatMesh's PackedSplats. Covariances do not change with time (the conditional
+// Σ_3D of Real-Time4DGS, FreeTimeGS's Σ): their scales and rotations are computed once, at load.
+
+import * as THREE from "three";
+import { PackedSplats, SplatMesh } from "@sparkjsdev/spark";
+import { decodePayload } from "./decoder/payload.js";
+import { buildModel } from "./model.js";
+import { Renderer, SLICED, context } from "./render/renderer.js";
+
+/** Eigen-decomposition of the symmetric 3×3 matrix (xx, xy, xz, yy, yz, zz) by Jacobi rotations: the standard
+ * deviations along its axes and the rotation whose columns are those axes (a proper rotation). */
+export function principalAxes(c) {
+  const a = [[c[0], c[1], c[2]], [c[1], c[3], c[4]], [c[2], c[4], c[5]]];
+  const v = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+  for (let sweep = 0; sweep < 32; sweep++) {
+    const off = Math.abs(a[0][1]) + Math.abs(a[0][2]) + Math.abs(a[1][2]);
+    if (off <= 1e-30 * (Math.abs(a[0][0]) + Math.abs(a[1][1]) + Math.abs(a[2][2]) + 1e-300)) break;
+    for (const [p, q] of [[0, 1], [0, 2], [1, 2]]) {
+      if (a[p][q] === 0) continue;
+      const theta = (a[q][q] - a[p][p]) / (2 * a[p][q]);
+      const t = Math.sign(theta || 1) / (Math.abs(theta) + Math.sqrt(theta * theta + 1));
+      const cs = 1 / Math.sqrt(t * t + 1);
+      const sn = t * cs;
+      for (let k = 0; k < 3; k++) {  // a ← Jᵀ a J, v ← v J
+        const akp = a[k][p], akq = a[k][q];
+        a[k][p] = cs * akp - sn * akq;
+        a[k][q] = sn * akp + cs * akq;
+      }
+      for (let k = 0; k < 3; k++) {
+        const apk = a[p][k], aqk = a[q][k];
+        a[p][k] = cs * apk - sn * aqk;
+        a[q][k] = sn * apk + cs * aqk;
+      }
+      for (let k = 0; k < 3; k++) {
+        const vkp = v[k][p], vkq = v[k][q];
+        v[k][p] = cs * vkp - sn * vkq;
+        v[k][q] = sn * vkp + cs * vkq;
+      }
+    }
+  }
+  const det = v[0][0] * (v[1][1] * v[2][2] - v[1][2] * v[2][1]) - v[0][1] * (v[1][0] * v[2][2] - v[1][2] * v[2][0])
+    + v[0][2] * (v[1][0] * v[2][1] - v[1][1] * v[2][0]);
+  if (det < 0) for (let k = 0; k < 3; k++) v[k][2] = -v[k][2];
+  const sigma = [0, 1, 2].map((i) => Math.sqrt(Math.max(a[i][i], 1e-24)));
+  return { sigma, axes: v };
+}
+
+/** SparkRenderer options that draw as omg4's renderer does (gsplat's conventions): the 0.3 px² dilation without
+ * opacity compensation, splats cut at 3.33σ and α ≥ 1/255, sorted by view depth. */
+export const OMG4_CONVENTIONS = { preBlurAmount: 0.3, blurAmount: 0, maxStdDev: 3.33, minAlpha: 1 / 255, sortRadial: false };
+
+export class Omg4Splats {
+  /** Fetch and decode the .omg4 file at `url` (a single model). */
+  static async load(url) {
+    const response = await fetch(url);
+    if (!response.ok) throw new Error(`${url}: ${response.status} ${response.statusText}`);
+    const payload = await decodePayload(new Uint8Array(await response.arrayBuffer()));
+    return new Omg4Splats(buildModel(payload), payload.meta);
+  }
+
+  /** `model`: a decoded model (model.js buildModel); `meta`: its file's metadata (its camera rig). */
+  constructor(model, meta = {}) {
+    this.model = model;
+    this.meta = meta;
+    this.timeRange = model.timeRange;
+    this.slicer = new Renderer(context(document.createElement("canvas")), model);
+    const n = model.numGaussians;
+    this.scales = [];
+    this.rotations = [];
+    const basis = new THREE.Matrix4();
+    for (let g = 0; g < n; g++) {
+      const { sigma, axes } = principalAxes(model.cov.subarray(6 * g, 6 * g + 6));
+      this.scales.push(new THREE.Vector3(...sigma));
+      basis.set(axes[0][0], axes[0][1], axes[0][2], 0, axes[1][0], axes[1][1], axes[1][2], 0, axes[2][0], axes[2][1],
+        axes[2][2], 0, 0, 0, 0, 1);
+      this.rotations.push(new THREE.Quaternion().setFromRotationMatrix(basis));
+    }
+    this.packed = new PackedSplats({ maxSplats: Math.max(n, 1) });
+    const zero = new THREE.Vector3();
+    const black = new THREE.Color(0, 0, 0);
+    for (let g = 0; g < n; g++) this.packed.pushSplat(zero, this.scales[g], this.rotations[g], 0, black);
+    this.mesh = new SplatMesh({ packedSplats: this.packed });
+    this.time = null;
+    this._center = new THREE.Vector3();
+    this._inverse = new THREE.Matrix4();
+  }
+
+  /** The Gaussians at `time` (seconds, clamped to the model's time range) as seen by `camera` (a three.js camera:
+   * its position gives the view-dependent colours): writes them into the mesh's splats. */
+  update(time, camera) {
+    const [t0, t1] = this.timeRange;
+    const tau = Math.min(Math.max(time, t0), t1);
+    const sliced = this.slicer.sliceAt(tau);
+    this.mesh.updateMatrixWorld();
+    camera.getWorldPosition(this._center).applyMatrix4(this._inverse.copy(this.mesh.matrixWorld).invert());
+    const center = [this._center.x, this._center.y, this._center.z];
+    const rgb = new Float64Array(3);
+    const y = new Float64Array(16);
+    const mean = new THREE.Vector3();
+    const color = new THREE.Color();
+    for (let g = 0; g < this.model.numGaussians; g++) {
+      const o = SLICED * g;
+      const opacity = sliced[o + 3];
+      mean.set(sliced[o], sliced[o + 1], sliced[o + 2]);
+      if (opacity > 0) this.slicer.color(g, center, rgb, y);
+      color.setRGB(Math.min(rgb[0], 1), Math.min(rgb[1], 1), Math.min(rgb[2], 1));
+      this.packed.setSplat(g, mean, this.scales[g], this.rotations[g], opacity, color);
+    }
+    this.packed.needsUpdate = true;
+    this.time = tau;
+  }
+
+  /** A three.js camera looking as an omg4 camera ({K, viewmat, width, height}, OpenCV axes, row-major) looks: its
+   * pose from the view matrix, its projection from K (principal point included), for a mesh left in place. */
+  static threeCamera(camera, near = 0.01, far = 1000) {
+    const three = new THREE.PerspectiveCamera();
+    const v = camera.viewmat;
+    const world = new THREE.Matrix4().set(v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9], v[10], v[11], 0, 0,
+      0, 1).invert().multiply(new THREE.Matrix4().makeScale(1, -1, -1));  // OpenCV camera → three's (y up, −z ahead)
+    world.decompose(three.position, three.quaternion, three.scale);
+    three.updateMatrixWorld(true);
+    const [fx, , cx, , fy, cy] = camera.K;
+    const { width: w, height: h } = camera;
+    three.projectionMatrix.set(2 * fx / w, 0, 1 - 2 * cx / w, 0, 0, 2 * fy / h, 2 * cy / h - 1, 0, 0, 0,
+      -(far + near) / (far - near), -2 * far * near / (far - near), 0, 0, -1, 0);
+    three.projectionMatrixInverse.copy(three.projectionMatrix).invert();
+    three.near = near;
+    three.far = far;
+    three.aspect = w / h;
+    three.fov = (2 * Math.atan(h / (2 * fy)) * 180) / Math.PI;
+    return three;
+  }
+}
