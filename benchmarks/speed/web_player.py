@@ -5,8 +5,15 @@ For each model: the export folder served by a local static server, the page open
 (navigation start to ``window.omg4Ready``, which includes fetching, decoding, the per-Gaussian set-up and the
 first frame), the bytes transferred (every file the page fetched), frames per second while playing (frames the
 page drew in ``--seconds`` of playback: each a new time, so a new slice through the MLPs) and while the camera
-orbits a paused frame (the median of finished frames, each drawn and read back: a new view of the same time). ``--forged N`` adds a file of N
-random Gaussians (:mod:`omg4.testing.forge`) to measure the player at that size.
+orbits a paused frame (the median of finished frames, each drawn and read back: a new view of the same time), and
+the time of each of the renderer's passes (the slice through the MLPs, the sort, the splats, the present pass), each
+drained before the next is timed. ``--forged N`` adds a file of N random Gaussians (:mod:`omg4.testing.forge`) to
+measure the player at that size. The page is the export's ``index.html``: one ``<omg4-player>`` element.
+
+Where the npm packages of ``package.json`` are installed (``npm ci``), each model is also played by the export's
+``spark.html`` (three.js drawing through Spark, fed by ``web/spark.js``): first frame, frames per second playing,
+and its PSNR against ``omg4 render``. Each model's glTF slice (``omg4 export --out X.glb``) is written and checked by
+Khronos's glTF-Validator: its bytes and the validator's counts and issue codes.
 
     python benchmarks/speed/web_player.py omg4_demo/scene_M.omg4 --data omg4_demo/scene --forged 60000 --name demo
 
@@ -48,6 +55,28 @@ ORBIT = """import('./camera.js').then(({ lookAt }) => {
   return ms;
 })"""
 
+# each pass of the renderer at a new time, drained (a one-pixel read) before the next is timed; medians of 6 times
+PASSES = """(() => {
+  const p = window.omg4Player; p.pause(); const gl = p.gl; const cam = p.state.camera;
+  const r = p.playback.loaded.get(0).renderer; const pixel = new Uint8Array(4); const value = new Float32Array(4);
+  const drain = () => { gl.bindFramebuffer(gl.FRAMEBUFFER, null); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel); };
+  const ms = { slice: [], sort: [], splats: [], present: [] };
+  for (let i = 0; i < 6; i++) {
+    const tau = p.timeRange[0] + (p.timeRange[1] - p.timeRange[0]) * (0.1 + 0.13 * i);
+    drain();
+    let start = performance.now(); r.sliceAt(tau); ms.slice.push(performance.now() - start);
+    start = performance.now(); r._sort(cam); ms.sort.push(performance.now() - start);
+    drain();
+    start = performance.now(); const image = r.draw(tau, cam, [0, 0, 0]);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, r.target.framebuffer); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.FLOAT, value);
+    ms.splats.push(performance.now() - start);
+    start = performance.now(); p.playback.compositor.present([[image, 1]], cam.width, cam.height); drain();
+    ms.present.push(performance.now() - start);
+  }
+  const median = (a) => a.slice().sort((x, y) => x - y)[a.length >> 1];
+  return Object.fromEntries(Object.entries(ms).map(([k, v]) => [k, median(v)]));
+})()"""
+
 TRANSFERRED = """[performance.getEntriesByType('navigation'), performance.getEntriesByType('resource')].flat()
   .reduce((sum, e) => sum + (e.encodedBodySize || 0), 0)"""
 
@@ -66,11 +95,12 @@ def measure(browser: Browser, folder: Path, width: int, height: int, seconds: fl
         browser.evaluate("window.omg4Player.state.playing = false")
         time.sleep(1.0)
         orbit = browser.evaluate(ORBIT.replace("FRAMES", "12"), timeout=600)[2:]  # after the first new views
+        passes = browser.evaluate(PASSES, timeout=600)
         ready = result["ready"]
     return {"num_gaussians": ready["gaussians"], "file_bytes": ready["bytes"], "bytes_transferred": transferred,
             "load_to_first_frame_ms": load_ms, "measured_at_ms": ready_ms, "size": [width, height],
             "fps": (frames1 - frames0) / seconds, "orbit_ms_per_frame": statistics.median(orbit),
-            "orbit_fps": 1000 / statistics.median(orbit), "camera": ready["camera"]}
+            "orbit_fps": 1000 / statistics.median(orbit), "camera": ready["camera"], "pass_ms": passes}
 
 
 def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path) -> dict:
@@ -97,6 +127,67 @@ def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path)
     page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
     return {"psnr_vs_omg4_render_db": psnr(page / 255.0, reference / 255.0), "psnr_time": time_,
             "psnr_size": list(reference.shape[1::-1])}
+
+
+def spark(browser: Browser, folder: Path, model: Path, data: Path | None, width: int, height: int, seconds: float,
+          tmp: Path) -> dict:
+    """The export's spark.html (three.js + Spark, the npm packages linked into the folder): first frame, frames per
+    second playing, and with a dataset its PSNR against ``omg4 render`` (mid-clip, the first test camera)."""
+    (folder / "node_modules").symlink_to(REPO / "node_modules")
+    with served(folder) as url:
+        result = open_player(browser, f"{url}/spark.html?width={width}&height={height}", timeout=600)
+        if "error" in result:
+            raise SystemExit(f"{folder}: the Spark page failed: {result['message']}")
+        first_ms = browser.evaluate("window.omg4FirstFrameMs")
+        frames0 = browser.evaluate("window.omg4Spark.frames")
+        time.sleep(seconds)
+        frames1 = browser.evaluate("window.omg4Spark.frames")
+        row = {"spark_first_frame_ms": first_ms, "spark_fps": (frames1 - frames0) / seconds}
+        if data is not None:
+            import base64
+            import io
+            import subprocess
+
+            import numpy as np
+            from PIL import Image
+
+            from omg4.metrics import psnr
+            from omg4.models import load_model
+
+            t0, t1 = load_model(model).config.time_range
+            time_ = round((t0 + t1) / 2, 3)
+            subprocess.run([sys.executable, "-m", "omg4", "render", "--model", str(model), "--data", str(data),
+                            "--time", str(time_), "--out", str(tmp / "reference.png")], check=True, capture_output=True)
+            reference = np.asarray(Image.open(tmp / "reference.png").convert("RGB"), np.float64)
+            h, w = reference.shape[:2]
+            open_player(browser, f"{url}/spark.html?width={w}&height={h}&time={time_}", timeout=600)
+            time.sleep(1.5)  # Spark sorts on a worker
+            png = browser.evaluate("document.querySelector('canvas').toDataURL('image/png')")
+            page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
+            row["spark_psnr_vs_omg4_render_db"] = psnr(page / 255.0, reference / 255.0)
+    return row
+
+
+def gltf_slice(model: Path, tmp: Path) -> dict:
+    """The model's glTF slice at mid-clip: its bytes, and Khronos's glTF-Validator's counts and issue codes."""
+    import json
+    import subprocess
+
+    from omg4.models import load_model
+
+    t0, t1 = load_model(model).config.time_range
+    out = tmp / "slice.glb"
+    subprocess.run([sys.executable, "-m", "omg4", "export", str(model), "--time", str((t0 + t1) / 2), "--out",
+                    str(out), "--force"], check=True, capture_output=True)
+    row = {"gltf_bytes": out.stat().st_size}
+    if (REPO / "node_modules" / "gltf-validator").is_dir():
+        report = json.loads(subprocess.run(["node", str(REPO / "tools" / "validate_gltf.mjs"), str(out)], cwd=REPO,
+                                           check=True, capture_output=True, text=True).stdout)
+        issues = report["issues"]
+        row["gltf_validator"] = {"errors": issues["numErrors"], "warnings": issues["numWarnings"],
+                                 "infos": issues["numInfos"],
+                                 "codes": sorted({m["code"] for m in issues["messages"]})}
+    return row
 
 
 def main() -> None:
@@ -132,9 +223,19 @@ def main() -> None:
                 folder = tmp / f"web_{len(rows)}"
                 export_web(folder, path, cameras if not label.startswith("forged") else None, held_out)
                 row = {"model": label, **measure(browser, folder, width, height, args.seconds)}
-                if cameras is not None and not label.startswith("forged"):
+                own = cameras is not None and not label.startswith("forged")
+                if own:
                     row.update(fidelity(browser, folder, path, args.data, tmp))
                     print(f"{label}: {row['psnr_vs_omg4_render_db']:.1f} dB PSNR against omg4 render", flush=True)
+                if (REPO / "node_modules" / "@sparkjsdev" / "spark").is_dir():
+                    row.update(spark(browser, folder, path, args.data if own else None, width, height, args.seconds,
+                                     tmp))
+                row.update(gltf_slice(path, tmp))
+                print(f"{label}: passes {row['pass_ms']} ms; Spark page "
+                      f"{row.get('spark_fps', float('nan')):.1f} FPS playing, first frame after "
+                      f"{row.get('spark_first_frame_ms', float('nan')):.0f} ms"
+                      + (f", {row['spark_psnr_vs_omg4_render_db']:.1f} dB" if "spark_psnr_vs_omg4_render_db" in row else "")
+                      + f"; glTF slice {row['gltf_bytes']:,} B, validator {row.get('gltf_validator')}", flush=True)
                 print(f"{label}: {row['num_gaussians']:,} Gaussians, {row['file_bytes']:,} B file, "
                       f"{row['bytes_transferred']:,} B transferred, first frame after {row['load_to_first_frame_ms']:.0f} ms, "
                       f"playing {row['fps']:.1f} FPS, orbiting a paused frame {row['orbit_fps']:.1f} FPS at "

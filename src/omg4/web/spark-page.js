@@ -55,6 +55,7 @@ async function main() {
     splats.update(time, camera);
     renderer.render(scene, camera);
     frames += 1;
+    if (frames === 1) window.omg4FirstFrameMs = performance.now();  // since navigation started
     if (frames === 3) {  // Spark sorts on a worker: its first frames may show nothing yet
       window.omg4Settle.resolve({ gaussians: splats.model.numGaussians, camera: preset.name, time });
     }
