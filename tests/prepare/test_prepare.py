@@ -144,3 +144,27 @@ def test_a_calibration_given_no_distortion_maps_without_it(rig, tmp_path):
     calibration = calibrate(frames, tmp_path, distortion=False)
     assert calibration.lens == {"distortion": "dropped"} and len(calibration.cameras) == 6
     assert all(camera.distortion == (0.0, 0.0) for camera in calibration.cameras.values())
+
+
+def test_a_calibration_the_halves_refuse_is_mapped_again_with_the_next_seed(rig, tmp_path, monkeypatch, caplog):
+    """The mapper can settle on a wrong solution from one seed's draws: the refused rig is mapped again, and the
+    record names the seed that held."""
+    import logging
+
+    from omg4.prepare import pipeline
+
+    seeds, agreeing = [], pipeline.rig_disagreement
+
+    def refusing_the_first(cameras, halves):
+        seeds.append(len(seeds))
+        doubt, rows = agreeing(cameras, halves)
+        return ("the halves disagree (planted)" if len(seeds) == 1 else doubt), rows
+
+    monkeypatch.setattr(pipeline, "rig_disagreement", refusing_the_first)
+    raw = tmp_path / "capture"
+    raw_capture(rig, raw, LATE)
+    with caplog.at_level(logging.INFO, logger="omg4.prepare.pipeline"), contextlib.redirect_stdout(io.StringIO()):
+        assert main(["prepare", str(raw), "--out", str(tmp_path / "data")]) == 0
+    record = json.loads((tmp_path / "data" / "calibration.json").read_text())
+    assert seeds == [0, 1] and record["mapper_seed"] == 1
+    assert "the halves disagree (planted); mapping again with the random seed 1" in caplog.text

@@ -86,16 +86,17 @@ class Calibration:
 
 def calibrate(frames: dict[str, list[np.ndarray]], work: str | os.PathLike, *, max_features: int = 8192,
               shared_intrinsics: bool = False, instants: list[int] | None = None, distortion: bool | None = None,
-              threads: int = -1) -> Calibration:
+              threads: int = -1, seed: int = 0) -> Calibration:
     """Calibrate the cameras whose frames at the same instants are ``frames[name]`` (uint8 [H, W, 3] each, equal
     counts), working in the folder ``work`` (created; its contents are the caller's to remove). ``instants``
     selects the instants used (default all). ``distortion``: estimate the lens distortion (True), map without it
-    from the start (False), or choose from the observations (None, :func:`simplest_lens`). Raises a one-line
+    from the start (False), or choose from the observations (None, :func:`simplest_lens`). ``seed``: of every
+    random draw (RANSAC, the mapper's): one capture and seed, one calibration. Raises a one-line
     :class:`OMG4Error` when no two cameras can be reconstructed together.
     """
     import pycolmap
 
-    pycolmap.set_random_seed(0)  # RANSAC draws: one capture, one calibration
+    pycolmap.set_random_seed(seed)
     work = Path(work)
     names = sorted(frames)
     count = len(frames[names[0]])
@@ -126,7 +127,7 @@ def calibrate(frames: dict[str, list[np.ndarray]], work: str | os.PathLike, *, m
     if not matches:
         raise OMG4Error("calibration failed: no two cameras share verified matches (do the views overlap?)")
     rec = _reconstruct(work / f"pooled-{tag}", frames, names, keypoints, matches, shared_intrinsics,
-                       distortion is not False, threads)
+                       distortion is not False, threads, seed)
     if distortion is None:
         rec, lens = simplest_lens(rec, keypoints)
     else:
@@ -180,7 +181,7 @@ def _pooled(database: Path, names: list[str], instants: list[int]
 
 def _reconstruct(folder: Path, frames: dict[str, list[np.ndarray]], names: list[str],
                  keypoints: dict[str, np.ndarray], matches: dict[tuple[str, str], np.ndarray],
-                 shared_intrinsics: bool, distortion: bool, threads: int):
+                 shared_intrinsics: bool, distortion: bool, threads: int, seed: int):
     """One image per camera holding its pooled keypoints, the pooled matches verified and mapped (with the lens
     distortion estimated, or held at zero)."""
     import pycolmap
@@ -218,8 +219,8 @@ def _reconstruct(folder: Path, frames: dict[str, list[np.ndarray]], names: list[
     options.num_threads = threads
     options.ba_refine_extra_params = distortion
     options.mapper.abs_pose_refine_extra_params = distortion
-    options.random_seed = 0
-    options.mapper.random_seed = 0
+    options.random_seed = seed
+    options.mapper.random_seed = seed
     reconstructions = _quiet(pycolmap.incremental_mapping, database, images, folder / "sparse", options=options)
     if not reconstructions:
         raise OMG4Error("calibration failed: pycolmap reconstructed no two cameras together")

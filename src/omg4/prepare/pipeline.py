@@ -72,19 +72,17 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
     frames = {s.stem: [image for _, image in s.frames([k + off for k in chosen])]
               for s, off in zip(_bar(sources, progress, "reading instants"), offsets.frames)}
     with tempfile.TemporaryDirectory(prefix="omg4-prepare-") as work:
-        calibration = calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics)
-        halves = _halves(frames, work, len(chosen), max_features, shared_intrinsics,
-                         calibration.lens["distortion"] == "kept")
-    calibration, checks = check_and_repair(calibration, {s.stem: (s.width, s.height) for s in sources})
-    checks = _reprojection_checks(calibration, checks)
-    kept = [s for s in sources if checks[s.stem].reliable]
-    if len(kept) < max(2, (len(sources) + 1) // 2):
-        worst = next(s for s in sources if not checks[s.stem].reliable)
-        raise OMG4Error(f"the calibration cannot be trusted: {len(kept)} of {len(sources)} cameras hold "
-                        f"({worst.name}: {checks[worst.stem].reason})")
-    doubt, halves = rig_disagreement({s.stem: calibration.cameras[s.stem] for s in kept}, halves)
-    if doubt:
-        raise OMG4Error(f"the calibration cannot be trusted: {doubt}")
+        for seed in MAPPER_SEEDS:
+            try:
+                calibration, checks, kept, halves = _trusted_calibration(frames, work, sources, len(chosen),
+                                                                         max_features, shared_intrinsics, seed)
+                break
+            except UntrustedCalibration as exc:
+                refusal = exc
+                if seed != MAPPER_SEEDS[-1]:
+                    logger.info(f"{exc}; mapping again with the random seed {seed + 1}")
+        else:
+            raise refusal
     test = _test_source(kept, calibration, test_camera)
     order = [test, *[s for s in kept if s is not test]]
     names = {s.stem: f"cam{i:02d}" for i, s in enumerate(order)}
@@ -96,7 +94,7 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
     cameras = {s.stem: _undistorted_camera(calibration.cameras[s.stem], undistorters[s.stem], normalization, s,
                                            names[s.stem]) for s in order}
     record = _record(sources, offsets, length, fps, calibration, checks, names, test, cameras)
-    record["halves"] = halves
+    record.update(halves=halves, mapper_seed=seed)
     with atomic_folder(out) as folder:
         _write_videos(folder, order, offsets, sources, length, fps, undistorters, names, progress)
         _write_geometry(folder, order, cameras, points, colors, names)
@@ -104,6 +102,36 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
         rig_plot(folder / "rig.png", [cameras[s.stem] for s in order], points, colors, names[test.stem])
     record["wall_time_s"] = time.perf_counter() - started
     return record
+
+
+MAPPER_SEEDS = (0, 1, 2)
+"""The random seeds a capture is mapped with, in turn, until a calibration passes the checks: the incremental
+mapper can settle on a solution the evidence does not hold from one seed's draws (the features and matches are
+computed once)."""
+
+
+class UntrustedCalibration(OMG4Error):
+    """A calibration the checks refuse (too few cameras hold, or the halves of the instants disagree with it)."""
+
+
+def _trusted_calibration(frames: dict[str, list[np.ndarray]], work: str, sources: list[Source], count: int,
+                         max_features: int, shared_intrinsics: bool, seed: int):
+    """(calibration, per-camera checks, the sources that hold, the halves' rows) of the rig mapped with ``seed``, or
+    :class:`UntrustedCalibration` saying why it cannot be trusted."""
+    calibration = calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics, seed=seed)
+    halves = _halves(frames, work, count, max_features, shared_intrinsics, calibration.lens["distortion"] == "kept",
+                     seed)
+    calibration, checks = check_and_repair(calibration, {s.stem: (s.width, s.height) for s in sources})
+    checks = _reprojection_checks(calibration, checks)
+    kept = [s for s in sources if checks[s.stem].reliable]
+    if len(kept) < max(2, (len(sources) + 1) // 2):
+        worst = next(s for s in sources if not checks[s.stem].reliable)
+        raise UntrustedCalibration(f"the calibration cannot be trusted: {len(kept)} of {len(sources)} cameras hold "
+                                   f"({worst.name}: {checks[worst.stem].reason})")
+    doubt, halves = rig_disagreement({s.stem: calibration.cameras[s.stem] for s in kept}, halves)
+    if doubt:
+        raise UntrustedCalibration(f"the calibration cannot be trusted: {doubt}")
+    return calibration, checks, kept, halves
 
 
 def _check_target(src: Path, out: Path, force: bool) -> None:
@@ -115,7 +143,7 @@ def _check_target(src: Path, out: Path, force: bool) -> None:
 
 
 def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_features: int,
-            shared_intrinsics: bool, distortion: bool) -> list[dict[str, CalibratedCamera]]:
+            shared_intrinsics: bool, distortion: bool, seed: int) -> list[dict[str, CalibratedCamera]]:
     """The rig calibrated again from the even and from the odd ones of its ``count`` instants (the features and
     matches already in ``work``; the whole rig's lens model, ``distortion``), for
     :func:`~omg4.prepare.check.rig_disagreement`; none when there are fewer than four instants, an empty rig for a
@@ -128,7 +156,7 @@ def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_feat
     for part in (list(range(0, count, 2)), list(range(1, count, 2))):
         try:
             halves.append(calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics,
-                                    instants=part, distortion=distortion).cameras)
+                                    instants=part, distortion=distortion, seed=seed).cameras)
         except OMG4Error:
             halves.append({})
     return halves
