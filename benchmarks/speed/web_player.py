@@ -81,16 +81,27 @@ TRANSFERRED = """[performance.getEntriesByType('navigation'), performance.getEnt
   .reduce((sum, e) => sum + (e.encodedBodySize || 0), 0)"""
 
 
+def opened(browser: Browser, url: str) -> dict:
+    """The page at ``url`` after its first frame (``open_player``'s ``ready``); a page that fails ends the run."""
+    result = open_player(browser, url, timeout=600)
+    if "error" in result:
+        raise SystemExit(f"{url}: the page failed: {result['message']}")
+    return result
+
+
+def frame_rate(browser: Browser, frames: str, seconds: float) -> float:
+    """Frames per second over ``seconds``, from the page's frame counter (the expression ``frames``)."""
+    before = browser.evaluate(frames)
+    time.sleep(seconds)
+    return (browser.evaluate(frames) - before) / seconds
+
+
 def measure(browser: Browser, folder: Path, width: int, height: int, seconds: float) -> dict:
     with served(folder) as url:
-        result = open_player(browser, f"{url}/index.html?ui=0&width={width}&height={height}", timeout=600)
-        if "error" in result:
-            raise SystemExit(f"{folder}: the page failed: {result['message']}")
+        result = opened(browser, f"{url}/index.html?ui=0&width={width}&height={height}")
         ready_ms = browser.evaluate("performance.now()")
         load_ms = browser.evaluate("window.omg4Ready.then(() => window.omg4FirstFrameMs)")
-        frames0 = browser.evaluate("window.omg4Player.frames")
-        time.sleep(seconds)
-        frames1 = browser.evaluate("window.omg4Player.frames")
+        fps = frame_rate(browser, "window.omg4Player.frames", seconds)
         transferred = browser.evaluate(TRANSFERRED)
         browser.evaluate("window.omg4Player.state.playing = false")
         time.sleep(1.0)
@@ -99,7 +110,7 @@ def measure(browser: Browser, folder: Path, width: int, height: int, seconds: fl
         ready = result["ready"]
     return {"num_gaussians": ready["gaussians"], "file_bytes": ready["bytes"], "bytes_transferred": transferred,
             "load_to_first_frame_ms": load_ms, "measured_at_ms": ready_ms, "size": [width, height],
-            "fps": (frames1 - frames0) / seconds, "orbit_ms_per_frame": statistics.median(orbit),
+            "fps": fps, "orbit_ms_per_frame": statistics.median(orbit),
             "orbit_fps": 1000 / statistics.median(orbit), "camera": ready["camera"], "pass_ms": passes}
 
 
@@ -135,14 +146,9 @@ def spark(browser: Browser, folder: Path, model: Path, data: Path | None, width:
     second playing, and with a dataset its PSNR against ``omg4 render`` (mid-clip, the first test camera)."""
     (folder / "node_modules").symlink_to(REPO / "node_modules")
     with served(folder) as url:
-        result = open_player(browser, f"{url}/spark.html?width={width}&height={height}", timeout=600)
-        if "error" in result:
-            raise SystemExit(f"{folder}: the Spark page failed: {result['message']}")
-        first_ms = browser.evaluate("window.omg4FirstFrameMs")
-        frames0 = browser.evaluate("window.omg4Spark.frames")
-        time.sleep(seconds)
-        frames1 = browser.evaluate("window.omg4Spark.frames")
-        row = {"spark_first_frame_ms": first_ms, "spark_fps": (frames1 - frames0) / seconds}
+        opened(browser, f"{url}/spark.html?width={width}&height={height}")
+        row = {"spark_first_frame_ms": browser.evaluate("window.omg4FirstFrameMs"),
+               "spark_fps": frame_rate(browser, "window.omg4Spark.frames", seconds)}
         if data is not None:
             import base64
             import io

@@ -25,7 +25,7 @@ import numpy as np
 from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import CorruptFileError, OMG4Error
-from omg4.io.ply_export import _to_original_world, covariance_to_scale_rotation, slice_in_float64
+from omg4.io.ply_export import covariance_to_scale_rotation, world_slice
 
 EXTENSION = "KHR_gaussian_splatting"
 MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -145,21 +145,14 @@ def read_gltf_splats(path: str | os.PathLike) -> dict[str, np.ndarray | dict]:
         raise CorruptFileError(f"{path}: a splat attribute is missing or points nowhere ({exc})") from None
 
 
-def export_gltf(path: str | os.PathLike, model, timestamp: float, *, normalization: Normalization | None = None,
-                source: str | None = None) -> int:
-    """Write the time slice of ``model`` at ``timestamp`` as a ``.glb`` (``KHR_gaussian_splatting``): the slice of
-    :func:`omg4.io.ply_export.export_ply`, the same arguments; ``source`` (the model's file name) is recorded in
-    ``asset.extras`` with the time. Returns the number of Gaussians written."""
-    if hasattr(model, "segment_at"):
-        model = model.segment_at(timestamp)
-    sl = slice_in_float64(model, timestamp)
-    means, covars, sh = sl.means.numpy(), sl.covars.numpy(), sl.sh.numpy()
-    if normalization is not None:
-        means, covars, sh = _to_original_world(means, covars, sh, normalization)
-    extras = {"time": float(timestamp), "world": "original" if normalization is not None else "normalized",
-              **({"source": source} if source else {})}
-    write_gltf_splats(path, means, covars, sl.opacities.numpy(), sh, extras=extras)
-    return int(sl.index.numel())
+def export_gltf(path: str | os.PathLike, model, timestamp: float, *, normalization: Normalization | None = None) -> int:
+    """Write the time slice of ``model`` at ``timestamp`` as a ``.glb`` (``KHR_gaussian_splatting``): the slice
+    :func:`omg4.io.ply_export.export_ply` writes, the same arguments; the time and world are recorded in
+    ``asset.extras``. Returns the number of Gaussians written."""
+    means, covars, opacities, sh = world_slice(model, timestamp, normalization)
+    extras = {"time": float(timestamp), "world": "original" if normalization is not None else "normalized"}
+    write_gltf_splats(path, means, covars, opacities, sh, extras=extras)
+    return len(means)
 
 
 __all__ = ["EXTENSION", "export_gltf", "read_gltf_splats", "sh_semantic", "write_gltf_splats"]

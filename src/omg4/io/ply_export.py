@@ -141,14 +141,23 @@ def export_ply(path: str | os.PathLike, model, timestamp: float, *, normalizatio
     at τ). With ``normalization`` the output is in the dataset's original world. A sequence of segments writes
     the slice of the segment weighing most at ``timestamp``. Returns the number of Gaussians written.
     """
+    means, covars, opacities, sh = world_slice(model, timestamp, normalization)
+    write_3dgs_ply(path, means, covars, opacities, sh)
+    return len(means)
+
+
+def world_slice(model, timestamp: float, normalization: Normalization | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(means [M, 3], covariances [M, 3, 3], opacities [M], 3D SH [M, K, 3]) of the time slice of ``model`` at
+    ``timestamp`` (:func:`slice_in_float64`; a sequence: its segment weighing most there), float64, in the model's
+    normalized world or, with ``normalization``, the dataset's original one: what every slice export writes."""
     if hasattr(model, "segment_at"):
         model = model.segment_at(timestamp)
     sl = slice_in_float64(model, timestamp)
     means, covars, sh = sl.means.numpy(), sl.covars.numpy(), sl.sh.numpy()
     if normalization is not None:
         means, covars, sh = _to_original_world(means, covars, sh, normalization)
-    write_3dgs_ply(path, means, covars, sl.opacities.numpy(), sh)
-    return int(sl.index.numel())
+    return means, covars, sl.opacities.numpy(), sh
 
 
 def model_in_float64(model) -> tuple[dict[str, torch.Tensor], "torch.nn.Module | None"]:
@@ -186,4 +195,4 @@ def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
 
 
 __all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "write_3dgs_ply",
-           "export_ply", "export_time_slice_ply", "model_in_float64", "slice_in_float64"]
+           "export_ply", "export_time_slice_ply", "model_in_float64", "slice_in_float64", "world_slice"]
