@@ -20,7 +20,7 @@ from omg4.gaussians.backbone import (APPEARANCE_FEATURES, BACKBONES, SH_REST, At
 from omg4.gaussians.covariance import condition_and_cull
 from omg4.gaussians.freetime import covariance_3d
 from omg4.gaussians.initial import neighbour_log_scales, spatial_params
-from omg4.train.optim import keep_rows
+from omg4.optimize.parameters import keep_rows
 from omg4.train.strategy import DensityStrategy
 
 NEVER_FADES = 1e6  # temporal variance: p_t ≈ 1 over any clip

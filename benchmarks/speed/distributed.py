@@ -37,8 +37,8 @@ def worker(args) -> None:
     from omg4.device import resolve_device
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.train.config import TrainConfig
-    from omg4.train.optim import baseline_lrs, make_adam, step_optimizers
-    from omg4.train.step import backward_batch, step_generator
+    from omg4.optimize.parameters import baseline_lrs, make_adam, step_optimizers
+    from omg4.optimize.step import backward_batch, step_generator
 
     world, device = distributed.init(resolve_device(args.device))
     args.format, args.frames, args.cameras = None, None, None

@@ -53,7 +53,7 @@ from omg4.testing.records import save_record
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
-TAUGHT = "the crossfade from the segment before into the video"  # omg4.train.segmented.taught_by
+TAUGHT = "the crossfade from the segment before into the video"  # omg4.optimize.teaching.taught_by
 
 
 def run(args: list[str]) -> dict:

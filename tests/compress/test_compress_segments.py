@@ -51,7 +51,7 @@ def test_each_segment_is_the_file_compress_to_file_writes_for_it(segmented, tmp_
     frames 4 and 5, the crossfade from the renders of segment 0, as decoded from the sequence, into the video."""
     from omg4.codec.payload import decode_payload
     from omg4.models.compact import CompactModel
-    from omg4.train.segmented import taught_by
+    from omg4.optimize.teaching import taught_by
 
     root, plan = segmented
     cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu")

@@ -10,7 +10,7 @@ from omg4.compress.score import SDScores, compute_sd_scores
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.render.view import camera_tensors
 from omg4.render.view import view_image
-from omg4.train.loss import photometric_loss
+from omg4.optimize.loss import photometric_loss
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "render"))
 from dense_reference import dense_rasterize  # noqa: E402

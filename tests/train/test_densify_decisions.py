@@ -15,7 +15,7 @@ import torch
 from omg4.gaussians import GaussianConfig, Gaussians4D, build_rotation_4d
 from omg4.train import densify
 from omg4.train.densify import DensifyStats, densify_and_prune, reset_opacity
-from omg4.train.optim import make_adam
+from omg4.optimize.parameters import make_adam
 
 GRAD_THRESHOLD = 2.0 ** -12  # exactly representable in float32, so "at the threshold" is exact
 EXTENT = 2.0

@@ -6,7 +6,7 @@ import torch
 
 from omg4.gaussians import GaussianConfig, Gaussians4D, build_rotation_3d
 from omg4.train.densify import DensifyStats
-from omg4.train.optim import make_adam
+from omg4.optimize.parameters import make_adam
 from omg4.train.relocate import relocate
 
 

@@ -96,7 +96,7 @@ def test_a_segment_learns_its_shared_frames_as_the_crossfade_from_the_segment_be
 
     from omg4.models import load_model
     from omg4.render.view import render_view
-    from omg4.train.segmented import taught_by
+    from omg4.optimize.teaching import taught_by
 
     plan = segment_plan(plan_segments(12, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
     _run(capture, tmp_path / "run", plan)
@@ -204,7 +204,7 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
 
 
 def test_the_frames_a_segment_shares_with_the_one_before():
-    from omg4.train.segmented import shared_frames
+    from omg4.data.segments import shared_frames
 
     assert shared_frames(None, {"frames": [0, 6]}) is None
     assert shared_frames({"frames": [0, 6]}, {"frames": [4, 10]}) == (4, 6)

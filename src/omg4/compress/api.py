@@ -177,7 +177,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
 
     One segment's scene and models are held at a time, and the segment before's compressed model: with ``teach``
     a segment's training views of the frames it shares with the one before show the crossfade from that model's
-    renders into the video (:func:`omg4.train.segmented.taught_by`), so the two compressed models agree where
+    renders into the video (:func:`omg4.optimize.teaching.taught_by`), so the two compressed models agree where
     playback shows mostly the one before (beyond the paper). Returns the report: per segment the
     :func:`compress_to_file` report, and the file's bytes, duration and bitrate.
     """
@@ -186,10 +186,10 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     from omg4 import distributed
     from omg4.codec.payload import decode_payload, reference_sections
     from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
-    from omg4.data.segments import read_run_plan
+    from omg4.data.segments import read_run_plan, shared_frames
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.models.compact import CompactModel
-    from omg4.train.segmented import shared_frames, taught_by
+    from omg4.optimize.teaching import taught_by
 
     log = log or logger.info
     codec = codec or choice_value("codec", cfg.paper)

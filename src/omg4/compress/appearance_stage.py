@@ -16,9 +16,9 @@ from torch import Tensor
 
 from omg4.errors import OMG4Error
 from omg4.gaussians.appearance import AppearanceMLP
-from omg4.train.config import TrainConfig
+from omg4.optimize.parameters import LEARNING_RATES
 
-FEATURE_LR = TrainConfig.feature_lr  # f_static / f_view in the main Adam (omg4 §9): the backbone table's
+FEATURE_LR = LEARNING_RATES.feature_lr  # f_static / f_view in the main Adam (omg4 §9): the backbone table's
 # "feature_lr", the baseline's base-colour rate
 MLP_LR = 5e-3
 OFFICIAL_ITERATIONS = 7000  # iterations after MLP creation: 34000 → 41000 (omg4 §2)

@@ -8,7 +8,8 @@ codebooks and optimizer states live on ``CompressConfig.device``; random draws c
 generators, and merge clustering and k-means run on the CPU and hand their results back.
 Which attributes each stage merges, replaces or quantizes is the baseline's backbone table
 (:mod:`omg4.gaussians.backbone`); steps and parameter groups go through the layer the
-trainer uses (:mod:`omg4.train.step`, :mod:`omg4.train.optim`). Each stage's work is its own module; this one
+trainer uses (:mod:`omg4.optimize.step`, :mod:`omg4.optimize.parameters`). Each stage's work is its own module;
+this one
 holds the order of events and the state they share (model, optimizers, scores), which is why it is about 400
 lines.
 """
@@ -44,12 +45,12 @@ from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
 from omg4.metrics import psnr
 from omg4.models.compact import payload_values
+from omg4.optimize.parameters import (LEARNING_RATES, baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param,
+                                      set_position_lr, step_optimizers)
+from omg4.optimize.step import backward_batch, step_generator
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_views, view_image, views_by_size
 from omg4.settings import knob
-from omg4.train.optim import (baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param, set_position_lr,
-                              step_optimizers)
-from omg4.train.step import backward_batch, step_generator
 
 logger = logging.getLogger(__name__)
 
@@ -471,7 +472,5 @@ class CompressionPipeline:
 
 def baseline_lrs_for(params: dict[str, torch.Tensor], extent: float, schema: Backbone) -> dict[str, float]:
     """Learning rates of the per-Gaussian tensors (omg4 §9), in ``params``' order."""
-    from omg4.train.config import TrainConfig
-
-    lrs = baseline_lrs(TrainConfig(), extent, schema)
+    lrs = baseline_lrs(LEARNING_RATES, extent, schema)
     return {k: lrs[k] for k in params}

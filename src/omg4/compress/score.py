@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from omg4.data.scene import View
 from omg4.gaussians.covariance import temporal_marginal
-from omg4.train.step import view_losses
+from omg4.optimize.step import view_losses
 
 
 @dataclass

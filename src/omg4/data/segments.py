@@ -93,6 +93,14 @@ def near_boundary(time: float, ranges: list[tuple[float, float]], fps: float) ->
     return False
 
 
+def shared_frames(before: dict | None, seg: dict) -> tuple[int, int] | None:
+    """The frames ``[start, stop)`` that the plan's segment ``seg`` shares with ``before`` (the plan's entry of the
+    segment before it, None for the first), or None when they share none."""
+    if before is None or before["frames"][1] <= seg["frames"][0]:
+        return None
+    return seg["frames"][0], before["frames"][1]
+
+
 def segment_folder(index: int) -> str:
     """A segment's run folder inside a segmented run: ``segment_000``, ``segment_001``, …"""
     return f"segment_{index:03d}"
@@ -120,5 +128,5 @@ def read_run_plan(run_dir: Path) -> dict:
     return plan
 
 
-__all__ = ["PLAN_FILE", "Segment", "plan_segments", "crossfade_weight", "blend_weights", "near_boundary",
+__all__ = ["PLAN_FILE", "Segment", "plan_segments", "crossfade_weight", "blend_weights", "near_boundary", "shared_frames",
            "segment_folder", "is_segmented_run", "read_run_plan"]

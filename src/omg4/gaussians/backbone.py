@@ -44,7 +44,7 @@ class Attribute:
         name: key in a model's ``params``.
         shape: per-Gaussian shape (:data:`SH_REST` stands for K − 1).
         activation: ``none``, ``exp``, ``sigmoid`` or ``quaternion`` (normalized at use).
-        lr: the :class:`omg4.train.config.TrainConfig` field holding its learning rate.
+        lr: the :class:`omg4.optimize.parameters.LearningRates` field (and training knob) holding its learning rate.
         extent_lr: the learning rate is multiplied by the scene extent.
         merge_logit: name of its merge-proxy logit vector when Gaussian Merging averages it (§4.3).
         by_mlp: replaced by the appearance MLPs at attribute compression (§4.4).

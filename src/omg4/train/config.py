@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
+from omg4.optimize.parameters import LEARNING_RATES as LR
 from omg4.settings import knob
 
 
@@ -28,15 +29,16 @@ class TrainConfig:
     batch_size: int = knob(4, "views per step")
     seed: int = knob(6666, "random seed of every draw (initial points, batches, densification)")
     # learning rates (rt4dgs §3.3); position ones are multiplied by the scene extent
-    position_lr_init: float = knob(1.6e-4, "position learning rate at the start (× scene extent)")
-    position_lr_final: float = knob(1.6e-6, "position learning rate at position_lr_max_steps (× scene extent)")
+    position_lr_init: float = knob(LR.position_lr_init, "position learning rate at the start (× scene extent)")
+    position_lr_final: float = knob(LR.position_lr_final, "position learning rate at position_lr_max_steps (× scene "
+                                                          "extent)")
     position_lr_max_steps: int = knob(30_000, "steps of the log-linear position decay")
-    time_lr: float = knob(1.6e-4, "time-centre learning rate (× scene extent)")
-    feature_lr: float = knob(0.0025, "learning rate of the SH DC term (and of the OMG4 appearance features)")
-    feature_rest_lr: float = knob(0.0025 / 20, "learning rate of the other SH coefficients")
-    opacity_lr: float = knob(0.05, "opacity learning rate")
-    scaling_lr: float = knob(0.005, "learning rate of the log scales (spatial and temporal)")
-    rotation_lr: float = knob(0.001, "quaternion learning rate")
+    time_lr: float = knob(LR.time_lr, "time-centre learning rate (× scene extent)")
+    feature_lr: float = knob(LR.feature_lr, "learning rate of the SH DC term (and of the OMG4 appearance features)")
+    feature_rest_lr: float = knob(LR.feature_rest_lr, "learning rate of the other SH coefficients")
+    opacity_lr: float = knob(LR.opacity_lr, "opacity learning rate")
+    scaling_lr: float = knob(LR.scaling_lr, "learning rate of the log scales (spatial and temporal)")
+    rotation_lr: float = knob(LR.rotation_lr, "quaternion learning rate")
     lambda_dssim: float = knob(0.2, "weight of the D-SSIM term in the loss (rt4dgs §3.2)")
     # density control (rt4dgs §3.4; FreeTimeGS relocation uses the same schedule)
     densify_from: int = knob(500, "first density event after this step")
@@ -55,8 +57,8 @@ class TrainConfig:
     checkpoint_interval: int = knob(1000, "a resumable checkpoint every N steps (0: only at the end)")
     background: tuple[float, float, float] = knob((0.0, 0.0, 0.0), "background colour, RGB in [0, 1]")
     backbone: str = knob("rt4dgs", "the representation (omg4.gaussians.backbone.BACKBONES)")
-    velocity_lr: float = knob(1.6e-3, "FreeTimeGS velocity learning rate (× extent)")
-    duration_lr: float = knob(0.05, "FreeTimeGS log-duration learning rate")
+    velocity_lr: float = knob(LR.velocity_lr, "FreeTimeGS velocity learning rate (× extent)")
+    duration_lr: float = knob(LR.duration_lr, "FreeTimeGS log-duration learning rate")
     lambda_reg: float = knob(0.01, "FreeTimeGS 4D regularization weight (FreeTimeGS §3.3)")
     relocate_opacity: float = knob(0.05, "FreeTimeGS: Gaussians below this opacity are relocated")
     backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")

@@ -17,8 +17,8 @@ import torch
 from omg4 import distributed
 from omg4.gaussians import build_rotation_4d
 from omg4.gaussians.backbone import activated_scales
-from omg4.train.optim import append_rows, keep_rows, replace_param
-from omg4.train.step import step_generator
+from omg4.optimize.parameters import append_rows, keep_rows, replace_param
+from omg4.optimize.step import step_generator
 from omg4.train.strategy import DEFAULTS, ScheduledEvents
 
 

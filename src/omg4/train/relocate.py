@@ -26,9 +26,9 @@ import torch
 
 from omg4 import distributed
 from omg4.gaussians.freetime import opacity_regularizer, scaled_rotation_3d
+from omg4.optimize.parameters import overwrite_rows
+from omg4.optimize.step import step_generator
 from omg4.train.densify import DensifyStats
-from omg4.train.optim import overwrite_rows
-from omg4.train.step import step_generator
 from omg4.train.strategy import DEFAULTS, ScheduledEvents
 
 LAMBDA_GRAD = 0.5

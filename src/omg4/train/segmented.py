@@ -10,7 +10,7 @@ on their own (``parallel="segments"``: rank r takes segments r, r + W, …).
 Neighbours agree where they are blended (beyond the paper): a segment starts from the Gaussians of the one
 before that can be drawn in its time range (:func:`warm_start`), so the two render the same shared frames at its
 first step, and it learns those frames as the crossfade from that segment's renders into the video
-(:func:`taught_by`), so the blend of the two models moves from one to the other without a jump. Such a segment
+(:func:`omg4.optimize.teaching.taught_by`), so the blend of the two models moves from one to the other without a jump. Such a segment
 holds at most as many Gaussians as the first one (:func:`segment_budget`), so memory stays flat however long the
 capture. ``teach=False``, and ``parallel="segments"``, where the segment before may not be trained yet, start every
 segment afresh and learn every frame from the video.
@@ -30,8 +30,9 @@ import torch
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import Scene
-from omg4.data.segments import PLAN_FILE, Segment, segment_folder
+from omg4.data.segments import PLAN_FILE, Segment, segment_folder, shared_frames
 from omg4.errors import OMG4Error
+from omg4.optimize.teaching import taught_by
 from omg4.train.config import TrainConfig
 from omg4.train.run_state import latest_iteration
 
@@ -85,51 +86,6 @@ def write_plan(run_dir: Path, plan: dict) -> None:
     if distributed.world().main:
         Path(run_dir).mkdir(parents=True, exist_ok=True)
         write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
-
-
-def shared_frames(before: dict | None, seg: dict) -> tuple[int, int] | None:
-    """The frames ``[start, stop)`` that the plan's segment ``seg`` shares with ``before`` (the plan's entry of the
-    segment before it, None for the first), or None when they share none."""
-    if before is None or before["frames"][1] <= seg["frames"][0]:
-        return None
-    return seg["frames"][0], before["frames"][1]
-
-
-def taught_by(scene: Scene, teacher, frames: tuple[int, int], *,
-              background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto",
-              device: str | torch.device = "cpu") -> Scene:
-    """``scene`` whose training views of the frames ``[start, stop)`` it shares with the segment before show the
-    crossfade of ``teacher``'s render (that segment's, on ``background``, rendered once, when first asked for) into
-    the video, at the weights playback blends the two segments with (:func:`~omg4.data.segments.crossfade_weight`):
-    the segment learns to agree with the one before where playback shows mostly that one, and the video where it
-    shows mostly itself, so the blend moves from one to the other without a jump. Test views keep the video."""
-    import dataclasses
-
-    from omg4.data.segments import crossfade_weight
-    from omg4.device import resolve_device
-    from omg4.render.view import render_view
-
-    device = resolve_device(device)
-    background = torch.tensor(background, dtype=torch.float32, device=device)
-    start, stop = frames
-
-    def target(view):
-        cache = {}
-        weight = crossfade_weight(view.frame_index, start, stop)
-
-        def image():
-            if "image" not in cache:
-                with torch.no_grad():
-                    rendered = render_view(teacher, view.camera, view.timestamp, background=background,
-                                           backend=backend, device=device)[0]
-                taught = rendered.image.clamp(0.0, 1.0).cpu().numpy()
-                cache["image"] = ((1.0 - weight) * taught + weight * view.image()).astype(np.float32)
-            return cache["image"]
-        return image
-
-    train = [dataclasses.replace(v, loader=target(v)) if start <= v.frame_index < stop else v
-             for v in scene.train_views]
-    return dataclasses.replace(scene, train_views=train)
 
 
 def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
@@ -219,5 +175,5 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
              **describe_checkpoint(Path(run_dir) / seg["folder"] / "model.safetensors")} for seg in plan["segments"]]
 
 
-__all__ = ["PARALLEL_MODES", "default_overlap", "plan_capture", "segment_plan", "write_plan", "shared_frames",
-           "taught_by", "warm_start", "segment_budget", "train_segments"]
+__all__ = ["PARALLEL_MODES", "default_overlap", "plan_capture", "segment_plan", "write_plan", "warm_start",
+           "segment_budget", "train_segments"]

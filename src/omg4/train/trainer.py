@@ -35,13 +35,13 @@ from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.backbone import backbone_named
 from omg4.gaussians.checkpoint import save_gaussians
 from omg4.metrics import psnr
+from omg4.optimize.parameters import baseline_lrs, make_adam, set_position_lr, step_optimizers
+from omg4.optimize.step import backward_batch, step_generator
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
 from omg4.train.densify import DensifyStats
-from omg4.train.optim import baseline_lrs, make_adam, set_position_lr, step_optimizers
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
-from omg4.train.step import backward_batch, step_generator
 from omg4.train.strategies import strategy_for
 
 logger = logging.getLogger(__name__)

@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from omg4.train.optim import append_rows, expon_lr, keep_rows, make_adam, replace_param
+from omg4.optimize.parameters import append_rows, expon_lr, keep_rows, make_adam, replace_param
 
 
 def _setup():

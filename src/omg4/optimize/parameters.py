@@ -1,20 +1,41 @@
-"""Per-parameter Adam groups, learning-rate schedules and optimizer-state surgery.
+"""Per-parameter Adam groups, their learning rates and schedules, and optimizer-state surgery.
 
-Real-Time4DGS (rt4dgs §3.3) gives every tensor its own Adam group (eps 1e-15);
-the position learning rate decays log-linearly, the others are constant. Densification and
-the OMG4 stages add and remove Gaussians: :func:`keep_rows` and :func:`append_rows` edit the
-parameter tensors *and* their Adam moments together so no stage reaches into another's
-state.
+Real-Time4DGS (rt4dgs §3.3) gives every tensor its own Adam group (eps 1e-15); the position learning rate decays
+log-linearly, the others are constant (:class:`LearningRates`, the defaults of training's knobs and compression's
+rates). Densification and the OMG4 stages add and remove Gaussians: :func:`keep_rows` and :func:`append_rows` edit
+the parameter tensors *and* their Adam moments together so no stage reaches into another's state.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
 from omg4.gaussians.backbone import APPEARANCE_FEATURES, Backbone
-from omg4.train.config import TrainConfig
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """The learning rates of the per-Gaussian parameters (rt4dgs §3.3; FreeTimeGS's velocity and duration), named as
+    the backbone table's attributes name them (:attr:`omg4.gaussians.backbone.Attribute.lr`); those marked
+    ``extent_lr`` are multiplied by the scene extent. Training's knobs (:class:`omg4.train.config.TrainConfig`) take
+    them as defaults; compression fine-tunes with them."""
+
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    time_lr: float = 1.6e-4
+    feature_lr: float = 0.0025
+    feature_rest_lr: float = 0.0025 / 20
+    opacity_lr: float = 0.05
+    scaling_lr: float = 0.005
+    rotation_lr: float = 0.001
+    velocity_lr: float = 1.6e-3
+    duration_lr: float = 0.05
+
+
+LEARNING_RATES = LearningRates()
 
 
 def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
@@ -25,11 +46,12 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> floa
     return math.exp(math.log(lr_init) * (1 - u) + math.log(lr_final) * u)
 
 
-def baseline_lrs(cfg: TrainConfig, extent: float, schema: Backbone) -> dict[str, float]:
+def baseline_lrs(rates, extent: float, schema: Backbone) -> dict[str, float]:
     """Initial learning rate of each per-Gaussian parameter group (rt4dgs §3.3; the appearance features of
-    paper §4.4 included), from the backbone's table: ``cfg``'s field named by each attribute, times
-    ``extent`` for positions, times and velocities."""
-    return {a.name: getattr(cfg, a.lr) * (extent if a.extent_lr else 1.0)
+    paper §4.4 included), from the backbone's table: the field of ``rates`` (:class:`LearningRates`, or a training
+    config holding the same fields) named by each attribute, times ``extent`` for positions, times and
+    velocities."""
+    return {a.name: getattr(rates, a.lr) * (extent if a.extent_lr else 1.0)
             for a in (*schema.attributes, *APPEARANCE_FEATURES)}
 
 

@@ -1,4 +1,4 @@
-"""One optimization step's loss in a distributed job: this rank's share of the global batch (omg4.train.step)."""
+"""One optimization step's loss in a distributed job: this rank's share of the global batch (omg4.optimize.step)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 
 from omg4 import distributed
 from omg4.train import make_config
-from omg4.train.step import backward_batch
+from omg4.optimize.step import backward_batch
 from omg4.train.trainer import initial_model
 
 
@@ -20,7 +20,7 @@ def test_a_rank_back_propagates_its_share_of_the_batch_loss_and_regularizer(tiny
     weight = torch.ones((), requires_grad=True)
     batch = torch.tensor([0, 3, 5, 7])
     rendered_views = []
-    import omg4.train.step as step_module
+    import omg4.optimize.step as step_module
 
     original = step_module.view_losses
 
@@ -39,7 +39,7 @@ def test_a_rank_back_propagates_its_share_of_the_batch_loss_and_regularizer(tiny
     assert float(weight.grad) == 3.0 * 2 / 4
     from omg4.render.view import view_image
     from omg4.render.view import render_view
-    from omg4.train.loss import photometric_losses  # the same losses, computed alone
+    from omg4.optimize.loss import photometric_losses  # the same losses, computed alone
 
     with torch.no_grad():
         own = [photometric_losses(render_view(model, views[i].camera, views[i].timestamp, backend="cpu")[0].image[None],
@@ -52,7 +52,7 @@ def test_one_process_adds_the_whole_regularizer_to_the_batch_loss(tiny_scene):
     gradient reaches its inputs at full weight."""
     from omg4.render.view import view_image
     from omg4.render.view import render_view
-    from omg4.train.loss import photometric_losses
+    from omg4.optimize.loss import photometric_losses
 
     model = initial_model(tiny_scene, make_config("cpu-small", num_random_points=200, max_gaussians=200))
     for p in model.params.values():

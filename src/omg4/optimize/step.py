@@ -2,7 +2,7 @@
 
 The baseline trainer (:mod:`omg4.train.trainer`) and the OMG4 fine-tuning
 (:mod:`omg4.compress.pipeline`) take their steps through these, and their parameter groups
-through :mod:`omg4.train.optim`, so both optimize the same loss (rt4dgs §3.2; paper §5.1)
+through :mod:`omg4.optimize.parameters`, so both optimize the same loss (rt4dgs §3.2; paper §5.1)
 the same way.
 """
 
@@ -15,7 +15,7 @@ from omg4.data.scene import View
 from omg4.errors import OMG4Error
 from omg4.render.view import view_image
 from omg4.render.view import render_views, views_by_size
-from omg4.train.loss import photometric_losses
+from omg4.optimize.loss import photometric_losses
 
 
 def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
