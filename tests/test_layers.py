@@ -41,11 +41,6 @@ FLOORS: dict[str, tuple[str, ...] | None] = {
 }
 """Package (or module, more specific) → the packages and modules it may import besides its own package."""
 
-DEPRECATED_ALIASES: dict[str, tuple[str, ...]] = {"codec.sequence": ("models.sequence",)}
-"""Module → the modules its public names moved to; only its module-level ``__getattr__`` (a deprecation alias that
-warns on use) may import them."""
-
-
 def imports(source: str) -> list[str]:
     """The ``omg4`` modules a module's source imports, anywhere in it, without the ``omg4.`` prefix
     (``from omg4.a import b`` counts as ``a.b`` where ``b`` is a module, else as ``a``)."""
@@ -79,21 +74,13 @@ def rule(module: str) -> tuple[str, tuple[str, ...] | None]:
     return key, FLOORS[key]
 
 
-def alias_imports(source: str) -> list[str]:
-    """The imports inside the module-level ``def __getattr__`` of a module's source."""
-    return [name for node in ast.parse(source).body if isinstance(node, ast.FunctionDef) and node.name == "__getattr__"
-            for name in imports(ast.unparse(node))]
-
-
 def climbs(module: str, source: str) -> list[str]:
-    """The imports of ``module`` that its row (or, in its ``__getattr__``, its deprecation aliases) does not allow."""
+    """The imports of ``module`` that its row does not allow."""
     _, allowed = rule(module)
     if allowed is ANYTHING:
         return []
     own = module.split(".")[0]
-    aliased = set(alias_imports(source)) & set(DEPRECATED_ALIASES.get(module, ()))
-    return [name for name in imports(source)
-            if not _within(name, own) and not any(_within(name, a) for a in allowed) and name not in aliased]
+    return [name for name in imports(source) if not _within(name, own) and not any(_within(name, a) for a in allowed)]
 
 
 def modules() -> dict[str, Path]:
@@ -114,12 +101,76 @@ def test_a_climb_is_caught_lazy_or_not():
     assert climbs("gaussians.model", lazy) == ["compress.pipeline"]
     assert climbs("codec.payload", "import omg4.gaussians.model\n") == ["gaussians.model"]
     assert climbs("codec.sequence", "from omg4.models import sequence\n") == ["models.sequence"]  # bytes only
-    alias = "def __getattr__(name):\n    from omg4.models import sequence\n    return getattr(sequence, name)\n"
-    assert climbs("codec.sequence", alias) == []  # a deprecation alias may point where the names went
-    assert climbs("codec.payload", alias) == ["models.sequence"]  # only where the table says so
     assert climbs("models.compact", "from omg4.gaussians import model\n") == []  # its row allows the decoder's parts
     assert climbs("data.scene", "from omg4 import io\n") == ["io"]
     assert climbs("data.synthetic.writer", "from omg4.io.video import write_video\n") == []
     assert climbs("app.commands.train", "from omg4.compress import api\n") == []
     assert climbs("app.report", "from omg4.compress import api\n") == ["compress.api"]  # a stricter row in the app
     assert rule("data.synthetic.writer")[0] == "data.synthetic.writer" and rule("codec.payload")[0] == "codec"
+
+
+def import_graph(sources: dict[str, str]) -> dict[str, set[str]]:
+    """Module → the modules of ``sources`` it imports (lazy, ``TYPE_CHECKING`` and package-level imports alike: a
+    package's import counts as its ``__init__``'s), itself left out."""
+    def known(name: str) -> str | None:
+        while name and name not in sources:
+            name = name.rsplit(".", 1)[0] if "." in name else ""
+        return name or None
+
+    return {m: {t for t in map(known, imports(src)) if t and t != m} for m, src in sources.items()}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (Tarjan's algorithm, iterative)."""
+    index, low, on_stack, stack, found, counter = {}, {}, set(), [], [], [0]
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter[0]
+                    counter[0] += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                group = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    group.append(member)
+                    if member == node:
+                        break
+                if len(group) > 1:
+                    found.append(sorted(group))
+    return found
+
+
+def test_no_module_imports_itself_back():
+    sources = {m: p.read_text() for m, p in modules().items()}
+    assert cycles(import_graph(sources)) == []
+
+
+def test_a_cycle_is_caught_lazy_or_hidden():
+    sources = {"codec.carry": "if TYPE_CHECKING:\n    from omg4.codec.payload import CompressedPayload\n",
+               "codec.payload": "from omg4.codec import carry\n", "codec.types": ""}
+    assert cycles(import_graph(sources)) == [["codec.carry", "codec.payload"]]
+    sources["codec.carry"] = "def f():\n    from omg4.codec.types import CompressedPayload\n"
+    assert cycles(import_graph(sources)) == []
+    package = {"render": "from omg4.render.view import render_view\n",
+               "render.view": "def f():\n    from omg4.render import rasterize\n"}
+    assert cycles(import_graph(package)) == [["render", "render.view"]]

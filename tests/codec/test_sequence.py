@@ -210,15 +210,6 @@ def test_showing_a_segment_decodes_the_next_one_ahead_and_only_that(tmp_path):
     assert loads == [0, 1, 3]  # segment 3 on demand; nothing after the last
 
 
-def test_the_old_home_of_the_sequence_model_still_answers_with_a_warning():
-    with pytest.warns(DeprecationWarning, match="moved to omg4.models.load_sequence"):
-        assert sequence.load_sequence is load_sequence
-    with pytest.warns(DeprecationWarning, match="moved to omg4.models.SequenceModel"):
-        assert sequence.SequenceModel is SequenceModel
-    with pytest.raises(AttributeError):
-        sequence.no_such_name
-
-
 # ---------------------------------------------------------------- predicted segments
 
 

@@ -14,15 +14,12 @@ decoder puts the carried rows first, in the reference's order, then the segment'
 from __future__ import annotations
 
 import itertools
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from omg4.codec.entropy import decode_indices, encode_indices
+from omg4.codec.types import REFERENCE, CompressedPayload, QuantizedAttribute
 from omg4.errors import CorruptFileError
-
-if TYPE_CHECKING:
-    from omg4.codec.payload import CompressedPayload
 
 SECTION = "carry"
 """The section that names the carried Gaussians."""
@@ -88,8 +85,6 @@ def carried_gaussians(reference: dict[str, np.ndarray] | None, rows: np.ndarray 
     """The reference segment's decoded Gaussians ``rows`` (default all) as a payload of their positions, time centres
     and attributes — each non-rotation attribute indexing the reference's codebooks, each rotation one quaternion per
     Gaussian — with no MLPs (one-line CorruptFileError where the reference lacks them)."""
-    from omg4.codec.payload import CompressedPayload, QuantizedAttribute
-
     count = reference_count(reference)
     rows = np.arange(count) if rows is None else rows
     attributes, rotations = {}, []
@@ -113,8 +108,6 @@ def with_carried(own: CompressedPayload, header: dict, data: bytes, reference: d
     """A predicted segment's Gaussians: the reference's carried ones (:func:`carried_gaussians`), as they decoded
     there, then its own ``own`` (decoded from the sections of ``header``); rotations become one quaternion per Gaussian.
     ``data``: the ``carry`` section."""
-    from omg4.codec.payload import REFERENCE, CompressedPayload, QuantizedAttribute
-
     rows = decode_mask(data, header["encodings"][SECTION], reference_count(reference), header["carried"])
     carried = carried_gaussians(reference, rows)
     n = rows.size + own.num_gaussians

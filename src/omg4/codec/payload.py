@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from dataclasses import astuple, dataclass, field
+from dataclasses import astuple, dataclass
 
 import numpy as np
 
@@ -55,12 +55,12 @@ from omg4.codec.container import PREDICTED_VERSION, SEQUENCE_VERSION, read_versi
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices
 from omg4.codec.rig import check_rig
 from omg4.codec.sections import decode_f16, decode_xyz_morton
+from omg4.codec.types import REFERENCE, CompressedPayload, QuantizedAttribute
 from omg4.errors import CorruptFileError, OMG4Error
 
 KIND = "omg4-compressed-model"
 #: the encoding of a section a predicted segment takes from its reference segment: no bytes, the reference's decoded
 #: array (:func:`reference_sections`; docs/file-format.md §8a)
-REFERENCE = "reference"
 #: the built-in payload codecs, the default first (module docstring; every known one: :data:`omg4.codec.coders.CODERS`)
 CODECS = tuple(CODERS)
 MAX_GAUSSIANS = 1 << 27
@@ -155,67 +155,6 @@ class CompactGrids:
 
 
 _GRID_LENGTHS = (3, 5, 6, 7)  # how many CompactGrids fields a grid string may give
-
-
-@dataclass
-class QuantizedAttribute:
-    """One sub-vector-quantized attribute (paper §4.4; omg4 §7).
-
-    ``codebooks[j]: [K_j, s_j]`` (fp16) holds the centroids of sub-vector slot j and
-    ``indices[j]: [N]`` (int) picks a row per Gaussian; the attribute is the concatenation
-    of ``codebooks[j][indices[j]]`` over slots, ``[N, Σ s_j]``.
-    """
-
-    codebooks: list[np.ndarray]
-    indices: list[np.ndarray]
-
-    def reconstruct(self) -> np.ndarray:
-        """The quantized attribute values, float32 ``[N, D]``."""
-        return np.concatenate([cb.astype(np.float32)[ix] for cb, ix in zip(self.codebooks, self.indices)], axis=1)
-
-
-@dataclass
-class CompressedPayload:
-    """Everything an ``.omg4`` file stores (omg4 §8).
-
-    xyz: [N, 3] positions; t: [N] time centres; attributes: SVQ attribute name (scale,
-    rotation, app, scale_t, rotation_r) → :class:`QuantizedAttribute`; mlp: weight name →
-    array (any shape); meta: JSON-able settings; rotations: the attributes that are one rotation
-    quaternion each, normalized at use (the backbone's ``quaternion_groups``; the "compact" codec
-    may store them as unit quaternions). Floats are stored in fp16. carried: for a predicted segment about to be
-    written, the rows of the reference segment's decoded Gaussians it also holds as they are (:mod:`omg4.codec.carry`;
-    the arrays then hold only its own Gaussians); a decoded payload holds them in its arrays and carried is None.
-    """
-
-    xyz: np.ndarray
-    t: np.ndarray
-    attributes: dict[str, QuantizedAttribute] = field(default_factory=dict)
-    mlp: dict[str, np.ndarray] = field(default_factory=dict)
-    meta: dict = field(default_factory=dict)
-    rotations: tuple[str, ...] = ()
-    log_scaled: tuple[str, ...] = ()
-    carried: np.ndarray | None = None
-
-    @property
-    def num_gaussians(self) -> int:
-        return int(self.xyz.shape[0])
-
-    def permuted(self, order: np.ndarray) -> "CompressedPayload":
-        """The same payload with Gaussians reordered: row i of the result is row ``order[i]``."""
-        attrs = {a: QuantizedAttribute(list(q.codebooks), [ix[order] for ix in q.indices])
-                 for a, q in self.attributes.items()}
-        return CompressedPayload(self.xyz[order], self.t[order], attrs, dict(self.mlp), dict(self.meta), self.rotations,
-                                 self.log_scaled, self.carried)
-
-    def to_fp16(self) -> "CompressedPayload":
-        """What a decoder returns: floats rounded to fp16 (float16 arrays), indices as int64."""
-        attrs = {a: QuantizedAttribute([np.asarray(cb, np.float16) for cb in q.codebooks],
-                                       [np.asarray(ix).astype(np.int64) for ix in q.indices])
-                 for a, q in self.attributes.items()}
-        return CompressedPayload(np.asarray(self.xyz, np.float16).reshape(-1, 3),
-                                 np.asarray(self.t, np.float16).reshape(-1), attrs,
-                                 {k: np.asarray(v, np.float16) for k, v in self.mlp.items()}, dict(self.meta),
-                                 tuple(self.rotations), tuple(self.log_scaled), self.carried)
 
 
 # ------------------------------------------------------------------------ encoding

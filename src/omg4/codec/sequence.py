@@ -252,15 +252,3 @@ def read_sequence(path: str | os.PathLike) -> tuple[SequenceIndex, list[bytes]]:
 __all__ = ["SEQUENCE_VERSION", "MAX_SEGMENTS", "MAX_KEY_INTERVAL", "DEFAULT_KEY_INTERVAL", "SegmentDecoder", "SegmentEntry", "SequenceIndex", "write_sequence",
            "is_sequence", "read_index", "read_segment", "read_sequence"]
 
-
-def __getattr__(name: str):
-    """Deprecated aliases: :class:`~omg4.models.sequence.SequenceModel` and :func:`~omg4.models.sequence.load_sequence`
-    render, so they moved to :mod:`omg4.models` (this module keeps to the file's bytes)."""
-    if name in ("SequenceModel", "load_sequence"):
-        import warnings
-
-        warnings.warn(f"omg4.codec.sequence.{name} moved to omg4.models.{name}", DeprecationWarning, stacklevel=2)
-        from omg4.models import sequence
-
-        return getattr(sequence, name)
-    raise AttributeError(f"module 'omg4.codec.sequence' has no attribute '{name}'")

@@ -19,6 +19,9 @@ import torch
 from omg4.data.scene import Camera, View
 from omg4.device import to_device
 from omg4.errors import OMG4Error
+from omg4.kernels import kernel_mode
+from omg4.render.api import rasterize, rasterize_views, resolve_backend
+from omg4.render.arrays import rasterize_arrays
 from omg4.render.rendered import Rendered
 
 
@@ -94,8 +97,6 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
                              device=device, **raster_kwargs)
     if _fused_frame(model, backend, device, background):
         return _render_arrays(model, [camera], [timestamp], background, batch=False, **raster_kwargs)
-    from omg4.render import rasterize
-
     viewmat, K, center = camera_tensors(camera, device)
     sl = model.slice_at(timestamp, center)
     rendered = rasterize(sl.means, sl.covars, sl.colors, sl.opacities, viewmat, K, camera.width, camera.height,
@@ -128,8 +129,6 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
     Raises:
         ValueError: the cameras differ in image size.
     """
-    from omg4.render.api import rasterize_views
-
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
@@ -149,9 +148,6 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
 def _fused_frame(model, backend: str, device, background) -> bool:
     """Whether ``model``'s frames run as the fused CPU kernels on arrays (a render-only model's ``frame_kernel``, the
     cpu rasterizer, the fused kernels in use, :mod:`omg4.kernels`; no gradient asked of the background)."""
-    from omg4.kernels import kernel_mode
-    from omg4.render.api import resolve_backend
-
     return (getattr(model, "frame_kernel", None) is not None and kernel_mode() == "fused"
             and not (background is not None and background.requires_grad)
             and resolve_backend(backend, torch.device(device)) == "cpu")
@@ -161,8 +157,6 @@ def _render_arrays(model, cameras: list[Camera], timestamps: list[float], backgr
                    **raster_kwargs):
     """:func:`render_views` (``batch``: images with a leading view axis) or :func:`render_view` of a model with a
     ``frame_kernel``: its slice and the rasterizer on numpy arrays, no torch operation (the results wrap them)."""
-    from omg4.render.arrays import rasterize_arrays
-
     kernel = model.frame_kernel
 
     def stacked(name: str) -> np.ndarray:  # float32 first, as camera_tensors gives them to the torch forms
