@@ -15,8 +15,11 @@ from omg4.testing.browser import open_player, served
 from PIL import Image
 
 from omg4.app.cli import main
+from omg4.codec import coders
+from omg4.codec.coders import Coder
 from omg4.codec.container import read_container
-from omg4.codec.payload import CompactGrids, decode_payload, reference_sections
+from omg4.codec.payload import CompactGrids, decode_payload, encode_payload, reference_sections
+from omg4.codec.sections import encode_f16
 from omg4.errors import CorruptFileError
 from omg4.io.web_player import MANIFEST, export_web
 from omg4.metrics import psnr
@@ -323,3 +326,42 @@ def test_a_page_opened_from_disk_says_how_to_open_it(chromium, tmp_path):
             break
         time.sleep(0.05)
     assert message and "http.server" in message and "http://localhost:8000" in message
+
+
+class _PlainCoder(Coder):
+    """A codec declared here alone: every float as raw fp16 in the Gaussians' own order, indices ANS-coded."""
+
+    name = "plain-web"
+    order = "original"
+    index_encodings = ("ans",)
+    morton_positions = False
+
+    def float_section(self, values):
+        return "f16", encode_f16(values, "f16")
+
+    def arrange(self, q, precision):
+        return q
+
+    def positions(self, q, precision):
+        return self.float_section(q.xyz)
+
+
+def test_a_codec_registered_in_python_is_read_by_the_browser_as_by_python(chromium, tmp_path, monkeypatch):
+    """The codecs' table goes to the browser with the player (codecs.js, written at export), so a coder added with
+    register_coder from encodings the browser decodes plays without a line of JavaScript."""
+    monkeypatch.setattr(coders, "CODERS", dict(coders.CODERS))
+    monkeypatch.setattr("omg4.codec.payload.CODERS", coders.CODERS)
+    monkeypatch.setattr("omg4.codec.browser.CODERS", coders.CODERS)
+    coders.register_coder(_PlainCoder())
+    encode_payload(forge.valid_payload(400, seed=6), tmp_path / "m.omg4", codec="plain-web")
+    export_web(tmp_path / "web", tmp_path / "m.omg4")
+    assert (tmp_path / "web" / "model.omg4").read_bytes() == (tmp_path / "m.omg4").read_bytes()  # nothing rewritten
+    with served(tmp_path / "web") as url:
+        chromium.call("Page.navigate", url=f"{url}/index.html?ui=0&time=0&case=plain")
+        assert chromium.evaluate(DIGESTS) == _python_digests(tmp_path / "m.omg4")
+
+
+def test_the_players_codec_table_is_the_codecs_table():
+    from omg4.io.web_player import CODECS_MODULE, PLAYER_ROOT
+
+    assert (PLAYER_ROOT / CODECS_MODULE).read_text() == coders.browser_module()  # regenerate after a codec change

@@ -9,7 +9,7 @@ and the compression wall time, and the same pipeline result written with the pap
 (its MB, PSNR and SSIM: the comparison point of the "compact" codec). With rate weights β > 0
 (beyond the paper: entropy-constrained codebooks, :class:`omg4.compress.pipeline.CompressConfig`)
 every row runs once per β ("OMG4-M, β=30"), so the figure shows each coder's rate–distortion
-front. With several compact-codec grids (beyond the paper: :class:`omg4.codec.payload.CompactGrids`) each
+front. With several compact-codec grids (beyond the paper: :class:`omg4.codec.coders.CompactGrids`) each
 row's model is also written at every further grid, a re-encoding of the same pipeline result ("OMG4-M,
 grids 12/7/7"), one more curve per grid. The SD scores of the baseline and the dynamic-region masks are
 computed once and shared by every row.

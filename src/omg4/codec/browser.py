@@ -16,6 +16,7 @@ import math
 import os
 from pathlib import Path
 
+from omg4.codec.coders import CODERS
 from omg4.codec.container import SEQUENCE_VERSION, read_versioned, container_bytes
 from omg4.codec.entropy import decode_indices, encode_indices
 from omg4.codec.payload import check_sections, container_version
@@ -54,8 +55,7 @@ def _single_model(header: dict, sections: dict[str, bytes]) -> tuple[dict, dict[
         elif encoding == "paper" and name in alphabets:
             indices = decode_indices(sections[name], alphabets[name], n, "paper")
             encodings[name], out[name] = "ans", encode_indices(indices, alphabets[name], "ans")
-    codec = "ans" if header["codec"] == "paper" else header["codec"]
-    return {**header, "codec": codec, "encodings": encodings}, out
+    return {**header, "codec": CODERS[header["codec"]].browser_codec, "encodings": encodings}, out
 
 
 def _float_count(header: dict, name: str) -> int:

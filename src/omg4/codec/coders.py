@@ -5,13 +5,16 @@ sections of the positions, time centres, sub-vector-quantized attributes and MLP
 and the container version. Reading follows each section's recorded encoding
 (:func:`omg4.codec.payload.decode_payload`); a coder states which of those encodings its files may hold, so a
 header that names one codec and encodings of another is refused. A new codec is a :class:`Coder` subclass and one
-entry of :data:`CODERS` (:func:`register_coder`). The codecs themselves are described in
-:mod:`omg4.codec.payload`.
+entry of :data:`CODERS` (:func:`register_coder`); its class's docstring describes it, and its settings are a class
+of their own (:class:`CompactGrids` for ``compact``).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import re
+from dataclasses import astuple, dataclass
 
 import numpy as np
 
@@ -30,9 +33,12 @@ class Coder:
     Gaussians in Morton order.
 
     Attributes: ``name`` (the header's ``codec``), ``order`` (the header's ``order``), ``takes_grids`` (whether
-    :class:`~omg4.codec.payload.CompactGrids` other than the default apply), and what its files may hold when
+    :class:`CompactGrids` other than the default apply), and what its files may hold when
     read: ``index_encodings``, ``morton_positions``, ``grid_encodings`` (grid positions and times, sorted
-    codebooks, quantized weights) and ``quaternion_sections`` (the header's ``quaternions`` list).
+    codebooks, quantized weights) and ``quaternion_sections`` (the header's ``quaternions`` list) — the rules the
+    browser's reader takes too (:func:`browser_module`); ``browser_codec``: the codec a file becomes when its
+    sections are rewritten for the browser (:mod:`omg4.codec.browser`), itself unless that changes its index
+    encodings.
     """
 
     name = ""
@@ -42,6 +48,10 @@ class Coder:
     morton_positions = True
     grid_encodings = False
     quaternion_sections = False
+
+    @property
+    def browser_codec(self) -> str:
+        return self.name
 
     def float_section(self, values: np.ndarray) -> Section:
         return smallest_f16(values)
@@ -73,8 +83,10 @@ class Coder:
         return [list(cb.shape) for cb in qa.codebooks], sections
 
     def index_section(self, indices: np.ndarray, num_symbols: int) -> Section:
-        """An index stream into a codebook of ``num_symbols`` rows, coded as they are."""
-        return self.name, encode_indices(indices, num_symbols, self.name)
+        """An index stream into a codebook of ``num_symbols`` rows, coded as they are by the codec's first index
+        encoding (an entropy method of :func:`omg4.codec.entropy.encode_indices`)."""
+        encoding = self.index_encodings[0]
+        return encoding, encode_indices(indices, num_symbols, encoding)
 
     def mlp_weight(self, w: np.ndarray, precision) -> Section:
         return self.float_section(w)
@@ -94,20 +106,28 @@ class Coder:
 
 
 class AnsCoder(Coder):
-    """``ans``: lossless w.r.t. the fp16 values; Morton order, ANS-coded indices, the smallest float sections."""
+    """``ans``: lossless w.r.t. the paper coder's fp16 values and indices, smaller. Gaussians are stored in Morton
+    (Z-order) order of their fp16 positions (a free permutation: Gaussians are unordered), so positions become
+    sorted 48-bit Morton codes whose gaps are hybrid-uint coded; indices are ANS-coded; every float section takes
+    the smallest of raw fp16, LZMA, or byte planes ANS-coded."""
 
     name = "ans"
     index_encodings = ("ans",)
 
 
 class PaperCoder(Coder):
-    """``paper``: OMG4's coder — fp16 everywhere, LZMA per section, Huffman-coded indices, the Gaussians' order
-    kept."""
+    """``paper``: OMG4's ``encode`` — fp16 positions, time centres, codebooks and MLP weights, Huffman-coded
+    indices, every section LZMA-compressed on its own (OMG4 wraps one pickle in xz; no pickle here); the Gaussians
+    keep their order."""
 
     name = "paper"
     order = "original"
     index_encodings = ("paper",)
     morton_positions = False
+
+    @property
+    def browser_codec(self) -> str:
+        return AnsCoder.name  # its Huffman index streams become ANS streams
 
     def float_section(self, values: np.ndarray) -> Section:
         return "f16-lzma", encode_f16(values, "f16-lzma")
@@ -119,9 +139,95 @@ class PaperCoder(Coder):
         return self.float_section(q.xyz)
 
 
+GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (2, 16),
+                     "log_scales": (0, 14), "codebooks": (0, 14), "exact": (0, 100)}
+
+
+@dataclass(frozen=True)
+class CompactGrids:
+    """The grids of the "compact" codec's lossy values (beyond the paper; ``docs/results.md``, coders), a rate–distortion knob the
+    decoder needs no setting for (each section records its grid, or holds fp16 values).
+
+    positions: bits per axis over the scene box's largest side (:func:`omg4.codec.grids.encode_positions`), or 0:
+    the fp16 positions as the paper, losslessly (sorted Morton codes, as the "ans" codec);
+    rotations: bits per "smallest three" quaternion component (:mod:`omg4.codec.quaternions`), or 16: the rotation
+    codebooks and indices as the pipeline made them, losslessly;
+    times: time centres on steps of the clip's duration · 2^-times (:func:`omg4.codec.grids.time_step`), or 0: fp16
+    as the paper;
+    weights: MLP weight matrices in 2-8 bits per weight, a scale per column (:mod:`omg4.codec.weights`; a file with
+    such a matrix is container version 5), or 16 (fp16, as the paper);
+    log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are;
+    codebooks: the other codebooks (appearance features, FreeTimeGS velocities; not rotations) rounded to steps of
+    2^-codebooks, or 0 (the
+    default): as they are — near-equal codewords then merge, so indices shrink too;
+    exact: the percentage of Gaussians, the largest (:func:`largest_footprints`), whose grid positions are
+    corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; a file with any is
+    container version 5), or 0: none. The default 3 % costs a few hundredths of a byte per Gaussian and keeps one
+    large Gaussian's
+    appearance from changing a whole view (``docs/results.md``, coders).
+    ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
+    """
+
+    positions: int = grids.POSITION_BITS
+    rotations: int = quaternions.BITS
+    times: int = grids.TIME_BITS
+    weights: int = 8
+    log_scales: int = 5
+    codebooks: int = 0
+    exact: int = 3
+
+    def __post_init__(self):
+        for name, (lo, hi) in GRID_BITS_ALLOWED.items():
+            bits = getattr(self, name)
+            if isinstance(bits, bool) or not isinstance(bits, int) or not lo <= bits <= hi:
+                what = "percentage" if name == "exact" else "bits"
+                raise OMG4Error(f"compact grid: {name} {what} must be an integer in [{lo}, {hi}], got {bits!r}")
+        if 8 < self.weights < 16:
+            raise OMG4Error(f"compact grid: weights take 2-8 bits, or 16 (fp16), got {self.weights}")
+
+    @classmethod
+    def parse(cls, text: str) -> "CompactGrids":
+        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]]]"``, e.g. ``"15,9,10"``,
+        ``"16,12,12,16,10"``, ``"15,8,8,8,5,6"`` or ``"12,7,7,8,5,0,1"``, or a name: ``"default"`` (15,9,10,8,5,0,3)
+        or ``"lossless"`` (0,16,0,16,0,0,3: the paper coder's values; exact positions are moot without a grid)."""
+        named = {"default": cls(), "lossless": cls(0, 16, 0, 16, 0)}
+        if text.strip().lower() in named:
+            return named[text.strip().lower()]
+        parts = [p.strip() for p in text.split(",")]
+        if len(parts) not in _GRID_LENGTHS or not all(re.fullmatch(r"[0-9]{1,3}", p) for p in parts):
+            raise OMG4Error(f"compact grid {text!r}: give three integers POSITIONS,ROTATIONS,TIMES such as 15,9,10, "
+                            "five to seven with WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]] such as 16,12,12,16,10, "
+                            "15,8,8,8,5,6 or 12,7,7,8,5,0,2, or default or lossless")
+        return cls(*(int(p) for p in parts))
+
+    @property
+    def label(self) -> str:
+        """``"15/9/10"`` (positions/rotations/times bits), then as many of ``/weights/log_scales``, ``/codebooks``
+        and ``/exact`` as the last field that is not the default needs (the forms :meth:`parse` reads)."""
+        fields = astuple(self)
+        defaults = astuple(CompactGrids())
+        length = next(n for n in _GRID_LENGTHS if fields[n:] == defaults[n:])
+        return "/".join(map(str, fields[:length]))
+
+
+_GRID_LENGTHS = (3, 5, 6, 7)  # how many CompactGrids fields a grid string may give
+
+
 class CompactCoder(Coder):
-    """``compact`` (the default): positions and time centres on grids, codewords without their order, unit
-    quaternions, quantized MLP weights (:class:`~omg4.codec.payload.CompactGrids`)."""
+    """``compact`` (the default) — beyond OMG4's coder, at the same quality (container version 5), its grids set by
+    :class:`CompactGrids` (``settings``): positions on a uniform 15-bit grid over the scene's box in Z-order (the
+    largest 3 % of Gaussians exactly), time centres on a grid of 1/1024 of the clip (:mod:`omg4.codec.grids`); each
+    SVQ slot's codebook and indices coded without paying for the codewords' order (:mod:`omg4.codec.codewords`:
+    unused and duplicate codewords dropped, the smaller of a sorted codeword set or first-use order), the codebooks
+    of log-scale attributes (``log_scaled``: scales and durations, exp-activated) first rounded to steps of 1/32 in
+    log space (a 3 % size step, so nearby codewords merge); rotation quaternions as unit quaternions in 3 × 9 bits
+    (:mod:`omg4.codec.quaternions`) where that is smaller than their codebooks; MLP weight matrices in 8 bits per
+    weight, a scale per column (:mod:`omg4.codec.weights`); the header deflated. Everything but the codewords'
+    order and the header changes values, each by a small amount measured in ``docs/results.md`` (coders).
+    Version-3 and -4 compact files (no exact positions, a weight scale per row) and version-2 ones (fp16 positions
+    as Morton codes, fp16 time centres, 3 × 10-bit quaternions, codebooks as stored) still decode."""
+
+    settings = CompactGrids
 
     name = "compact"
     takes_grids = True
@@ -233,5 +339,19 @@ def register_coder(coder: Coder) -> None:
     CODERS[coder.name] = coder
 
 
-__all__ = ["CODERS", "AnsCoder", "Coder", "CompactCoder", "PaperCoder", "largest_footprints", "register_coder",
-           "round_codebook"]
+def browser_module() -> str:
+    """The ES module ``web/decoder/codecs.js``: each registered codec's reading rules (:class:`Coder`'s
+    ``index_encodings``, ``morton_positions``, ``grid_encodings``, ``quaternion_sections``), which the browser's
+    reader looks up as :func:`omg4.codec.payload.decode_payload` does. ``omg4 export --format web`` writes it from the
+    table as it is, so a codec added with :func:`register_coder` from the encodings the browser decodes plays too;
+    the copy in the source tree is the built-in codecs' (a test keeps it equal)."""
+    table = {name: {"indexEncodings": list(c.index_encodings), "mortonPositions": c.morton_positions,
+                    "gridEncodings": c.grid_encodings, "quaternionSections": c.quaternion_sections}
+             for name, c in CODERS.items()}
+    return ("// The codecs' reading rules, written by omg4.codec.coders.browser_module from its table (CODERS):\n"
+            "// regenerate, do not edit.\n"
+            f"export const CODERS = {json.dumps(table, indent=2)};\n")
+
+
+__all__ = ["CODERS", "AnsCoder", "Coder", "CompactCoder", "CompactGrids", "PaperCoder", "browser_module",
+           "largest_footprints", "register_coder", "round_codebook"]

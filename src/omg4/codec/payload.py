@@ -6,37 +6,14 @@ each sub-vector-quantized attribute its fp16 codebooks and index streams, the fp
 weights of the appearance MLPs, and a JSON-able ``meta`` dict (preset, SH degrees, time
 range, normalization, ...).
 
-Three codecs:
-
-* ``"compact"`` (default) — beyond OMG4's coder, at the same quality (container version 5): positions on
-  a uniform 15-bit grid over the scene's box in Z-order (the largest 3 % of Gaussians exactly), time centres
-  on a grid of 1/1024 of the clip
-  (:mod:`omg4.codec.grids`); each SVQ slot's codebook and indices coded without paying for the codewords'
-  order (:mod:`omg4.codec.codewords`: unused and duplicate codewords dropped, the smaller of a sorted
-  codeword set or first-use order), the codebooks of log-scale attributes (``log_scaled``: scales and
-  durations, exp-activated) first rounded to steps of 1/32 in log space (a 3 % size step, so nearby
-  codewords merge); rotation quaternions as unit quaternions in 3 × 9 bits (:mod:`omg4.codec.quaternions`)
-  where that is smaller than their codebooks; MLP weight matrices in 8 bits per weight, a scale per column
-  (:mod:`omg4.codec.weights`); the header deflated. Everything but the codewords' order and the header
-  changes values, each by a small amount measured in ``docs/results.md`` (coders). Version-3 and -4 compact files (no exact
-  positions, a weight scale per row) and version-2 ones (fp16 positions as Morton codes, fp16 time centres,
-  3 × 10-bit quaternions, codebooks as stored) still decode.
-* ``"paper"`` — OMG4's ``encode``: fp16 positions, time centres, codebooks and MLP weights,
-  Huffman-coded indices, everything LZMA-compressed (OMG4 wraps one pickle in xz; here
-  each section is LZMA'd on its own — no pickle). Gaussians keep their order.
-* ``"ans"`` — lossless w.r.t. the same fp16 values and indices, smaller:
-  Gaussians are stored in Morton (Z-order) order of their fp16 positions (a free
-  permutation: Gaussians are unordered), so positions become sorted 48-bit Morton codes
-  whose gaps are hybrid-uint coded; indices are ANS-coded; every float section takes the
-  smallest of raw fp16, LZMA, or byte planes ANS-coded.
-
 ``decode_payload`` validates everything (index < codebook size, consistent counts, finite
 floats) and raises :class:`~omg4.errors.CorruptFileError` with one line otherwise.
 
-How each codec writes is its class in :data:`omg4.codec.coders.CODERS`; array-to-bytes helpers shared by all are
-in :mod:`omg4.codec.sections`. This module keeps what every codec shares — the payload, the file's limits, the
-header checks and the section reader — in one place, because together they are the boundary a hostile file
-meets (docs/file-format.md §5); that is why it runs past 400 lines.
+Each codec — what it writes, its settings, the encodings its files may hold — is its class in
+:data:`omg4.codec.coders.CODERS` (``compact``, the default, beyond OMG4's coder; ``paper``, OMG4's; ``ans``,
+lossless and smaller); array-to-bytes helpers shared by all are in :mod:`omg4.codec.sections`. This module keeps
+what every codec shares — the file's limits, the header checks and the section reader — in one place, because
+together they are the boundary a hostile file meets (docs/file-format.md §5).
 """
 
 from __future__ import annotations
@@ -44,13 +21,12 @@ from __future__ import annotations
 import math
 import os
 import re
-from dataclasses import astuple, dataclass
 
 import numpy as np
 
 from omg4.codec import carry, grids, quaternions, weights
 from omg4.codec.codewords import decode_first_use_indices, decode_sorted_codebook
-from omg4.codec.coders import CODERS, Coder
+from omg4.codec.coders import CODERS, Coder, CompactGrids
 from omg4.codec.container import PREDICTED_VERSION, SEQUENCE_VERSION, read_versioned, write_container
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices
 from omg4.codec.rig import check_rig
@@ -83,78 +59,6 @@ VALUES_SLACK = 1 << 20
 _NAME = re.compile(r"[A-Za-z0-9_]{1,64}")  # SVQ attribute names
 _MLP_NAME = re.compile(r"[A-Za-z0-9_.]{1,128}")  # state-dict style weight names
 #: allowed bits of each :class:`CompactGrids` field (what the writer accepts)
-GRID_BITS_ALLOWED = {"positions": (0, 16), "rotations": (2, 16), "times": (0, 16), "weights": (2, 16),
-                     "log_scales": (0, 14), "codebooks": (0, 14), "exact": (0, 100)}
-
-
-@dataclass(frozen=True)
-class CompactGrids:
-    """The grids of the "compact" codec's lossy values (beyond the paper; ``docs/results.md``, coders), a rate–distortion knob the
-    decoder needs no setting for (each section records its grid, or holds fp16 values).
-
-    positions: bits per axis over the scene box's largest side (:func:`omg4.codec.grids.encode_positions`), or 0:
-    the fp16 positions as the paper, losslessly (sorted Morton codes, as the "ans" codec);
-    rotations: bits per "smallest three" quaternion component (:mod:`omg4.codec.quaternions`), or 16: the rotation
-    codebooks and indices as the pipeline made them, losslessly;
-    times: time centres on steps of the clip's duration · 2^-times (:func:`omg4.codec.grids.time_step`), or 0: fp16
-    as the paper;
-    weights: MLP weight matrices in 2-8 bits per weight, a scale per column (:mod:`omg4.codec.weights`; a file with
-    such a matrix is container version 5), or 16 (fp16, as the paper);
-    log_scales: codebooks of log-scale attributes rounded to steps of 2^-log_scales in log space, or 0: as they are;
-    codebooks: the other codebooks (appearance features, FreeTimeGS velocities; not rotations) rounded to steps of
-    2^-codebooks, or 0 (the
-    default): as they are — near-equal codewords then merge, so indices shrink too;
-    exact: the percentage of Gaussians, the largest (:func:`largest_footprints`), whose grid positions are
-    corrected to their fp16 values exactly (:func:`omg4.codec.grids.encode_positions`; a file with any is
-    container version 5), or 0: none. The default 3 % costs a few hundredths of a byte per Gaussian and keeps one
-    large Gaussian's
-    appearance from changing a whole view (``docs/results.md``, coders).
-    ``CompactGrids(0, 16, 0, 16, 0)`` stores the paper coder's values exactly (a lossless compact file).
-    """
-
-    positions: int = grids.POSITION_BITS
-    rotations: int = quaternions.BITS
-    times: int = grids.TIME_BITS
-    weights: int = 8
-    log_scales: int = 5
-    codebooks: int = 0
-    exact: int = 3
-
-    def __post_init__(self):
-        for name, (lo, hi) in GRID_BITS_ALLOWED.items():
-            bits = getattr(self, name)
-            if isinstance(bits, bool) or not isinstance(bits, int) or not lo <= bits <= hi:
-                what = "percentage" if name == "exact" else "bits"
-                raise OMG4Error(f"compact grid: {name} {what} must be an integer in [{lo}, {hi}], got {bits!r}")
-        if 8 < self.weights < 16:
-            raise OMG4Error(f"compact grid: weights take 2-8 bits, or 16 (fp16), got {self.weights}")
-
-    @classmethod
-    def parse(cls, text: str) -> "CompactGrids":
-        """From ``"POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]]]"``, e.g. ``"15,9,10"``,
-        ``"16,12,12,16,10"``, ``"15,8,8,8,5,6"`` or ``"12,7,7,8,5,0,1"``, or a name: ``"default"`` (15,9,10,8,5,0,3)
-        or ``"lossless"`` (0,16,0,16,0,0,3: the paper coder's values; exact positions are moot without a grid)."""
-        named = {"default": cls(), "lossless": cls(0, 16, 0, 16, 0)}
-        if text.strip().lower() in named:
-            return named[text.strip().lower()]
-        parts = [p.strip() for p in text.split(",")]
-        if len(parts) not in _GRID_LENGTHS or not all(re.fullmatch(r"[0-9]{1,3}", p) for p in parts):
-            raise OMG4Error(f"compact grid {text!r}: give three integers POSITIONS,ROTATIONS,TIMES such as 15,9,10, "
-                            "five to seven with WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]] such as 16,12,12,16,10, "
-                            "15,8,8,8,5,6 or 12,7,7,8,5,0,2, or default or lossless")
-        return cls(*(int(p) for p in parts))
-
-    @property
-    def label(self) -> str:
-        """``"15/9/10"`` (positions/rotations/times bits), then as many of ``/weights/log_scales``, ``/codebooks``
-        and ``/exact`` as the last field that is not the default needs (the forms :meth:`parse` reads)."""
-        fields = astuple(self)
-        defaults = astuple(CompactGrids())
-        length = next(n for n in _GRID_LENGTHS if fields[n:] == defaults[n:])
-        return "/".join(map(str, fields[:length]))
-
-
-_GRID_LENGTHS = (3, 5, 6, 7)  # how many CompactGrids fields a grid string may give
 
 
 # ------------------------------------------------------------------------ encoding

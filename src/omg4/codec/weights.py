@@ -4,7 +4,7 @@ Each column (one input of the layer; ``int<b>-cols``, what the writer uses since
 (one output unit; ``int<b>-rows``, versions 3 and 4) of a ``[R, C]`` weight matrix gets a scale
 ``s = max|w| / L`` with ``L = 2^(bits−1) − 1`` (stored as float32, so tiny weights keep their precision) and its
 weights the integers ``round(w / s)`` in [−L, L], ANS-coded; the decoded weights are fp16. The section's encoding
-names the bits (8 by default; 2-7 under coarser grids, :class:`omg4.codec.payload.CompactGrids`) and the layout.
+names the bits (8 by default; 2-7 under coarser grids, :class:`omg4.codec.coders.CompactGrids`) and the layout.
 Per-column scales follow the inputs: an appearance head (paper §4.4) takes 13 shared features and 3 Gaussian
 features of different ranges, which per-row scales give one step (the measured effect of both layouts on PSNR:
 ``docs/results.md``, coders).

@@ -221,7 +221,7 @@ class Backbone:
 
     def log_scaled_groups(self) -> tuple[str, ...]:
         """SVQ attributes stored as logarithms (every parameter exp-activated: scales, durations), whose codebooks
-        the "compact" codec rounds in log space (:class:`omg4.codec.payload.CompactGrids`, ``log_scales``)."""
+        the "compact" codec rounds in log space (:class:`omg4.codec.coders.CompactGrids`, ``log_scales``)."""
         return tuple(g.name for g in self.svq_groups if all(self.attribute(p).activation == "exp" for p in g.params))
 
     def explicit_after_compression(self) -> tuple[str, ...]:

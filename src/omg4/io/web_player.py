@@ -21,6 +21,7 @@ from pathlib import Path
 
 from omg4.atomic import atomic_folder
 from omg4.codec.browser import browser_decodable
+from omg4.codec.coders import browser_module
 from omg4.errors import CorruptFileError, OMG4Error
 
 PLAYER_ROOT = Path(__file__).resolve().parent.parent / "web"
@@ -30,6 +31,8 @@ MODEL = "model.omg4"
 CAMERAS = "cameras.json"
 SEQUENCE = "sequence.json"
 SEGMENTS = "segments"
+CODECS_MODULE = Path("decoder", "codecs.js")
+"""The player's table of the codecs' reading rules, written from the codecs' table as it is at export time."""
 
 
 def player_files() -> list[Path]:
@@ -77,7 +80,7 @@ def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list |
             written.append(name)
 
         for p in player_files():
-            write(p.as_posix(), (PLAYER_ROOT / p).read_bytes())
+            write(p.as_posix(), browser_module().encode() if p == CODECS_MODULE else (PLAYER_ROOT / p).read_bytes())
         if is_sequence(model):
             index, segments = read_index(model), []
             for entry in index.segments:

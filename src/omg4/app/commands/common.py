@@ -117,7 +117,7 @@ def add_codec_argument(p: argparse.ArgumentParser, *, from_settings: bool = Fals
 
 def compact_grids(text: str):
     """An argparse type: the compact codec's grids, ``POSITIONS,ROTATIONS,TIMES[,WEIGHTS,LOG_SCALES[,CODEBOOKS[,EXACT]]]``
-    or a name (:class:`omg4.codec.payload.CompactGrids`)."""
+    or a name (:class:`omg4.codec.coders.CompactGrids`)."""
     from omg4.codec.payload import CompactGrids
     from omg4.errors import OMG4Error
 

@@ -2,6 +2,7 @@
 // checks a reader makes before decoding anything — magic, version, checksums, bounded header inflation, the
 // section table, the header's limits and its declared values against the file's size — then every section.
 
+import { CODERS } from "./codecs.js";
 import { decodeIndices, MAX_SYMBOLS } from "./entropy.js";
 import {
   decodeFirstUseIndices, decodeFloats, decodeMorton, decodePositions, decodeQuaternions, decodeSortedCodebook, decodeTimes,
@@ -15,7 +16,10 @@ export const SEQUENCE_VERSION = 6;
 const MAX_JSON_BYTES = 16 * 1024 * 1024;
 const MAX_SECTION_NAME = 200;
 const KIND = "omg4-compressed-model";
-const CODECS = ["compact", "ans", "paper"];
+// the index encodings this reader decodes; a codec's table (codecs.js) says which of them its files may hold
+const INDEX_DECODERS = {
+  ans: decodeIndices, ranks: decodeIndices, "first-use": decodeFirstUseIndices,
+};
 const MAX_GAUSSIANS = 2 ** 27;
 const MAX_SUB_LEN = 64;
 const MAX_MLP_ELEMENTS = 2 ** 24;
@@ -122,13 +126,13 @@ function checkRig(rig) {
  * section names it implies, sorted. */
 export function checkHeader(h, sectionBytes) {
   const n = h.num_gaussians;
-  if (!(h.kind === KIND && CODECS.includes(h.codec) && isObject(h.meta) && isObject(h.attributes)
+  if (!(h.kind === KIND && Object.hasOwn(CODERS, h.codec) && isObject(h.meta) && isObject(h.attributes)
     && isObject(h.mlp) && isObject(h.encodings) && isInt(n, 1, MAX_GAUSSIANS))) {
     throw new CorruptFileError("not an OMG4 compressed model (header fields missing or invalid)");
   }
   if ("rig" in h.meta) checkRig(h.meta.rig);
   const rotations = h.quaternions ?? [];
-  if (("quaternions" in h) !== (h.codec === "compact") || !Array.isArray(rotations) || rotations.length > MAX_ATTRIBUTES
+  if (("quaternions" in h) !== CODERS[h.codec].quaternionSections || !Array.isArray(rotations) || rotations.length > MAX_ATTRIBUTES
     || new Set(rotations.map(String)).size !== rotations.length
     || !rotations.every((a) => typeof a === "string" && NAME.test(a) && !(a in h.attributes))) {
     throw new CorruptFileError("invalid list of quaternion attributes");
@@ -319,11 +323,8 @@ export async function decodePayload(bytes, reference = null) {
     throw new CorruptFileError("section list does not match the header");
   }
   const n = header.num_gaussians;
-  if (header.codec === "paper") {
-    throw new CorruptFileError("the 'paper' codec's Huffman+LZMA streams are not decoded in the browser (re-export with omg4 export --format web)");
-  }
-  const compact = header.codec === "compact";
-  const indexEncodings = compact ? ["ranks", "first-use"] : ["ans"];
+  const coder = CODERS[header.codec];
+  const gridded = coder.gridEncodings;  // grid positions and times, sorted codebooks, quantized weights
 
   async function decode(name, count, shape = null, numSymbols = 0) {
     const data = sections.get(name);
@@ -332,15 +333,17 @@ export async function decodePayload(bytes, reference = null) {
       if (encoding === REFERENCE && !numSymbols && ["mlp", "svq"].includes(name.split(".")[0])) {
         return referenced(name, data, shape, reference);
       }
-      if (compact && deltaEncoding(encoding) && name.startsWith("mlp.") && shape.length === 2) {
+      if (gridded && deltaEncoding(encoding) && name.startsWith("mlp.") && shape.length === 2) {
         return await decodeWeightChange(data, referenceValues(name, shape, reference), shape[0], shape[1], encoding);
       }
       if (numSymbols) {
-        if (!indexEncodings.includes(encoding)) {
+        if (!coder.indexEncodings.includes(encoding)) {
           throw new CorruptFileError(`encoding '${encoding}' is not an index encoding of the codec '${header.codec}'`);
         }
-        if (encoding === "first-use") return await decodeFirstUseIndices(data, numSymbols, count);
-        return await decodeIndices(data, numSymbols, count);
+        if (!Object.hasOwn(INDEX_DECODERS, encoding)) {
+          throw new CorruptFileError(`the '${encoding}' index streams are not decoded in the browser (re-export with omg4 export --format web)`);
+        }
+        return await INDEX_DECODERS[encoding](data, numSymbols, count);
       }
       const kind = name.split(".")[0];
       if (kind === "quat") {
@@ -348,15 +351,15 @@ export async function decodePayload(bytes, reference = null) {
         if (bits === null) throw new CorruptFileError(`encoding '${encoding}' is not a quaternion encoding`);
         return await decodeQuaternions(data, count, bits);
       }
-      if (compact && encoding === "sorted" && kind === "svq") return await decodeSortedCodebook(data, shape[0], shape[1]);
-      if (compact && weightEncoding(encoding) && kind === "mlp" && shape.length === 2) {
+      if (gridded && encoding === "sorted" && kind === "svq") return await decodeSortedCodebook(data, shape[0], shape[1]);
+      if (gridded && weightEncoding(encoding) && kind === "mlp" && shape.length === 2) {
         return await decodeWeights(data, shape[0], shape[1], encoding);
       }
-      if (encoding === "morton" && name === "xyz") return await decodeMorton(data, count);
-      if (compact && (encoding === "grid-morton" || encoding === "grid-morton-exact") && name === "xyz") {
+      if (encoding === "morton" && name === "xyz" && coder.mortonPositions) return await decodeMorton(data, count);
+      if (gridded && (encoding === "grid-morton" || encoding === "grid-morton-exact") && name === "xyz") {
         return await decodePositions(data, count, encoding === "grid-morton-exact");
       }
-      if (compact && encoding === "grid" && name === "t") return await decodeTimes(data, count);
+      if (gridded && encoding === "grid" && name === "t") return await decodeTimes(data, count);
       return await decodeFloats(data, encoding, count);
     } catch (err) {
       if (err instanceof CorruptFileError) throw new CorruptFileError(`section ${name}: ${err.message}`);
