@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omg4.codec.payload import decode_payload, encode_payload, reference_sections
+from omg4.codec.payload import decode_payload, encode_payload
+from omg4.codec.references import reference_sections
 from omg4.errors import CorruptFileError, OMG4Error
 from omg4.testing import forge
 

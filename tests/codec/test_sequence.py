@@ -368,7 +368,8 @@ def test_a_predicted_segment_decodes_to_the_values_it_was_written_with(tmp_path,
     and the file is smaller than the same payload coded alone by at least their bytes."""
     import numpy as np
 
-    from omg4.codec.payload import decode_payload, encode_payload, reference_sections
+    from omg4.codec.payload import decode_payload, encode_payload
+    from omg4.codec.references import reference_sections
     from omg4.codec.sections import canonical_order
 
     from tests.codec.test_payload import assert_payload_equal

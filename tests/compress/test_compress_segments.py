@@ -199,7 +199,8 @@ def test_a_predicted_segment_carries_the_segment_befores_gaussians_as_they_decod
     import torch
 
     from omg4.codec.container import read_versioned
-    from omg4.codec.payload import decode_payload, encode_payload, reference_sections
+    from omg4.codec.payload import decode_payload, encode_payload
+    from omg4.codec.references import reference_sections
     from omg4.compress.api import build_payload
     from omg4.compress.pipeline import CompressionPipeline
     from omg4.models.compact import payload_values

@@ -89,17 +89,17 @@ def test_the_element_on_a_plain_page_renders_as_omg4_render(chromium, site, tiny
         assert api["time"] == 0.45 and not api["playing"] and api["range"] == [0.0, 1.0]
         assert api["names"][0] == "cam00" and not api["controls"]
         # seek: the element draws the new time, says so, and shows what omg4 render shows there
-        chromium.evaluate("document.getElementById('scene').seek(0.8)")
-        chromium.evaluate("new Promise((done) => document.getElementById('scene').addEventListener('timechange', "
-                          "(e) => e.detail.time === 0.8 && done(), {once: false}))")
+        assert chromium.evaluate("new Promise((done) => { const s = document.getElementById('scene');"
+                                 " s.addEventListener('timechange', (e) => e.detail.time === 0.8 && done(true));"
+                                 " s.seek(0.8); })")
         assert psnr(canvas(chromium) / 255, rendered(tmp_path, model, tiny_scene_dir, 0.8) / 255) >= 30
         # play, then pause: the time advances, then holds
-        t0 = chromium.evaluate("(() => { const s = document.getElementById('scene'); s.seek(0); s.play(); "
-                               "return s.time; })()")
-        t1 = chromium.evaluate("new Promise((done) => setTimeout(() => { const s = document.getElementById('scene');"
-                               " s.pause(); done(s.time); }, 400))")
-        t2 = chromium.evaluate("new Promise((done) => setTimeout(() => done(document.getElementById('scene').time), 300))")
-        assert t1 > t0 and t2 == t1
+        t1, t2 = chromium.evaluate("""(async () => {
+          const s = document.getElementById('scene'), wait = (ms) => new Promise((r) => setTimeout(r, ms));
+          s.seek(0); s.play();
+          for (let i = 0; i < 400 && s.time === 0; i++) await wait(50);
+          s.pause(); const paused = s.time; await wait(300); return [paused, s.time]; })()""")
+        assert t1 > 0 and t2 == t1
         names = [name for name, _ in chromium.evaluate("window.events")]
         assert names[0] == "ready" and "timechange" in names and "error" not in names
 

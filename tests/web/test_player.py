@@ -18,7 +18,8 @@ from omg4.app.cli import main
 from omg4.codec import coders
 from omg4.codec.coders import Coder
 from omg4.codec.container import read_container
-from omg4.codec.payload import CompactGrids, decode_payload, encode_payload, reference_sections
+from omg4.codec.payload import CompactGrids, decode_payload, encode_payload
+from omg4.codec.references import reference_sections
 from omg4.codec.sections import encode_f16
 from omg4.errors import CorruptFileError
 from omg4.io.web_player import MANIFEST, export_web

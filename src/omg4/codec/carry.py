@@ -19,7 +19,7 @@ import numpy as np
 
 from omg4.codec.entropy import decode_indices, encode_indices
 from omg4.codec.types import REFERENCE, CompressedPayload, QuantizedAttribute
-from omg4.errors import CorruptFileError
+from omg4.errors import CorruptFileError, OMG4Error
 
 SECTION = "carry"
 """The section that names the carried Gaussians."""
@@ -129,5 +129,23 @@ def with_carried(own: CompressedPayload, header: dict, data: bytes, reference: d
                              own.rotations, own.log_scaled)
 
 
-__all__ = ["ENCODING", "SECTION", "carried_gaussians", "decode_mask", "encode_mask", "gaussian_sections", "reference_count",
+def carried_section(q: CompressedPayload, reference: dict[str, np.ndarray], taken: set[str]):
+    """The ``carry`` section of ``q.carried`` (OMG4Error where the reference lacks them or an attribute of ``q`` that is
+    not a rotation has codebooks of its own, not among those ``taken`` from the reference: carried Gaussians index the
+    reference's)."""
+    try:
+        count = reference_count(reference or None)
+    except CorruptFileError as exc:
+        raise OMG4Error(f"carried Gaussians: {exc}") from None
+    rows = np.asarray(q.carried)
+    if (rows.ndim != 1 or not rows.size or not np.issubdtype(rows.dtype, np.integer) or rows.min() < 0
+            or rows.max() >= count or np.unique(rows).size != rows.size):
+        raise OMG4Error(f"carried Gaussians must be 1 or more distinct rows of the reference's {count}")
+    own = [a for a in q.attributes if a not in q.rotations and a not in taken]
+    if own:
+        raise OMG4Error(f"carried Gaussians index the reference's codebooks, and {', '.join(own)} has its own")
+    return ENCODING, encode_mask(rows, count)
+
+
+__all__ = ["ENCODING", "SECTION", "carried_gaussians", "carried_section", "decode_mask", "encode_mask", "gaussian_sections", "reference_count",
            "taken", "with_carried"]

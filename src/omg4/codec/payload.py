@@ -31,6 +31,7 @@ from omg4.codec.container import PREDICTED_VERSION, SEQUENCE_VERSION, read_versi
 from omg4.codec.entropy import MAX_SYMBOLS, decode_indices
 from omg4.codec.rig import check_rig
 from omg4.codec.sections import decode_f16, decode_xyz_morton
+from omg4.codec.references import reference_array, referenced, takes_codebooks
 from omg4.codec.types import REFERENCE, CompressedPayload, QuantizedAttribute
 from omg4.errors import CorruptFileError, OMG4Error
 
@@ -74,27 +75,6 @@ def container_version(codec: object, encodings: object = None) -> int:
         return PREDICTED_VERSION
     coder = CODERS.get(codec) if isinstance(codec, str) else None
     return coder.version(encodings) if coder is not None else 1
-
-
-def reference_sections(p: CompressedPayload) -> dict[str, np.ndarray]:
-    """The decoded arrays of ``p`` (a decoder's output) that a segment predicted from it may take as its own, by
-    section name (docs/file-format.md §8a): every MLP weight (``mlp.NAME``) and every codebook of the
-    sub-vector-quantized attributes that are not rotations (``svq.ATTR.codebookJ``; a rotation may be stored one
-    quaternion per Gaussian, which is no codebook), and the per-Gaussian arrays it may carry
-    (:func:`omg4.codec.carry.gaussian_sections`)."""
-    out = {**{f"mlp.{name}": w for name, w in p.mlp.items()}, **carry.gaussian_sections(p)}
-    for attr, qa in p.attributes.items():
-        if attr not in p.rotations:
-            out.update({f"svq.{attr}.codebook{j}": cb for j, cb in enumerate(qa.codebooks)})
-    return out
-
-
-def _takes_codebooks(qa: QuantizedAttribute, attr: str, reference: dict[str, np.ndarray]) -> bool:
-    """Whether every codebook of ``qa`` (fp16) is the reference's of the same slot, value for value."""
-    names = [f"svq.{attr}.codebook{j}" for j in range(len(qa.codebooks))]
-    return (f"svq.{attr}.codebook{len(names)}" not in reference and all(
-        n in reference and reference[n].shape == cb.shape and np.array_equal(reference[n], cb)
-        for n, cb in zip(names, qa.codebooks)))
 
 
 def _check_payload(p: CompressedPayload, coder: Coder, precision: CompactGrids) -> CompressedPayload:
@@ -176,8 +156,8 @@ def encode_payload(p: CompressedPayload, path: str | os.PathLike, codec: str = C
     q = coder.arrange(_check_payload(p, coder, precision), precision)
     reference = reference or {}
     taken = {attr for attr, qa in q.attributes.items()
-             if attr not in q.rotations and _takes_codebooks(qa, attr, reference)}
-    carried = None if q.carried is None else _carry_section(q, reference, taken)  # refused before any coding
+             if attr not in q.rotations and takes_codebooks(qa, attr, reference)}
+    carried = None if q.carried is None else carry.carried_section(q, reference, taken)  # refused before any coding
     written: dict[str, tuple[str, bytes]] = {"xyz": coder.positions(q, precision), "t": coder.times(q, precision)}
     shapes: dict[str, list[list[int]]] = {}
     stored_as_quaternions: list[str] = []
@@ -230,24 +210,6 @@ def _mlp_section(coder: Coder, w: np.ndarray, same: np.ndarray | None, precision
         return REFERENCE, b""
     whole, change = coder.mlp_weight(w, precision), coder.mlp_change(w, same, precision)
     return change if change is not None and len(change[1]) < len(whole[1]) else whole
-
-
-def _carry_section(q: CompressedPayload, reference: dict[str, np.ndarray], taken: set[str]):
-    """The ``carry`` section of ``q.carried`` (OMG4Error where the reference lacks them or an attribute of ``q`` that is
-    not a rotation has codebooks of its own, not among those ``taken`` from the reference: carried Gaussians index the
-    reference's)."""
-    try:
-        count = carry.reference_count(reference or None)
-    except CorruptFileError as exc:
-        raise OMG4Error(f"carried Gaussians: {exc}") from None
-    rows = np.asarray(q.carried)
-    if (rows.ndim != 1 or not rows.size or not np.issubdtype(rows.dtype, np.integer) or rows.min() < 0
-            or rows.max() >= count or np.unique(rows).size != rows.size):
-        raise OMG4Error(f"carried Gaussians must be 1 or more distinct rows of the reference's {count}")
-    own = [a for a in q.attributes if a not in q.rotations and a not in taken]
-    if own:
-        raise OMG4Error(f"carried Gaussians index the reference's codebooks, and {', '.join(own)} has its own")
-    return carry.ENCODING, carry.encode_mask(rows, count)
 
 
 # ------------------------------------------------------------------------ decoding
@@ -348,29 +310,6 @@ def decode_payload(source: str | os.PathLike | bytes,
         raise CorruptFileError(f"{label}: {exc}") from None
 
 
-def _referenced(name: str, data: bytes, shape: tuple[int, ...] | None, reference: dict[str, np.ndarray] | None
-                ) -> np.ndarray:
-    """Section ``name`` of a predicted segment, taken from its reference (one-line errors on anything forged)."""
-    if data:
-        raise CorruptFileError(f"a section taken from the reference holds {len(data)} bytes of its own")
-    return np.array(_reference_array(name, shape, reference), np.float16)
-
-
-def _reference_array(name: str, shape: tuple[int, ...] | None, reference: dict[str, np.ndarray] | None
-                     ) -> np.ndarray:
-    """The reference's decoded array behind section ``name`` of a predicted segment, of the declared ``shape``."""
-    if reference is None:
-        raise CorruptFileError("a predicted segment takes its sections from the segment before: decode it through "
-                               "its sequence file")
-    if name not in reference:
-        raise CorruptFileError("the reference segment has no such section")
-    array = reference[name]
-    if shape is None or tuple(array.shape) != tuple(shape):
-        raise CorruptFileError(f"the reference's section has shape {tuple(array.shape)}, the header declares "
-                               f"{None if shape is None else tuple(shape)}")
-    return array
-
-
 def _decode_sections(header: dict, sections: dict[str, bytes],
                      reference: dict[str, np.ndarray] | None = None) -> CompressedPayload:
     check_sections(header, {name: len(data) for name, data in sections.items()})
@@ -383,9 +322,9 @@ def _decode_sections(header: dict, sections: dict[str, bytes],
         try:
             data, encoding = sections[name], enc[name]
             if encoding == REFERENCE and not num_symbols and name.split(".")[0] in ("mlp", "svq"):
-                return _referenced(name, data, shape, reference)
+                return referenced(name, data, shape, reference)
             if gridded and weights.parse_delta_encoding(encoding) and name.startswith("mlp.") and len(shape) == 2:
-                return weights.decode_delta(data, _reference_array(name, shape, reference), encoding)
+                return weights.decode_delta(data, reference_array(name, shape, reference), encoding)
             if num_symbols:
                 if encoding not in coder.index_encodings:
                     raise CorruptFileError(f"encoding {encoding!r} is not an index encoding of the codec {codec!r}")

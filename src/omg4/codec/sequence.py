@@ -33,7 +33,8 @@ from pathlib import Path
 
 from omg4.codec.container import (PREFIX, SEQUENCE_VERSION, ContainerSource, crc32, has_magic, read_container,
                                   read_prefix_and_table, write_container)
-from omg4.codec.payload import CompressedPayload, decode_payload, reference_sections
+from omg4.codec.payload import CompressedPayload, decode_payload
+from omg4.codec.references import reference_sections
 from omg4.errors import CorruptFileError, OMG4Error
 
 MAX_SEGMENTS = 100_000

@@ -184,7 +184,8 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     import shutil
 
     from omg4 import distributed
-    from omg4.codec.payload import decode_payload, reference_sections
+    from omg4.codec.payload import decode_payload
+    from omg4.codec.references import reference_sections
     from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
     from omg4.data.segments import read_run_plan, shared_frames
     from omg4.gaussians.checkpoint import load_gaussians

@@ -278,7 +278,8 @@ def valid_sequence(path: str | Path, segments: int, num_gaussians: int, codec: s
     segment's decoded Gaussians carried as they are, :mod:`omg4.codec.carry`); returns the file's bytes."""
     import tempfile
 
-    from omg4.codec.payload import decode_payload, reference_sections
+    from omg4.codec.payload import decode_payload
+    from omg4.codec.references import reference_sections
     from omg4.codec.sequence import write_sequence
 
     parts, references, previous = [], [], None

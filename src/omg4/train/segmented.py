@@ -24,7 +24,6 @@ import json
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from omg4 import distributed

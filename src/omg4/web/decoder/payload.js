@@ -209,7 +209,7 @@ function rotationValues(payload, attr) {
 }
 
 /** The decoded arrays of `payload` a segment predicted from it may take, by section name, with their shapes
- * (omg4/codec/payload.py reference_sections): every MLP weight, every codebook of a non-rotation attribute, and the
+ * (omg4/codec/references.py reference_sections): every MLP weight, every codebook of a non-rotation attribute, and the
  * per-Gaussian arrays it may carry (omg4/codec/carry.py gaussian_sections). */
 export function referenceSections(payload) {
   const out = new Map();
