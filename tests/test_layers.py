@@ -4,6 +4,7 @@ lazy ones inside functions included, points only where its package's row allows;
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 SOURCE = Path(__file__).resolve().parents[1] / "src" / "omg4"
@@ -175,3 +176,29 @@ def test_a_cycle_is_caught_lazy_or_hidden():
     package = {"render": "from omg4.render.view import render_view\n",
                "render.view": "def f():\n    from omg4.render import rasterize\n"}
     assert cycles(import_graph(package)) == [["render", "render.view"]]
+
+
+CODEC_NAME_BRANCH = re.compile(r"""codec\b[\w.\]\["']*\s*(?:===?|!==?)\s*["'](?:compact|ans|paper)["']"""
+                               r"""|["'](?:compact|ans|paper)["']\s*(?:===?|!==?)\s*[\w.\]\["']*codec\b""")
+"""A comparison of a codec (a header's ``codec``, a ``codec`` variable) with a built-in codec's name."""
+
+
+def codec_name_branches(text: str) -> list[str]:
+    return [m.group(0) for m in CODEC_NAME_BRANCH.finditer(text)]
+
+
+def test_no_branch_on_a_codec_name_outside_the_codecs_table():
+    """What a codec does, writes and may hold is its class in ``codec/coders.py``; the browser reads the same table
+    (``web/decoder/codecs.js``, written from it). Nothing else, in Python or JavaScript, asks which codec it is."""
+    table = {SOURCE / "codec" / "coders.py", SOURCE / "web" / "decoder" / "codecs.js"}
+    forger = SOURCE / "testing"  # forges files of one codec or another on purpose: no library module imports it
+    found = {str(p.relative_to(SOURCE)): codec_name_branches(p.read_text()) for p in sorted(SOURCE.rglob("*"))
+             if p.suffix in (".py", ".js") and p not in table and forger not in p.parents}
+    assert {name: hits for name, hits in found.items() if hits} == {}
+
+
+def test_a_codec_name_branch_is_caught():
+    assert codec_name_branches('if (("quaternions" in h) !== (h.codec === "compact"))') == ['codec === "compact"']
+    assert codec_name_branches('codec = "ans" if header["codec"] == "paper" else x') == ['codec"] == "paper"']
+    assert codec_name_branches('if "paper" != codec:') == ['"paper" != codec']
+    assert codec_name_branches('decode_indices(data, n, count, "ans")') == []  # an encoding, not a codec

@@ -26,6 +26,7 @@ import torch
 from omg4.app.report import Curves, equal_training_row, format_table, rate_distortion_plot
 from omg4.atomic import write_text_atomic
 from omg4.codec.payload import CompactGrids
+from omg4.compress.modes import choice_value
 
 def bench_table(rows: dict[str, dict]) -> str:
     """The paper's columns plus bytes per Gaussian, the same model's size and quality with the paper's coder,
@@ -76,7 +77,6 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4 import distributed
     from omg4.codec.payload import check_codec, decode_payload, encode_payload
     from omg4.compress.api import compress_to_file
-    from omg4.compress.modes import choice_value
     from omg4.compress.pipeline import FULL_STAGES, CompressConfig
     from omg4.compress.score import compute_sd_scores
     from omg4.errors import OMG4Error
@@ -137,9 +137,9 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
         paper_copy = path.with_name(path.stem + "_paper_codec.omg4")
         report = compress_to_file(baseline, scene, cfg, path, codec=codec, scores_path=scores_path,
                                   paper_copy=paper_copy, precision=grids[0], log=log, progress=True)
-        paper_r = None if codec == "paper" else evaluate(load_omg4(paper_copy, device), scene.test_views,
-                                                         lpips_nets=(), backend=backend, device=device, masks=masks,
-                                                         fps_views=1, progress=False)
+        paper_r = None if codec == choice_value("codec", paper=True) else evaluate(
+            load_omg4(paper_copy, device), scene.test_views, lpips_nets=(), backend=backend, device=device,
+            masks=masks, fps_views=1, progress=False)
         payload = decode_payload(paper_copy) if len(grids) > 1 else None  # the pipeline's values, for re-encoding
         for g in grids:
             if g != grids[0]:
@@ -182,7 +182,7 @@ def rate_distortion_curves(results: dict[str, dict], codec: str) -> tuple[dict[s
             continue
         beta, grids = r["rate_weight"], CompactGrids(**{"exact": 0, **r.get("grids", {})})  # saved before exact: 0
         curves.setdefault(row_label(f"{codec} coder", beta, grids), {})[r["preset"]] = (r["storage_mb"], r["psnr"])
-        if not beta and codec != "paper":
+        if not beta and codec != choice_value("codec", paper=True):
             curves.setdefault("paper coder", {})[r["preset"]] = (r["paper_codec_mb"], r["paper_codec_psnr"])
     return points, curves
 

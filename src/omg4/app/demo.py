@@ -28,6 +28,7 @@ import torch
 
 from omg4.app.report import equal_training_row, format_table, per_frame_plot, rate_distortion_plot
 from omg4.atomic import write_text_atomic
+from omg4.compress.modes import choice_value
 from omg4.compress.schedule import SCHEDULES, StageLengths
 from omg4.errors import OMG4Error
 from omg4.metrics.frames import frame_differences, per_frame
@@ -125,7 +126,6 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
 
     Refuses (:func:`check_demo_folder`) a folder that holds anything but an earlier demo's outputs."""
     from omg4.compress.api import compress_to_file
-    from omg4.compress.modes import choice_value
     from omg4.compress.pipeline import CompressConfig
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
@@ -165,7 +165,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
                           device=str(device))
     codec = settings.codec or choice_value("codec", settings.paper)
     # the same pipeline result with the paper-faithful coder (the main file itself when it is coded so)
-    paper_path = omg4_path if codec == "paper" else out / "scene_M_paper_codec.omg4"
+    paper_path = omg4_path if codec == choice_value("codec", paper=True) else out / "scene_M_paper_codec.omg4"
     report = compress_to_file(baseline.model, scene, ccfg, omg4_path, codec=codec,
                               paper_copy=None if paper_path == omg4_path else paper_path, progress=True)
     timings["compress_s"] = time.perf_counter() - t
