@@ -202,3 +202,34 @@ def test_a_codec_name_branch_is_caught():
     assert codec_name_branches('codec = "ans" if header["codec"] == "paper" else x') == ['codec"] == "paper"']
     assert codec_name_branches('if "paper" != codec:') == ['"paper" != codec']
     assert codec_name_branches('decode_indices(data, n, count, "ans")') == []  # an encoding, not a codec
+
+
+LIBRARY_EXCEPT = ("app", "testing", "__main__")
+"""The packages whose modules may import where they need (the commands start fast by importing late)."""
+
+
+def unexplained_late_imports(source: str) -> list[int]:
+    """Lines of the imports inside functions of ``source`` with no reason beside them (a comment on the import or
+    on the line above it)."""
+    lines = source.split("\n")
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for sub in ast.walk(node):
+                if isinstance(sub, (ast.Import, ast.ImportFrom)):
+                    beside = "".join(lines[sub.lineno - 1:sub.end_lineno])
+                    if "#" not in beside and not lines[sub.lineno - 2].strip().startswith("#"):
+                        found.append(sub.lineno)
+    return sorted(set(found))
+
+
+def test_library_modules_import_at_the_top_or_say_why_not():
+    found = {m: unexplained_late_imports(p.read_text()) for m, p in sorted(modules().items())
+             if m.split(".")[0] not in LIBRARY_EXCEPT}
+    assert {m: lines for m, lines in found.items() if lines} == {}
+
+
+def test_a_late_import_without_a_reason_is_caught():
+    assert unexplained_late_imports("def f():\n    import json\n    return json\n") == [2]
+    assert unexplained_late_imports("def f():\n    import gsplat  # CUDA only\n") == []
+    assert unexplained_late_imports("def f():\n    # CUDA only\n    import gsplat\n") == []

@@ -24,14 +24,18 @@ from __future__ import annotations
 import contextlib
 import datetime
 import hashlib
+import json
 import logging
 import os
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from typing import NoReturn
 
+import numba
 import torch
+from torch.distributed.distributed_c10d import _get_default_store
 
 from omg4.errors import OMG4Error
 
@@ -111,8 +115,6 @@ def init(device: torch.device) -> tuple[World, torch.device]:
             raise OMG4Error(f"cannot join the distributed job ({_first_line(exc)})") from None
         _store().set(f"omg4/pid/{torch.distributed.get_rank()}", str(os.getpid()))
         if device.type == "cpu":  # the numba kernels take no more threads than torch was given per rank
-            import numba
-
             numba.set_num_threads(max(1, min(numba.get_num_threads(), torch.get_num_threads())))
     elif device.type == "cuda":
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
@@ -149,9 +151,6 @@ def record_failure(exc: BaseException) -> None:
             pass
     error_file = os.environ.get("TORCHELASTIC_ERROR_FILE")
     if error_file and launched():
-        import json
-        import time
-
         try:
             with open(error_file, "w") as f:
                 json.dump({"message": _first_line(exc), "timestamp": int(time.time()),
@@ -167,8 +166,6 @@ def reports_failures() -> bool:
 
 
 def _store():
-    from torch.distributed.distributed_c10d import _get_default_store
-
     return _get_default_store()
 
 

@@ -16,9 +16,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from omg4 import distributed
 from omg4.data.scene import View
 from omg4.data.segments import near_boundary
 from omg4.errors import OMG4Error
+from omg4.metrics import lpips, lpips_min_side, measure_fps_together, psnr, ssim
+from omg4.metrics.dynamic import dynamic_mask, masked_psnr, masked_ssim
+from omg4.metrics.frames import per_frame
 from omg4.render.view import render_view, view_image
 
 def frame_rates(models: list, views: list[View], *, fps_views: int = 30, background: torch.Tensor | None = None,
@@ -27,9 +31,6 @@ def frame_rates(models: list, views: list[View], *, fps_views: int = 30, backgro
     (:func:`omg4.metrics.timing.measure_fps`); several models take turns frame by frame
     (:func:`~omg4.metrics.timing.measure_fps_together`), so their ratio is not a host's slow spell. In a
     distributed job rank 0 times them alone and every rank gets its figures."""
-    from omg4 import distributed
-    from omg4.metrics import measure_fps_together
-
     rates = None
     if distributed.world().main:
         step = max(1, len(views) // fps_views)
@@ -56,8 +57,6 @@ class _ClipImages:
 def dynamic_masks(views: list[View]) -> dict[str, np.ndarray]:
     """The dynamic-region mask of each camera with at least two views in ``views``
     (:func:`omg4.metrics.dynamic.dynamic_mask`), keyed by camera name."""
-    from omg4.metrics.dynamic import dynamic_mask
-
     by_camera: dict[str, list[View]] = {}
     for v in views:
         by_camera.setdefault(v.camera.name, []).append(v)
@@ -85,11 +84,6 @@ def evaluate(model, views: list[View], *, storage_bytes: int | None = None, lpip
     ``per_frame`` summarizes every view, not only the mean: the worst frame, the spread and the 5th percentile of
     PSNR and SSIM (:func:`omg4.metrics.frames.per_frame`).
     """
-    from omg4 import distributed
-    from omg4.metrics import lpips, lpips_min_side, psnr, ssim
-    from omg4.metrics.dynamic import masked_psnr, masked_ssim
-    from omg4.metrics.frames import per_frame
-
     if not views:
         raise OMG4Error("there are no test views to evaluate on")
     masks = dynamic_masks(views) if masks is None else masks

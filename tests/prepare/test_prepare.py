@@ -37,7 +37,7 @@ def prepared(rig, tmp_path_factory):
     out = raw.parent / "data"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        code = main(["prepare", str(raw), "--out", str(out)])
+        code = main(["prepare", str(raw), "--out", str(out), "--threads", "1"])  # the same calibration every run
     return raw, before, out, code, printed.getvalue()
 
 
@@ -164,7 +164,7 @@ def test_a_calibration_the_halves_refuse_is_mapped_again_with_the_next_seed(rig,
     raw = tmp_path / "capture"
     raw_capture(rig, raw, LATE)
     with caplog.at_level(logging.INFO, logger="omg4.prepare.pipeline"), contextlib.redirect_stdout(io.StringIO()):
-        assert main(["prepare", str(raw), "--out", str(tmp_path / "data")]) == 0
+        assert main(["prepare", str(raw), "--out", str(tmp_path / "data"), "--threads", "1"]) == 0
     record = json.loads((tmp_path / "data" / "calibration.json").read_text())
     assert seeds == [0, 1] and record["mapper_seed"] == 1
     assert "the halves disagree (planted); mapping again with the random seed 1" in caplog.text

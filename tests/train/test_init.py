@@ -39,7 +39,7 @@ def _without_points(scene, views=None):
 
 
 def test_auto_prefers_ply_then_stereo_then_random(tiny_scene, monkeypatch):
-    import omg4.train.plane_sweep as plane_sweep
+    import omg4.train.init as init_module  # the sweep as initialization calls it
     from omg4.data import random_initial_points
     from omg4.data.scene import PointCloud
     from omg4.errors import DataError
@@ -55,7 +55,7 @@ def test_auto_prefers_ply_then_stereo_then_random(tiny_scene, monkeypatch):
         devices.append(device)
         return stereo
 
-    monkeypatch.setattr(plane_sweep, "plane_sweep_points", fake_sweep)
+    monkeypatch.setattr(init_module, "plane_sweep_points", fake_sweep)
     assert initial_points(tiny_scene, "auto", cfg, log=lambda m: None) is tiny_scene.initial_points
     assert calls == []
     assert initial_points(_without_points(tiny_scene), "auto", cfg, log=lambda m: None) is stereo
@@ -71,7 +71,7 @@ def test_auto_prefers_ply_then_stereo_then_random(tiny_scene, monkeypatch):
     def failing_sweep(scene, num_points, seed=0, device="cpu"):
         raise DataError("plane-sweep initialization found no consistent point")
 
-    monkeypatch.setattr(plane_sweep, "plane_sweep_points", failing_sweep)
+    monkeypatch.setattr(init_module, "plane_sweep_points", failing_sweep)
     messages = []
     got = initial_points(_without_points(tiny_scene), "auto", cfg, log=messages.append)
     assert len(got.xyz) == 50 and "using random points" in messages[0]

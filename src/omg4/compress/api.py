@@ -7,22 +7,30 @@ fp16 positions, time centres, codebooks and MLP weights (paper §4.4; omg4 §8).
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from omg4.codec.payload import CompactGrids, CompressedPayload, check_codec, encode_payload
+from omg4 import distributed
+from omg4.codec.container import has_magic
+from omg4.codec.payload import CompactGrids, CompressedPayload, check_codec, decode_payload, encode_payload
+from omg4.codec.references import reference_sections
 from omg4.codec.rig import rig_json
+from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
 from omg4.compress.model import CompressibleModel
 from omg4.compress.modes import choice_value
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
 from omg4.data.scene import Scene
+from omg4.data.segments import read_run_plan, shared_frames
 from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
-from omg4.gaussians.checkpoint import save_gaussians
+from omg4.gaussians.checkpoint import load_gaussians, run_model, save_gaussians
+from omg4.models.compact import CompactModel
+from omg4.optimize.teaching import taught_by
 
 logger = logging.getLogger(__name__)
 
@@ -30,9 +38,6 @@ logger = logging.getLogger(__name__)
 def baseline_file(path: str | Path) -> Path:
     """The checkpoint of a trained baseline: ``path`` itself (``model.safetensors``) or a training run's folder's;
     an ``.omg4`` file (already compressed) is a one-line error that says so."""
-    from omg4.codec.container import has_magic
-    from omg4.gaussians.checkpoint import run_model
-
     path = run_model(path)
     if path.is_file() and has_magic(path):
         raise OMG4Error(f"{path} is a compressed .omg4 file: compression starts from the trained baseline "
@@ -43,8 +48,6 @@ def baseline_file(path: str | Path) -> Path:
 def read_baseline(path: str | Path, device="cpu") -> tuple[Gaussians4D, dict]:
     """The trained baseline to compress (:func:`baseline_file`) and its file's metadata (``iteration``: the steps
     it was trained for)."""
-    from omg4.gaussians.checkpoint import load_gaussians
-
     return load_gaussians(baseline_file(path), device)
 
 
@@ -102,8 +105,6 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     In a distributed job (:mod:`omg4.distributed`) every rank runs the pipeline on its share of the views and
     rank 0 alone writes; every rank returns once the files exist.
     """
-    from omg4 import distributed
-
     main = distributed.world().main
     out = Path(out)
     codec = codec or choice_value("codec", cfg.paper)
@@ -181,17 +182,6 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     playback shows mostly the one before (beyond the paper). Returns the report: per segment the
     :func:`compress_to_file` report, and the file's bytes, duration and bitrate.
     """
-    import shutil
-
-    from omg4 import distributed
-    from omg4.codec.payload import decode_payload
-    from omg4.codec.references import reference_sections
-    from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
-    from omg4.data.segments import read_run_plan, shared_frames
-    from omg4.gaussians.checkpoint import load_gaussians
-    from omg4.models.compact import CompactModel
-    from omg4.optimize.teaching import taught_by
-
     log = log or logger.info
     codec = codec or choice_value("codec", cfg.paper)
     key_interval = choice_value("key_interval", cfg.paper) if key_interval is None else key_interval

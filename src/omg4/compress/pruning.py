@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from omg4.compress.score import SDScores
+from omg4.errors import OMG4Error
 
 
 def quantile(x: torch.Tensor, q: float) -> float:
@@ -20,8 +21,6 @@ def quantile(x: torch.Tensor, q: float) -> float:
 def pruning_mask(scores: SDScores, p: float) -> torch.Tensor:
     """Bool [N]: Gaussians with S ≥ Q_p(S) or T ≥ Q_p(T)."""
     if not 0.0 <= p <= 1.0:
-        from omg4.errors import OMG4Error
-
         raise OMG4Error(f"pruning quantile p must be in [0, 1], got {p}")
     if scores.static.numel() == 0:
         return torch.zeros(0, dtype=torch.bool, device=scores.static.device)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from omg4.compress.score import SDScores
+from omg4.errors import OMG4Error
 
 
 def minmax(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -24,8 +25,6 @@ def sd_score(scores: SDScores) -> torch.Tensor:
 def sampling_mask(scores: SDScores, ratio: float) -> torch.Tensor:
     """Bool [N]: exactly ``round(ratio · N)`` Gaussians with the highest SD score (ties by lower index)."""
     if not 0.0 < ratio <= 1.0:
-        from omg4.errors import OMG4Error
-
         raise OMG4Error(f"sampling ratio τ_GS must be in (0, 1], got {ratio}")
     sd = sd_score(scores)
     n = sd.shape[0]

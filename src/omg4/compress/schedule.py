@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from omg4.errors import OMG4Error
 from omg4.settings import knob
 
 STAGE_NAMES = ("sample", "prune", "sample+prune", "merge", "appearance", "svq3d", "svq4d")
@@ -68,8 +69,6 @@ def build_events(stages: tuple[str, ...], lengths: StageLengths, num_merge: int 
     it = 0
     for name in stages:
         if name not in STAGE_NAMES:
-            from omg4.errors import OMG4Error
-
             raise OMG4Error(f"unknown stage '{name}' (known: {', '.join(STAGE_NAMES)})")
         if name == "merge":
             for r in range(num_merge):

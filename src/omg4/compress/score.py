@@ -29,7 +29,10 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from omg4 import distributed
+from omg4.atomic import atomic_path
 from omg4.data.scene import View
+from omg4.errors import CorruptFileError
 from omg4.gaussians.covariance import temporal_marginal
 from omg4.optimize.step import view_losses
 
@@ -52,8 +55,6 @@ class SDScores:
 
     def save(self, path: str | Path) -> None:
         """Write both scores as float64 ``.npz`` (atomically)."""
-        from omg4.atomic import atomic_path
-
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 np.savez(f, static=self.static.double().cpu().numpy(), dynamic=self.dynamic.double().cpu().numpy())
@@ -61,8 +62,6 @@ class SDScores:
     @staticmethod
     def load(path: str | Path, num_gaussians: int) -> "SDScores":
         """Read scores saved by :meth:`save`; checks they belong to a model of ``num_gaussians``."""
-        from omg4.errors import CorruptFileError
-
         try:
             with np.load(path, allow_pickle=False) as z:
                 s, d = torch.from_numpy(z["static"]), torch.from_numpy(z["dynamic"])
@@ -122,8 +121,6 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
     In a distributed job each rank scores its share of the batches and the sums are combined, so every rank
     holds the scores of all the views.
     """
-    from omg4 import distributed
-
     world = distributed.world()
     n = model.params["t"].shape[0]
     static = torch.zeros(n, dtype=torch.float64, device=device)

@@ -16,6 +16,8 @@ import os
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
 
 from omg4.atomic import atomic_path
 from omg4.errors import CorruptFileError, OMG4Error
@@ -28,8 +30,6 @@ _META_KEY = "omg4"
 
 def save_gaussians(path: str | os.PathLike, model: Gaussians4D, metadata: dict | None = None) -> None:
     """Write ``model`` (params as float32) and JSON-serializable ``metadata`` to ``path`` atomically."""
-    from safetensors.torch import save_file
-
     tensors = {k: model.params[k].detach().to("cpu", torch.float32).contiguous()
                for k in model.config.schema.param_names}
     header = {
@@ -48,8 +48,6 @@ def save_gaussians(path: str | os.PathLike, model: Gaussians4D, metadata: dict |
 
 def _read_header(path: Path) -> tuple[dict, dict[str, tuple[int, ...]]]:
     """(omg4 header, {tensor name: shape}) without reading tensor data."""
-    from safetensors import safe_open
-
     if not path.is_file():
         raise CorruptFileError(f"{path}: no such checkpoint file")
     try:
@@ -116,8 +114,6 @@ def load_gaussians(path: str | os.PathLike, device: torch.device | str = "cpu") 
     Raises:
         CorruptFileError: missing, truncated, damaged or wrong-kind file, non-finite values, or no Gaussians.
     """
-    from safetensors import safe_open
-
     path = Path(path)
     header, shapes = _read_header(path)
     config = _config_of(path, header)

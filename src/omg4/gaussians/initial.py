@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from omg4.gaussians.sh import rgb_to_sh
 
@@ -21,8 +22,6 @@ def mean_neighbour_sq_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
     xyz: [M, 3] → [M] (0 for a single point).
     """
-    from scipy.spatial import cKDTree
-
     m = xyz.shape[0]
     kk = min(k, m - 1)
     if kk == 0:

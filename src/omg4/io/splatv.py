@@ -25,13 +25,15 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from omg4.atomic import atomic_path
 from omg4.data.scene import Camera
-from omg4.errors import OMG4Error
+from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians.model import centre_appearance
 from omg4.io.ply_export import covariance_to_scale_rotation, model_in_float64
 
@@ -126,10 +128,6 @@ def read_splatv(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
     """(header, fields) of a ``.splatv`` file: float64 ``xyz [M, 3]``, ``quat [M, 4]`` (w, x, y, z), ``scale
     [M, 3]``, ``rgba [M, 4]`` in [0, 1], ``motion [M, 9]``, ``omega [M, 4]``, ``centre [M]``, ``time_scale [M]``
     (zero records dropped). Raises :class:`~omg4.errors.CorruptFileError` on a malformed file."""
-    from pathlib import Path
-
-    from omg4.errors import CorruptFileError
-
     try:
         data = Path(path).read_bytes()
     except OSError as e:
@@ -167,8 +165,6 @@ def read_splatv(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
 def splatv_state(fields: dict[str, np.ndarray], t: float, min_opacity: float = 0.02):
     """What splaTV's vertex shader draws at normalized time ``t``: (means [M, 3], covariances [M, 3, 3],
     colours [M, 3], opacities [M]) of the records whose temporal factor reaches ``min_opacity``."""
-    from scipy.spatial.transform import Rotation
-
     dt = t - fields["centre"]
     temporal = np.exp(-((dt / fields["time_scale"]) ** 2))
     keep = temporal >= min_opacity

@@ -22,6 +22,7 @@ from pathlib import Path
 from omg4.atomic import atomic_folder
 from omg4.codec.browser import browser_decodable
 from omg4.codec.coders import browser_module
+from omg4.codec.sequence import is_sequence, read_index, read_segment
 from omg4.errors import CorruptFileError, OMG4Error
 
 PLAYER_ROOT = Path(__file__).resolve().parent.parent / "web"
@@ -66,8 +67,6 @@ def export_web(out: str | os.PathLike, model: str | os.PathLike, cameras: list |
     ``sequence.json`` and one file per segment in ``segments/``, which the page fetches as playback reaches them);
     ``cameras`` (:class:`~omg4.data.scene.Camera`, the first ``test_cameras`` of them held out) become the page's
     presets. Returns the manifest."""
-    from omg4.codec.sequence import is_sequence, read_index, read_segment
-
     out = Path(out)
     check_export_folder(out)
     written, total, rewritten = [], 0, False

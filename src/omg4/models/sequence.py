@@ -16,6 +16,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
 from omg4.codec.sequence import SegmentDecoder
+from omg4.data.segments import blend_weights
 from omg4.errors import OMG4Error
 from omg4.models.compact import CompactModel
 
@@ -71,8 +72,6 @@ class SequenceModel:
 
     def parts_at(self, time: float) -> list[tuple[object, float]]:
         """(segment model, weight) pairs to render and blend at ``time``; starts decoding the next segment."""
-        from omg4.data.segments import blend_weights
-
         weights = blend_weights(float(time), self.ranges)
         parts = [(self.segment(k), w) for k, w in weights]
         self._decode_ahead(weights[-1][0] + 1)
@@ -80,8 +79,6 @@ class SequenceModel:
 
     def segment_at(self, time: float):
         """The model of the segment weighing most at ``time`` (what one time slice of the sequence exports)."""
-        from omg4.data.segments import blend_weights
-
         return self.segment(max(blend_weights(float(time), self.ranges), key=lambda kw: kw[1])[0])
 
     @property

@@ -10,10 +10,12 @@ container header; the groups add up to the file size.
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from omg4.codec.container import describe_container
-from omg4.models.compact import load_omg4
+from omg4.codec.sequence import SegmentDecoder, read_segment
+from omg4.models.compact import CompactModel, load_omg4
 
 _PLAIN_GROUPS = {"xyz": "positions", "t": "time centres", "mlp": "MLPs", "carry": "carried Gaussians"}
 
@@ -59,11 +61,6 @@ def describe_sequence(path: str | os.PathLike) -> dict:
     the decoder does, a predicted one after its reference), with the file's bitrate over the capture and the
     key interval; each segment's ``reference`` is the segment it is predicted from (None: a key segment) and
     ``carried`` how many of its Gaussians are that segment's, as they decoded there (docs/file-format.md §8b)."""
-    import tempfile
-
-    from omg4.codec.sequence import SegmentDecoder, read_segment
-    from omg4.models.compact import CompactModel
-
     decoder = SegmentDecoder(path)
     index = decoder.index
     segments = []

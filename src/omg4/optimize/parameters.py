@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from omg4 import distributed
 from omg4.gaussians.backbone import APPEARANCE_FEATURES, Backbone
 
 
@@ -73,8 +74,6 @@ def step_optimizers(optimizers, device: torch.device | str) -> None:
     ``device`` as torch's default device, so state that an optimizer creates lazily (Adam's step counters)
     lands beside the parameters whatever the caller's default device is.
     """
-    from omg4 import distributed
-
     present = [opt for opt in optimizers if opt is not None]
     if distributed.world().parallel:
         distributed.all_reduce_gradients([p for opt in present for g in opt.param_groups for p in g["params"]])

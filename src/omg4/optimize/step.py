@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from omg4 import distributed
 from omg4.data.scene import View
 from omg4.errors import OMG4Error
-from omg4.render.view import view_image
-from omg4.render.view import render_views, views_by_size
 from omg4.optimize.loss import photometric_losses
+from omg4.render.view import render_views, view_image, views_by_size
 
 
 def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
@@ -57,8 +57,6 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
     Returns the global batch's mean per-view loss and mean PSNR (renders clamped); a non-finite
     loss is a one-line error naming ``what``.
     """
-    from omg4 import distributed
-
     indices = batch.tolist()
     chosen = [views[i] for i in distributed.world().shard(indices)]
     total, psnr_sum, rendered_groups = torch.zeros((), device=device), 0.0, []

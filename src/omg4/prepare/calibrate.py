@@ -94,7 +94,7 @@ def calibrate(frames: dict[str, list[np.ndarray]], work: str | os.PathLike, *, m
     random draw (RANSAC, the mapper's): one capture and seed, one calibration. Raises a one-line
     :class:`OMG4Error` when no two cameras can be reconstructed together.
     """
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     pycolmap.set_random_seed(seed)
     work = Path(work)
@@ -147,7 +147,7 @@ def _pooled(database: Path, names: list[str], instants: list[int]
     """Per camera its keypoints of the ``instants`` end to end [P, 2]; per camera pair the verified matches of
     those instants, as indices into the pooled keypoints [M, 2]; per camera where each instant's keypoints start
     in its pooled ones [len(instants)]."""
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     db = pycolmap.Database.open(str(database))
     try:
@@ -184,7 +184,7 @@ def _reconstruct(folder: Path, frames: dict[str, list[np.ndarray]], names: list[
                  shared_intrinsics: bool, distortion: bool, threads: int, seed: int):
     """One image per camera holding its pooled keypoints, the pooled matches verified and mapped (with the lens
     distortion estimated, or held at zero)."""
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     shutil.rmtree(folder, ignore_errors=True)
     images = folder / "images"
@@ -235,7 +235,7 @@ def simplest_lens(rec, keypoints: dict[str, np.ndarray]):
     thousands of residuals, the two coefficients per camera always buy a significant fraction of a percent (on
     synthetic rigs with no distortion, 0.2–0.5 %, while bending the focal lengths by 2 % and the poses with
     them); a real lens's distortion left out raises the RMS by far more."""
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     pinhole = pycolmap.Reconstruction(rec)
     for camera in pinhole.cameras.values():
@@ -318,7 +318,7 @@ def _calibration(rec, names: list[str], starts: dict[str, np.ndarray], keypoints
 
 def _verification():
     """Geometric verification with fixed RANSAC draws (one capture, one calibration)."""
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.random_seed = 0
@@ -327,7 +327,7 @@ def _verification():
 
 def _quiet(function, *args, **kwargs):
     """Call a pycolmap function with its log (glog, on stderr) limited to errors."""
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     logging_ = getattr(pycolmap, "logging", None)
     level = None

@@ -103,7 +103,7 @@ def reregister(camera: CalibratedCamera, name: str, calibration: Calibration, tr
     """A new pose for camera ``name`` (intrinsics from ``camera``, refined too with ``refine_intrinsics``) by
     LO-RANSAC PnP (pycolmap) from all its matches to the points the ``trusted`` cameras observe; None when there
     are too few correspondences or no pose is found."""
-    import pycolmap
+    import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
 
     pixels, points = [], []
     for (a, b), m in calibration.matches.items():

@@ -19,9 +19,15 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from omg4.atomic import atomic_folder
+from omg4.data.normalize import official_normalization
+from omg4.data.points import write_ply
+from omg4.data.scene import Camera, PointCloud
+from omg4.data.synthetic.rig import llff_poses_bounds
 from omg4.errors import OMG4Error
+from omg4.io.video import write_video
 from omg4.prepare.calibrate import CalibratedCamera, Calibration, calibrate
 from omg4.prepare.camera_model import project, sample
 from omg4.prepare.check import CameraCheck, check_and_repair, rig_disagreement
@@ -50,14 +56,16 @@ def default_instants(num_cameras: int) -> int:
 
 def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str = "auto",
                     test_camera: str | None = None, shared_intrinsics: bool = False, instants: int | None = None,
-                    max_features: int = 8192, image_fps: float = 30.0, force: bool = False,
+                    max_features: int = 8192, image_fps: float = 30.0, threads: int = -1, force: bool = False,
                     progress: bool = False) -> dict:
     """Turn the raw cameras in ``src`` into the dataset ``out`` (see the module docstring); returns the
     ``calibration.json`` record. ``sync``: ``auto``, ``audio``, ``none`` or a file of frames to skip
     (:mod:`omg4.prepare.sync`); ``test_camera``: a source's file name or stem (default: the most central
     camera); ``instants``: how many instants of the shared span the calibration pools (default
     :func:`default_instants`); ``image_fps``: the frame
-    rate of image folders. Nothing is written into ``src``; an existing ``out`` needs ``force``. A capture that
+    rate of image folders; ``threads``: of pycolmap's extraction, matching and mapping (-1: every core; 1: the same
+    calibration every run — with more, the order their work finishes in moves the result). Nothing is written into
+    ``src``; an existing ``out`` needs ``force``. A capture that
     cannot be calibrated, or whose calibration cannot be trusted, is a one-line :class:`OMG4Error`."""
     started = time.perf_counter()
     src, out = Path(src).resolve(), Path(out).resolve()
@@ -75,7 +83,8 @@ def prepare_capture(src: str | os.PathLike, out: str | os.PathLike, *, sync: str
         for seed in MAPPER_SEEDS:
             try:
                 calibration, checks, kept, halves = _trusted_calibration(frames, work, sources, len(chosen),
-                                                                         max_features, shared_intrinsics, seed)
+                                                                         max_features, shared_intrinsics, seed,
+                                                                         threads)
                 break
             except UntrustedCalibration as exc:
                 refusal = exc
@@ -115,12 +124,13 @@ class UntrustedCalibration(OMG4Error):
 
 
 def _trusted_calibration(frames: dict[str, list[np.ndarray]], work: str, sources: list[Source], count: int,
-                         max_features: int, shared_intrinsics: bool, seed: int):
+                         max_features: int, shared_intrinsics: bool, seed: int, threads: int):
     """(calibration, per-camera checks, the sources that hold, the halves' rows) of the rig mapped with ``seed``, or
     :class:`UntrustedCalibration` saying why it cannot be trusted."""
-    calibration = calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics, seed=seed)
+    calibration = calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics, seed=seed,
+                            threads=threads)
     halves = _halves(frames, work, count, max_features, shared_intrinsics, calibration.lens["distortion"] == "kept",
-                     seed)
+                     seed, threads)
     calibration, checks = check_and_repair(calibration, {s.stem: (s.width, s.height) for s in sources})
     checks = _reprojection_checks(calibration, checks)
     kept = [s for s in sources if checks[s.stem].reliable]
@@ -143,7 +153,7 @@ def _check_target(src: Path, out: Path, force: bool) -> None:
 
 
 def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_features: int,
-            shared_intrinsics: bool, distortion: bool, seed: int) -> list[dict[str, CalibratedCamera]]:
+            shared_intrinsics: bool, distortion: bool, seed: int, threads: int) -> list[dict[str, CalibratedCamera]]:
     """The rig calibrated again from the even and from the odd ones of its ``count`` instants (the features and
     matches already in ``work``; the whole rig's lens model, ``distortion``), for
     :func:`~omg4.prepare.check.rig_disagreement`; none when there are fewer than four instants, an empty rig for a
@@ -156,7 +166,7 @@ def _halves(frames: dict[str, list[np.ndarray]], work: str, count: int, max_feat
     for part in (list(range(0, count, 2)), list(range(1, count, 2))):
         try:
             halves.append(calibrate(frames, work, max_features=max_features, shared_intrinsics=shared_intrinsics,
-                                    instants=part, distortion=distortion, seed=seed).cameras)
+                                    instants=part, distortion=distortion, seed=seed, threads=threads).cameras)
         except OMG4Error:
             halves.append({})
     return halves
@@ -169,8 +179,6 @@ def _instants(length: int, count: int) -> list[int]:
 
 
 def _bar(items, progress: bool, what: str):
-    from tqdm.auto import tqdm
-
     return tqdm(items, desc=what, unit="camera", disable=not progress)
 
 
@@ -199,8 +207,6 @@ def _test_source(kept: list[Source], calibration: Calibration, name: str | None)
 
 def _world(calibration: Calibration, order: list[Source]):
     """The normalized world of the official N3DV preprocessing for the kept cameras."""
-    from omg4.data.normalize import official_normalization
-
     return official_normalization(np.stack([np.linalg.inv(calibration.cameras[s.stem].w2c) for s in order]))
 
 
@@ -223,8 +229,6 @@ def point_colors(calibration: Calibration, frames: dict[str, list[np.ndarray]]) 
 
 def _undistorted_camera(camera: CalibratedCamera, undistorter: Undistorter, normalization, source: Source,
                         name: str):
-    from omg4.data.scene import Camera
-
     return Camera(K=undistorter.K, viewmat=normalization.apply_viewmat(camera.w2c), width=source.width,
                   height=source.height, name=name)
 
@@ -245,8 +249,6 @@ def _near_far(camera, points: np.ndarray) -> tuple[float, float]:
 
 def _write_videos(folder: Path, order: list[Source], offsets: Offsets, sources: list[Source], length: int,
                   fps: float, undistorters: dict[str, Undistorter], names: dict[str, str], progress: bool) -> None:
-    from omg4.io.video import write_video
-
     skip = {s.stem: k for s, k in zip(sources, offsets.frames)}
     for source in _bar(order, progress, "writing videos"):
         first = skip[source.stem]
@@ -257,10 +259,6 @@ def _write_videos(folder: Path, order: list[Source], offsets: Offsets, sources: 
 
 def _write_geometry(folder: Path, order: list[Source], cameras: dict, points: np.ndarray, colors: np.ndarray,
                     names: dict[str, str]) -> None:
-    from omg4.data.points import write_ply
-    from omg4.data.scene import PointCloud
-    from omg4.data.synthetic.rig import llff_poses_bounds
-
     rig = [cameras[s.stem] for s in order]
     bounds = np.array([_near_far(c, points) for c in rig])
     np.save(folder / "poses_bounds.npy", llff_poses_bounds(rig, bounds[:, 0], bounds[:, 1]))
@@ -303,10 +301,10 @@ def _finite(value: float):
 def rig_plot(path: Path, cameras: list, points: np.ndarray, colors: np.ndarray, test: str) -> None:
     """A picture of the rig: each camera's centre and viewing direction (the test camera in red) above the
     calibration's points, seen from above and from the side."""
-    import matplotlib
+    import matplotlib  # matplotlib loads only where a plot is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # matplotlib loads only where a plot is drawn
 
     rng = np.random.default_rng(0)
     shown = rng.choice(len(points), min(len(points), 4000), replace=False) if len(points) else np.zeros(0, int)

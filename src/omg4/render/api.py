@@ -82,7 +82,7 @@ def rasterize_views(means: torch.Tensor, covars: torch.Tensor, colors: torch.Ten
     chosen = resolve_backend(backend, means.device)
     kwargs = dict(background=background, near=near, far=far, eps2d=eps2d, alpha_max=alpha_max, tile_size=tile_size)
     if chosen == "gsplat":
-        from omg4.render.gsplat_backend import rasterize_gsplat_views
+        from omg4.render.gsplat_backend import rasterize_gsplat_views  # gsplat needs CUDA: imported where a GPU renders
 
         return rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks, width, height, **kwargs)
     return rasterize_cpu(means, covars, colors, opacities, views, viewmats, Ks, width, height, **kwargs)

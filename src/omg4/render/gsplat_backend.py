@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import torch
 
+from omg4.render.projection import max_radius
 from omg4.render.rendered import Rendered
 
 GSPLAT_ALPHA_MAX = 0.999
@@ -36,9 +37,8 @@ def rasterize_gsplat_views(means, covars, colors, opacities, views, viewmats, Ks
     if alpha_max != GSPLAT_ALPHA_MAX:
         raise ValueError(f"the gsplat backend supports only alpha_max={GSPLAT_ALPHA_MAX} (fixed in its CUDA kernel), "
                          f"got {alpha_max}; use backend='cpu'")
-    import gsplat
+    import gsplat  # gsplat needs CUDA: imported where a GPU renders
 
-    from omg4.render.projection import max_radius
 
     like = dict(dtype=torch.float32, device=means.device)
     num_views, n_colors = viewmats.shape[0], colors.shape[1]

@@ -10,6 +10,7 @@ opacity × temporal marginal, culled where the marginal ≤ 0.05) with view-depe
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -106,8 +107,6 @@ def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, backgro
 
 def _render_blend(parts: list, camera: Camera, timestamp: float, **kwargs):
     """The weighted blend of each part's render (see :func:`render_view`)."""
-    import dataclasses
-
     renders = [(render_view(part, camera, timestamp, **kwargs), weight) for part, weight in parts]
     if len(renders) == 1:
         return renders[0][0]

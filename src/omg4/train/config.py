@@ -17,6 +17,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
+import torch
+
+from omg4.errors import OMG4Error
 from omg4.optimize.parameters import LEARNING_RATES as LR
 from omg4.settings import knob
 
@@ -97,8 +100,6 @@ PRESETS: dict[str, dict] = {
 def default_preset(device) -> str:
     """The preset a run takes when none is named: the official schedule on a CUDA device, ``cpu-small`` elsewhere
     (30,000 official iterations would take a 2-core machine hours)."""
-    import torch
-
     return "official" if torch.device(device).type == "cuda" else "cpu-small"
 
 
@@ -119,8 +120,6 @@ def make_config(preset: str = "official", **overrides) -> TrainConfig:
     multiplies the Gaussian count (an explicit ``densify_interval`` is taken as given).
     """
     if preset not in PRESETS:
-        from omg4.errors import OMG4Error
-
         raise OMG4Error(f"unknown training preset '{preset}' (choose from {', '.join(PRESETS)})")
     cfg = replace(TrainConfig(), **PRESETS[preset])
     overrides = {k: v for k, v in overrides.items() if v is not None}

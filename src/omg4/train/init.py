@@ -15,9 +15,13 @@ from typing import Callable
 
 import numpy as np
 
+from omg4.data import random_initial_points
 from omg4.data.scene import PointCloud, Scene
+from omg4.device import resolve_device
 from omg4.errors import DataError, OMG4Error
 from omg4.train.config import TrainConfig
+from omg4.train.plane_sweep import plane_sweep_points
+from omg4.train.triangulate import triangulate_first_frame
 
 logger = logging.getLogger(__name__)
 
@@ -55,8 +59,6 @@ def _auto_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> 
 
 
 def _random_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
-    from omg4.data import random_initial_points
-
     return random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
 
 
@@ -65,15 +67,10 @@ def _ray_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> P
 
 
 def _plane_sweep_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
-    from omg4.device import resolve_device
-    from omg4.train.plane_sweep import plane_sweep_points
-
     return plane_sweep_points(scene, cfg.num_random_points, seed=cfg.seed, device=resolve_device(cfg.device))
 
 
 def _colmap_points(scene: Scene, cfg: TrainConfig, log: Callable[[str], None]) -> PointCloud:
-    from omg4.train.triangulate import triangulate_first_frame
-
     return triangulate_first_frame(scene)
 
 

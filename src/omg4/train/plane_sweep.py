@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+from tqdm.auto import tqdm
 
 from omg4.data.scene import Camera, PointCloud, Scene
 from omg4.errors import DataError
@@ -185,8 +186,6 @@ def plane_sweep_points(scene: Scene, num_points: int, *, seed: int = 0, cfg: Swe
     Raises:
         DataError: when no camera has a usable neighbour or no pixel passes the checks.
     """
-    from tqdm.auto import tqdm
-
     views = scene.first_frame_views()
     cameras = [v.camera for v in views]
     images = [v.image() for v in views]

@@ -14,8 +14,10 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+from omg4.data.segments import is_segmented_run, read_run_plan
 from omg4.errors import OMG4Error
 from omg4.train.config import TrainConfig
+from omg4.train.run_state import latest_iteration
 
 PLACEMENT_FIELDS = ("device", "backend", "test_interval", "checkpoint_interval")
 """Fields a resumed run may take from the current command: where it computes and how often it reports."""
@@ -23,8 +25,6 @@ PLACEMENT_FIELDS = ("device", "backend", "test_interval", "checkpoint_interval")
 
 def _record(run_dir: str | Path) -> tuple[dict, Path] | None:
     """(the parsed ``config.json`` of ``run_dir`` — a segmented run's first segment's —, its path), or None."""
-    from omg4.data.segments import is_segmented_run, read_run_plan
-
     run_dir = Path(run_dir)
     if is_segmented_run(run_dir):
         segments = read_run_plan(run_dir)["segments"]
@@ -91,8 +91,6 @@ def _normalized(value):
 
 def finished(run_dir: str | Path, cfg: TrainConfig) -> bool:
     """Whether ``run_dir`` holds its final model and a checkpoint at (or past) ``cfg.iterations``."""
-    from omg4.train.run_state import latest_iteration
-
     run_dir = Path(run_dir)
     last = latest_iteration(run_dir)
     return (run_dir / "model.safetensors").is_file() and last is not None and last >= cfg.iterations

@@ -18,9 +18,10 @@ segment afresh and learn every frame from the video.
 
 from __future__ import annotations
 
-import logging
 import contextlib
+import dataclasses
 import json
+import logging
 from pathlib import Path
 from typing import Callable
 
@@ -29,11 +30,17 @@ import torch
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import Scene
-from omg4.data.segments import PLAN_FILE, Segment, segment_folder, shared_frames
+from omg4.data.segments import PLAN_FILE, Segment, plan_segments, segment_folder, shared_frames
 from omg4.errors import OMG4Error
+from omg4.gaussians.checkpoint import describe_checkpoint
+from omg4.gaussians.model import Gaussians4D
+from omg4.gaussians.visibility import peak_marginal
+from omg4.models import load_model
 from omg4.optimize.teaching import taught_by
+from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.train.config import TrainConfig
 from omg4.train.run_state import latest_iteration
+from omg4.train.trainer import Trainer, initial_model
 
 logger = logging.getLogger(__name__)
 
@@ -49,8 +56,6 @@ def plan_capture(capture: Scene, segment_frames: int, overlap: int | None = None
     """The plan (:func:`segment_plan`) that cuts a multi-view video capture (``capture``: its views need not be
     decoded) into segments of ``segment_frames`` frames sharing ``overlap`` (default :func:`default_overlap`).
     A scene without a frame sequence (Blender, D-NeRF) or with gaps in its frames is a one-line error."""
-    from omg4.data.segments import plan_segments
-
     if capture.format not in ("n3dv", "panoptic"):
         raise OMG4Error(f"--segment-frames cuts multi-view video into segments of frames; a {capture.format} scene "
                         "has no frame sequence to cut")
@@ -95,13 +100,6 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
     frame — joined by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the
     segment before never showed, as many as ``cfg.max_gaussians`` leaves room for (the most opaque carried
     Gaussians first when they alone exceed it)."""
-    import dataclasses
-
-    from omg4.gaussians.model import Gaussians4D
-    from omg4.gaussians.visibility import peak_marginal
-    from omg4.render.projection import ALPHA_THRESHOLD
-    from omg4.train.trainer import initial_model
-
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
     var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
@@ -123,8 +121,6 @@ def segment_budget(cfg: TrainConfig, first_count: int) -> TrainConfig:
     Gaussians as the first segment, which learnt from the video alone, holds (``first_count``), or
     ``cfg.max_gaussians`` when that is smaller. Without it the carried Gaussians stay and densification adds a
     fresh segment's worth on top, so every segment would be larger than the one before."""
-    import dataclasses
-
     cap = min(cfg.max_gaussians, first_count) if cfg.max_gaussians else first_count
     return dataclasses.replace(cfg, max_gaussians=cap)
 
@@ -134,9 +130,6 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
                    teach: bool = True, log=None, preset: str | None = None) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
     order; with ``parallel="segments"`` the others' segments are read from their folders)."""
-    from omg4.gaussians.checkpoint import describe_checkpoint
-    from omg4.train.trainer import Trainer
-
     log = log or logger.info
     if parallel not in PARALLEL_MODES:
         raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")
@@ -155,8 +148,6 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             shared = shared_frames(before, seg) if teach and parallel != "segments" else None
             start, seg_cfg = None, cfg
             if shared is not None:
-                from omg4.models import load_model
-
                 first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
                 seg_cfg = segment_budget(cfg, describe_checkpoint(first)["num_gaussians"])
                 teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)

@@ -12,9 +12,9 @@ on ``TrainConfig.device``; the generators are CPU ones whose draws are moved the
 
 from __future__ import annotations
 
-import logging
 import contextlib
 import json
+import logging
 import signal
 import threading
 import time
@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
+from omg4.data import random_initial_points
 from omg4.data.scene import PointCloud, Scene, View
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
@@ -75,8 +76,6 @@ def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = No
     if points is None:
         points = scene.initial_points
     if points is None:
-        from omg4.data import random_initial_points
-
         points = random_initial_points(scene, cfg.num_random_points, seed=cfg.seed)
     if len(points.xyz) == 0:
         raise OMG4Error("the initial point cloud is empty")

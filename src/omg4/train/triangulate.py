@@ -26,6 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+from tqdm import tqdm
 
 from omg4.data.scene import Camera, PointCloud, Scene, View
 from omg4.errors import OMG4Error
@@ -137,11 +139,10 @@ def triangulate_views(views: list[View], options: TriangulationOptions = Triangu
     fewer than ``options.min_points`` points survive the filter.
     """
     try:
-        import pycolmap
+        import pycolmap  # pycolmap (a 38 MB extension) loads only where a capture is calibrated
     except ImportError:
         raise OMG4Error("--init colmap needs pycolmap, a dependency of omg4 missing here: "
                         "pip install 'pycolmap>=4.0,<5'") from None
-    from tqdm import tqdm
 
     if len(views) < 2:
         raise OMG4Error(f"triangulation needs at least 2 training cameras in the first frame, got {len(views)}")
@@ -191,8 +192,6 @@ def triangulate_views(views: list[View], options: TriangulationOptions = Triangu
 
 def _write_images(views: list[View], names: list[str], image_dir: Path, up: int) -> None:
     """Write each view's image (float [H, W, 3]) as 8-bit PNG, bicubically upsampled ×``up``."""
-    from PIL import Image
-
     for view, name in zip(views, names):
         image = Image.fromarray((np.clip(view.image(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
         if up > 1:

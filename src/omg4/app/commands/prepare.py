@@ -31,6 +31,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="SIFT features per frame (default 8192)")
     p.add_argument("--fps", type=float_in(0.0, 1000.0), default=30.0,
                    help="frame rate of image folders (videos keep their own; default 30)")
+    p.add_argument("--threads", type=int_at_least(1), default=None,
+                   help="threads of feature extraction, matching and mapping (default: every core); 1 makes the "
+                        "calibration repeat itself exactly")
     p.add_argument("--force", action="store_true", help="replace DATA if it exists")
 
 
@@ -49,7 +52,8 @@ def run(args) -> int:
     check_outputs({"--out": args.out}, inputs=[args.src], folders=["--out"])  # writable, before any work
     record = prepare_capture(args.src, args.out, sync=args.sync, test_camera=args.test_camera,
                              shared_intrinsics=args.shared_intrinsics, instants=args.instants,
-                             max_features=args.max_features, image_fps=args.fps, force=args.force, progress=True)
+                             max_features=args.max_features, image_fps=args.fps, threads=args.threads or -1,
+                             force=args.force, progress=True)
     kept = [c for c in record["cameras"] if c["reliable"]]
     print(f"{len(kept)} of {len(record['cameras'])} cameras calibrated, {record['frames']} shared frames at "
           f"{record['fps']:g} fps (sync: {record['sync']}); test camera {record['test_camera']} = "

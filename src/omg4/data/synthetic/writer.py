@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from omg4.atomic import atomic_folder
 from omg4.data.points import write_ply
@@ -22,6 +23,7 @@ from omg4.data.synthetic.raycast import RayHits, StaticLayer, SyntheticScene, bo
 from omg4.data.synthetic.rig import llff_poses_bounds
 from omg4.data.synthetic.world import SynthConfig
 from omg4.errors import OMG4Error
+from omg4.io.video import write_video
 
 
 GENERATOR = "omg4 synth"
@@ -63,10 +65,6 @@ def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = Synt
     The folder is built beside the target and renamed into place when complete. An
     existing non-empty ``out_dir`` is refused unless ``force``.
     """
-    from tqdm import tqdm
-
-    from omg4.io.video import write_video
-
     config.validate()
     out_dir = Path(os.path.abspath(out_dir))
     _prepare_target(out_dir, force)
