@@ -111,3 +111,16 @@ def pytest_terminal_summary(terminalreporter):
             elif report.when == "call" or category == "error":
                 ran += 1
     terminalreporter.write_line(f"browser tests: {ran} ran, {skipped} skipped")
+
+
+@pytest.fixture(scope="module")
+def chromium(tmp_path_factory):
+    """Headless Chromium with software WebGL2 (:class:`omg4.testing.browser.Browser`), one per test module; the test
+    skips, with the reason, where Debian's ``chromium`` is missing (``.ci/run`` installs it)."""
+    from omg4.testing.browser import CHROMIUM, Browser
+
+    if CHROMIUM is None:
+        pytest.skip("no Chromium to drive (Debian package 'chromium')")
+    browser = Browser(tmp_path_factory.mktemp("profile"))
+    yield browser
+    browser.close()

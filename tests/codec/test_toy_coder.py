@@ -1,5 +1,5 @@
-"""A fourth coder declared in this one file: a class and one table entry make it known to the writer, the reader
-and the commands (the codecs' table, :mod:`omg4.codec.coders`)."""
+"""A fourth coder declared in this one file: a class and one table entry make it known to the writer, the reader,
+the commands and the browser player (the codecs' table, :mod:`omg4.codec.coders`)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ from omg4.codec.entropy import encode_indices
 from omg4.codec.payload import CompactGrids, check_codec, decode_payload, encode_payload
 from omg4.codec.sections import encode_f16
 from omg4.errors import CorruptFileError, OMG4Error
+from omg4.io.web_player import export_web
+from omg4.testing.browser import DIGESTS, python_digests, served
 from omg4.testing.forge import valid_payload
 
 
@@ -43,6 +45,7 @@ class PlainCoder(Coder):
 def plain(monkeypatch):
     monkeypatch.setattr(coders, "CODERS", dict(coders.CODERS))  # the table as it was, after the test
     monkeypatch.setattr("omg4.codec.payload.CODERS", coders.CODERS)
+    monkeypatch.setattr("omg4.codec.browser.CODERS", coders.CODERS)
     register_coder(PlainCoder())
     return coders.CODERS["plain"]
 
@@ -88,3 +91,14 @@ def test_the_commands_offer_it_and_a_name_is_taken_once(plain):
         register_coder(PlainCoder())
     with pytest.raises(OMG4Error, match="apply to the compact codec only, not 'plain'"):
         check_codec("plain", CompactGrids(positions=12))
+
+
+def test_the_browser_reads_its_files_as_python_does(plain, chromium, tmp_path):
+    """The player gets the codecs' table with its modules (codecs.js, written at export): a coder added in Python
+    from encodings the browser decodes plays without a line of JavaScript."""
+    encode_payload(valid_payload(400, seed=6), tmp_path / "m.omg4", codec="plain")
+    export_web(tmp_path / "web", tmp_path / "m.omg4")
+    assert (tmp_path / "web" / "model.omg4").read_bytes() == (tmp_path / "m.omg4").read_bytes()  # nothing rewritten
+    with served(tmp_path / "web") as url:
+        chromium.call("Page.navigate", url=f"{url}/index.html?ui=0&time=0&case=plain")
+        assert chromium.evaluate(DIGESTS) == python_digests(tmp_path / "m.omg4")

@@ -4,77 +4,24 @@ bit for bit, its WebGL2 renders against ``omg4 render``, forged files, and the e
 from __future__ import annotations
 
 import base64
-import hashlib
 import io
 import json
 import time
 
 import numpy as np
 import pytest
-from omg4.testing.browser import open_player, served
+from omg4.testing.browser import DIGESTS, SEGMENT_DIGESTS, open_player, python_digests, served
 from PIL import Image
 
 from omg4.app.cli import main
 from omg4.codec import coders
-from omg4.codec.coders import Coder
 from omg4.codec.container import read_container
-from omg4.codec.payload import CompactGrids, decode_payload, encode_payload
+from omg4.codec.payload import CompactGrids, decode_payload
 from omg4.codec.references import reference_sections
-from omg4.codec.sections import encode_f16
 from omg4.errors import CorruptFileError
 from omg4.io.web_player import MANIFEST, export_web
 from omg4.metrics import psnr
 from omg4.testing import forge
-
-# the page's decoder, every decoded array as the SHA-256 of its bytes (fp16 bit patterns, int32 indices)
-DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {
-  const bytes = new Uint8Array(await (await fetch('model.omg4', { cache: 'no-store' })).arrayBuffer());
-  const p = await decodePayload(bytes);
-  DIGEST_BODY
-})"""
-# the same of segment K of an exported sequence, decoded by the player's chain (sequence.js SegmentPayloads)
-SEGMENT_DIGESTS = """import('./sequence.js').then(async ({ SegmentPayloads }) => {
-  const listing = await (await fetch('sequence.json', { cache: 'no-store' })).json();
-  const segments = listing.segments.map((s) => ({ url: s.file, reference: s.reference }));
-  const fetchBytes = async (url) => new Uint8Array(await (await fetch(url, { cache: 'no-store' })).arrayBuffer());
-  const p = await new SegmentPayloads(segments, fetchBytes).payload(SEGMENT);
-  DIGEST_BODY
-})"""
-DIGEST_BODY = """const hex = async (a) => Array.from(new Uint8Array(await crypto.subtle.digest('SHA-256', a))).map(
-    (b) => b.toString(16).padStart(2, '0')).join('');
-  const out = { xyz: await hex(p.xyz), t: await hex(p.t) };
-  for (const [k, a] of Object.entries(p.attributes)) {
-    for (const [j, c] of a.codebooks.entries()) out[`${k}.codebook${j}`] = await hex(c.values);
-    for (const [j, c] of a.indices.entries()) out[`${k}.index${j}`] = await hex(c);
-  }
-  for (const [k, q] of Object.entries(p.quaternions)) out[`quat.${k}`] = await hex(q);
-  for (const [k, m] of Object.entries(p.mlp)) out[`mlp.${k}`] = await hex(m.values);
-  return out;"""
-DIGESTS, SEGMENT_DIGESTS = (page.replace("DIGEST_BODY", DIGEST_BODY) for page in (DIGESTS, SEGMENT_DIGESTS))
-
-
-def _python_digests(path, segment: int | None = None) -> dict[str, str]:
-    """The same digests of the Python decoder's arrays (of one segment of a sequence file, decoded after its chain)."""
-    from omg4.codec.sequence import SegmentDecoder, read_index, read_segment
-
-    if segment is None:
-        header, _ = read_container(path)
-        payload = decode_payload(path)
-    else:
-        header, _ = read_container(read_segment(path, read_index(path).segments[segment]))
-        payload = SegmentDecoder(path).payload(segment)
-    digest = lambda a: hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()  # noqa: E731
-    fp16 = lambda a: digest(np.asarray(a, np.float16).view(np.uint16))  # noqa: E731
-    out = {"xyz": fp16(payload.xyz), "t": fp16(payload.t)}
-    for name, qa in payload.attributes.items():
-        if name in header.get("quaternions", []):
-            out[f"quat.{name}"] = fp16(qa.codebooks[0])
-            continue
-        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
-            out[f"{name}.codebook{j}"], out[f"{name}.index{j}"] = fp16(cb), digest(np.asarray(ix, np.int32))
-    out.update({f"mlp.{name}": fp16(w) for name, w in payload.mlp.items()})
-    return out
-
 
 @pytest.mark.parametrize("backbone, codec, count, grids", [
     ("rt4dgs", "compact", 4000, CompactGrids()),  # the demo's size and coder
@@ -87,7 +34,7 @@ def test_the_page_decodes_every_value_as_the_python_decoder(chromium, tmp_path, 
     model = tmp_path / "m.omg4"
     forge.valid_file(model, count, codec=codec, seed=count, codebook_scale=0.25, precision=grids, backbone=backbone)
     export_web(tmp_path / "web", model)
-    expected = _python_digests(model)
+    expected = python_digests(model)
     with served(tmp_path / "web") as url:
         open_player(chromium, f"{url}/index.html?ui=0&time=0")  # paused: no frames compete with the decoding
         decoded = chromium.evaluate(DIGESTS)
@@ -111,7 +58,7 @@ def test_the_page_decodes_a_predicted_sequence_as_the_python_decoder(chromium, t
     with served(tmp_path / "web") as url:
         open_player(chromium, f"{url}/index.html?ui=0&time=0")
         for k in (2, 1, 0):
-            assert chromium.evaluate(SEGMENT_DIGESTS.replace("SEGMENT", str(k))) == _python_digests(model, k), k
+            assert chromium.evaluate(SEGMENT_DIGESTS.replace("SEGMENT", str(k))) == python_digests(model, k), k
 
 
 
@@ -327,39 +274,6 @@ def test_a_page_opened_from_disk_says_how_to_open_it(chromium, tmp_path):
             break
         time.sleep(0.05)
     assert message and "http.server" in message and "http://localhost:8000" in message
-
-
-class _PlainCoder(Coder):
-    """A codec declared here alone: every float as raw fp16 in the Gaussians' own order, indices ANS-coded."""
-
-    name = "plain-web"
-    order = "original"
-    index_encodings = ("ans",)
-    morton_positions = False
-
-    def float_section(self, values):
-        return "f16", encode_f16(values, "f16")
-
-    def arrange(self, q, precision):
-        return q
-
-    def positions(self, q, precision):
-        return self.float_section(q.xyz)
-
-
-def test_a_codec_registered_in_python_is_read_by_the_browser_as_by_python(chromium, tmp_path, monkeypatch):
-    """The codecs' table goes to the browser with the player (codecs.js, written at export), so a coder added with
-    register_coder from encodings the browser decodes plays without a line of JavaScript."""
-    monkeypatch.setattr(coders, "CODERS", dict(coders.CODERS))
-    monkeypatch.setattr("omg4.codec.payload.CODERS", coders.CODERS)
-    monkeypatch.setattr("omg4.codec.browser.CODERS", coders.CODERS)
-    coders.register_coder(_PlainCoder())
-    encode_payload(forge.valid_payload(400, seed=6), tmp_path / "m.omg4", codec="plain-web")
-    export_web(tmp_path / "web", tmp_path / "m.omg4")
-    assert (tmp_path / "web" / "model.omg4").read_bytes() == (tmp_path / "m.omg4").read_bytes()  # nothing rewritten
-    with served(tmp_path / "web") as url:
-        chromium.call("Page.navigate", url=f"{url}/index.html?ui=0&time=0&case=plain")
-        assert chromium.evaluate(DIGESTS) == _python_digests(tmp_path / "m.omg4")
 
 
 def test_the_players_codec_table_is_the_codecs_table():

@@ -1,11 +1,13 @@
 """Headless Chromium for the browser tests: started with software WebGL2 (SwiftShader) and driven over the DevTools
-protocol (navigate, evaluate, screenshot), a static file server (:func:`served`) and the web player's page
-(:func:`open_player`). ``CHROMIUM`` is None where Debian's ``chromium`` is missing."""
+protocol (navigate, evaluate, screenshot), a static file server (:func:`served`), the web player's page
+(:func:`open_player`), and the decoded arrays' digests on both sides (:data:`DIGESTS`, :func:`python_digests`).
+``CHROMIUM`` is None where Debian's ``chromium`` is missing."""
 
 from __future__ import annotations
 
 import base64
 import functools
+import hashlib
 import http.server
 import io
 import json
@@ -17,7 +19,12 @@ import time
 import urllib.request
 from contextlib import contextmanager
 
+import numpy as np
 from PIL import Image
+
+from omg4.codec.container import read_container
+from omg4.codec.payload import decode_payload
+from omg4.codec.sequence import SegmentDecoder, read_index, read_segment
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 TIMEOUT_S = 60
@@ -35,6 +42,55 @@ def wait(condition, what: str, timeout: float = TIMEOUT_S) -> None:
         if time.monotonic() > end:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.1)
+
+
+# the page's decoder (the export's decoder/payload.js on model.omg4), every decoded array as the SHA-256 of its bytes
+# (fp16 bit patterns, int32 indices)
+DIGESTS = """import('./decoder/payload.js').then(async ({ decodePayload }) => {
+  const bytes = new Uint8Array(await (await fetch('model.omg4', { cache: 'no-store' })).arrayBuffer());
+  const p = await decodePayload(bytes);
+  DIGEST_BODY
+})"""
+# the same of segment K of an exported sequence, decoded by the player's chain (sequence.js SegmentPayloads)
+SEGMENT_DIGESTS = """import('./sequence.js').then(async ({ SegmentPayloads }) => {
+  const listing = await (await fetch('sequence.json', { cache: 'no-store' })).json();
+  const segments = listing.segments.map((s) => ({ url: s.file, reference: s.reference }));
+  const fetchBytes = async (url) => new Uint8Array(await (await fetch(url, { cache: 'no-store' })).arrayBuffer());
+  const p = await new SegmentPayloads(segments, fetchBytes).payload(SEGMENT);
+  DIGEST_BODY
+})"""
+DIGEST_BODY = """const hex = async (a) => Array.from(new Uint8Array(await crypto.subtle.digest('SHA-256', a))).map(
+    (b) => b.toString(16).padStart(2, '0')).join('');
+  const out = { xyz: await hex(p.xyz), t: await hex(p.t) };
+  for (const [k, a] of Object.entries(p.attributes)) {
+    for (const [j, c] of a.codebooks.entries()) out[`${k}.codebook${j}`] = await hex(c.values);
+    for (const [j, c] of a.indices.entries()) out[`${k}.index${j}`] = await hex(c);
+  }
+  for (const [k, q] of Object.entries(p.quaternions)) out[`quat.${k}`] = await hex(q);
+  for (const [k, m] of Object.entries(p.mlp)) out[`mlp.${k}`] = await hex(m.values);
+  return out;"""
+DIGESTS, SEGMENT_DIGESTS = (page.replace("DIGEST_BODY", DIGEST_BODY) for page in (DIGESTS, SEGMENT_DIGESTS))
+
+
+def python_digests(path, segment: int | None = None) -> dict[str, str]:
+    """The same digests of the Python decoder's arrays (of one segment of a sequence file, decoded after its chain)."""
+    if segment is None:
+        header, _ = read_container(path)
+        payload = decode_payload(path)
+    else:
+        header, _ = read_container(read_segment(path, read_index(path).segments[segment]))
+        payload = SegmentDecoder(path).payload(segment)
+    digest = lambda a: hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()  # noqa: E731
+    fp16 = lambda a: digest(np.asarray(a, np.float16).view(np.uint16))  # noqa: E731
+    out = {"xyz": fp16(payload.xyz), "t": fp16(payload.t)}
+    for name, qa in payload.attributes.items():
+        if name in header.get("quaternions", []):
+            out[f"quat.{name}"] = fp16(qa.codebooks[0])
+            continue
+        for j, (cb, ix) in enumerate(zip(qa.codebooks, qa.indices)):
+            out[f"{name}.codebook{j}"], out[f"{name}.index{j}"] = fp16(cb), digest(np.asarray(ix, np.int32))
+    out.update({f"mlp.{name}": fp16(w) for name, w in payload.mlp.items()})
+    return out
 
 
 class Browser:
