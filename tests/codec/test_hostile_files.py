@@ -49,7 +49,7 @@ def test_every_forged_file_is_ok_or_a_one_line_corrupt_file_error(valid, codec, 
 def test_many_gaussians_declared_in_few_bytes_are_refused_before_any_decoding(monkeypatch):
     data = forge.inflated_file(2_000_000, "ans")  # a well-formed file: every Gaussian identical
     calls = []
-    monkeypatch.setattr("omg4.codec.payload.decode_indices", lambda *a, **k: calls.append(a))
+    monkeypatch.setattr("omg4.codec.payload.decode_section", lambda *a, **k: calls.append(a))
     with pytest.raises(CorruptFileError, match="Gaussians"):
         decode_payload(data)
     assert calls == []

@@ -20,6 +20,7 @@ import numpy as np
 
 from omg4.codec import grids, quaternions, weights
 from omg4.codec.codewords import encode_codewords
+from omg4.codec.encodings import ENCODINGS
 from omg4.codec.entropy import MAX_SYMBOLS, encode_indices
 from omg4.codec.sections import canonical_order, encode_f16, encode_xyz_morton, smallest_f16
 from omg4.errors import OMG4Error
@@ -341,16 +342,20 @@ def register_coder(coder: Coder) -> None:
 
 def browser_module() -> str:
     """The ES module ``web/decoder/codecs.js``: each registered codec's reading rules (:class:`Coder`'s
-    ``index_encodings``, ``morton_positions``, ``grid_encodings``, ``quaternion_sections``), which the browser's
-    reader looks up as :func:`omg4.codec.payload.decode_payload` does. ``omg4 export --format web`` writes it from the
+    ``index_encodings``, ``morton_positions``, ``grid_encodings``, ``quaternion_sections``) and each section
+    encoding's (:data:`omg4.codec.encodings.ENCODINGS`: pattern, section kinds, the capability it needs), which the
+    browser's reader looks up as :func:`omg4.codec.payload.decode_payload` does. ``omg4 export --format web`` writes it from the
     table as it is, so a codec added with :func:`register_coder` from the encodings the browser decodes plays too;
     the copy in the source tree is the built-in codecs' (a test keeps it equal)."""
-    table = {name: {"indexEncodings": list(c.index_encodings), "mortonPositions": c.morton_positions,
-                    "gridEncodings": c.grid_encodings, "quaternionSections": c.quaternion_sections}
+    table = {name: {"name": name, "index_encodings": list(c.index_encodings), "morton_positions": c.morton_positions,
+                    "grid_encodings": c.grid_encodings, "quaternion_sections": c.quaternion_sections}
              for name, c in CODERS.items()}
-    return ("// The codecs' reading rules, written by omg4.codec.coders.browser_module from its table (CODERS):\n"
-            "// regenerate, do not edit.\n"
-            f"export const CODERS = {json.dumps(table, indent=2)};\n")
+    rules = {family: {"pattern": e.pattern, "sections": list(e.sections), "needs": e.needs}
+             for family, e in ENCODINGS.items()}
+    return ("// The codecs' and the section encodings' reading rules, written by omg4.codec.coders.browser_module from\n"
+            "// their tables (CODERS, omg4.codec.encodings.ENCODINGS): regenerate, do not edit.\n"
+            f"export const CODERS = {json.dumps(table, indent=2)};\n\n"
+            f"export const ENCODINGS = {json.dumps(rules, indent=2)};\n")
 
 
 __all__ = ["CODERS", "AnsCoder", "Coder", "CompactCoder", "CompactGrids", "PaperCoder", "browser_module",

@@ -24,14 +24,13 @@ import re
 
 import numpy as np
 
-from omg4.codec import carry, grids, quaternions, weights
-from omg4.codec.codewords import decode_first_use_indices, decode_sorted_codebook
+from omg4.codec import carry, grids, weights
 from omg4.codec.coders import CODERS, Coder, CompactGrids
 from omg4.codec.container import PREDICTED_VERSION, SEQUENCE_VERSION, read_versioned, write_container
-from omg4.codec.entropy import MAX_SYMBOLS, decode_indices
+from omg4.codec.encodings import Section, decode_section
+from omg4.codec.entropy import MAX_SYMBOLS
+from omg4.codec.references import takes_codebooks
 from omg4.codec.rig import check_rig
-from omg4.codec.sections import decode_f16, decode_xyz_morton
-from omg4.codec.references import reference_array, referenced, takes_codebooks
 from omg4.codec.types import REFERENCE, CompressedPayload, QuantizedAttribute
 from omg4.errors import CorruptFileError, OMG4Error
 
@@ -315,39 +314,11 @@ def _decode_sections(header: dict, sections: dict[str, bytes],
     check_sections(header, {name: len(data) for name, data in sections.items()})
     n, codec, enc = header["num_gaussians"], header["codec"], header["encodings"]
     coder = CODERS[codec]
-    gridded = coder.grid_encodings  # grid positions and times, sorted codebooks, quantized weights
 
     def decode(name: str, count: int, num_symbols: int = 0, shape: tuple[int, ...] | None = None) -> np.ndarray:
-        """Decode section ``name``; each encoding is accepted only for the section kind it was made for."""
+        """Decode section ``name`` by its encoding's entry of the table (:mod:`omg4.codec.encodings`)."""
         try:
-            data, encoding = sections[name], enc[name]
-            if encoding == REFERENCE and not num_symbols and name.split(".")[0] in ("mlp", "svq"):
-                return referenced(name, data, shape, reference)
-            if gridded and weights.parse_delta_encoding(encoding) and name.startswith("mlp.") and len(shape) == 2:
-                return weights.decode_delta(data, reference_array(name, shape, reference), encoding)
-            if num_symbols:
-                if encoding not in coder.index_encodings:
-                    raise CorruptFileError(f"encoding {encoding!r} is not an index encoding of the codec {codec!r}")
-                if encoding == "first-use":
-                    return decode_first_use_indices(data, num_symbols, count)
-                return decode_indices(data, num_symbols, count, "ans" if encoding == "ranks" else encoding)
-            kind = name.split(".")[0]
-            if kind == "quat":
-                bits = quaternions.bits_of(encoding)
-                if bits is None:
-                    raise CorruptFileError(f"encoding {encoding!r} is not a quaternion encoding")
-                return quaternions.decode_quaternions(data, count, bits)
-            if gridded and encoding == "sorted" and kind == "svq":
-                return decode_sorted_codebook(data, *shape)
-            if gridded and weights.parse_encoding(encoding) and kind == "mlp" and len(shape) == 2:
-                return weights.decode_matrix(data, shape, encoding)
-            if encoding == "morton" and name == "xyz" and coder.morton_positions:
-                return decode_xyz_morton(data, count)
-            if gridded and encoding in (grids.POSITIONS, grids.POSITIONS_EXACT) and name == "xyz":
-                return grids.decode_positions(data, count, exact=encoding == grids.POSITIONS_EXACT)
-            if gridded and encoding == grids.TIMES and name == "t":
-                return grids.decode_times(data, count)
-            return decode_f16(data, encoding, count)
+            return decode_section(Section(sections[name], enc[name], count, shape, num_symbols, name, reference), coder)
         except CorruptFileError as exc:
             raise CorruptFileError(f"section {name}: {exc}") from None
 

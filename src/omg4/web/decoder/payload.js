@@ -2,11 +2,11 @@
 // checks a reader makes before decoding anything — magic, version, checksums, bounded header inflation, the
 // section table, the header's limits and its declared values against the file's size — then every section.
 
-import { CODERS } from "./codecs.js";
+import { CODERS, ENCODINGS } from "./codecs.js";
 import { decodeIndices, MAX_SYMBOLS } from "./entropy.js";
 import {
   decodeFirstUseIndices, decodeFloats, decodeMorton, decodePositions, decodeQuaternions, decodeSortedCodebook, decodeTimes,
-  decodeWeightChange, decodeWeights, deltaEncoding, quaternionBits, weightEncoding,
+  decodeWeightChange, decodeWeights, quaternionBits,
 } from "./sections.js";
 import { CorruptFileError, crc32, inflateRaw } from "./streams.js";
 
@@ -16,10 +16,53 @@ export const SEQUENCE_VERSION = 6;
 const MAX_JSON_BYTES = 16 * 1024 * 1024;
 const MAX_SECTION_NAME = 200;
 const KIND = "omg4-compressed-model";
-// the index encodings this reader decodes; a codec's table (codecs.js) says which of them its files may hold
-const INDEX_DECODERS = {
-  ans: decodeIndices, ranks: decodeIndices, "first-use": decodeFirstUseIndices,
+// A decoder for each encoding of the table (omg4/codec/encodings.py ENCODINGS, whose rules — the names, the section
+// kinds, the codec capability needed — come with codecs.js). "paper" index streams have none here: an export
+// rewrites them as "ans" (omg4/codec/browser.py).
+const DECODERS = {
+  reference: (s) => referenced(s.name, s.data, s.shape, s.reference),
+  "delta-weights": (s) => decodeWeightChange(s.data, referenceValues(s.name, s.shape, s.reference), s.shape[0], s.shape[1],
+    s.encoding),
+  ans: (s) => decodeIndices(s.data, s.numSymbols, s.count),
+  ranks: (s) => decodeIndices(s.data, s.numSymbols, s.count),
+  "first-use": (s) => decodeFirstUseIndices(s.data, s.numSymbols, s.count),
+  quaternions: (s) => decodeQuaternions(s.data, s.count, quaternionBits(s.encoding)),
+  sorted: (s) => decodeSortedCodebook(s.data, s.shape[0], s.shape[1]),
+  weights: (s) => decodeWeights(s.data, s.shape[0], s.shape[1], s.encoding),
+  morton: (s) => decodeMorton(s.data, s.count),
+  "grid-positions": (s) => decodePositions(s.data, s.count, s.encoding === "grid-morton-exact"),
+  "grid-times": (s) => decodeTimes(s.data, s.count),
+  f16: (s) => decodeFloats(s.data, s.encoding, s.count),
 };
+const MATCHES = Object.fromEntries(Object.entries(ENCODINGS).map(([family, e]) => [family, new RegExp(`^(?:${e.pattern})$`)]));
+
+/** The kind of section `name` (omg4/codec/encodings.py section_kind). */
+function sectionKind(name, shape, numSymbols) {
+  if (numSymbols) return "index";
+  const head = name.split(".")[0];
+  if (head === "mlp") return shape !== null && shape.length === 2 ? "matrix" : "mlp";
+  return { svq: "codebook", quat: "quat" }[head] ?? head;
+}
+
+/** The values of section `s` ({data, encoding, count, shape, numSymbols, name, reference}) in a file of `coder`'s
+ * codec, by its encoding's entry of the table (omg4/codec/encodings.py decode_section). */
+async function decodeSection(s, coder) {
+  const kind = sectionKind(s.name, s.shape, s.numSymbols);
+  const name = s.encoding;
+  for (const [family, rule] of Object.entries(ENCODINGS)) {
+    if (!rule.sections.includes(kind) || !MATCHES[family].test(name)) continue;
+    const allowed = rule.needs === null ? true : rule.needs === "index_encodings" ? coder.index_encodings.includes(name)
+      : Boolean(coder[rule.needs]);
+    if (!allowed) continue;
+    if (!Object.hasOwn(DECODERS, family)) {
+      throw new CorruptFileError(`the '${name}' sections are not decoded in the browser (re-export with omg4 export --format web)`);
+    }
+    return await DECODERS[family](s);
+  }
+  if (kind === "index") throw new CorruptFileError(`encoding '${name}' is not an index encoding of the codec '${coder.name}'`);
+  if (kind === "quat") throw new CorruptFileError(`encoding '${name}' is not a quaternion encoding`);
+  throw new CorruptFileError(`unknown encoding '${name}'`);
+}
 const MAX_GAUSSIANS = 2 ** 27;
 const MAX_SUB_LEN = 64;
 const MAX_MLP_ELEMENTS = 2 ** 24;
@@ -132,7 +175,7 @@ export function checkHeader(h, sectionBytes) {
   }
   if ("rig" in h.meta) checkRig(h.meta.rig);
   const rotations = h.quaternions ?? [];
-  if (("quaternions" in h) !== CODERS[h.codec].quaternionSections || !Array.isArray(rotations) || rotations.length > MAX_ATTRIBUTES
+  if (("quaternions" in h) !== CODERS[h.codec].quaternion_sections || !Array.isArray(rotations) || rotations.length > MAX_ATTRIBUTES
     || new Set(rotations.map(String)).size !== rotations.length
     || !rotations.every((a) => typeof a === "string" && NAME.test(a) && !(a in h.attributes))) {
     throw new CorruptFileError("invalid list of quaternion attributes");
@@ -184,7 +227,7 @@ export function checkHeader(h, sectionBytes) {
   return expected.sort();
 }
 
-/** The encoding of a section a predicted segment takes from the segment before (omg4/codec/payload.py REFERENCE). */
+/** The encoding of a section a predicted segment takes from the segment before (omg4/codec/types.py REFERENCE). */
 const REFERENCE = "reference";
 
 /** The section that names a predicted segment's carried Gaussians, and its encoding (omg4/codec/carry.py). */
@@ -324,43 +367,11 @@ export async function decodePayload(bytes, reference = null) {
   }
   const n = header.num_gaussians;
   const coder = CODERS[header.codec];
-  const gridded = coder.gridEncodings;  // grid positions and times, sorted codebooks, quantized weights
 
   async function decode(name, count, shape = null, numSymbols = 0) {
-    const data = sections.get(name);
-    const encoding = encodings[name];
     try {
-      if (encoding === REFERENCE && !numSymbols && ["mlp", "svq"].includes(name.split(".")[0])) {
-        return referenced(name, data, shape, reference);
-      }
-      if (gridded && deltaEncoding(encoding) && name.startsWith("mlp.") && shape.length === 2) {
-        return await decodeWeightChange(data, referenceValues(name, shape, reference), shape[0], shape[1], encoding);
-      }
-      if (numSymbols) {
-        if (!coder.indexEncodings.includes(encoding)) {
-          throw new CorruptFileError(`encoding '${encoding}' is not an index encoding of the codec '${header.codec}'`);
-        }
-        if (!Object.hasOwn(INDEX_DECODERS, encoding)) {
-          throw new CorruptFileError(`the '${encoding}' index streams are not decoded in the browser (re-export with omg4 export --format web)`);
-        }
-        return await INDEX_DECODERS[encoding](data, numSymbols, count);
-      }
-      const kind = name.split(".")[0];
-      if (kind === "quat") {
-        const bits = quaternionBits(encoding);
-        if (bits === null) throw new CorruptFileError(`encoding '${encoding}' is not a quaternion encoding`);
-        return await decodeQuaternions(data, count, bits);
-      }
-      if (gridded && encoding === "sorted" && kind === "svq") return await decodeSortedCodebook(data, shape[0], shape[1]);
-      if (gridded && weightEncoding(encoding) && kind === "mlp" && shape.length === 2) {
-        return await decodeWeights(data, shape[0], shape[1], encoding);
-      }
-      if (encoding === "morton" && name === "xyz" && coder.mortonPositions) return await decodeMorton(data, count);
-      if (gridded && (encoding === "grid-morton" || encoding === "grid-morton-exact") && name === "xyz") {
-        return await decodePositions(data, count, encoding === "grid-morton-exact");
-      }
-      if (gridded && encoding === "grid" && name === "t") return await decodeTimes(data, count);
-      return await decodeFloats(data, encoding, count);
+      return await decodeSection({ data: sections.get(name), encoding: encodings[name], count, shape, numSymbols, name,
+        reference }, coder);
     } catch (err) {
       if (err instanceof CorruptFileError) throw new CorruptFileError(`section ${name}: ${err.message}`);
       throw err;

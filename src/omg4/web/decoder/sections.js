@@ -183,7 +183,7 @@ export async function decodeQuaternions(data, count, bits) {
 }
 
 /** (bits, per-column scales) of a weight encoding name ("int2-rows" … "int8-cols"), or null. */
-export function weightEncoding(name) {
+function weightEncoding(name) {
   const m = /^int([2-8])-(rows|cols)$/.exec(name);
   return m ? [+m[1], m[2] === "cols"] : null;
 }
@@ -215,7 +215,7 @@ export async function decodeWeights(data, rows, cols, encoding) {
 
 /** The code bits of a weight change's encoding name (`delta-int2-cols` … `delta-int8-cols`), or null
  * (omg4/codec/weights.py parse_delta_encoding). */
-export function deltaEncoding(name) {
+function deltaEncoding(name) {
   const m = /^delta-int([2-8])-cols$/.exec(name);
   return m ? +m[1] : null;
 }
