@@ -119,6 +119,11 @@ def test_the_element_fills_its_box_with_controls_and_takes_a_camera(chromium, si
         wrong = chromium.evaluate("(() => { try { document.getElementById('scene').camera = 'nope'; } "
                                   "catch (e) { return e.message; } })()")
         assert wrong.startswith("no camera named 'nope'")
+        # a new src: the file shown before is let go, the new one loads and is ready again
+        again = chromium.evaluate("""(async () => { const s = document.getElementById('scene');
+          s.setAttribute('src', 'player/model.omg4?again'); const ready = await s.ready;
+          return [ready.gaussians, s.frames > 0]; })()""")
+        assert again == [1200, True]
 
 
 def test_a_predicted_sequence_plays_through_the_element(chromium, tmp_path, tiny_scene_dir):

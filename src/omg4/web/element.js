@@ -217,6 +217,8 @@ export class Omg4Player extends HTMLElement {
   _load() {
     const generation = ++this._generation;
     if (!this._settle) this._newReady();  // a settled promise is replaced; a pending one still waits
+    for (const { renderer } of this.playback?.loaded.values() ?? []) renderer.dispose();  // the file shown before
+    this.playback = null;
     this.state = null;
     this.$("message").hidden = true;
     this._start(generation).catch((err) => { if (generation === this._generation) this._fail(err); });
