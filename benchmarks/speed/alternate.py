@@ -15,6 +15,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from omg4.testing.records import save_record
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -46,4 +48,12 @@ def median_of(runs: list[dict], code: str, value) -> float:
     return statistics.median(value(r) for r in runs if r["code"] == code)
 
 
-__all__ = ["alternating", "commit_of", "median_of"]
+def save_alternating(record: Path, command: str, against: Path, summary: dict, runs: list[dict]) -> None:
+    """Record a before/after run of :func:`alternating`: the command, the method, the ``--against`` checkout's commit,
+    the ``summary`` of medians and every run's measurements."""
+    save_record(record, {"command": command, "method": "alternating processes, before (the --against checkout's code "
+                         "through PYTHONPATH) then after, each --repeats times; medians of the runs' medians",
+                         "before_commit": commit_of(against), "summary": summary, "measurements": runs})
+
+
+__all__ = ["alternating", "commit_of", "median_of", "save_alternating"]

@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
 def _before_and_after(args, command: str, record: Path) -> int:
     """``--against``: the benchmark on both codes in alternating processes, one record with every run and the medians
     (ms per frame, aten operations, and each model's frames per second over the first model's)."""
-    from alternate import alternating, commit_of, median_of
+    from alternate import alternating, median_of, save_alternating
 
     argv = [str(args.data), "--models", *map(str, args.models), "--downscale", str(args.downscale), "--device",
             args.device, "--frames", str(args.frames), "--rounds", str(args.rounds), "--name", args.name or args.data.name]
@@ -223,9 +223,7 @@ def _before_and_after(args, command: str, record: Path) -> int:
         print(f"{path.name}: {row['ms_before']:.2f} → {row['ms_after']:.2f} ms/frame, aten ops {row['aten_ops_before']} "
               f"→ {row['aten_ops_after']}, × the first model's FPS {row['speedup_vs_first_before']:.2f} → "
               f"{row['speedup_vs_first_after']:.2f}")
-    save_record(record, {"command": command, "method": "alternating processes, before (the --against checkout's code "
-                         "through PYTHONPATH) then after, each --repeats times; medians of the runs' medians",
-                         "before_commit": commit_of(args.against), "summary": summary, "measurements": runs})
+    save_alternating(record, command, args.against, summary, runs)
     return 0
 
 

@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _before_and_after(args, command: str, record: Path) -> int:
     """``--against``: the benchmark on both codes in alternating processes, one record with every run and the medians."""
-    from alternate import alternating, commit_of, median_of
+    from alternate import alternating, median_of, save_alternating
 
     argv = ["--device", args.device, "--steps", str(args.steps), "--warmup", str(args.warmup), "--parts", *args.parts,
             *(["--workloads", *args.workloads] if args.workloads else []),
@@ -298,9 +298,7 @@ def _before_and_after(args, command: str, record: Path) -> int:
                                         "aten_ops_before": ops["before"], "aten_ops_after": ops["after"]}
             print(f"{key} {part}: {before:.1f} → {after:.1f} ms ({before / after:.2f}×), aten ops {ops['before']} → "
                   f"{ops['after']}")
-    save_record(record, {"command": command, "method": "alternating processes, before (the --against checkout's code "
-                         "through PYTHONPATH) then after, each --repeats times; medians of the runs' medians",
-                         "before_commit": commit_of(args.against), "summary": summary, "measurements": runs})
+    save_alternating(record, command, args.against, summary, runs)
     return 0
 
 

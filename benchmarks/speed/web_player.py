@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from omg4.testing.records import save_record
 
 REPO = Path(__file__).resolve().parents[2]
@@ -114,63 +116,64 @@ def measure(browser: Browser, folder: Path, width: int, height: int, seconds: fl
             "orbit_fps": 1000 / statistics.median(orbit), "camera": ready["camera"], "pass_ms": passes}
 
 
-def fidelity(browser: Browser, folder: Path, model: Path, data: Path, tmp: Path) -> dict:
-    """PSNR of the page's frame against ``omg4 render`` of the same test camera and time (mid-clip)."""
-    import base64
-    import io
+def reference_frame(model: Path, data: Path, tmp: Path) -> tuple[float, np.ndarray]:
+    """(time, image): ``omg4 render`` of the dataset's first test camera at mid-clip, the frame each page is
+    compared with."""
     import subprocess
 
-    import numpy as np
     from PIL import Image
 
-    from omg4.metrics import psnr
     from omg4.models import load_model
 
     t0, t1 = load_model(model).config.time_range
     time_ = round((t0 + t1) / 2, 3)
     subprocess.run([sys.executable, "-m", "omg4", "render", "--model", str(model), "--data", str(data), "--time",
                     str(time_), "--out", str(tmp / "reference.png")], check=True, capture_output=True)
-    reference = np.asarray(Image.open(tmp / "reference.png").convert("RGB"), np.float64)
-    with served(folder) as url:
-        height, width = reference.shape[:2]
-        open_player(browser, f"{url}/index.html?ui=0&width={width}&height={height}&time={time_}")
-        png = browser.evaluate("document.querySelector('omg4-player').canvas.toDataURL('image/png')")
+    return time_, np.asarray(Image.open(tmp / "reference.png").convert("RGB"), np.float64)
+
+
+def page_psnr(browser: Browser, url: str, canvas: str, reference: np.ndarray, settle_s: float = 0.0) -> float:
+    """PSNR of the page at ``url`` (its first frame, ``settle_s`` later) against ``reference``; ``canvas``: the
+    expression of the page's canvas."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    from omg4.metrics import psnr
+
+    open_player(browser, url, timeout=600)
+    time.sleep(settle_s)
+    png = browser.evaluate(f"{canvas}.toDataURL('image/png')")
     page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
-    return {"psnr_vs_omg4_render_db": psnr(page / 255.0, reference / 255.0), "psnr_time": time_,
-            "psnr_size": list(reference.shape[1::-1])}
+    return psnr(page / 255.0, reference / 255.0)
 
 
-def spark(browser: Browser, folder: Path, model: Path, data: Path | None, width: int, height: int, seconds: float,
-          tmp: Path) -> dict:
+def fidelity(browser: Browser, folder: Path, reference: tuple[float, np.ndarray]) -> dict:
+    """PSNR of the page's frame against ``omg4 render`` of the same test camera and time (:func:`reference_frame`)."""
+    time_, image = reference
+    height, width = image.shape[:2]
+    with served(folder) as url:
+        db = page_psnr(browser, f"{url}/index.html?ui=0&width={width}&height={height}&time={time_}",
+                       "document.querySelector('omg4-player').canvas", image)
+    return {"psnr_vs_omg4_render_db": db, "psnr_time": time_, "psnr_size": [width, height]}
+
+
+def spark(browser: Browser, folder: Path, reference: tuple[float, np.ndarray] | None, width: int, height: int,
+          seconds: float) -> dict:
     """The export's spark.html (three.js + Spark, the npm packages linked into the folder): first frame, frames per
-    second playing, and with a dataset its PSNR against ``omg4 render`` (mid-clip, the first test camera)."""
+    second playing, and with a ``reference`` frame (:func:`reference_frame`) its PSNR against it."""
     (folder / "node_modules").symlink_to(REPO / "node_modules")
     with served(folder) as url:
         opened(browser, f"{url}/spark.html?width={width}&height={height}")
         row = {"spark_first_frame_ms": browser.evaluate("window.omg4FirstFrameMs"),
                "spark_fps": frame_rate(browser, "window.omg4Spark.frames", seconds)}
-        if data is not None:
-            import base64
-            import io
-            import subprocess
-
-            import numpy as np
-            from PIL import Image
-
-            from omg4.metrics import psnr
-            from omg4.models import load_model
-
-            t0, t1 = load_model(model).config.time_range
-            time_ = round((t0 + t1) / 2, 3)
-            subprocess.run([sys.executable, "-m", "omg4", "render", "--model", str(model), "--data", str(data),
-                            "--time", str(time_), "--out", str(tmp / "reference.png")], check=True, capture_output=True)
-            reference = np.asarray(Image.open(tmp / "reference.png").convert("RGB"), np.float64)
-            h, w = reference.shape[:2]
-            open_player(browser, f"{url}/spark.html?width={w}&height={h}&time={time_}", timeout=600)
-            time.sleep(1.5)  # Spark sorts on a worker
-            png = browser.evaluate("document.querySelector('canvas').toDataURL('image/png')")
-            page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
-            row["spark_psnr_vs_omg4_render_db"] = psnr(page / 255.0, reference / 255.0)
+        if reference is not None:
+            time_, image = reference
+            h, w = image.shape[:2]
+            row["spark_psnr_vs_omg4_render_db"] = page_psnr(  # Spark sorts on a worker: a moment after its frame
+                browser, f"{url}/spark.html?width={w}&height={h}&time={time_}", "document.querySelector('canvas')",
+                image, settle_s=1.5)
     return row
 
 
@@ -230,12 +233,12 @@ def main() -> None:
                 export_web(folder, path, cameras if not label.startswith("forged") else None, held_out)
                 row = {"model": label, **measure(browser, folder, width, height, args.seconds)}
                 own = cameras is not None and not label.startswith("forged")
+                reference = reference_frame(path, args.data, tmp) if own else None
                 if own:
-                    row.update(fidelity(browser, folder, path, args.data, tmp))
+                    row.update(fidelity(browser, folder, reference))
                     print(f"{label}: {row['psnr_vs_omg4_render_db']:.1f} dB PSNR against omg4 render", flush=True)
                 if (REPO / "node_modules" / "@sparkjsdev" / "spark").is_dir():
-                    row.update(spark(browser, folder, path, args.data if own else None, width, height, args.seconds,
-                                     tmp))
+                    row.update(spark(browser, folder, reference, width, height, args.seconds))
                 row.update(gltf_slice(path, tmp))
                 print(f"{label}: passes {row['pass_ms']} ms; Spark page "
                       f"{row.get('spark_fps', float('nan')):.1f} FPS playing, first frame after "

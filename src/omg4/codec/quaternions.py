@@ -22,6 +22,8 @@ from omg4.codec.entropy import decode_indices, encode_indices, join_streams, spl
 
 BITS = 9
 _PREFIX = "smallest-three-"
+ENCODING_PATTERN = _PREFIX + r"([2-9]|1[0-5])"
+"""The encoding names, bits 2-15 (ASCII digits, no leading zero), as a regular expression taken whole."""
 _LIMIT = 1 / np.sqrt(2)
 
 
@@ -33,8 +35,8 @@ def encoding(bits: int = BITS) -> str:
 def bits_of(name: str) -> int | None:
     """The grid bits an encoding name declares (2-15, ASCII digits without a leading zero), or None if it is not
     a quaternion encoding."""
-    digits = name[len(_PREFIX):] if name.startswith(_PREFIX) else ""
-    return int(digits) if re.fullmatch(r"[1-9][0-9]?", digits) and 2 <= int(digits) <= 15 else None
+    match = re.fullmatch(ENCODING_PATTERN, name)
+    return int(match.group(1)) if match else None
 
 
 def levels(bits: int) -> int:

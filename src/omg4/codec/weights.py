@@ -45,10 +45,16 @@ def encoding(bits: int = BITS) -> str:
     return f"int{bits}-cols"
 
 
+ENCODING_PATTERN = r"int([2-8])-(rows|cols)"
+"""A weight matrix's encoding names (bits, per-row or per-column scales), as a regular expression taken whole."""
+DELTA_PATTERN = r"delta-int([2-8])-cols"
+"""The encoding names of a weight matrix stored as its change from the reference's."""
+
+
 def parse_encoding(name: str) -> tuple[int, bool] | None:
     """(bits, per-column scales) of a weight encoding name (``int2-rows`` … ``int8-rows``, ``int2-cols`` …
     ``int8-cols``), or None if it is not one."""
-    match = re.fullmatch(r"int([2-8])-(rows|cols)", name)
+    match = re.fullmatch(ENCODING_PATTERN, name)
     return (int(match.group(1)), match.group(2) == "cols") if match else None
 
 
@@ -104,7 +110,7 @@ def delta_encoding(bits: int) -> str:
 
 def parse_delta_encoding(name: object) -> int | None:
     """The code bits of a change's encoding name (``delta-int2-cols`` … ``delta-int8-cols``), or None."""
-    match = re.fullmatch(r"delta-int([2-8])-cols", name) if isinstance(name, str) else None
+    match = re.fullmatch(DELTA_PATTERN, name) if isinstance(name, str) else None
     return int(match.group(1)) if match else None
 
 

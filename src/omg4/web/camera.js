@@ -95,6 +95,17 @@ export function boundsCamera(xyz, width, height) {
     viewmat: lookAt(eye, median), width, height, test: false });
 }
 
+/** The camera to show first: the preset named `named` (a one-line error when there is none such), else the first
+ * test camera, else the first preset; with no presets at all, one framing the points `xyz` (the preset is then
+ * null). Returns {preset, camera}. */
+export function chosenPreset(cameras, named, xyz) {
+  const preset = named !== null ? cameras.find((c) => c.name === named) : cameras.find((c) => c.test) ?? cameras[0];
+  if (named !== null && !preset) {
+    throw new Error(`no camera named '${named}' (the cameras: ${cameras.map((c) => c.name).join(", ") || "none"})`);
+  }
+  return { preset: preset ?? null, camera: preset ?? boundsCamera(xyz, 960, 540) };
+}
+
 /** Orbit/pan/zoom of `state.camera` by pointer and wheel on `element`; calls `changed()` after each move. */
 export function orbitControls(element, state, changed) {
   let last = null;

@@ -14,7 +14,7 @@
 // element shows it and the page stays alive). API: play(), pause(), seek(t), time, playing, timeRange, cameraNames,
 // camera (get; set a preset's name or a camera {K, viewmat, width, height}), ready (a promise), canvas, stats, frames.
 
-import { boundsCamera, cameraFromJson, framed, orbitControls, resized, rigCameras } from "./camera.js";
+import { boundsCamera, cameraFromJson, chosenPreset, framed, orbitControls, resized, rigCameras } from "./camera.js";
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
 import { Compositor, context } from "./render/renderer.js";
@@ -119,9 +119,8 @@ export class Omg4Player extends HTMLElement {
 
   set camera(value) {
     if (!this.state) throw new Error("the player has not loaded its file yet");
-    const preset = typeof value === "string" ? this._cameras.find((c) => c.name === value) : cameraFromJson(value);
-    if (!preset) throw new Error(`no camera named '${value}' (the cameras: ${this.cameraNames.join(", ") || "none"})`);
-    this._preset = preset;
+    this._preset = typeof value === "string" ? chosenPreset(this._cameras, value, this._first.xyz).camera
+      : cameraFromJson(value);
     this._refit();
     this.state.distance = this._focusDistance();
   }
@@ -239,10 +238,8 @@ export class Omg4Player extends HTMLElement {
     this._range = [segments[0].range[0], segments.at(-1).range[1]];
     this._cameras = presets;
     this._first = model;
-    const named = this.getAttribute("camera");
-    let preset = named !== null ? presets.find((c) => c.name === named) : presets.find((c) => c.test) ?? presets[0];
-    if (named !== null && !preset) throw new Error(`no camera named '${named}' (the cameras: ${presets.map((c) => c.name).join(", ") || "none"})`);
-    this._preset = preset ?? boundsCamera(model.xyz, 960, 540);
+    const { preset, camera } = chosenPreset(presets, this.getAttribute("camera"), model.xyz);
+    this._preset = camera;
     this.gl ??= context(this.canvas);
     this.playback = new Playback(this.gl, this._compositor ??= new Compositor(this.gl), segments, model, fetchBytes, payload);
     this.background = (this.getAttribute("background") ?? "0,0,0").split(",").map(Number);

@@ -5,7 +5,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkRenderer } from "@sparkjsdev/spark";
-import { boundsCamera, cameraFromJson, framed, resized, rigCameras } from "./camera.js";
+import { cameraFromJson, chosenPreset, framed, resized, rigCameras } from "./camera.js";
 import { OMG4_CONVENTIONS, Omg4Splats } from "./spark.js";
 
 const params = new URLSearchParams(location.search);
@@ -20,10 +20,7 @@ async function presets(model) {
 async function main() {
   const splats = await Omg4Splats.load(params.get("model") ?? "model.omg4");
   const cameras = await presets(splats);
-  const named = params.get("camera");
-  let preset = named !== null ? cameras.find((c) => c.name === named) : cameras.find((c) => c.test) ?? cameras[0];
-  if (named !== null && !preset) throw new Error(`no camera named '${named}'`);
-  preset ??= boundsCamera(splats.model.xyz, 960, 540);
+  const preset = chosenPreset(cameras, params.get("camera"), splats.model.xyz).camera;
   const width = Number(params.get("width") ?? window.innerWidth);
   const height = Number(params.get("height") ?? window.innerHeight);
   const view = params.has("width") && params.has("height") ? resized(preset, width, height) : framed(preset, width, height);

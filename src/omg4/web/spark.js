@@ -92,6 +92,7 @@ export class Omg4Splats {
     for (let g = 0; g < n; g++) this.packed.pushSplat(zero, this.scales[g], this.rotations[g], 0, black);
     this.mesh = new SplatMesh({ packedSplats: this.packed });
     this.time = null;
+    this._seenFrom = null;
     this._center = new THREE.Vector3();
     this._inverse = new THREE.Matrix4();
   }
@@ -101,10 +102,11 @@ export class Omg4Splats {
   update(time, camera) {
     const [t0, t1] = this.timeRange;
     const tau = Math.min(Math.max(time, t0), t1);
-    const sliced = this.slicer.sliceAt(tau);
     this.mesh.updateMatrixWorld();
     camera.getWorldPosition(this._center).applyMatrix4(this._inverse.copy(this.mesh.matrixWorld).invert());
     const center = [this._center.x, this._center.y, this._center.z];
+    if (tau === this.time && center.every((v, k) => v === this._seenFrom?.[k])) return;  // the splats hold this view
+    const sliced = this.slicer.sliceAt(tau);
     const rgb = new Float64Array(3);
     const y = new Float64Array(16);
     const mean = new THREE.Vector3();
@@ -119,6 +121,7 @@ export class Omg4Splats {
     }
     this.packed.needsUpdate = true;
     this.time = tau;
+    this._seenFrom = center;
   }
 
   /** A three.js camera looking as an omg4 camera ({K, viewmat, width, height}, OpenCV axes, row-major) looks: its

@@ -42,7 +42,7 @@ export const ENCODINGS = {
     "needs": null
   },
   "delta-weights": {
-    "pattern": "delta-int[2-8]-cols",
+    "pattern": "delta-int([2-8])-cols",
     "sections": [
       "matrix"
     ],
@@ -77,7 +77,7 @@ export const ENCODINGS = {
     "needs": "index_encodings"
   },
   "quaternions": {
-    "pattern": "smallest-three-(?:[2-9]|1[0-5])",
+    "pattern": "smallest-three-([2-9]|1[0-5])",
     "sections": [
       "quat"
     ],
@@ -91,7 +91,7 @@ export const ENCODINGS = {
     "needs": "grid_encodings"
   },
   "weights": {
-    "pattern": "int[2-8]-(?:rows|cols)",
+    "pattern": "int([2-8])-(rows|cols)",
     "sections": [
       "matrix"
     ],
