@@ -133,6 +133,21 @@ def _compiled(fn: Callable) -> Callable:
     return torch.compile(fn, dynamic=True)
 
 
+def compile_failure(exc: BaseException) -> str | None:
+    """The one-line message for ``exc`` when it is ``torch.compile`` failing to compile the ``compiled`` kernels (in
+    their forward or, later, inside ``backward()``), else None. Seen on an H200 with torch 2.11: inductor's Triton
+    code generation asserted on the backward graph of a 200,000-Gaussian training step."""
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    if not isinstance(exc, BackendCompilerFailed):
+        return None
+    inner = getattr(exc, "inner_exception", None) or exc
+    detail = str(inner).strip().splitlines()
+    cause = type(inner).__name__ + (f": {detail[0][:160]}" if detail else "")
+    return (f"torch.compile could not compile the per-Gaussian kernels (torch {torch.__version__}, {cause}); "
+            f"run without --kernels compiled (the default kernels compute the same)")
+
+
 @contextlib.contextmanager
 def keeping_torch_threads() -> Iterator[None]:
     """Run numba parallel kernels inside: numba's OpenMP pool shares the OpenMP runtime with torch and
@@ -145,5 +160,5 @@ def keeping_torch_threads() -> Iterator[None]:
             torch.set_num_threads(torch_threads)
 
 
-__all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
+__all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "compile_failure", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
            "resolve_cache_dir", "runs_cpu_kernels", "set_kernel_mode", "torch_form", "using_kernels"]

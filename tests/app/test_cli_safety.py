@@ -275,6 +275,25 @@ def test_train_force_keeps_the_old_run_when_the_initialization_fails(tiny_scene_
     assert all(f.read_text() == "the earlier run" for f in files)
 
 
+def test_a_kernel_compilation_failing_inside_training_is_a_one_line_error(tiny_scene_dir, tmp_path, capsys,
+                                                                        monkeypatch):
+    from torch._inductor.exc import InductorError
+
+    def failing_step(self, step):  # as inductor failed on a GPU: in the backward graph's code generation
+        raise InductorError(AssertionError("tiling split"), None)
+
+    monkeypatch.setattr("omg4.train.trainer.Trainer.train_step", failing_step)
+    _failed(["train", str(tiny_scene_dir), "--out", str(tmp_path / "run"), "--iterations", "2"], capsys,
+            contains="torch.compile could not compile the per-Gaussian kernels")
+
+    def other_failure(self, step):
+        raise RuntimeError("not a compilation")
+
+    monkeypatch.setattr("omg4.train.trainer.Trainer.train_step", other_failure)
+    with pytest.raises(RuntimeError, match="not a compilation"):
+        main(["train", str(tiny_scene_dir), "--out", str(tmp_path / "run2"), "--iterations", "2"])
+
+
 @pytest.mark.parametrize("name", ["model.safetensors", "config.json", "checkpoints/summary.json"])
 def test_train_json_may_not_overwrite_what_the_run_folder_holds(tiny_scene_dir, tmp_path, capsys, name):
     run = tmp_path / "run"

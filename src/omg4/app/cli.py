@@ -111,6 +111,12 @@ def main(argv: list[str] | None = None) -> int:
         if hint is None:
             raise
         return _fail(args.command, f"this needs {e.name}, which is not installed: {hint}", e)
+    except RuntimeError as e:
+        from omg4.kernels import compile_failure
+
+        if (message := compile_failure(e)) is None:
+            raise
+        return _fail(args.command, message, e)
     except KeyboardInterrupt:
         print(f"omg4 {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -174,8 +174,8 @@ def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, fr
     p.add_argument("--kernels", choices=list(KERNEL_MODES), default=None,
                    help="per-Gaussian work on the fused numba kernels on the CPU (fused, the default; "
                         "$OMG4_KERNELS), as the pure-torch reference they are tested against (reference), or as "
-                        "that reference compiled by torch.compile (compiled: Triton kernels on CUDA; needs a C++ "
-                        "compiler on the CPU)")
+                        "that reference compiled by torch.compile (compiled, experimental: Triton kernels on CUDA, "
+                        "whose training backward torch 2.11 failed to compile; needs a C++ compiler on the CPU)")
 
 
 def fill_device_arguments(args, settings: dict) -> None:
