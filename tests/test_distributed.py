@@ -26,8 +26,8 @@ pytestmark = pytest.mark.skipif(not torch.distributed.is_available(), reason="to
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
 #: 30 steps at batch 2 spanning three densification events, an opacity reset (at 20) and the screen-size limit
 TRAIN = ["--preset", "cpu-small", "--iterations", "30", "--batch-size", "2", "--densify-interval", "10",
-         "--set", "densify_from=5", "--set", "densify_until=28", "--set", "opacity_reset_interval=20",
-         "--set", "densify_grad_threshold=1e-5", "--backend", "cpu", "--checkpoint-interval", "10",
+         "--set", "strategy.densify_from=5", "--set", "strategy.densify_until=28", "--set", "strategy.opacity_reset_interval=20",
+         "--set", "strategy.densify_grad_threshold=1e-5", "--backend", "cpu", "--checkpoint-interval", "10",
          "--test-interval", "0"]
 
 
@@ -74,7 +74,7 @@ def test_two_ranks_train_as_one_process_through_densification_and_a_reset(tiny_s
 
 
 def test_two_ranks_train_freetimegs_with_relocation_as_one_process(tiny_scene_dir, tmp_path):
-    args = [*TRAIN, "--backbone", "freetimegs", "--budget", "900", "--set", "relocate_opacity=0.3"]
+    args = [*TRAIN, "--backbone", "freetimegs", "--budget", "900", "--set", "strategy.relocate_opacity=0.3"]
     ok(omg4("train", str(tiny_scene_dir), "--out", str(tmp_path / "one"), *args))
     ok(omg4("train", str(tiny_scene_dir), "--out", str(tmp_path / "two"), *args, nproc=2))
     assert_same_model(tmp_path / "one" / "model.safetensors", tmp_path / "two" / "model.safetensors")
@@ -170,7 +170,7 @@ def test_check_replicas_catches_a_rank_whose_random_draws_differ(tiny_scene_dir,
     script = tmp_path / "diverging_rank.py"
     script.write_text(
         "import os, sys\n"
-        "import omg4.train.densify as densify\n"
+        "import omg4.train.strategies.densification as densify\n"
         "if os.environ['RANK'] == '1':\n"
         "    planted = densify.step_generator\n"
         "    densify.step_generator = lambda seed, step, stream=0: planted(seed + 1, step, stream)\n"
@@ -201,7 +201,7 @@ def test_densification_statistics_are_summed_and_radii_maximized(monkeypatch):
     """Across ranks the gradient accumulators and view counts add up, and the screen radii take the largest: on
     two simulated ranks, rank 1 holding twice rank 0's values."""
     from omg4 import distributed
-    from omg4.train.densify import DensifyStats
+    from omg4.train.strategies.densification import DensifyStats
 
     stats = DensifyStats(3, "cpu")
     stats.grad_sum += torch.tensor([[1.0], [2.0], [0.0]]).reshape(stats.grad_sum.shape)

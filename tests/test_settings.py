@@ -24,7 +24,8 @@ def _help(command: str, capsys) -> str:
 @pytest.mark.parametrize("command,config", [("train", TrainConfig), ("compress", CompressConfig)])
 def test_help_reaches_every_field(command, config, capsys):
     text = _help(command, capsys)
-    shortcut_flags = {"background": "--white-background"}
+    shortcut_flags = {"background": "--white-background", "strategy.max_gaussians": "--max-gaussians",
+                      "strategy.densify_until": "--densify-until", "strategy.densify_interval": "--densify-interval"}
     for name in settings_of(config):
         flag = shortcut_flags.get(name, "--" + name.replace(".", "-").replace("_", "-"))
         assert flag in text, (command, name)
@@ -33,7 +34,7 @@ def test_help_reaches_every_field(command, config, capsys):
 def test_settings_are_checked_by_type_and_name():
     assert check_settings(TrainConfig, {"iterations": 3.0, "lambda_dssim": 1, "background": [1, 1, 1]}) == {
         "iterations": 3, "lambda_dssim": 1.0, "background": (1.0, 1.0, 1.0)}
-    with pytest.raises(OMG4Error, match="did you mean densify_interval"):
+    with pytest.raises(OMG4Error, match="did you mean strategy.densify_interval"):
         check_settings(TrainConfig, {"densify_intervall": 3})
     with pytest.raises(OMG4Error, match="'iterations' expects an integer"):
         check_settings(TrainConfig, {"iterations": 2.5})
@@ -102,7 +103,7 @@ def test_train_precedence_file_then_set_then_flags_and_the_record_reproduces_the
 def test_a_bad_setting_is_one_line(tiny_scene_dir, tmp_path, capsys):
     assert _train(tiny_scene_dir, tmp_path / "r", "--set", "densify_untill=3") == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "did you mean densify_until" in err
+    assert len(err.splitlines()) == 1 and "did you mean strategy.densify_until" in err
     assert _train(tiny_scene_dir, tmp_path / "r", "--config", str(tmp_path / "missing.toml")) == 2
     assert "cannot read the config file" in capsys.readouterr().err
 

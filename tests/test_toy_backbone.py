@@ -21,7 +21,7 @@ from omg4.gaussians.covariance import condition_and_cull
 from omg4.gaussians.freetime import covariance_3d
 from omg4.gaussians.initial import neighbour_log_scales, spatial_params
 from omg4.optimize.parameters import keep_rows
-from omg4.train.strategy import DensityStrategy
+from omg4.train.strategies.base import DensityStrategy
 
 NEVER_FADES = 1e6  # temporal variance: p_t ≈ 1 over any clip
 

@@ -49,8 +49,8 @@ def worker(args) -> None:
         from omg4.train import make_config
         from omg4.train.trainer import initial_model
 
-        model = initial_model(scene, make_config("cpu-small", num_random_points=args.random, max_gaussians=args.random,
-                                                 seed=0)).to(device)
+        model = initial_model(scene, make_config("cpu-small", num_random_points=args.random,
+                                                 strategy={"max_gaussians": args.random}, seed=0)).to(device)
     for p in model.params.values():
         p.requires_grad_(True)
     optimizer = make_adam(model.params, baseline_lrs(TrainConfig(), scene.extent, model.config.schema))

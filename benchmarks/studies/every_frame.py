@@ -60,7 +60,7 @@ class SceneSpec:
 
 
 SCENES = {
-    "demo": SceneSpec(None, {}, {"batch_size": 2, "max_gaussians": 60_000}, {"lengths": DEMO_LENGTHS, "batch_size": 2}),
+    "demo": SceneSpec(None, {}, {"batch_size": 2, "strategy": {"max_gaussians": 60_000}}, {"lengths": DEMO_LENGTHS, "batch_size": 2}),
     "basketball": SceneSpec("n3dv_basketball", {"downscale": 2}, {}, {"schedule": "cpu"}),
     "basketball-segment": SceneSpec("n3dv_basketball", {"downscale": 2, "frames": range(0, 50)}, {},
                                     {"schedule": "cpu"}),

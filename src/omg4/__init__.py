@@ -26,7 +26,7 @@ _PUBLIC = {
     "Backbone": "omg4.gaussians.backbone",
     "BACKBONES": "omg4.gaussians.backbone",
     "register_backbone": "omg4.gaussians.backbone",
-    "DensityStrategy": "omg4.train.strategy",
+    "DensityStrategy": "omg4.train.strategies",
     "using_kernels": "omg4.kernels",
     "set_kernel_mode": "omg4.kernels",
     "OMG4Error": "omg4.errors",

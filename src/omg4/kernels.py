@@ -137,7 +137,7 @@ def compile_failure(exc: BaseException) -> str | None:
     """The one-line message for ``exc`` when it is ``torch.compile`` failing to compile the ``compiled`` kernels (in
     their forward or, later, inside ``backward()``), else None. Seen on an H200 with torch 2.11: inductor's Triton
     code generation asserted on the backward graph of a 200,000-Gaussian training step."""
-    from torch._dynamo.exc import BackendCompilerFailed
+    from torch._dynamo.exc import BackendCompilerFailed  # torch._dynamo only once a command has failed
 
     if not isinstance(exc, BackendCompilerFailed):
         return None

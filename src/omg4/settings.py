@@ -5,7 +5,9 @@ values. Nested configs (``CompressConfig.merge``, ``CompressConfig.lengths``) ar
 (``merge.grid_size``). A file that holds the config under one key — a training run's ``config.json``
 (``train_config``) or a compression's ``<out>.config.json`` (``compress_config``) — is read from that key,
 so a run's own record reproduces it. Unknown keys and values of the wrong type are one-line
-:class:`~omg4.errors.OMG4Error` s naming the closest valid keys.
+:class:`~omg4.errors.OMG4Error` s naming the closest valid keys. A config class may list settings that moved
+(``MOVED_SETTINGS``: earlier name → dotted name now); those are read under their new names, with a one-line
+deprecation message.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import logging
 import math
 import tomllib
 import types
@@ -21,6 +24,16 @@ from pathlib import Path
 from typing import Any
 
 from omg4.errors import OMG4Error
+
+logger = logging.getLogger(__name__)
+_told: set[str] = set()
+
+
+def tell_moved(old: str, new: str) -> None:
+    """The one-line deprecation message, once per process and name, that the setting ``old`` is now ``new``."""
+    if old not in _told:
+        _told.add(old)
+        logger.warning(f"the setting '{old}' is now '{new}'; the old name is deprecated")
 
 
 def knob(default, help: str):
@@ -118,9 +131,12 @@ def parse_assignments(items: list[str] | None) -> dict[str, Any]:
 def check_settings(cls, values: dict[str, Any], *, extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """``values`` with each value converted to its field's type; unknown keys (beyond ``extra``) and values of the
     wrong type are one-line errors."""
-    table = settings_of(cls)
+    table, moved = settings_of(cls), getattr(cls, "MOVED_SETTINGS", {})
     out = {}
     for key, value in values.items():
+        if key in moved and key not in table:
+            tell_moved(key, moved[key])
+            key = moved[key]
         if key in extra:
             out[key] = value
             continue
@@ -215,5 +231,5 @@ def config_dict(config) -> dict[str, Any]:
     return json.loads(json.dumps(dataclasses.asdict(config)))
 
 
-__all__ = ["knob", "Setting", "settings_of", "read_config_file", "flatten", "parse_assignments", "check_settings", "convert",
+__all__ = ["knob", "tell_moved", "Setting", "settings_of", "read_config_file", "flatten", "parse_assignments", "check_settings", "convert",
            "apply_settings", "config_dict"]

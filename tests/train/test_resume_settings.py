@@ -92,8 +92,8 @@ def test_the_default_preset_follows_the_device(tiny_scene_dir, tmp_path, capsys)
     assert main(["train", str(tiny_scene_dir), "--out", str(run), "--iterations", "4", "--backend", "cpu"]) == 0
     first = capsys.readouterr().out.splitlines()[0]
     assert first.startswith("preset cpu-small (the default on cpu") and "4 iterations of 2 views" in first
-    assert record(run)["max_gaussians"] == 60_000 and record(run)["batch_size"] == 2  # cpu-small's, not official's
-    assert TrainConfig().max_gaussians == 0 and TrainConfig().batch_size == 4
+    assert record(run)["strategy"]["max_gaussians"] == 60_000 and record(run)["batch_size"] == 2  # cpu-small's, not official's
+    assert TrainConfig().strategy.max_gaussians == 0 and TrainConfig().batch_size == 4
 
 
 def test_ctrl_c_writes_a_checkpoint_and_resume_loses_no_step(tiny_scene, tmp_path):

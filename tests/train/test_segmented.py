@@ -151,16 +151,16 @@ def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_can_be_d
     teacher = WindowedModel(before.params, before.config, 3, 1)
     points = initial_points(scene, "random", CFG)
 
-    start = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=0), points)
+    start = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=0), points)
     assert start.config.time_range == pytest.approx((t0, t1))
     assert start.num_gaussians == len(alive) + len(points.xyz)
     for k, v in start.params.items():
         torch.testing.assert_close(v[: len(alive)], before.params[k][alive], rtol=0, atol=0)
     torch.testing.assert_close(start.params["xyz"][len(alive):], torch.as_tensor(points.xyz, dtype=torch.float32))
 
-    capped = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=6), points)
+    capped = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=6), points)
     assert capped.num_gaussians == 6  # the four carried and two fresh
-    full = warm_start(teacher, scene, dataclasses.replace(CFG, max_gaussians=2), points)
+    full = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=2), points)
     torch.testing.assert_close(full.params["t"], before.params["t"][[1, 5]])  # logits 5.0 and 1.0, in order
 
 
@@ -169,9 +169,9 @@ def test_a_warm_started_segment_holds_at_most_the_first_segments_gaussians():
 
     from omg4.train.segmented import segment_budget
 
-    assert segment_budget(dataclasses.replace(CFG, max_gaussians=0), 150).max_gaussians == 150
-    assert segment_budget(dataclasses.replace(CFG, max_gaussians=100), 150).max_gaussians == 100
-    assert segment_budget(dataclasses.replace(CFG, max_gaussians=1000), 150).max_gaussians == 150
+    assert segment_budget(CFG.with_strategy(max_gaussians=0), 150).strategy.max_gaussians == 150
+    assert segment_budget(CFG.with_strategy(max_gaussians=100), 150).strategy.max_gaussians == 100
+    assert segment_budget(CFG.with_strategy(max_gaussians=1000), 150).strategy.max_gaussians == 150
 
 
 def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypatch):
@@ -184,7 +184,7 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
     original = segmented.warm_start
 
     def spy(teacher, scene, cfg, points=None):
-        calls.append((teacher.num_gaussians, tuple(scene.time_range), cfg.max_gaussians))
+        calls.append((teacher.num_gaussians, tuple(scene.time_range), cfg.strategy.max_gaussians))
         return original(teacher, scene, cfg, points)
 
     monkeypatch.setattr(segmented, "warm_start", spy)
@@ -194,7 +194,7 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
     assert [n for n, _, _ in calls] == trained[:2]
     assert [r for _, r, _ in calls] == [pytest.approx((4 / 30, 10 / 30)), pytest.approx((8 / 30, 12 / 30))]
     assert [cap for _, _, cap in calls] == [trained[0]] * 2  # the first segment's count, below CFG's cap
-    assert trained[0] < CFG.max_gaussians and max(trained[1:]) <= trained[0]
+    assert trained[0] < CFG.strategy.max_gaussians and max(trained[1:]) <= trained[0]
     calls.clear()
     independent = tmp_path / "independent"
     write_plan(independent, plan)

@@ -31,7 +31,7 @@ def test_training_lowers_loss(tiny_scene, tmp_path):
 
 
 def test_densification_counts_are_consistent(tiny_scene, tmp_path):
-    from omg4.train import densify
+    from omg4.train.strategies import densification as densify
 
     cfg = small_config(iterations=10)
     trainer = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None)

@@ -267,5 +267,5 @@ def _baseline_config(settings: DemoSettings, iterations: int, device):
     from omg4.train import make_config
 
     return make_config("cpu-small", iterations=iterations, batch_size=settings.batch_size,
-                       max_gaussians=settings.max_gaussians, seed=settings.seed, checkpoint_interval=0,
+                       strategy={"max_gaussians": settings.max_gaussians}, seed=settings.seed, checkpoint_interval=0,
                        device=str(device))

@@ -141,7 +141,7 @@ class Backbone:
             cloud (CPU tensors, one Gaussian per point; :mod:`omg4.gaussians.initial` holds the shared part).
         size_presets: its OMG4 sizes by name (paper appendix), and ``default_preset`` the one used unless named.
         training: the name of its density control in :data:`omg4.train.strategies.STRATEGIES`, or a
-            :class:`omg4.train.strategy.DensityStrategy` subclass; None trains a fixed set of Gaussians.
+            :class:`omg4.train.strategies.base.DensityStrategy` subclass; None trains a fixed set of Gaussians.
         paper_rows: the rows ``omg4 bench`` measures for it (the paper's table of this backbone): label →
             (size preset, stages).
         sh_degree_t: the temporal SH degree it requires (None: any).

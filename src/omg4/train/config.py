@@ -10,18 +10,28 @@ FreeTimeGS (``backbone="freetimegs"``) trains on the same schedule with a fixed 
 relocates Gaussians whose opacity fell below ``relocate_opacity`` instead of densifying and
 pruning, never resets opacities, and adds the 4D regularization ``lambda_reg`` · mean σ·sg[p_t]
 until ``densify_until`` (FreeTimeGS §3.3–3.4). Which of these a run uses is its backbone's density control
-(:mod:`omg4.train.strategy`). Every field is settable by name (:mod:`omg4.settings`).
+(:mod:`omg4.train.strategies`), whose settings the config holds nested as ``strategy`` (``strategy.densify_until``).
+Every field is settable by name (:mod:`omg4.settings`). The settings' earlier flat names (``densify_until``) still
+work — as keyword arguments, in config files, records and ``--set`` — each with a one-line deprecation message.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass, fields, replace
+from typing import ClassVar
 
 import torch
 
 from omg4.errors import OMG4Error
 from omg4.optimize.parameters import LEARNING_RATES as LR
-from omg4.settings import knob
+from omg4.settings import apply_settings, knob, tell_moved
+from omg4.train.strategies import StrategySettings
+from omg4.train.strategies.base import ScheduledEvents
+
+
+STRATEGY_SETTINGS = tuple(f.name for f in fields(StrategySettings))
+"""The density controls' settings, nested under ``strategy``; their earlier flat names still work (deprecated)."""
 
 
 @dataclass(frozen=True)
@@ -43,17 +53,6 @@ class TrainConfig:
     scaling_lr: float = knob(LR.scaling_lr, "learning rate of the log scales (spatial and temporal)")
     rotation_lr: float = knob(LR.rotation_lr, "quaternion learning rate")
     lambda_dssim: float = knob(0.2, "weight of the D-SSIM term in the loss (rt4dgs §3.2)")
-    # density control (rt4dgs §3.4; FreeTimeGS relocation uses the same schedule)
-    densify_from: int = knob(500, "first density event after this step")
-    densify_until: int = knob(15_000, "no density events, statistics or regularization from this step on")
-    densify_interval: int = knob(100, "steps between density events")
-    densify_grad_threshold: float = knob(2e-4, "mean view-space gradient (NDC) from which a Gaussian is densified")
-    percent_dense: float = knob(0.01, "largest scale (× extent) of a Gaussian that is cloned rather than split")
-    prune_opacity: float = knob(0.005, "Gaussians below this opacity are pruned")
-    prune_screen_size: float = knob(20.0, "after the first opacity reset, prune Gaussians wider than this (pixels)")
-    prune_world_size: float = knob(0.1, "after the first opacity reset, prune Gaussians larger than this (× extent)")
-    opacity_reset_interval: int = knob(3000, "steps between opacity resets (to 0.01)")
-    max_gaussians: int = knob(0, "cap on the Gaussian count (0: none); FreeTimeGS: its fixed budget")
     sh_increase_interval: int = knob(1000, "steps per SH degree: spatial 0 → max, then temporal 0 → max")
     num_random_points: int = knob(100_000, "initial points made when the data has none (random, rays, mvs)")
     test_interval: int = knob(0, "test PSNR every N steps (0: only at the end)")
@@ -62,39 +61,87 @@ class TrainConfig:
     backbone: str = knob("rt4dgs", "the representation (omg4.gaussians.backbone.BACKBONES)")
     velocity_lr: float = knob(LR.velocity_lr, "FreeTimeGS velocity learning rate (× extent)")
     duration_lr: float = knob(LR.duration_lr, "FreeTimeGS log-duration learning rate")
-    lambda_reg: float = knob(0.01, "FreeTimeGS 4D regularization weight (FreeTimeGS §3.3)")
-    relocate_opacity: float = knob(0.05, "FreeTimeGS: Gaussians below this opacity are relocated")
     backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
     device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
+    strategy: StrategySettings = dataclasses.field(
+        default_factory=StrategySettings, metadata={"help": "the density control's settings (omg4.train.strategies)"})
+
+    MOVED_SETTINGS: ClassVar[dict[str, str]] = {name: f"strategy.{name}" for name in STRATEGY_SETTINGS}
+    """Earlier flat names of settings, and where they are now (read with a one-line deprecation message)."""
+
+    def __getattr__(self, name: str):  # only for names that are no field: an earlier flat strategy setting
+        if name in STRATEGY_SETTINGS:
+            deprecated(name)
+            return getattr(self.strategy, name)
+        raise AttributeError(f"'TrainConfig' object has no attribute '{name}'")
+
+    def with_strategy(self, **changes) -> "TrainConfig":
+        """A copy with the density control's settings ``changes`` (``max_gaussians=…``)."""
+        return replace(self, strategy=replace(self.strategy, **changes))
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @staticmethod
     def from_dict(d: dict) -> "TrainConfig":
+        """The config a run's record holds (nested, or flat as records made before ``strategy`` were: read
+        silently, a record not being the user's writing)."""
         names = {f.name for f in fields(TrainConfig)}
         kwargs = {k: (tuple(v) if k == "background" else v) for k, v in d.items() if k in names}
-        return TrainConfig(**kwargs)
+        inner = dict(kwargs.pop("strategy", None) or {})
+        inner.update({k: v for k, v in d.items() if k in STRATEGY_SETTINGS})
+        known = {k: v for k, v in inner.items() if k in STRATEGY_SETTINGS}
+        return TrainConfig(**kwargs, strategy=StrategySettings(**known))
+
+
+def deprecated(name: str) -> None:
+    """The one-line message, once per process and name, that the flat setting ``name`` is now
+    ``strategy.<name>``."""
+    tell_moved(name, f"strategy.{name}")
+
+
+def nest_flat_settings(kwargs: dict, strategy=None) -> dict:
+    """``kwargs`` of :class:`TrainConfig` with its earlier flat strategy settings moved into ``strategy`` (one
+    deprecation message per name), starting from ``strategy`` or the given ``kwargs["strategy"]``."""
+    flat = {k: kwargs.pop(k) for k in list(kwargs) if k in STRATEGY_SETTINGS}
+    if flat:
+        for name in flat:
+            deprecated(name)
+        base = kwargs.get("strategy") or strategy or StrategySettings()
+        kwargs["strategy"] = replace(base, **flat)
+    return kwargs
+
+
+_generated_init = TrainConfig.__init__
+
+
+def _init_taking_flat_settings(self, **kwargs):
+    _generated_init(self, **nest_flat_settings(kwargs))
+
+
+_init_taking_flat_settings.__doc__ = _generated_init.__doc__
+TrainConfig.__init__ = _init_taking_flat_settings  # TrainConfig(densify_until=…) and replace(cfg, densify_until=…)
 
 
 PRESETS: dict[str, dict] = {
     # the official schedule (N3DV configs: batch 4, 30k iterations)
     "official": {},
     # a 2-core laptop on a small scene (≈ 256×192, a few dozen thousand Gaussians)
-    "cpu-small": dict(
-        iterations=3000,
-        batch_size=2,
-        position_lr_max_steps=3000,
-        densify_from=150,
-        densify_until=2000,
-        densify_interval=100,
-        opacity_reset_interval=1000,
-        sh_increase_interval=250,
-        num_random_points=20_000,
-        max_gaussians=60_000,
-        checkpoint_interval=500,
-    ),
+    "cpu-small": {
+        "iterations": 3000,
+        "batch_size": 2,
+        "position_lr_max_steps": 3000,
+        "strategy.densify_from": 150,
+        "strategy.densify_until": 2000,
+        "strategy.densify_interval": 100,
+        "strategy.opacity_reset_interval": 1000,
+        "sh_increase_interval": 250,
+        "num_random_points": 20_000,
+        "strategy.max_gaussians": 60_000,
+        "checkpoint_interval": 500,
+    },
 }
+"""Each preset's settings by dotted name (:mod:`omg4.settings`)."""
 
 
 def default_preset(device) -> str:
@@ -103,15 +150,25 @@ def default_preset(device) -> str:
     return "official" if torch.device(device).type == "cuda" else "cpu-small"
 
 
-MIN_DENSIFY_INTERVAL = TrainConfig().densify_interval
+MIN_DENSIFY_INTERVAL = ScheduledEvents().densify_interval
 """Scaling a schedule never densifies more often than the official every 100 iterations (rt4dgs §3.4)."""
 
-SCHEDULE_FIELDS = ("densify_from", "densify_until", "densify_interval", "opacity_reset_interval",
-                   "sh_increase_interval", "position_lr_max_steps")
+SCHEDULE_FIELDS = ("strategy.densify_from", "strategy.densify_until", "strategy.densify_interval",
+                   "strategy.opacity_reset_interval", "sh_increase_interval", "position_lr_max_steps")
 
 
-def make_config(preset: str = "official", **overrides) -> TrainConfig:
-    """The preset's config with ``overrides`` (``None`` values ignored) applied.
+def setting_of(cfg: TrainConfig, name: str):
+    """The value of the dotted setting ``name`` in ``cfg``."""
+    for part in name.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def make_config(preset: str = "official", overrides: dict | None = None, **settings) -> TrainConfig:
+    """The preset's config with ``overrides`` (dotted names: ``{"strategy.densify_until": 2000}``) and ``settings``
+    (keyword arguments: the fields, ``strategy`` as a mapping or a :class:`StrategySettings`, and the density
+    control's settings by their own names, ``densify_until=2000``, each name being one setting) applied, ``None``
+    values ignored.
 
     Overriding ``iterations`` scales the preset's schedule (densification window,
     opacity resets, SH degree steps, position decay) by the same factor, unless those are
@@ -121,12 +178,19 @@ def make_config(preset: str = "official", **overrides) -> TrainConfig:
     """
     if preset not in PRESETS:
         raise OMG4Error(f"unknown training preset '{preset}' (choose from {', '.join(PRESETS)})")
-    cfg = replace(TrainConfig(), **PRESETS[preset])
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    if "iterations" in overrides:
-        factor = overrides["iterations"] / cfg.iterations
+    cfg = apply_settings(TrainConfig(), PRESETS[preset])
+    given = dict(overrides or {})
+    strategy = settings.pop("strategy", None)
+    if isinstance(strategy, StrategySettings):
+        strategy = {f.name: getattr(strategy, f.name) for f in fields(strategy)}
+    given.update({f"strategy.{k}": v for k, v in (strategy or {}).items()})
+    for name, value in settings.items():
+        given[f"strategy.{name}" if name in STRATEGY_SETTINGS else name] = value
+    given = {k: v for k, v in given.items() if v is not None}
+    if "iterations" in given:
+        factor = given["iterations"] / cfg.iterations
         for name in SCHEDULE_FIELDS:
-            if name not in overrides:
-                floor = MIN_DENSIFY_INTERVAL if name == "densify_interval" else 1
-                overrides[name] = max(floor, int(round(getattr(cfg, name) * factor)))
-    return replace(cfg, **overrides)
+            if name not in given:
+                floor = MIN_DENSIFY_INTERVAL if name == "strategy.densify_interval" else 1
+                given[name] = max(floor, int(round(setting_of(cfg, name) * factor)))
+    return apply_settings(cfg, given)

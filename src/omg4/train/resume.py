@@ -11,12 +11,12 @@ command's choice: they do not change what is learnt.
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 from omg4.data.segments import is_segmented_run, read_run_plan
 from omg4.errors import OMG4Error
-from omg4.train.config import TrainConfig
+from omg4.settings import apply_settings
+from omg4.train.config import TrainConfig, setting_of
 from omg4.train.run_state import latest_iteration
 
 PLACEMENT_FIELDS = ("device", "backend", "test_interval", "checkpoint_interval")
@@ -64,7 +64,8 @@ def recorded_preset(run_dir: str | Path) -> str | None:
 def resumed_config(recorded: TrainConfig, *, asked: dict, preset: str | None = None,
                    recorded_preset: str | None = None, overrides: dict | None = None) -> TrainConfig:
     """The settings a resumed run trains with: ``recorded``, then the placement fields of ``asked`` (the values the
-    command was given explicitly, by flag or settings file), then ``overrides`` (``--set``).
+    command was given explicitly, by flag or settings file), then ``overrides`` (``--set``); both by dotted names
+    (``strategy.densify_until``).
 
     Raises:
         OMG4Error: a value of ``asked`` other than a placement field differs from the record, or the named
@@ -77,12 +78,12 @@ def resumed_config(recorded: TrainConfig, *, asked: dict, preset: str | None = N
     for name, value in asked.items():
         if value is None or name in PLACEMENT_FIELDS or name in (overrides or {}):
             continue
-        old = getattr(recorded, name)
+        old = setting_of(recorded, name)
         if _normalized(value) != _normalized(old):
             raise OMG4Error(f"{name} {value!r} contradicts the run's recorded {name} {old!r} (its config.json); "
                             f"resume without it, or change the setting with --set {name}=VALUE")
     placement = {k: v for k, v in asked.items() if k in PLACEMENT_FIELDS and v is not None}
-    return replace(recorded, **placement, **(overrides or {}))
+    return apply_settings(recorded, {**placement, **(overrides or {})})
 
 
 def _normalized(value):

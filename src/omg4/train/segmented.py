@@ -98,20 +98,21 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
     peak temporal marginal over the range (:func:`~omg4.gaussians.visibility.peak_marginal`) at least the
     rasterizer's :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a
     frame — joined by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the
-    segment before never showed, as many as ``cfg.max_gaussians`` leaves room for (the most opaque carried
+    segment before never showed, as many as ``cfg.strategy.max_gaussians`` leaves room for (the most opaque carried
     Gaussians first when they alone exceed it)."""
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
     var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
     peak = opacity * peak_marginal(values["t"], var_t, *scene.time_range)
     alive = torch.nonzero(peak >= ALPHA_THRESHOLD).reshape(-1)
-    if cfg.max_gaussians and len(alive) > cfg.max_gaussians:
-        alive = alive[torch.argsort(opacity[alive], descending=True, stable=True)[: cfg.max_gaussians]].sort().values
+    budget = cfg.strategy.max_gaussians
+    if budget and len(alive) > budget:
+        alive = alive[torch.argsort(opacity[alive], descending=True, stable=True)[:budget]].sort().values
     config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
     parts = [{k: values[k][alive] for k in config.schema.param_names}]
-    if not cfg.max_gaussians or len(alive) < cfg.max_gaussians:
-        room = cfg.max_gaussians - len(alive) if cfg.max_gaussians else 0  # 0: no cap
-        parts.append(initial_model(scene, dataclasses.replace(cfg, max_gaussians=room), points).params)
+    if not budget or len(alive) < budget:
+        room = budget - len(alive) if budget else 0  # 0: no cap
+        parts.append(initial_model(scene, cfg.with_strategy(max_gaussians=room), points).params)
     return Gaussians4D({k: torch.cat([part[k].detach() for part in parts]) for k in config.schema.param_names},
                        config)  # the trainer sets the active SH degrees of each step
 
@@ -119,10 +120,11 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
 def segment_budget(cfg: TrainConfig, first_count: int) -> TrainConfig:
     """The training settings of a segment that starts from the one before (:func:`warm_start`): at most as many
     Gaussians as the first segment, which learnt from the video alone, holds (``first_count``), or
-    ``cfg.max_gaussians`` when that is smaller. Without it the carried Gaussians stay and densification adds a
+    ``cfg.strategy.max_gaussians`` when that is smaller. Without it the carried Gaussians stay and densification adds a
     fresh segment's worth on top, so every segment would be larger than the one before."""
-    cap = min(cfg.max_gaussians, first_count) if cfg.max_gaussians else first_count
-    return dataclasses.replace(cfg, max_gaussians=cap)
+    budget = cfg.strategy.max_gaussians
+    cap = min(budget, first_count) if budget else first_count
+    return cfg.with_strategy(max_gaussians=cap)
 
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],

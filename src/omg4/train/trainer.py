@@ -2,7 +2,7 @@
 
 Each iteration renders a batch of random (camera, frame) views, back-propagates
 ``loss_v / B`` per view, and takes one Adam step; the SH degree schedule happens at fixed
-iterations, and the backbone's density control (:mod:`omg4.train.strategy`: Real-Time4DGS's
+iterations, and the backbone's density control (:mod:`omg4.train.strategies`: Real-Time4DGS's
 densification, pruning and opacity resets; FreeTimeGS's relocation and regularization) adds,
 removes or moves Gaussians through its hooks. Everything random is drawn from generators
 seeded by ``(seed, iteration)``, so a run resumed from a checkpoint continues exactly as
@@ -41,7 +41,7 @@ from omg4.optimize.step import backward_batch, step_generator
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
-from omg4.train.densify import DensifyStats
+from omg4.train.strategies.densification import DensifyStats
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 from omg4.train.strategies import strategy_for
 
@@ -68,8 +68,8 @@ def active_sh_degrees(step: int, interval: int, max_deg: int, max_deg_t: int) ->
 def initial_model(scene: Scene, cfg: TrainConfig, points: PointCloud | None = None) -> Gaussians4D:
     """Gaussians from ``points``, the scene's ``points3d.ply``, or random points in the common view volume.
 
-    The backbone's density control chooses the points (:meth:`~omg4.train.strategy.DensityStrategy.initial_points`:
-    at most ``cfg.max_gaussians``, a random subset; a FreeTimeGS model starts at its budget exactly) and its
+    The backbone's density control chooses the points (:meth:`~omg4.train.strategies.base.DensityStrategy.initial_points`:
+    at most ``cfg.strategy.max_gaussians``, a random subset; a FreeTimeGS model starts at its budget exactly) and its
     ``initialize`` makes the Gaussians. Built on the CPU (so the random draws do not depend on the device); the
     caller moves it.
     """

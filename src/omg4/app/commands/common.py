@@ -292,13 +292,21 @@ def add_settings_arguments(p: argparse.ArgumentParser, config_class, *, shortcut
                         "merge.grid_size=0.2)")
     group = p.add_argument_group(f"every {config_class.__name__} field (also settable by --config and --set; "
                                  f"{defaults})")
-    for name, setting in settings_of(config_class).items():
+    table = settings_of(config_class)
+    for name, setting in table.items():
         if name in shortcuts:
             continue
         default = "" if setting.default is None else f" (default {setting.default})"
-        group.add_argument("--" + name.replace(".", "-").replace("_", "-"), dest=_setting_dest(name),
-                           type=_setting_type(name, setting.type), metavar="VALUE",
-                           help=setting.help.replace("%", "%%") + default)
+        group.add_argument(_setting_flag(name), dest=_setting_dest(name), type=_setting_type(name, setting.type),
+                           metavar="VALUE", help=setting.help.replace("%", "%%") + default)
+    for old, new in getattr(config_class, "MOVED_SETTINGS", {}).items():  # earlier flags, read as deprecated names
+        if old not in shortcuts and new not in shortcuts:
+            group.add_argument(_setting_flag(old), dest=_setting_dest(old), type=_setting_type(old, table[new].type),
+                               help=argparse.SUPPRESS)
+
+
+def _setting_flag(name: str) -> str:
+    return "--" + name.replace(".", "-").replace("_", "-")
 
 
 def _setting_dest(name: str) -> str:

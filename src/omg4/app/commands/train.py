@@ -18,7 +18,8 @@ from omg4.train.init import INIT_MODES
 from omg4.train.segmented import PARALLEL_MODES
 
 #: the TrainConfig fields this command has its own flags for
-SHORTCUTS = ("iterations", "batch_size", "backbone", "max_gaussians", "densify_until", "densify_interval",
+SHORTCUTS = ("iterations", "batch_size", "backbone", "strategy.max_gaussians", "strategy.densify_until",
+             "strategy.densify_interval",
              "test_interval", "checkpoint_interval", "num_random_points", "seed", "background", "backend", "device")
 
 
@@ -111,11 +112,12 @@ def run(args) -> int:
         if recorded is None or device_named:
             raise
         raise OMG4Error(f"{exc}; the run trained on {recorded.device}: add --device cpu to resume it here") from None
-    flags = dict(iterations=args.iterations, batch_size=args.batch_size, max_gaussians=args.max_gaussians,
-                 backbone=args.backbone, densify_until=args.densify_until, densify_interval=args.densify_interval,
-                 test_interval=args.test_interval, checkpoint_interval=args.checkpoint_interval,
-                 num_random_points=args.num_random_points, seed=args.seed,
-                 background=(1.0, 1.0, 1.0) if args.white_background else None)
+    flags = {"iterations": args.iterations, "batch_size": args.batch_size, "strategy.max_gaussians": args.max_gaussians,
+             "backbone": args.backbone, "strategy.densify_until": args.densify_until,
+             "strategy.densify_interval": args.densify_interval}
+    flags.update(dict(test_interval=args.test_interval, checkpoint_interval=args.checkpoint_interval,
+                      num_random_points=args.num_random_points, seed=args.seed,
+                      background=(1.0, 1.0, 1.0) if args.white_background else None))
     asked = {**settings, **{k: v for k, v in flags.items() if v is not None}}
     if recorded is not None:
         overrides = check_settings(TrainConfig, parse_assignments(args.settings))
@@ -134,10 +136,11 @@ def run(args) -> int:
             return 0
     else:
         preset = args.preset or default_preset(device)
-        cfg = make_config(preset, **asked, backend=args.backend, device=str(device))
+        cfg = make_config(preset, {**asked, "backend": args.backend, "device": str(device)})
         if world.main:
             origin = "" if args.preset else f" (the default on {device.type}; --preset chooses)"
-            cap = f"at most {cfg.max_gaussians:,} Gaussians" if cfg.max_gaussians else "no cap on the Gaussian count"
+            budget = cfg.strategy.max_gaussians
+            cap = f"at most {budget:,} Gaussians" if budget else "no cap on the Gaussian count"
             print(f"preset {preset}{origin}: {cfg.iterations:,} iterations of {cfg.batch_size} views, {cap}")
     if args.segment_frames:
         return _train_segments(args, cfg, world, preset)

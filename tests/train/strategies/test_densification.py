@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from omg4.gaussians import GaussianConfig, Gaussians4D, build_rotation_4d
-from omg4.train import densify
-from omg4.train.densify import DensifyStats, densify_and_prune, reset_opacity
+from omg4.train.strategies import densification as densify
+from omg4.train.strategies.densification import DensifyStats, densify_and_prune, reset_opacity
 from omg4.optimize.parameters import make_adam
 
 GRAD_THRESHOLD = 2.0 ** -12  # exactly representable in float32, so "at the threshold" is exact
@@ -244,7 +244,7 @@ def _trainer_with_recorders(tiny_scene, tmp_path, monkeypatch, backbone="rt4dgs"
     calls = []
     monkeypatch.setattr(densify, "densify_and_prune", lambda *a, **k: calls.append(("densify", k)) or {})
     monkeypatch.setattr(densify, "reset_opacity", lambda *a, **k: calls.append(("reset", k)))
-    import omg4.train.relocate as relocate_module
+    import omg4.train.strategies.relocation as relocate_module
 
     monkeypatch.setattr(relocate_module, "relocate", lambda *a, **k: calls.append(("relocate", k)) or 0)
     return trainer, cfg, calls
@@ -268,12 +268,13 @@ def test_the_trainer_densifies_and_resets_at_the_scheduled_steps(tiny_scene, tmp
     assert [(s, n) for s, n, _ in events] == [(3, "densify"), (6, "densify"), (6, "reset"), (9, "densify"),
                                               (12, "densify"), (12, "reset"), (15, "densify")]
     limits = {s: k["max_screen_size"] for s, n, k in events if n == "densify"}
-    assert limits == {3: None, 6: None, 9: cfg.prune_screen_size, 12: cfg.prune_screen_size,
-                      15: cfg.prune_screen_size}
+    assert limits == {3: None, 6: None, 9: cfg.strategy.prune_screen_size, 12: cfg.strategy.prune_screen_size,
+                      15: cfg.strategy.prune_screen_size}
     k = events[0][2]
     assert (k["grad_threshold"], k["percent_dense"], k["prune_opacity"], k["prune_world_size"],
-            k["max_gaussians"]) == (cfg.densify_grad_threshold, cfg.percent_dense, cfg.prune_opacity,
-                                    cfg.prune_world_size, cfg.max_gaussians)
+            k["max_gaussians"]) == (cfg.strategy.densify_grad_threshold, cfg.strategy.percent_dense,
+                                    cfg.strategy.prune_opacity, cfg.strategy.prune_world_size,
+                                    cfg.strategy.max_gaussians)
     assert k["extent"] == pytest.approx(tiny_scene.extent)
 
 

@@ -5,9 +5,9 @@ import math
 import torch
 
 from omg4.gaussians import GaussianConfig, Gaussians4D, build_rotation_3d
-from omg4.train.densify import DensifyStats
+from omg4.train.strategies.densification import DensifyStats
 from omg4.optimize.parameters import make_adam
-from omg4.train.relocate import relocate
+from omg4.train.strategies.relocation import relocate
 
 
 def _model(n: int, dead: list[int]) -> Gaussians4D:
@@ -145,7 +145,7 @@ def test_copies_are_spread_by_the_targets_scale_rotation_and_duration():
 def test_the_freetimegs_regularizer_weighs_in_until_densification_ends():
     from omg4.gaussians.freetime import opacity_regularizer
     from omg4.train import make_config
-    from omg4.train.relocate import Relocation
+    from omg4.train.strategies.relocation import Relocation
 
     model = _model(10, [])
     cfg = make_config("cpu-small", backbone="freetimegs", densify_until=100, lambda_reg=0.25)
@@ -156,4 +156,4 @@ def test_the_freetimegs_regularizer_weighs_in_until_densification_ends():
     assert Relocation.from_config(cfg).regularizer(p, times, 100) is None
     from dataclasses import replace
 
-    assert Relocation.from_config(replace(cfg, lambda_reg=0.0)).regularizer(p, times, 5) is None
+    assert Relocation.from_config(cfg.with_strategy(lambda_reg=0.0)).regularizer(p, times, 5) is None

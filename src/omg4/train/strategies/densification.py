@@ -19,7 +19,8 @@ from omg4.gaussians import build_rotation_4d
 from omg4.gaussians.backbone import activated_scales
 from omg4.optimize.parameters import append_rows, keep_rows, replace_param
 from omg4.optimize.step import step_generator
-from omg4.train.strategy import DEFAULTS, ScheduledEvents
+from omg4.settings import knob
+from omg4.train.strategies.base import ScheduledEvents
 
 
 class DensifyStats:
@@ -147,12 +148,12 @@ class Densification(ScheduledEvents):
     ``prune_screen_size`` once the first opacity reset has passed); opacities reset every
     ``opacity_reset_interval`` steps before ``densify_until``."""
 
-    densify_grad_threshold: float = DEFAULTS.densify_grad_threshold
-    percent_dense: float = DEFAULTS.percent_dense
-    prune_opacity: float = DEFAULTS.prune_opacity
-    prune_world_size: float = DEFAULTS.prune_world_size
-    prune_screen_size: float = DEFAULTS.prune_screen_size
-    opacity_reset_interval: int = DEFAULTS.opacity_reset_interval
+    densify_grad_threshold: float = knob(2e-4, "mean view-space gradient (NDC) from which a Gaussian is densified")
+    percent_dense: float = knob(0.01, "largest scale (× extent) of a Gaussian that is cloned rather than split")
+    prune_opacity: float = knob(0.005, "Gaussians below this opacity are pruned")
+    prune_world_size: float = knob(0.1, "after the first opacity reset, prune Gaussians larger than this (× extent)")
+    prune_screen_size: float = knob(20.0, "after the first opacity reset, prune Gaussians wider than this (pixels)")
+    opacity_reset_interval: int = knob(3000, "steps between opacity resets (to 0.01)")
 
     def grows_until(self) -> int:
         return self.densify_until

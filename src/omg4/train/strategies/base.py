@@ -3,8 +3,9 @@
 A backbone names its strategy (:attr:`omg4.gaussians.backbone.Backbone.training`; the named ones are in
 :data:`omg4.train.strategies.STRATEGIES`). A backbone that names none trains a fixed set of Gaussians
 (:class:`DensityStrategy` itself). As gsplat's strategies, a strategy is a dataclass that owns its settings: its
-fields, taken from the run's :class:`~omg4.train.config.TrainConfig` fields of the same names by
-:meth:`DensityStrategy.from_config` (the run's record keeps them there). The trainer calls, in order:
+fields, with their defaults and help, which the run's config holds nested under ``strategy``
+(``TrainConfig.strategy``, ``--set strategy.<field>=…``; :meth:`DensityStrategy.from_config` builds the strategy
+from it). The run's ``seed`` is the run's, not a strategy setting (:data:`RUN_FIELDS`). The trainer calls, in order:
 :meth:`~DensityStrategy.initial_points` once; then at every step :meth:`~DensityStrategy.collects_statistics`
 (whether the view-space gradient statistics are accumulated), :meth:`~DensityStrategy.regularizer` (a term
 added to the loss) and, after the optimizer step, :meth:`~DensityStrategy.after_step` (the density events).
@@ -16,10 +17,10 @@ import dataclasses
 
 import torch
 
-from omg4.train.config import TrainConfig
+from omg4.settings import knob
 
-DEFAULTS = TrainConfig()
-"""The default settings a strategy's fields start from."""
+RUN_FIELDS = ("seed",)
+"""Strategy fields the run gives (from its own settings of the same names), not settings of the strategy."""
 
 
 @dataclasses.dataclass
@@ -27,13 +28,17 @@ class DensityStrategy:
     """A fixed set of Gaussians: at most ``max_gaussians`` of the initial points (0: all), no statistics, no
     events."""
 
-    max_gaussians: int = DEFAULTS.max_gaussians
+    max_gaussians: int = knob(0, "cap on the Gaussian count (0: none); FreeTimeGS: its fixed budget")
 
     @classmethod
-    def from_config(cls, cfg: TrainConfig) -> "DensityStrategy":
-        """The strategy with each of its fields taken from ``cfg``'s field of the same name (a field ``cfg``
-        lacks keeps its default)."""
-        return cls(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cls) if hasattr(cfg, f.name)})
+    def from_config(cls, cfg) -> "DensityStrategy":
+        """The strategy of the run ``cfg`` (a :class:`~omg4.train.config.TrainConfig`): each field from
+        ``cfg.strategy``'s setting of the same name (one it lacks keeps its default), :data:`RUN_FIELDS` from
+        ``cfg`` itself."""
+        settings, names = cfg.strategy, {f.name for f in dataclasses.fields(cls)}
+        values = {name: getattr(settings, name) for name in names if hasattr(settings, name)}
+        values.update({name: getattr(cfg, name) for name in RUN_FIELDS if name in names})
+        return cls(**values)
 
     def initial_points(self, xyz: torch.Tensor, rgb: torch.Tensor, generator: torch.Generator
                        ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -66,13 +71,13 @@ class ScheduledEvents(DensityStrategy):
     """The schedule both backbones' density controls share: statistics before ``densify_until``, an event every
     ``densify_interval`` steps after ``densify_from``, each event's draws seeded by ``seed`` and its step."""
 
-    densify_from: int = DEFAULTS.densify_from
-    densify_until: int = DEFAULTS.densify_until
-    densify_interval: int = DEFAULTS.densify_interval
-    seed: int = DEFAULTS.seed
+    densify_from: int = knob(500, "first density event after this step")
+    densify_until: int = knob(15_000, "no density events, statistics or regularization from this step on")
+    densify_interval: int = knob(100, "steps between density events")
+    seed: int = 6666  # the run's (RUN_FIELDS), default as TrainConfig's
 
     def collects_statistics(self, step: int) -> bool:
         return step < self.densify_until
 
 
-__all__ = ["DEFAULTS", "DensityStrategy", "ScheduledEvents"]
+__all__ = ["RUN_FIELDS", "DensityStrategy", "ScheduledEvents"]

@@ -12,7 +12,7 @@ spread over the region they refine instead of coinciding, and both shrink by 1.6
 halves of a Real-Time4DGS split. A target drawn k times and its k
 copies get opacity ``1 − (1 − σ)^(1/(k+1))`` each, which keeps their combined peak opacity σ
 where they overlap; the moved rows and their targets restart with zero Adam moments. The
-Gaussian count never changes. The threshold (``TrainConfig.relocate_opacity``, 0.05) is
+Gaussian count never changes. The threshold (``relocate_opacity``, 0.05) is
 higher than 3DGS-MCMC's 0.005, which on the demo scene moved almost nothing (the sweep that chose it:
 ``docs/paper-map.md``, FreeTimeGS).
 """
@@ -28,8 +28,9 @@ from omg4 import distributed
 from omg4.gaussians.freetime import opacity_regularizer, scaled_rotation_3d
 from omg4.optimize.parameters import overwrite_rows
 from omg4.optimize.step import step_generator
-from omg4.train.densify import DensifyStats
-from omg4.train.strategy import DEFAULTS, ScheduledEvents
+from omg4.settings import knob
+from omg4.train.strategies.base import ScheduledEvents
+from omg4.train.strategies.densification import DensifyStats
 
 LAMBDA_GRAD = 0.5
 LAMBDA_OPACITY = 0.5
@@ -44,8 +45,8 @@ class Relocation(ScheduledEvents):
     Gaussians below ``relocate_opacity``) every ``densify_interval`` steps strictly between ``densify_from`` and
     ``densify_until``; no opacity resets."""
 
-    lambda_reg: float = DEFAULTS.lambda_reg
-    relocate_opacity: float = DEFAULTS.relocate_opacity
+    lambda_reg: float = knob(0.01, "FreeTimeGS 4D regularization weight (FreeTimeGS §3.3)")
+    relocate_opacity: float = knob(0.05, "FreeTimeGS: Gaussians below this opacity are relocated")
 
     def initial_points(self, xyz, rgb, generator):
         if self.max_gaussians > len(xyz):

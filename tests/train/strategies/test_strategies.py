@@ -9,14 +9,15 @@ import pytest
 from omg4.errors import OMG4Error
 from omg4.gaussians.backbone import FREETIMEGS, RT4DGS
 from omg4.train.config import TrainConfig
-from omg4.train.densify import Densification
-from omg4.train.relocate import Relocation
-from omg4.train.strategies import strategy_for
-from omg4.train.strategy import DensityStrategy
+from omg4.train.strategies.densification import Densification
+from omg4.train.strategies.relocation import Relocation
+from omg4.train.strategies import StrategySettings, strategy_for
+from omg4.train.strategies.base import DensityStrategy
 
 
-CFG = TrainConfig(densify_from=123, densify_until=4567, densify_interval=89, max_gaussians=321, seed=7,
-                  lambda_reg=0.25, relocate_opacity=0.004, prune_screen_size=17.0)
+CFG = TrainConfig(seed=7, strategy=StrategySettings(densify_from=123, densify_until=4567, densify_interval=89,
+                                                    max_gaussians=321, lambda_reg=0.25, relocate_opacity=0.004,
+                                                    prune_screen_size=17.0))
 
 
 def test_each_backbone_trains_with_its_named_density_control():
@@ -32,8 +33,9 @@ def test_a_strategy_owns_the_settings_of_the_run_by_their_names():
     assert densify.grows_until() == 4567 and densify.collects_statistics(4566) and not densify.collects_statistics(4567)
     relocation = strategy_for(FREETIMEGS, CFG)
     assert (relocation.lambda_reg, relocation.relocate_opacity, relocation.max_gaussians) == (0.25, 0.004, 321)
-    assert dataclasses.asdict(Densification()) == {f.name: getattr(TrainConfig(), f.name)
-                                                   for f in dataclasses.fields(Densification)}  # defaults: the run's
+    defaults = StrategySettings()  # the config's defaults are the strategies' own; the seed is the run's
+    assert dataclasses.asdict(Densification()) == {f.name: TrainConfig().seed if f.name == "seed" else getattr(defaults, f.name)
+                                                   for f in dataclasses.fields(Densification)}
 
 
 def test_a_class_is_taken_as_it_is_and_none_trains_a_fixed_set():
@@ -52,7 +54,7 @@ def test_hooks_that_still_take_the_config_run_with_a_deprecation_warning():
 
     class Old(DensityStrategy):
         def collects_statistics(self, cfg, step):
-            seen.append((cfg.densify_from, step))
+            seen.append((cfg.densify_from, step))  # the flat name these hooks knew
             return True
 
         def after_step(self, model, optimizer, stats, cfg, step, extent):
