@@ -17,8 +17,7 @@ work — as keyword arguments, in config files, records and ``--set`` — each w
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import ClassVar
 
 import torch
@@ -28,7 +27,6 @@ from omg4.optimize.parameters import LEARNING_RATES as LR
 from omg4.settings import apply_settings, knob, tell_moved
 from omg4.train.strategies import StrategySettings
 from omg4.train.strategies.base import ScheduledEvents
-
 
 STRATEGY_SETTINGS = tuple(f.name for f in fields(StrategySettings))
 """The density controls' settings, nested under ``strategy``; their earlier flat names still work (deprecated)."""
@@ -63,7 +61,7 @@ class TrainConfig:
     duration_lr: float = knob(LR.duration_lr, "FreeTimeGS log-duration learning rate")
     backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
     device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
-    strategy: StrategySettings = dataclasses.field(
+    strategy: StrategySettings = field(
         default_factory=StrategySettings, metadata={"help": "the density control's settings (omg4.train.strategies)"})
 
     MOVED_SETTINGS: ClassVar[dict[str, str]] = {name: f"strategy.{name}" for name in STRATEGY_SETTINGS}
@@ -100,15 +98,14 @@ def deprecated(name: str) -> None:
     tell_moved(name, f"strategy.{name}")
 
 
-def nest_flat_settings(kwargs: dict, strategy=None) -> dict:
-    """``kwargs`` of :class:`TrainConfig` with its earlier flat strategy settings moved into ``strategy`` (one
-    deprecation message per name), starting from ``strategy`` or the given ``kwargs["strategy"]``."""
+def nest_flat_settings(kwargs: dict) -> dict:
+    """``kwargs`` of :class:`TrainConfig` with its earlier flat strategy settings moved into ``kwargs["strategy"]``
+    (the defaults when not given; one deprecation message per name)."""
     flat = {k: kwargs.pop(k) for k in list(kwargs) if k in STRATEGY_SETTINGS}
     if flat:
         for name in flat:
             deprecated(name)
-        base = kwargs.get("strategy") or strategy or StrategySettings()
-        kwargs["strategy"] = replace(base, **flat)
+        kwargs["strategy"] = replace(kwargs.get("strategy") or StrategySettings(), **flat)
     return kwargs
 
 
