@@ -98,6 +98,16 @@ def test_every_import_points_down_its_floors():
     assert {m: c for m, c in found.items() if c} == {}
 
 
+def test_the_density_controls_sit_below_the_training_config_and_trainer():
+    """The strategies own their settings: their package imports nothing else of training (the config is made from
+    them, not they from it)."""
+    found = {m: [name for name in imports(p.read_text()) if _within(name, "train")
+                 and not _within(name, "train.strategies")]
+             for m, p in modules().items() if _within(m, "train.strategies")}
+    assert len(found) == 5 and {m: names for m, names in found.items() if names} == {}
+    assert imports("from omg4.train.config import TrainConfig\n") == ["train.config"]
+
+
 def test_a_climb_is_caught_lazy_or_not():
     lazy = "def f():\n    from omg4.compress.pipeline import CompressConfig\n"
     assert climbs("gaussians.model", lazy) == ["compress.pipeline"]
