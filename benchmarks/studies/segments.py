@@ -29,7 +29,7 @@ compressed with ``--preset`` (default M).
 
     python benchmarks/studies/segments.py prediction --synthetic 240 [--key-intervals 1 4 8] [--whole-clip]
     python benchmarks/studies/segments.py prediction DATA --downscale 2 --segment-frames 24 --overlap 6 --name bb
-        [--preset T] [--carry 0.5]
+        [--preset T] [--carry auto|0.5]
 
 ``--compress-from-video`` compresses segments trained as usual (taught by the segment before) from the video alone.
 ``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
@@ -242,12 +242,14 @@ def seek_to_last(path: Path) -> dict:
             "segments_decoded": len(decoder.index.chain(last))}
 
 
-def carried(path: Path, entry) -> int:
-    """How many Gaussians of the segment before a segment of a sequence file carries."""
+def carried(path: Path, entry) -> tuple[int, dict | None]:
+    """How many Gaussians of the segment before a segment of a sequence file carries, and the compressor's
+    decision (its header meta's ``carry``: setting, tolerance, share matched; None for a key segment)."""
     from omg4.codec.container import read_versioned
     from omg4.codec.sequence import read_segment
 
-    return read_versioned(read_segment(path, entry))[1].get("carried", 0)
+    header = read_versioned(read_segment(path, entry))[1]
+    return header.get("carried", 0), header.get("meta", {}).get("carry")
 
 
 def prediction(args) -> None:
@@ -286,7 +288,8 @@ def prediction(args) -> None:
                "psnr": result["psnr"], "ssim": result["ssim"], "boundary": split["boundary"],
                "interior": split["interior"], "flicker": split["flicker"], "compress_s": compress_s,
                "seek_to_last": seek_to_last(out), "num_gaussians": result["num_gaussians"],
-               "carried_gaussians": [carried(out, e) for e in index.segments]}
+               "carried_gaussians": [carried(out, e)[0] for e in index.segments],
+               "carry_decisions": [carried(out, e)[1] for e in index.segments]}
         record["rows"].append(row)
         print(f"key interval {key_interval}: {row['file_bytes']:,} B ({row['segment_bytes']}), PSNR {row['psnr']:.3f}, "
               f"boundary {split['boundary']['psnr']:.2f} / interior {split['interior']['psnr']:.2f}, seek "
@@ -333,8 +336,9 @@ def main() -> None:
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
-    r.add_argument("--carry", type=float, default=0.0,
-                   help="how close a Gaussian of the segment before must lie to be carried (omg4 compress --carry)")
+    r.add_argument("--carry", default="auto",
+                   help="how close a Gaussian of the segment before must lie to be carried, or auto (omg4 compress "
+                        "--carry; default auto)")
     for p in (q, r):  # a capture cut into segments
         p.add_argument("data", nargs="?")
         p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")

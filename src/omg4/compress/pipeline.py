@@ -28,7 +28,8 @@ from tqdm.auto import tqdm
 from omg4 import distributed
 from omg4.codec.carry import carried_gaussians, reference_count
 from omg4.compress import appearance_stage, merging, modes
-from omg4.compress.carry_stage import carry_matches
+from omg4.compress.carry_stage import (AUTO_MIN_SHARE, AUTO_TOLERANCE, carry_matches, chosen_tolerance,
+                                        valid_setting)
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
@@ -99,12 +100,13 @@ class CompressConfig:
     rate_weight: float = knob(0.0, "β of entropy-constrained codebooks (beyond the paper; 0: its k-means)")
     predicted_mlp: str = knob("tune", "a predicted segment fine-tunes the segment before's appearance MLPs and "
                                       "stores the change (tune) or keeps them as they are (keep)")
-    carry: float = knob(0.0, "a predicted segment takes the segment before's decoded Gaussians in place of its own "
-                             "that lie this close (in units of their size; 0, the default: none) and names them with "
-                             "a bit each; 0.5 pays where the scene stays put between segments")
+    carry: float | str | None = knob(None, "a predicted segment takes the segment before's decoded Gaussians in place "
+                                           "of its own that lie this close (in units of their size; 0: none) and "
+                                           "names them with a bit each; auto: 0.5 where enough of its Gaussians "
+                                           "match, else none; unset: auto, or 0 with paper=true")
 
     def __post_init__(self):
-        for name in ("score_weighting", "time_sampling"):  # the choices whose paper value is not the default
+        for name in ("score_weighting", "time_sampling", "carry"):  # the choices whose paper value is not the default
             if getattr(self, name) is None:
                 setattr(self, name, modes.choice_value(name, self.paper))
 
@@ -174,8 +176,8 @@ class CompressionPipeline:
         if cfg.predicted_mlp not in appearance_stage.PREDICTED_MLPS:
             raise OMG4Error(f"unknown predicted MLP mode '{cfg.predicted_mlp}' (choose from "
                             f"{', '.join(appearance_stage.PREDICTED_MLPS)})")
-        if not (math.isfinite(cfg.carry) and cfg.carry >= 0):
-            raise OMG4Error(f"the carry tolerance must be a finite number >= 0, got {cfg.carry}")
+        if not valid_setting(cfg.carry):
+            raise OMG4Error(f"the carry tolerance must be auto or a finite number >= 0, got {cfg.carry!r}")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
@@ -305,17 +307,28 @@ class CompressionPipeline:
             self.mlp_optimizer, self.mlp_scheduler = appearance_stage.make_mlp_optimizer(
                 self.model.appearance, total_iterations=remaining)
         self._rebuild_main_optimizer()
-        if taken is not None and self.cfg.carry > 0:
+        if taken is not None and self.cfg.carry != 0:
             self._carry()
 
     def _carry(self) -> None:
         """A predicted segment takes the segment before's decoded Gaussians in place of its own where they are within
-        ``cfg.carry`` (:mod:`omg4.compress.carry_stage`); they render from now on, fixed."""
+        the tolerance ``cfg.carry`` names (:mod:`omg4.compress.carry_stage`: ``auto`` decides from the match rate);
+        they render from now on, fixed. The decision is kept on the model for the file's metadata."""
         reference = payload_values(carried_gaussians(self.reference), self.schema)
         if set(reference) != set(self.model.params):
             raise OMG4Error(f"the segment before has the attributes {sorted(reference)}, this one "
                             f"{sorted(self.model.params)}: no Gaussian can be carried")
-        own_rows, ref_rows = carry_matches(self.model.params, reference, self.schema, self.cfg.carry)
+        config = self.model.config
+        tolerance, share = chosen_tolerance(self.model.params, reference, config, self.cfg.carry)
+        self.model.carry_decision = {"setting": self.cfg.carry, "tolerance": tolerance,
+                                     **({"matched_share": round(share, 4)} if share is not None else {})}
+        if share is not None:
+            self.log(f"carry auto: {100 * share:.1f} % of this segment's Gaussians match the segment before's within "
+                     f"{AUTO_TOLERANCE} ({'at least' if tolerance else 'under'} {100 * AUTO_MIN_SHARE:.0f} %): "
+                     + (f"carrying within {tolerance}" if tolerance else "none carried"))
+        if not tolerance:
+            return
+        own_rows, ref_rows = carry_matches(self.model.params, reference, config, tolerance)
         own_rows, ref_rows = own_rows[:self.model.num_gaussians - 1], ref_rows[:self.model.num_gaussians - 1]
         keep = torch.ones(self.model.num_gaussians, dtype=torch.bool)
         keep[torch.from_numpy(own_rows)] = False

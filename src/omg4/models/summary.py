@@ -60,7 +60,9 @@ def describe_sequence(path: str | os.PathLike) -> dict:
     """The index of an ``.omg4`` sequence file and each segment's :func:`describe_file` (each segment decoded as
     the decoder does, a predicted one after its reference), with the file's bitrate over the capture and the
     key interval; each segment's ``reference`` is the segment it is predicted from (None: a key segment) and
-    ``carried`` how many of its Gaussians are that segment's, as they decoded there (docs/file-format.md §8b)."""
+    ``carried`` how many of its Gaussians are that segment's, as they decoded there (docs/file-format.md §8b), and
+    ``carry`` the compressor's decision (the setting, the tolerance it carried with and, for ``auto``, the share of
+    the segment's Gaussians that matched; None where the file does not record one)."""
     decoder = SegmentDecoder(path)
     index = decoder.index
     segments = []
@@ -72,7 +74,7 @@ def describe_sequence(path: str | os.PathLike) -> dict:
             segments.append({"index": entry.index, "frames": list(entry.frames), "time_range": list(entry.time_range),
                              "offset": entry.offset, "reference": entry.reference,
                              **{k: d[k] for k in ("codec", "version", "backbone", "num_gaussians", "total_bytes",
-                                                  "groups", "carried")}})
+                                                  "groups", "carried")}, "carry": d["meta"].get("carry")})
             part.unlink()
     total = index.total_bytes
     return {"layout": "sequence", "path": str(Path(path)), "fps": index.fps, "key_interval": index.key_interval,

@@ -150,9 +150,21 @@ def sequence_summary(path: Path, **_) -> tuple[dict, str]:
     for s in d["segments"]:
         chain = "key" if s["reference"] is None else f"predicted from {s['reference']}"
         chain += f", {s['carried']} of them carried" if s["carried"] else ""
+        chain += _carry_decision(s.get("carry"))
         lines.append(f"  segment {s['index']:>3}: frames {s['frames'][0]}-{s['frames'][1] - 1}, "
                      f"{s['num_gaussians']:>8} Gaussians, {s['total_bytes']:>10} B ({printable(s['codec'])}, {chain})")
     return {"kind": "omg4-sequence", **d, "mode": _mode(d["meta"])}, "\n".join(lines)
+
+
+def _carry_decision(decision) -> str:
+    """How a predicted segment's carry was decided, as ``info`` prints it ("" where the file records none)."""
+    if not isinstance(decision, dict) or "matched_share" not in decision:
+        return ""
+    share, tolerance = decision.get("matched_share"), decision.get("tolerance")
+    if not isinstance(share, (int, float)) or not isinstance(tolerance, (int, float)):
+        return ""
+    return f"; carry auto: {100 * share:.1f} % matched, " + (f"carried within {tolerance:g}" if tolerance else
+                                                               "none carried")
 
 
 def _mode(meta) -> str | None:
