@@ -336,9 +336,9 @@ def main() -> None:
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
-    r.add_argument("--carry", default="auto",
+    r.add_argument("--carry", default="0",
                    help="how close a Gaussian of the segment before must lie to be carried, or auto (omg4 compress "
-                        "--carry; default auto)")
+                        "--carry; default 0: none)")
     for p in (q, r):  # a capture cut into segments
         p.add_argument("data", nargs="?")
         p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")

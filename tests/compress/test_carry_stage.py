@@ -78,8 +78,9 @@ def test_only_auto_or_a_finite_tolerance_is_a_setting():
     assert not any(valid_setting(v) for v in ("often", -0.1, float("nan"), float("inf"), True, None))
 
 
-def test_the_config_resolves_auto_by_default_and_zero_in_the_papers_way():
+def test_the_config_carries_none_unless_told_and_takes_auto_or_a_tolerance():
     from omg4.compress.pipeline import CompressConfig
 
-    assert CompressConfig().carry == "auto" and CompressConfig(paper=True).carry == 0.0
+    assert CompressConfig().carry == 0.0 and CompressConfig(paper=True).carry == 0.0
+    assert CompressConfig(carry="auto").carry == "auto"
     assert dataclasses.replace(CompressConfig(carry=0.25), seed=3).carry == 0.25

@@ -100,11 +100,11 @@ def three_segments(tmp_path_factory):
     return root, trained_segments(root, 14)[1]
 
 
-def _sequence(three_segments, tmp_path, key_interval: int, predicted_mlp: str = "tune"):
+def _sequence(three_segments, tmp_path, key_interval: int, predicted_mlp: str = "tune", carry: float | str = 0.0):
     root, scenes = three_segments
-    out = tmp_path / f"seq{key_interval}{predicted_mlp}.omg4"
+    out = tmp_path / f"seq{key_interval}{predicted_mlp}{carry}.omg4"
     compress_segments(root / "run", scenes, CompressConfig(lengths=LENGTHS, batch_size=1, backend="cpu",
-                                                           predicted_mlp=predicted_mlp), out,
+                                                           predicted_mlp=predicted_mlp, carry=carry), out,
                       progress=False, log=lambda *_: None, key_interval=key_interval)
     return out
 
@@ -238,14 +238,14 @@ def test_a_predicted_segment_carries_the_segment_befores_gaussians_as_they_decod
 
 def test_auto_decides_each_predicted_segments_carry_from_its_match_rate_and_info_shows_it(three_segments, tmp_path,
                                                                                          capsys):
-    """The default ``carry="auto"``: each predicted segment records the share of its Gaussians that matched the
+    """``carry="auto"``: each predicted segment records the share of its Gaussians that matched the
     segment before's and the tolerance that share chose; it carries Gaussians exactly when that tolerance is not 0;
     ``omg4 info`` prints the decision."""
     from omg4.app.cli import main
     from omg4.codec.container import read_versioned
     from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE
 
-    out = _sequence(three_segments, tmp_path, 3)
+    out = _sequence(three_segments, tmp_path, 3, carry="auto")
     index = read_index(out)
     decisions = []
     for k in (1, 2):

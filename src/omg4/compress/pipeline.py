@@ -100,13 +100,12 @@ class CompressConfig:
     rate_weight: float = knob(0.0, "β of entropy-constrained codebooks (beyond the paper; 0: its k-means)")
     predicted_mlp: str = knob("tune", "a predicted segment fine-tunes the segment before's appearance MLPs and "
                                       "stores the change (tune) or keeps them as they are (keep)")
-    carry: float | str | None = knob(None, "a predicted segment takes the segment before's decoded Gaussians in place "
-                                           "of its own that lie this close (in units of their size; 0: none) and "
-                                           "names them with a bit each; auto: 0.5 where enough of its Gaussians "
-                                           "match, else none; unset: auto, or 0 with paper=true")
+    carry: float | str = knob(0.0, "a predicted segment takes the segment before's decoded Gaussians in place of its "
+                                   "own that lie this close (in units of their size; 0, the default: none) and names "
+                                   "them with a bit each; auto: 0.5 where enough of its Gaussians match, else none")
 
     def __post_init__(self):
-        for name in ("score_weighting", "time_sampling", "carry"):  # the choices whose paper value is not the default
+        for name in ("score_weighting", "time_sampling"):  # the choices whose paper value is not the default
             if getattr(self, name) is None:
                 setattr(self, name, modes.choice_value(name, self.paper))
 
