@@ -9,7 +9,7 @@ import dataclasses
 import pytest
 import torch
 
-from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE, carry_matches, chosen_tolerance, valid_setting
+from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE, carry_matches, chosen_carry, valid_setting
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.rotation import build_rotation_4d
 
@@ -62,15 +62,18 @@ def test_auto_carries_where_enough_gaussians_match_and_a_number_is_taken_as_give
     moved = {k: v.clone() for k, v in own.items()}
     few = max(1, int(AUTO_MIN_SHARE * n) - 1)  # just under the share: every other Gaussian far away
     moved["xyz"][few:] += 100.0
-    assert chosen_tolerance(own, own, m.config, "auto") == (AUTO_TOLERANCE, 1.0)
-    tolerance, share = chosen_tolerance(own, moved, m.config, "auto")
-    assert share == pytest.approx(few / n) and share < AUTO_MIN_SHARE and tolerance == 0.0
+    tolerance, share, (rows, _) = chosen_carry(own, own, m.config, "auto")
+    assert (tolerance, share) == (AUTO_TOLERANCE, 1.0) and sorted(rows.tolist()) == list(range(n))
+    tolerance, share, (rows, _) = chosen_carry(own, moved, m.config, "auto")
+    assert share == pytest.approx(few / n) and share < AUTO_MIN_SHARE and tolerance == 0.0 and len(rows) == 0
     enough = {k: v.clone() for k, v in own.items()}
     enough["xyz"][few + 2:] += 100.0
-    tolerance, share = chosen_tolerance(own, enough, m.config, "auto")
-    assert share >= AUTO_MIN_SHARE and tolerance == AUTO_TOLERANCE
-    assert chosen_tolerance(own, moved, m.config, 0.7) == (0.7, None)
-    assert chosen_tolerance(own, moved, m.config, 0) == (0.0, None)
+    tolerance, share, (rows, _) = chosen_carry(own, enough, m.config, "auto")
+    assert share >= AUTO_MIN_SHARE and tolerance == AUTO_TOLERANCE and len(rows) == few + 2
+    tolerance, share, (rows, _) = chosen_carry(own, moved, m.config, 0.7)
+    assert (tolerance, share, len(rows)) == (0.7, None, few)
+    tolerance, share, (rows, _) = chosen_carry(own, own, m.config, 0)
+    assert (tolerance, share, len(rows)) == (0.0, None, 0)
 
 
 def test_only_auto_or_a_finite_tolerance_is_a_setting():

@@ -10,7 +10,7 @@ with about a bit (:mod:`omg4.codec.carry`), and the fine-tuning that follows let
 and MLPs make up the difference.
 
 ``omg4 compress --carry TOLERANCE`` carries within that tolerance; ``--carry auto`` decides per predicted segment
-from its match rate (:func:`chosen_tolerance`). The default 0 carries none: in ``docs/results.md``, "Carried
+from its match rate (:func:`chosen_carry`). The default 0 carries none: in ``docs/results.md``, "Carried
 Gaussians", a tolerance of 0.5 saves about 5 % of a real capture whose background stays put, where 11–12 % of the
 Gaussians match, at −0.14 to +0.08 dB over two trainings, and costs PSNR where the content moves on and few match;
 larger tolerances cost more than they save.
@@ -34,7 +34,7 @@ CANDIDATES = 8
 """Nearest reference centres tried per Gaussian."""
 
 AUTO = "auto"
-"""The ``carry`` setting that decides per predicted segment (:func:`chosen_tolerance`)."""
+"""The ``carry`` setting that decides per predicted segment (:func:`chosen_carry`)."""
 
 AUTO_TOLERANCE = 0.5
 """The tolerance ``auto`` carries with, where it carries."""
@@ -85,15 +85,18 @@ def carry_matches(own: dict[str, torch.Tensor], reference: dict[str, torch.Tenso
     return np.asarray(own_rows, np.int64), np.asarray(ref_rows, np.int64)
 
 
-def chosen_tolerance(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,
-                     setting: float | str) -> tuple[float, float | None]:
-    """The tolerance a predicted segment carries with for the ``carry`` setting, and the share of its Gaussians
-    that match within :data:`AUTO_TOLERANCE` (None where the setting is a number: nothing was measured)."""
+def chosen_carry(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,
+                 setting: float | str) -> tuple[float, float | None, tuple[np.ndarray, np.ndarray]]:
+    """What a predicted segment carries for the ``carry`` setting: the tolerance, the share of its Gaussians that
+    match within :data:`AUTO_TOLERANCE` (None where the setting is a number: nothing was measured), and the pairs
+    (own rows, reference rows) it carries (:func:`carry_matches` at that tolerance; none at 0)."""
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
     if setting != AUTO:
-        return float(setting), None
-    matched, _ = carry_matches(own, reference, config, AUTO_TOLERANCE)
-    share = len(matched) / max(1, len(own["xyz"]))
-    return (AUTO_TOLERANCE if share >= AUTO_MIN_SHARE else 0.0), share
+        tolerance = float(setting)
+        return tolerance, None, carry_matches(own, reference, config, tolerance) if tolerance else none
+    pairs = carry_matches(own, reference, config, AUTO_TOLERANCE)
+    share = len(pairs[0]) / max(1, len(own["xyz"]))
+    return (AUTO_TOLERANCE, share, pairs) if share >= AUTO_MIN_SHARE else (0.0, share, none)
 
 
 def valid_setting(setting) -> bool:
@@ -104,5 +107,5 @@ def valid_setting(setting) -> bool:
         and setting >= 0
 
 
-__all__ = ["AUTO", "AUTO_MIN_SHARE", "AUTO_TOLERANCE", "CANDIDATES", "carry_matches", "chosen_tolerance",
+__all__ = ["AUTO", "AUTO_MIN_SHARE", "AUTO_TOLERANCE", "CANDIDATES", "carry_matches", "chosen_carry",
            "valid_setting"]

@@ -28,8 +28,7 @@ from tqdm.auto import tqdm
 from omg4 import distributed
 from omg4.codec.carry import carried_gaussians, reference_count
 from omg4.compress import appearance_stage, merging, modes
-from omg4.compress.carry_stage import (AUTO_MIN_SHARE, AUTO_TOLERANCE, carry_matches, chosen_tolerance,
-                                        valid_setting)
+from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE, chosen_carry, valid_setting
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
@@ -317,8 +316,8 @@ class CompressionPipeline:
         if set(reference) != set(self.model.params):
             raise OMG4Error(f"the segment before has the attributes {sorted(reference)}, this one "
                             f"{sorted(self.model.params)}: no Gaussian can be carried")
-        config = self.model.config
-        tolerance, share = chosen_tolerance(self.model.params, reference, config, self.cfg.carry)
+        tolerance, share, (own_rows, ref_rows) = chosen_carry(self.model.params, reference, self.model.config,
+                                                              self.cfg.carry)
         self.model.carry_decision = {"setting": self.cfg.carry, "tolerance": tolerance,
                                      **({"matched_share": round(share, 4)} if share is not None else {})}
         if share is not None:
@@ -327,7 +326,6 @@ class CompressionPipeline:
                      + (f"carrying within {tolerance}" if tolerance else "none carried"))
         if not tolerance:
             return
-        own_rows, ref_rows = carry_matches(self.model.params, reference, config, tolerance)
         own_rows, ref_rows = own_rows[:self.model.num_gaussians - 1], ref_rows[:self.model.num_gaussians - 1]
         keep = torch.ones(self.model.num_gaussians, dtype=torch.bool)
         keep[torch.from_numpy(own_rows)] = False
