@@ -244,7 +244,7 @@ def seek_to_last(path: Path) -> dict:
 
 def carried(path: Path, entry) -> tuple[int, dict | None]:
     """How many Gaussians of the segment before a segment of a sequence file carries, and the compressor's
-    decision (its header meta's ``carry``: setting, tolerance, share matched; None for a key segment)."""
+    decision (its header meta's ``carry``, docs/file-format.md §8b; None for a key segment)."""
     from omg4.codec.container import read_versioned
     from omg4.codec.sequence import read_segment
 
@@ -336,9 +336,9 @@ def main() -> None:
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
-    r.add_argument("--carry", default="0",
-                   help="how close a Gaussian of the segment before must lie to be carried, or auto (omg4 compress "
-                        "--carry; default 0: none)")
+    r.add_argument("--carry", default="auto",
+                   help="what a predicted segment carries of the segment before's Gaussians: auto, lasting, a "
+                        "tolerance or 0 (omg4 compress --carry; default auto)")
     for p in (q, r):  # a capture cut into segments
         p.add_argument("data", nargs="?")
         p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")

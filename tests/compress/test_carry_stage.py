@@ -1,6 +1,6 @@
 """Which Gaussians a predicted segment carries: the time distance in the backbone's own terms (√Σtt of the 4D
-covariance, checked against the covariance built here from its rotation and scales), and ``auto``'s decision from
-the share that matches."""
+covariance, checked against the covariance built here from its rotation and scales), which Gaussians last through a
+segment, the base layer of lasting ones and what it covers, and ``auto``'s decision from the share it covers."""
 
 from __future__ import annotations
 
@@ -9,7 +9,10 @@ import dataclasses
 import pytest
 import torch
 
-from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE, carry_matches, chosen_carry, valid_setting
+import numpy as np
+
+from omg4.compress.carry_stage import (AUTO_MIN_COVERED, COVER, LASTING_MARGINAL, base_layer, carry_matches,
+                                     chosen_carry, lasting, valid_setting)
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.rotation import build_rotation_4d
 
@@ -54,36 +57,90 @@ def test_the_time_distance_is_in_units_of_the_4d_covariances_time_deviation():
     assert len(matched) == 0
 
 
-@pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])
-def test_auto_carries_where_enough_gaussians_match_and_a_number_is_taken_as_given(backbone):
-    m = model(backbone)
+def lasting_row(m: Gaussians4D) -> dict[str, torch.Tensor]:
+    """``m``'s values made Gaussians that last through its whole time range, in a row 10 of their largest scale
+    (1) apart."""
     own = values_of(m)
+    for name in ("scaling_t", "duration"):
+        if name in own:
+            own[name][:] = 4.0
+    own["t"][:] = 1.0
+    own["xyz"] = torch.zeros(len(own["t"]), 3)
+    own["xyz"][:, 0] = 10.0 * torch.arange(len(own["t"])) * COVER
+    own["scaling"][:] = torch.tensor([-1.0, 0.0, -2.0])
+    return own
+
+
+def test_a_gaussian_lasts_through_a_segment_where_its_marginal_holds_at_both_ends():
+    m = model("rt4dgs")
+    own = values_of(m)
+    std = sigma_tt(own, m.config.rotation_convention).sqrt()
+    a, b = 0.5, 1.5
+    mu = own["t"].double().reshape(-1)
+    expected = torch.minimum(torch.exp(-0.5 * ((mu - a) / std) ** 2), torch.exp(-0.5 * ((mu - b) / std) ** 2))
+    assert np.array_equal(lasting(own, m.config, (a, b)), (expected >= LASTING_MARGINAL).numpy())
+    long = {k: v.clone() for k, v in own.items()}
+    long["t"][:] = 1.0
+    long["scaling_t"][:] = 3.0  # e³ ≈ 20 s of deviation: every one lasts, whatever the rotation
+    assert lasting(long, m.config, (a, b)).all()
+    long["scaling_t"][:] = -6.0
+    long["scaling"][:] = -6.0  # a few ms at most: none lasts half a second
+    assert not lasting(long, m.config, (a, b)).any()
+
+
+@pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])
+def test_the_base_layer_carries_every_lasting_gaussian_and_covers_the_own_ones_near_them(backbone):
+    m = model(backbone)
+    own = lasting_row(m)
+    time_range = m.config.time_range
     n = len(own["xyz"])
+    reference = {k: v.clone() for k, v in own.items()}
+    reference["xyz"][n // 2:, 1] += 100.0  # the second half of the reference lies far from every own Gaussian
+    reference["xyz"][0, 0] += 1.5 * COVER  # the first own one is half its size beyond cover
+    reference["xyz"][1, 0] += 0.9 * COVER  # the second one just within
+    covered, carried = base_layer(own, reference, m.config, time_range)
+    assert carried.tolist() == list(range(n))  # the far ones last too: carried, for segments that show them
+    assert covered.tolist() == list(range(1, n // 2))
+    brief = {k: v.clone() for k, v in reference.items()}
+    brief["t"][: n // 4] = -1e4  # a quarter of the reference ended long before: not carried
+    assert base_layer(own, brief, m.config, time_range)[1].tolist() == list(range(n // 4, n))
+
+
+@pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])
+def test_auto_carries_the_base_layer_where_it_covers_enough_and_a_number_is_taken_as_given(backbone):
+    m = model(backbone)
+    own = lasting_row(m)
+    n = len(own["xyz"])
+    time_range = m.config.time_range
+    decision = chosen_carry(own, own, m.config, "auto", time_range)
+    assert (decision.kind, decision.covered, decision.ref_rows.size, decision.own_rows.size) == ("lasting", 1.0, n, n)
+    assert decision.meta() == {"setting": "auto", "carried": "lasting", "gaussians": n, "covered_share": 1.0}
+    few = max(1, int(AUTO_MIN_COVERED * n) - 1)  # just under the share: every other Gaussian far away
     moved = {k: v.clone() for k, v in own.items()}
-    few = max(1, int(AUTO_MIN_SHARE * n) - 1)  # just under the share: every other Gaussian far away
     moved["xyz"][few:] += 100.0
-    tolerance, share, (rows, _) = chosen_carry(own, own, m.config, "auto")
-    assert (tolerance, share) == (AUTO_TOLERANCE, 1.0) and sorted(rows.tolist()) == list(range(n))
-    tolerance, share, (rows, _) = chosen_carry(own, moved, m.config, "auto")
-    assert share == pytest.approx(few / n) and share < AUTO_MIN_SHARE and tolerance == 0.0 and len(rows) == 0
+    decision = chosen_carry(own, moved, m.config, "auto", time_range)
+    assert decision.covered == pytest.approx(few / n) and decision.kind == "none" and decision.ref_rows.size == 0
+    assert chosen_carry(own, moved, m.config, "lasting", time_range).kind == "lasting"  # told: carried anyway
     enough = {k: v.clone() for k, v in own.items()}
     enough["xyz"][few + 2:] += 100.0
-    tolerance, share, (rows, _) = chosen_carry(own, enough, m.config, "auto")
-    assert share >= AUTO_MIN_SHARE and tolerance == AUTO_TOLERANCE and len(rows) == few + 2
-    tolerance, share, (rows, _) = chosen_carry(own, moved, m.config, 0.7)
-    assert (tolerance, share, len(rows)) == (0.7, None, few)
-    tolerance, share, (rows, _) = chosen_carry(own, own, m.config, 0)
-    assert (tolerance, share, len(rows)) == (0.0, None, 0)
+    decision = chosen_carry(own, enough, m.config, "auto", time_range)
+    assert decision.covered >= AUTO_MIN_COVERED and decision.kind == "lasting" and decision.own_rows.size == few + 2
+    decision = chosen_carry(own, moved, m.config, 0.7, time_range)
+    assert (decision.kind, decision.tolerance, decision.covered, decision.own_rows.size) == ("matched", 0.7, None, few)
+    assert decision.meta() == {"setting": 0.7, "carried": "matched", "gaussians": few, "tolerance": 0.7}
+    decision = chosen_carry(own, own, m.config, 0, time_range)
+    assert (decision.kind, decision.own_rows.size, decision.ref_rows.size) == ("none", 0, 0)
 
 
 def test_only_auto_or_a_finite_tolerance_is_a_setting():
-    assert valid_setting("auto") and valid_setting(0) and valid_setting(0.5)
+    assert valid_setting("auto") and valid_setting("lasting") and valid_setting(0) and valid_setting(0.5)
     assert not any(valid_setting(v) for v in ("often", -0.1, float("nan"), float("inf"), True, None))
 
 
-def test_the_config_carries_none_unless_told_and_takes_auto_or_a_tolerance():
+def test_the_config_carries_by_default_but_not_the_papers_way_and_takes_any_setting():
     from omg4.compress.pipeline import CompressConfig
 
-    assert CompressConfig().carry == 0.0 and CompressConfig(paper=True).carry == 0.0
+    assert CompressConfig().carry == "auto" and CompressConfig(paper=True).carry == 0.0
+    assert CompressConfig(carry="lasting").carry == "lasting"
     assert CompressConfig(carry="auto").carry == "auto"
     assert dataclasses.replace(CompressConfig(carry=0.25), seed=3).carry == 0.25

@@ -236,14 +236,14 @@ def test_a_predicted_segment_carries_the_segment_befores_gaussians_as_they_decod
         assert decoded["xyz"].shape[0] == carried + model.num_gaussians
 
 
-def test_auto_decides_each_predicted_segments_carry_from_its_match_rate_and_info_shows_it(three_segments, tmp_path,
-                                                                                         capsys):
-    """``carry="auto"``: each predicted segment records the share of its Gaussians that matched the
-    segment before's and the tolerance that share chose; it carries Gaussians exactly when that tolerance is not 0;
-    ``omg4 info`` prints the decision."""
+def test_auto_decides_each_predicted_segments_carry_from_what_it_covers_and_info_shows_it(three_segments, tmp_path,
+                                                                                          capsys):
+    """``carry="auto"``: each predicted segment records the share of its Gaussians the segment before's lasting ones
+    cover and whether it carried them; it carries them exactly where that share is at least the threshold, and then
+    as many as it records; ``omg4 info`` prints the decision."""
     from omg4.app.cli import main
     from omg4.codec.container import read_versioned
-    from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE
+    from omg4.compress.carry_stage import AUTO_MIN_COVERED
 
     out = _sequence(three_segments, tmp_path, 3, carry="auto")
     index = read_index(out)
@@ -251,16 +251,16 @@ def test_auto_decides_each_predicted_segments_carry_from_its_match_rate_and_info
     for k in (1, 2):
         _, header, _ = read_versioned(read_segment(out, index.segments[k]))
         decision = header["meta"]["carry"]
-        share, tolerance = decision["matched_share"], decision["tolerance"]
+        share = decision["covered_share"]
         assert decision["setting"] == "auto" and 0 <= share <= 1
-        assert tolerance == (AUTO_TOLERANCE if share >= AUTO_MIN_SHARE else 0.0)
-        assert (header.get("carried", 0) > 0) == (tolerance > 0)
-        decisions.append((share, tolerance))
+        assert decision["carried"] == ("lasting" if share >= AUTO_MIN_COVERED else "none")
+        assert header.get("carried", 0) == (decision["gaussians"] if decision["carried"] == "lasting" else 0)
+        decisions.append((share, decision["carried"]))
     _, key_header, _ = read_versioned(read_segment(out, index.segments[0]))
     assert "carry" not in key_header["meta"]  # a key segment decides nothing
     capsys.readouterr()
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
-    for share, tolerance in decisions:
-        assert f"carry auto: {100 * share:.1f} % matched, " + (
-            f"carried within {tolerance:g}" if tolerance else "none carried") in text
+    for share, kind in decisions:
+        assert f"carry auto: {100 * share:.1f} % covered by lasting Gaussians, " + (
+            "the lasting ones carried" if kind == "lasting" else "none carried") in text

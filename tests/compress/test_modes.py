@@ -81,7 +81,7 @@ def test_the_switch_sets_every_choice_of_the_config_and_explicit_values_win():
     assert cfg.mode("paper") == "paper" and CompressConfig().mode("compact") == "omg4"
     mixed = CompressConfig(paper=True, time_sampling="deficit")
     assert mixed.time_sampling == "deficit" and mixed.score_weighting == "paper"
-    assert mixed.mode("paper") == "mixed (codec=paper, score_weighting=paper)"
+    assert mixed.mode("paper") == "mixed (codec=paper, score_weighting=paper, carry=0.0)"
     # a copy keeps what it holds
     assert dataclasses.replace(cfg, seed=1).time_sampling == "uniform"
 

@@ -1,28 +1,30 @@
 """Which Gaussians of the segment before a predicted segment takes in place of its own (beyond the paper;
 docs/file-format.md §8b).
 
-A segment trained on from the one before still holds most of that segment's content — the static set, whatever
-moves slowly — but training lets all of it drift a little, so none of it is the same value for value and every
-Gaussian would be coded again. At the appearance stage (paper §4.4), when a predicted segment switches to the
-segment before's MLPs, each of its Gaussians that lies close to one of the segment before's decoded Gaussians
-is replaced by that one, as it decoded (a snap to the reference): from then on it is fixed, so the file names it
-with about a bit (:mod:`omg4.codec.carry`), and the fine-tuning that follows lets the segment's own Gaussians
-and MLPs make up the difference.
+A long capture's lasting content — the static set, the slow background — is in every segment, and every segment
+learns it again, each a little differently, so coded segment by segment it is paid for in each. At the appearance
+stage (paper §4.4), when a predicted segment switches to the segment before's MLPs, it takes instead the segment
+before's decoded Gaussians that last through its own time range — temporal marginal at least
+:data:`LASTING_MARGINAL` at both ends, the time scale in the backbone's own terms (√Σtt of Real-Time4DGS's 4D
+covariance, rt4dgs §1.4; FreeTimeGS's duration) — as a **base layer**, fixed and exactly as they decoded there, so
+the file names each with about a bit (:mod:`omg4.codec.carry`); and it drops its own lasting Gaussians that the base
+layer covers (a carried centre within :data:`COVER` of their largest scale). What remains of its own is what it
+adds — new and changed content — so its Gaussian budget follows that (:func:`base_layer`); the fine-tuning that
+follows fits its own Gaussians and MLPs around the base layer. Carried Gaussians are part of the segment's decoded
+model, so the next predicted segment carries them on while they last: lasting content is coded once per key
+interval.
 
-``omg4 compress --carry TOLERANCE`` carries within that tolerance; ``--carry auto`` decides per predicted segment
-from its match rate (:func:`chosen_carry`). The default 0 carries none: in ``docs/results.md``, "Carried
-Gaussians", a tolerance of 0.5 saves about 5 % of a real capture whose background stays put, where 11–12 % of the
-Gaussians match, at −0.14 to +0.08 dB over two trainings, and costs PSNR where the content moves on and few match;
-larger tolerances cost more than they save.
-Close means within ``tolerance`` on each of: the distance of the centres in units of the Gaussian's largest
-scale, of the time centres in units of its temporal standard deviation in the backbone's own terms (√Σtt of
-Real-Time4DGS's 4D covariance, rt4dgs §1.4; FreeTimeGS's duration), the largest difference of their sorted
-log-scales, and the largest difference of their static appearance features (an SH base colour at this point).
-One-to-one: the closest pairs first.
+``omg4 compress --carry auto`` (the default) carries the base layer where it covers at least
+:data:`AUTO_MIN_COVERED` of the segment's own Gaussians (:func:`chosen_carry`), ``lasting`` always, 0 never
+(the paper's way: every segment coded whole). A number T > 0 carries one to one instead: each own Gaussian within T
+of one of the segment before's — centres in units of its largest scale, time centres in units of its temporal
+standard deviation, the largest difference of sorted log-scales and of static appearance features — is replaced by
+it, closest pairs first (:func:`carry_matches`; docs/results.md, "Carried Gaussians", measures both).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -36,13 +38,43 @@ CANDIDATES = 8
 AUTO = "auto"
 """The ``carry`` setting that decides per predicted segment (:func:`chosen_carry`)."""
 
-AUTO_TOLERANCE = 0.5
-"""The tolerance ``auto`` carries with, where it carries."""
+LASTING = "lasting"
+"""The ``carry`` setting that carries the segment before's lasting Gaussians as a base layer (:func:`base_layer`)."""
 
-AUTO_MIN_SHARE = 0.08
-"""``auto`` carries where at least this share of a segment's Gaussians match one of the segment before's within
-:data:`AUTO_TOLERANCE`: on basketball 11–12 % matched and carrying saved 5 % of the bytes, on the synthetic capture
-2–5 % matched and carrying cost 0.13 dB for 1 % (``docs/results.md``, "Carried Gaussians")."""
+LASTING_MARGINAL = 0.5
+"""A Gaussian lasts through a segment when its temporal marginal is at least this at both ends of the segment's time
+range (so everywhere between: the marginal is unimodal)."""
+
+COVER = 1.0
+"""An own lasting Gaussian is covered by the base layer when a carried centre lies within this many of its largest
+scale."""
+
+AUTO_MIN_COVERED = 0.1
+"""``auto`` carries the base layer where at least this share of a segment's Gaussians are covered by it."""
+
+def lasting(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
+    """[N] bool: which Gaussians last through ``time_range`` (:data:`LASTING_MARGINAL` at both its ends; the temporal
+    variance in the backbone's own terms, rt4dgs §1.4)."""
+    var_t = config.schema.motion({k: v.detach().cpu() for k, v in values.items()}, config)[2]
+    var_t = var_t.detach().double().reshape(-1).clamp_min(1e-12)
+    mu = values["t"].detach().cpu().double().reshape(-1)
+    ends = [torch.exp(-0.5 * (mu - end) ** 2 / var_t) for end in time_range]
+    return (torch.minimum(*ends) >= LASTING_MARGINAL).numpy()
+
+
+def base_layer(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,
+               time_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """The base layer a predicted segment carries: (own rows it covers, reference rows it carries) — every reference
+    Gaussian that lasts through ``time_range`` (:func:`lasting`), and every own lasting Gaussian with one of their
+    centres within :data:`COVER` of its largest scale."""
+    ref_rows = np.flatnonzero(lasting(reference, config, time_range))
+    own_lasting = np.flatnonzero(lasting(own, config, time_range))
+    if not ref_rows.size or not own_lasting.size:
+        return np.zeros(0, np.int64), ref_rows.astype(np.int64)
+    xyz = own["xyz"].detach().cpu().double().numpy()[own_lasting]
+    size = np.exp(own["scaling"].detach().cpu().double().numpy()[own_lasting].max(axis=1))
+    distance, _ = cKDTree(reference["xyz"].detach().cpu().double().numpy()[ref_rows]).query(xyz, k=1)
+    return own_lasting[distance <= COVER * size].astype(np.int64), ref_rows.astype(np.int64)
 
 
 def carry_matches(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,
@@ -85,27 +117,56 @@ def carry_matches(own: dict[str, torch.Tensor], reference: dict[str, torch.Tenso
     return np.asarray(own_rows, np.int64), np.asarray(ref_rows, np.int64)
 
 
-def chosen_carry(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,
-                 setting: float | str) -> tuple[float, float | None, tuple[np.ndarray, np.ndarray]]:
-    """What a predicted segment carries for the ``carry`` setting: the tolerance, the share of its Gaussians that
-    match within :data:`AUTO_TOLERANCE` (None where the setting is a number: nothing was measured), and the pairs
-    (own rows, reference rows) it carries (:func:`carry_matches` at that tolerance; none at 0)."""
-    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
-    if setting != AUTO:
+@dataclasses.dataclass(frozen=True)
+class CarryDecision:
+    """What a predicted segment carries: ``kind`` ``"lasting"`` (the base layer, :func:`base_layer`), ``"matched"``
+    (one-to-one within ``tolerance``, :func:`carry_matches`) or ``"none"``; its own rows that give way
+    (``own_rows``) and the reference rows it carries (``ref_rows``); ``covered``: the share of its Gaussians the base
+    layer covers, where the setting is ``auto`` or ``lasting`` (None otherwise: nothing was measured)."""
+
+    setting: float | str
+    kind: str
+    own_rows: np.ndarray
+    ref_rows: np.ndarray
+    tolerance: float = 0.0
+    covered: float | None = None
+
+    def meta(self) -> dict:
+        """The decision as a segment's header records it (docs/file-format.md §8b)."""
+        out = {"setting": self.setting, "carried": self.kind, "gaussians": int(self.ref_rows.size)}
+        if self.kind == "matched":
+            out["tolerance"] = self.tolerance
+        if self.covered is not None:
+            out["covered_share"] = round(self.covered, 4)
+        return out
+
+
+def chosen_carry(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config, setting: float | str,
+                 time_range: tuple[float, float]) -> CarryDecision:
+    """What a predicted segment of ``time_range`` carries for the ``carry`` setting: a tolerance (0: none), the base
+    layer (:data:`LASTING`), or :data:`AUTO`: the base layer where it covers at least :data:`AUTO_MIN_COVERED` of the
+    segment's Gaussians, else none."""
+    none = np.zeros(0, np.int64)
+    if setting not in (AUTO, LASTING):
         tolerance = float(setting)
-        return tolerance, None, carry_matches(own, reference, config, tolerance) if tolerance else none
-    pairs = carry_matches(own, reference, config, AUTO_TOLERANCE)
-    share = len(pairs[0]) / max(1, len(own["xyz"]))
-    return (AUTO_TOLERANCE, share, pairs) if share >= AUTO_MIN_SHARE else (0.0, share, none)
+        if not tolerance:
+            return CarryDecision(setting, "none", none, none)
+        own_rows, ref_rows = carry_matches(own, reference, config, tolerance)
+        return CarryDecision(setting, "matched", own_rows, ref_rows, tolerance)
+    own_rows, ref_rows = base_layer(own, reference, config, time_range)
+    covered = own_rows.size / max(1, len(own["xyz"]))
+    if not ref_rows.size or (setting == AUTO and covered < AUTO_MIN_COVERED):
+        return CarryDecision(setting, "none", none, none, covered=covered)
+    return CarryDecision(setting, "lasting", own_rows, ref_rows, covered=covered)
 
 
 def valid_setting(setting) -> bool:
-    """Whether ``setting`` is a carry setting: :data:`AUTO` or a finite tolerance ≥ 0."""
-    if setting == AUTO:
+    """Whether ``setting`` is a carry setting: :data:`AUTO`, :data:`LASTING` or a finite tolerance ≥ 0."""
+    if setting in (AUTO, LASTING):
         return True
     return isinstance(setting, (int, float)) and not isinstance(setting, bool) and math.isfinite(setting) \
         and setting >= 0
 
 
-__all__ = ["AUTO", "AUTO_MIN_SHARE", "AUTO_TOLERANCE", "CANDIDATES", "carry_matches", "chosen_carry",
-           "valid_setting"]
+__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "LASTING_MARGINAL", "CarryDecision",
+           "base_layer", "carry_matches", "chosen_carry", "lasting", "valid_setting"]

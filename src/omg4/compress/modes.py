@@ -36,10 +36,9 @@ CHOICES: tuple[Choice, ...] = (
     Choice("score_weighting", "paper", "lifetime", "sampling and pruning"),
     Choice("time_sampling", "uniform", "deficit", "fine-tuning views"),
     Choice("key_interval", 1, DEFAULT_KEY_INTERVAL, "segments of a long capture"),
-    Choice("carry", 0.0, 0.0, "segments of a long capture"),
+    Choice("carry", 0.0, "auto", "segments of a long capture"),
 )
-"""Every choice with a paper's value; the codebooks' rate weight and the carry already default to it (the paper's
-k-means; no carried Gaussians). The dynamic SD score is the paper's Σ_j ∂L_j/∂t in both modes (the official code's
+"""Every choice with a paper's value; the codebooks' rate weight already defaults to it (the paper's k-means). The dynamic SD score is the paper's Σ_j ∂L_j/∂t in both modes (the official code's
 running sum, ``official_score_quirk``, is a bug kept only as a parity flag)."""
 
 BY_SETTING: dict[str, Choice] = {c.setting: c for c in CHOICES}

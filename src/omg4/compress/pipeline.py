@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 from omg4 import distributed
 from omg4.codec.carry import carried_gaussians, reference_count
 from omg4.compress import appearance_stage, merging, modes
-from omg4.compress.carry_stage import AUTO_MIN_SHARE, AUTO_TOLERANCE, chosen_carry, valid_setting
+from omg4.compress.carry_stage import AUTO_MIN_COVERED, chosen_carry, valid_setting
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import pruning_mask
@@ -99,12 +99,13 @@ class CompressConfig:
     rate_weight: float = knob(0.0, "β of entropy-constrained codebooks (beyond the paper; 0: its k-means)")
     predicted_mlp: str = knob("tune", "a predicted segment fine-tunes the segment before's appearance MLPs and "
                                       "stores the change (tune) or keeps them as they are (keep)")
-    carry: float | str = knob(0.0, "a predicted segment takes the segment before's decoded Gaussians in place of its "
-                                   "own that lie this close (in units of their size; 0, the default: none) and names "
-                                   "them with a bit each; auto: 0.5 where enough of its Gaussians match, else none")
+    carry: float | str | None = knob(None, "what a predicted segment takes of the segment before's decoded Gaussians "
+                                           "in place of its own, a bit each: auto (the lasting ones where they cover "
+                                           "enough of its own), lasting (always), a tolerance (those within it, in "
+                                           "units of their size) or 0 (none); unset: auto, or 0 with paper=true")
 
     def __post_init__(self):
-        for name in ("score_weighting", "time_sampling"):  # the choices whose paper value is not the default
+        for name in ("score_weighting", "time_sampling", "carry"):  # the choices whose paper value is not the default
             if getattr(self, name) is None:
                 setattr(self, name, modes.choice_value(name, self.paper))
 
@@ -309,32 +310,31 @@ class CompressionPipeline:
             self._carry()
 
     def _carry(self) -> None:
-        """A predicted segment takes the segment before's decoded Gaussians in place of its own where they are within
-        the tolerance ``cfg.carry`` names (:mod:`omg4.compress.carry_stage`: ``auto`` decides from the match rate);
+        """A predicted segment takes the segment before's decoded Gaussians in place of its own as ``cfg.carry`` says
+        (:mod:`omg4.compress.carry_stage`: the lasting base layer, ``auto`` where it covers enough, or a tolerance);
         they render from now on, fixed. The decision is kept on the model for the file's metadata."""
         reference = payload_values(carried_gaussians(self.reference), self.schema)
         if set(reference) != set(self.model.params):
             raise OMG4Error(f"the segment before has the attributes {sorted(reference)}, this one "
                             f"{sorted(self.model.params)}: no Gaussian can be carried")
-        tolerance, share, (own_rows, ref_rows) = chosen_carry(self.model.params, reference, self.model.config,
-                                                              self.cfg.carry)
-        self.model.carry_decision = {"setting": self.cfg.carry, "tolerance": tolerance,
-                                     **({"matched_share": round(share, 4)} if share is not None else {})}
-        if share is not None:
-            self.log(f"carry auto: {100 * share:.1f} % of this segment's Gaussians match the segment before's within "
-                     f"{AUTO_TOLERANCE} ({'at least' if tolerance else 'under'} {100 * AUTO_MIN_SHARE:.0f} %): "
-                     + (f"carrying within {tolerance}" if tolerance else "none carried"))
-        if not tolerance:
+        decision = chosen_carry(self.model.params, reference, self.model.config, self.cfg.carry,
+                                tuple(self.scene.time_range))
+        self.model.carry_decision = decision.meta()
+        if decision.covered is not None:
+            self.log(f"carry {self.cfg.carry}: the segment before's lasting Gaussians cover "
+                     f"{100 * decision.covered:.1f} % of this segment's"
+                     + ("" if decision.kind == "lasting" else
+                        f" (under {100 * AUTO_MIN_COVERED:.0f} %): none carried"))
+        if decision.kind == "none":
             return
-        own_rows, ref_rows = own_rows[:self.model.num_gaussians - 1], ref_rows[:self.model.num_gaussians - 1]
         keep = torch.ones(self.model.num_gaussians, dtype=torch.bool)
-        keep[torch.from_numpy(own_rows)] = False
+        keep[torch.from_numpy(decision.own_rows[:self.model.num_gaussians - 1])] = False
         self._remove(keep)
-        order = np.sort(ref_rows)
+        order = np.sort(decision.ref_rows)
         self.model.carried_rows = order
         self.model.carried = {k: v[torch.from_numpy(order)].to(self.device) for k, v in reference.items()}
-        self.log(f"carry: {order.size:,} of the segment before's {reference_count(self.reference):,} Gaussians replace "
-                 f"as many of this segment's")
+        self.log(f"carry: {order.size:,} of the segment before's {reference_count(self.reference):,} Gaussians, in "
+                 f"place of {int((~keep).sum()):,} of this segment's")
 
     def _remaining_after(self, name: str) -> int:
         """Fine-tuning iterations from the event ``name`` to the end of the pipeline."""

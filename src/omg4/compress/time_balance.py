@@ -88,9 +88,10 @@ class DeficitSampler:
 
     def update(self) -> np.ndarray:
         """Re-weight the buckets from the current model's fall below the reference; returns the falls (dB)."""
-        deficit = self.reference - self.measure()
+        with np.errstate(invalid="ignore"):  # a model that renders its views exactly: inf - inf, no fall to weigh
+            deficit = self.reference - self.measure()
         valid = np.isfinite(deficit)
-        excess = np.where(valid, deficit - deficit[valid].mean(), 0.0)
+        excess = np.where(valid, deficit - deficit[valid].mean(), 0.0) if valid.any() else np.zeros_like(deficit)
         self.weights = np.clip(np.exp2(excess / TEMPERATURE_DB), 1 / MAX_RATIO, MAX_RATIO)
         self.view_weights = torch.from_numpy(self.weights).index_select(0, self.bucket_of_view)
         return deficit

@@ -157,14 +157,22 @@ def sequence_summary(path: Path, **_) -> tuple[dict, str]:
 
 
 def _carry_decision(decision) -> str:
-    """How a predicted segment's carry was decided, as ``info`` prints it ("" where the file records none)."""
-    if not isinstance(decision, dict) or "matched_share" not in decision:
+    """How a predicted segment's carry was decided, as ``info`` prints it (docs/file-format.md §8b; "" where the file
+    records none): the share of its Gaussians the segment before's lasting ones cover and what it carried, or, in a
+    file of an earlier build, the share that matched and the tolerance."""
+    if not isinstance(decision, dict):
         return ""
-    share, tolerance = decision.get("matched_share"), decision.get("tolerance")
-    if not isinstance(share, (int, float)) or not isinstance(tolerance, (int, float)):
-        return ""
-    return f"; carry auto: {100 * share:.1f} % matched, " + (f"carried within {tolerance:g}" if tolerance else
-                                                               "none carried")
+    number = lambda key: isinstance(decision.get(key), (int, float)) and not isinstance(decision.get(key), bool)
+    setting = printable(decision.get("setting"))
+    if number("covered_share"):
+        carried = {"lasting": "the lasting ones carried", "none": "none carried"}.get(decision.get("carried"), "")
+        return f"; carry {setting}: {100 * decision['covered_share']:.1f} % covered by lasting Gaussians" + (
+            f", {carried}" if carried else "")
+    if number("matched_share") and number("tolerance"):
+        tolerance = decision["tolerance"]
+        return f"; carry {setting}: {100 * decision['matched_share']:.1f} % matched, " + (
+            f"carried within {tolerance:g}" if tolerance else "none carried")
+    return ""
 
 
 def _mode(meta) -> str | None:
