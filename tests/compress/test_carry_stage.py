@@ -11,7 +11,7 @@ import torch
 
 import numpy as np
 
-from omg4.compress.carry_stage import (AUTO_MIN_COVERED, COVER, LASTING_MARGINAL, base_layer, carry_matches,
+from omg4.compress.carry_stage import (AUTO_MIN_COVERED, COVER, LASTING_MARGINAL, STILL, base_layer, carry_matches,
                                      chosen_carry, lasting, valid_setting)
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.rotation import build_rotation_4d
@@ -36,12 +36,17 @@ def values_of(m: Gaussians4D) -> dict[str, torch.Tensor]:
     return values
 
 
-def sigma_tt(values: dict, convention: str) -> torch.Tensor:
-    """Σtt of rt4dgs's 4D covariance R diag(s²) Rᵀ, from the rotation and the log scales (spatial, then time)."""
+def covariance_4d(values: dict, convention: str) -> torch.Tensor:
+    """rt4dgs's 4D covariance R diag(s²) Rᵀ [N, 4, 4], from the rotation and the log scales (spatial, then time)."""
     rotation = build_rotation_4d(torch.nn.functional.normalize(values["rotation"], dim=-1),
                                  torch.nn.functional.normalize(values["rotation_r"], dim=-1), convention).double()
     scales = torch.cat([values["scaling"], values["scaling_t"]], dim=1).double().exp()
-    return (rotation[:, 3, :] ** 2 * scales ** 2).sum(dim=1)
+    return rotation @ torch.diag_embed(scales ** 2) @ rotation.transpose(1, 2)
+
+
+def sigma_tt(values: dict, convention: str) -> torch.Tensor:
+    """Σtt of rt4dgs's 4D covariance."""
+    return covariance_4d(values, convention)[:, 3, 3]
 
 
 def test_the_time_distance_is_in_units_of_the_4d_covariances_time_deviation():
@@ -68,20 +73,29 @@ def lasting_row(m: Gaussians4D) -> dict[str, torch.Tensor]:
     own["xyz"] = torch.zeros(len(own["t"]), 3)
     own["xyz"][:, 0] = 10.0 * torch.arange(len(own["t"])) * COVER
     own["scaling"][:] = torch.tensor([-1.0, 0.0, -2.0])
+    for name in ("rotation", "rotation_r", "velocity"):  # axis-aligned: standing still
+        if name in own:
+            own[name][:] = torch.tensor([1.0, 0.0, 0.0, 0.0]) if name.startswith("rotation") else 0.0
     return own
 
 
-def test_a_gaussian_lasts_through_a_segment_where_its_marginal_holds_at_both_ends():
+def test_a_gaussian_lasts_through_a_segment_where_its_marginal_holds_at_both_ends_and_it_stays_put():
     m = model("rt4dgs")
     own = values_of(m)
-    std = sigma_tt(own, m.config.rotation_convention).sqrt()
+    own["scaling_t"] = own["scaling_t"] + 1.0  # time scales of about 3 s: some last through a second, some not
+    cov = covariance_4d(own, m.config.rotation_convention)
+    std = cov[:, 3, 3].sqrt()
+    velocity = cov[:, :3, 3] / cov[:, 3, 3:]  # Σxt / Σtt: how the conditional mean moves
     a, b = 0.5, 1.5
     mu = own["t"].double().reshape(-1)
-    expected = torch.minimum(torch.exp(-0.5 * ((mu - a) / std) ** 2), torch.exp(-0.5 * ((mu - b) / std) ** 2))
-    assert np.array_equal(lasting(own, m.config, (a, b)), (expected >= LASTING_MARGINAL).numpy())
-    long = {k: v.clone() for k, v in own.items()}
-    long["t"][:] = 1.0
-    long["scaling_t"][:] = 3.0  # e³ ≈ 20 s of deviation: every one lasts, whatever the rotation
+    marginal = torch.minimum(torch.exp(-0.5 * ((mu - a) / std) ** 2), torch.exp(-0.5 * ((mu - b) / std) ** 2))
+    moved = velocity.norm(dim=1) * torch.maximum((mu - a).abs(), (mu - b).abs())
+    size = own["scaling"].double().exp().max(dim=1).values
+    expected = (marginal >= LASTING_MARGINAL) & (moved <= STILL * size)
+    assert 0 < int(expected.sum()) < len(expected)  # the example has both
+    assert 0 < int(((marginal >= LASTING_MARGINAL) & ~expected).sum())  # and some that last but move away
+    assert np.array_equal(lasting(own, m.config, (a, b)), expected.numpy())
+    long = lasting_row(m)
     assert lasting(long, m.config, (a, b)).all()
     long["scaling_t"][:] = -6.0
     long["scaling"][:] = -6.0  # a few ms at most: none lasts half a second

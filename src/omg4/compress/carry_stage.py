@@ -4,9 +4,10 @@ docs/file-format.md §8b).
 A long capture's lasting content — the static set, the slow background — is in every segment, and every segment
 learns it again, each a little differently, so coded segment by segment it is paid for in each. At the appearance
 stage (paper §4.4), when a predicted segment switches to the segment before's MLPs, it takes instead the segment
-before's decoded Gaussians that last through its own time range — temporal marginal at least
+before's decoded Gaussians that last through its own time range and stay put there — temporal marginal at least
 :data:`LASTING_MARGINAL` at both ends, the time scale in the backbone's own terms (√Σtt of Real-Time4DGS's 4D
-covariance, rt4dgs §1.4; FreeTimeGS's duration) — as a **base layer**, fixed and exactly as they decoded there, so
+covariance, rt4dgs §1.4; FreeTimeGS's duration), and a centre that moves at most :data:`STILL` of its size — as a
+**base layer**, fixed and exactly as they decoded there, so
 the file names each with about a bit (:mod:`omg4.codec.carry`); and it drops its own lasting Gaussians that the base
 layer covers (a carried centre within :data:`COVER` of their largest scale). What remains of its own is what it
 adds — new and changed content — so its Gaussian budget follows that (:func:`base_layer`); the fine-tuning that
@@ -43,7 +44,12 @@ LASTING = "lasting"
 
 LASTING_MARGINAL = 0.5
 """A Gaussian lasts through a segment when its temporal marginal is at least this at both ends of the segment's time
-range (so everywhere between: the marginal is unimodal)."""
+range (so everywhere between: the marginal is unimodal)..."""
+
+STILL = 1.0
+"""... and stays put: its centre moves (velocity × time from its time centre) at most this many of its largest scale
+anywhere in the segment. A Gaussian fitted to one segment's frames and carried on with its motion extrapolated would
+otherwise drift from where the video shows its content."""
 
 COVER = 1.0
 """An own lasting Gaussian is covered by the base layer when a carried centre lies within this many of its largest
@@ -53,13 +59,16 @@ AUTO_MIN_COVERED = 0.1
 """``auto`` carries the base layer where at least this share of a segment's Gaussians are covered by it."""
 
 def lasting(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
-    """[N] bool: which Gaussians last through ``time_range`` (:data:`LASTING_MARGINAL` at both its ends; the temporal
-    variance in the backbone's own terms, rt4dgs §1.4)."""
-    var_t = config.schema.motion({k: v.detach().cpu() for k, v in values.items()}, config)[2]
+    """[N] bool: which Gaussians last through ``time_range`` and stay put there (:data:`LASTING_MARGINAL` at both its
+    ends, the temporal variance and the velocity in the backbone's own terms, rt4dgs §1.4; :data:`STILL`)."""
+    velocity, _, var_t = config.schema.motion({k: v.detach().cpu() for k, v in values.items()}, config)
     var_t = var_t.detach().double().reshape(-1).clamp_min(1e-12)
     mu = values["t"].detach().cpu().double().reshape(-1)
     ends = [torch.exp(-0.5 * (mu - end) ** 2 / var_t) for end in time_range]
-    return (torch.minimum(*ends) >= LASTING_MARGINAL).numpy()
+    longest = torch.maximum(*[(mu - end).abs() for end in time_range])
+    moved = velocity.detach().double().norm(dim=1) * longest
+    size = values["scaling"].detach().cpu().double().max(dim=1).values.exp()
+    return ((torch.minimum(*ends) >= LASTING_MARGINAL) & (moved <= STILL * size)).numpy()
 
 
 def base_layer(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,
@@ -168,5 +177,5 @@ def valid_setting(setting) -> bool:
         and setting >= 0
 
 
-__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "LASTING_MARGINAL", "CarryDecision",
+__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "LASTING_MARGINAL", "STILL", "CarryDecision",
            "base_layer", "carry_matches", "chosen_carry", "lasting", "valid_setting"]
