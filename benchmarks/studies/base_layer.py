@@ -2,16 +2,16 @@
 
 One predicted segment of a segmented training run (``--segment``, default 1), compressed from the segment before as
 it decoded from an existing sequence file (so the key segment is the same in every row), once per ``--variants``
-entry: a ``carry`` setting (``0``, ``lasting``, ``auto`` or a tolerance), optionally with ``COVER`` and
-``LASTING_MARGINAL`` of :mod:`omg4.compress.carry_stage` set for that run (``lasting:cover=0.5``,
-``lasting:margin=0.8``). Each row: the segment's bytes, its own and carried Gaussians, and PSNR / SSIM on the
+entry: a ``carry`` setting (``0``, ``lasting``, ``auto`` or a tolerance), optionally with ``COVER``,
+``LASTING_MARGINAL`` or ``STILL`` of :mod:`omg4.compress.carry_stage` set for that run (``lasting:cover=0.5``,
+``lasting:margin=0.8``, ``lasting:still=1e9`` for no limit on motion). Each row: the segment's bytes, its own and carried Gaussians, and PSNR / SSIM on the
 test camera over the segment's frames. Every compression runs in a fresh process, one at a time.
 
 Usage::
 
     python benchmarks/studies/base_layer.py DATA --downscale 2 --run runs/segments/basketball24/run \\
         --sequence runs/segments/basketball24/sequence_M_key3.omg4 --name basketball24 \\
-        --variants 0 lasting lasting:cover=0.5 lasting:margin=0.8
+        --variants 0 lasting lasting:still=1e9 lasting:cover=0.5,still=1e9
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 from omg4.testing.records import save_record
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
-KNOBS = {"cover": "COVER", "margin": "LASTING_MARGINAL"}
+KNOBS = {"cover": "COVER", "margin": "LASTING_MARGINAL", "still": "STILL"}
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, float]]:
