@@ -51,6 +51,8 @@ class TrainConfig:
     scaling_lr: float = knob(LR.scaling_lr, "learning rate of the log scales (spatial and temporal)")
     rotation_lr: float = knob(LR.rotation_lr, "quaternion learning rate")
     lambda_dssim: float = knob(0.2, "weight of the D-SSIM term in the loss (rt4dgs §3.2)")
+    still_weight: float = knob(0.0, "weight of the penalty on the motion of Gaussians that last through the clip "
+                                    "(omg4.train.stillness; beyond the paper; 0: none)")
     sh_increase_interval: int = knob(1000, "steps per SH degree: spatial 0 → max, then temporal 0 → max")
     num_random_points: int = knob(100_000, "initial points made when the data has none (random, rays, mvs)")
     test_interval: int = knob(0, "test PSNR every N steps (0: only at the end)")

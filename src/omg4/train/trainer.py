@@ -43,6 +43,7 @@ from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
 from omg4.train.strategies.densification import DensifyStats
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
+from omg4.train.stillness import stillness_penalty
 from omg4.train.strategies import strategy_for
 
 logger = logging.getLogger(__name__)
@@ -174,11 +175,16 @@ class Trainer:
                 height, width = rendered.image.shape[1:3]
                 self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, width, height, cfg.batch_size)
 
+        def regularizer(times):
+            extra = self.strategy.regularizer(model.params, times, step)
+            if cfg.still_weight:
+                still = cfg.still_weight * stillness_penalty(model.params, model.config, self.scene.time_range)
+                extra = still if extra is None else extra + still
+            return extra
+
         loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
                                           lambda_dssim=cfg.lambda_dssim, what="training", step=step,
-                                          device=self.device, on_views=on_views,
-                                          regularizer=lambda times: self.strategy.regularizer(model.params, times,
-                                                                                              step))
+                                          device=self.device, on_views=on_views, regularizer=regularizer)
         step_optimizers([self.optimizer], self.device)
         self.strategy.after_step(model, self.optimizer, self.stats, step, self.extent)
         return loss, batch_psnr
