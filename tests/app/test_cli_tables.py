@@ -138,3 +138,19 @@ def test_render_path_names_are_the_library_table():
     assert camera_path_source("tour.json") == "tour.json"
     with pytest.raises(argparse.ArgumentTypeError, match=", ".join(PATHS)):
         camera_path_source("helix")
+
+
+def test_info_prints_a_carry_decision_of_this_build_and_of_an_earlier_one_and_ignores_a_forged_one():
+    from omg4.app.commands.info import _carry_decision
+
+    assert _carry_decision({"setting": "auto", "carried": "lasting", "gaussians": 991, "covered_share": 0.2121}) == (
+        "; carry auto: 21.2 % covered by lasting Gaussians, the lasting ones carried")
+    assert _carry_decision({"setting": "auto", "carried": "none", "gaussians": 0, "covered_share": 0.05}) == (
+        "; carry auto: 5.0 % covered by lasting Gaussians, none carried")
+    assert _carry_decision({"setting": "auto", "tolerance": 0.5, "matched_share": 0.1074}) == (
+        "; carry auto: 10.7 % matched, carried within 0.5")
+    assert _carry_decision({"setting": "auto", "tolerance": 0.0, "matched_share": 0.024}) == (
+        "; carry auto: 2.4 % matched, none carried")
+    for forged in (None, [], {"covered_share": "many"}, {"matched_share": True, "tolerance": 1}, {"setting": "auto"}):
+        assert _carry_decision(forged) == ""
+    assert "\x1b" not in _carry_decision({"setting": "\x1b[2J", "carried": "none", "covered_share": 0.5})
