@@ -32,6 +32,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from omg4.gaussians.visibility import least_marginal
+
 
 CANDIDATES = 8
 """Nearest reference centres tried per Gaussian."""
@@ -61,14 +63,12 @@ AUTO_MIN_COVERED = 0.1
 def lasting(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
     """[N] bool: which Gaussians last through ``time_range`` and stay put there (:data:`LASTING_MARGINAL` at both its
     ends, the temporal variance and the velocity in the backbone's own terms, rt4dgs §1.4; :data:`STILL`)."""
-    velocity, _, var_t = config.schema.motion({k: v.detach().cpu() for k, v in values.items()}, config)
-    var_t = var_t.detach().double().reshape(-1).clamp_min(1e-12)
-    mu = values["t"].detach().cpu().double().reshape(-1)
-    ends = [torch.exp(-0.5 * (mu - end) ** 2 / var_t) for end in time_range]
-    longest = torch.maximum(*[(mu - end).abs() for end in time_range])
-    moved = velocity.detach().double().norm(dim=1) * longest
-    size = values["scaling"].detach().cpu().double().max(dim=1).values.exp()
-    return ((torch.minimum(*ends) >= LASTING_MARGINAL) & (moved <= STILL * size)).numpy()
+    values = {k: v.detach().cpu() for k, v in values.items()}
+    velocity, _, var_t = config.schema.motion(values, config)
+    mu = values["t"].double().reshape(-1)
+    moved = velocity.double().norm(dim=1) * torch.maximum(*[(mu - end).abs() for end in time_range])
+    size = values["scaling"].double().max(dim=1).values.exp()
+    return ((least_marginal(mu, var_t, *time_range) >= LASTING_MARGINAL) & (moved <= STILL * size)).numpy()
 
 
 def base_layer(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,

@@ -31,6 +31,14 @@ def peak_marginal(t: torch.Tensor, var_t: torch.Tensor, a: float, b: float) -> t
     return torch.exp(-0.5 * gap * gap / var_t.detach().double().reshape(-1))
 
 
+def least_marginal(t: torch.Tensor, var_t: torch.Tensor, a: float, b: float) -> torch.Tensor:
+    """[N] float64: the smallest temporal marginal over τ ∈ [a, b] — at the end farther from μ_t — of Gaussians with
+    time centres ``t`` and temporal variances ``var_t`` (how much each lasts through the range; rt4dgs §1.4)."""
+    mu = t.double().reshape(-1)
+    farther = torch.maximum((mu - a).abs(), (mu - b).abs())
+    return torch.exp(-0.5 * farther * farther / var_t.double().reshape(-1).clamp_min(1e-12))
+
+
 @dataclass
 class VisibilityIndex:
     """Candidate rows per time window.
@@ -73,4 +81,4 @@ class VisibilityIndex:
         return torch.cat([self.rows[i] for i in k]).unique()
 
 
-__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "peak_marginal"]
+__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "least_marginal", "peak_marginal"]

@@ -18,17 +18,16 @@ from __future__ import annotations
 
 import torch
 
+from omg4.gaussians.visibility import least_marginal
+
 
 def stillness_penalty(params: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> torch.Tensor:
     """The penalty (module docstring) of the Gaussians ``params`` of ``config``'s backbone over ``time_range``."""
     velocity, _, var_t = config.schema.motion(params, config)
     t0, t1 = time_range
-    mu = params["t"].reshape(-1)
-    farther = torch.maximum((mu - t0).abs(), (mu - t1).abs()).detach()
-    weight = torch.exp(-0.5 * farther.square() / var_t.detach().reshape(-1).clamp_min(1e-12))
+    weight = least_marginal(params["t"].detach(), var_t.detach(), t0, t1).to(velocity.dtype)
     size = params["scaling"].detach().max(dim=1).values.exp()
     moved = velocity.norm(dim=1) * (t1 - t0) / size
     return (weight * moved.square()).mean()
-
 
 __all__ = ["stillness_penalty"]
