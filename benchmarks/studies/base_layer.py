@@ -103,7 +103,7 @@ def main() -> None:
     for variant in args.variants:
         parse_variant(variant)  # a wrong one stops before any run
         out = subprocess.run([sys.executable, __file__, *sys.argv[1:], "--variant", variant], check=True,
-                             capture_output=True, text=True).stdout
+                             stdout=subprocess.PIPE, text=True).stdout  # a failing run's error shows
         rows.append(json.loads(out.strip().splitlines()[-1]))
         r = rows[-1]
         print(f"{variant}: {r['file_bytes']:,} B, {r['own_gaussians']:,} own + {r['carried_gaussians']:,} carried, "

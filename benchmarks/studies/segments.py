@@ -264,7 +264,7 @@ def prediction(args) -> None:
     reader = ["--downscale", str(args.downscale)]
     train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume", "--still-weight", str(args.still_weight)]
     compress = ["--preset", args.preset, "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp,
-                "--carry", str(args.carry), *paper_flag(args)]
+                *(["--carry", str(args.carry)] if args.carry is not None else []), *paper_flag(args)]
     run_dir = work / "run"
     train_s = _omg4("train", str(data), *reader, "--out", str(run_dir), "--iterations", str(args.iterations), *train,
                     "--segment-frames", str(args.segment_frames), "--overlap", str(args.overlap))
@@ -272,7 +272,8 @@ def prediction(args) -> None:
     record = {"command": "python benchmarks/studies/segments.py " + shlex.join(sys.argv[1:]), "data": str(data),
               "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
               "iterations_per_segment": args.iterations, "schedule": args.schedule, "preset": args.preset,
-              "predicted_mlp": args.predicted_mlp, "carry": args.carry, "still_weight": args.still_weight,
+              "predicted_mlp": args.predicted_mlp, "carry": args.carry or ("0" if args.paper else "auto"),
+              "still_weight": args.still_weight,
               "train_s": train_s,
               "segments": len(read_run_plan(run_dir)["segments"]), "rows": []}
     for key_interval in args.key_intervals:
@@ -339,9 +340,9 @@ def main() -> None:
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
     r.add_argument("--still-weight", type=float, default=0.0,
                    help="training's penalty on the motion of lasting Gaussians (omg4 train --still-weight)")
-    r.add_argument("--carry", default="auto",
+    r.add_argument("--carry",
                    help="what a predicted segment carries of the segment before's Gaussians: auto, lasting, a "
-                        "tolerance or 0 (omg4 compress --carry; default auto)")
+                        "tolerance or 0 (omg4 compress --carry; unset: its default, auto, or 0 with --paper)")
     for p in (q, r):  # a capture cut into segments
         p.add_argument("data", nargs="?")
         p.add_argument("--synthetic", type=int, help="synthesize a capture of this many frames instead of DATA")

@@ -253,7 +253,8 @@ def test_auto_decides_each_predicted_segments_carry_from_what_it_covers_and_info
         decision = header["meta"]["carry"]
         share = decision["covered_share"]
         assert decision["setting"] == "auto" and 0 <= share <= 1
-        assert decision["carried"] == ("lasting" if share >= AUTO_MIN_COVERED else "none")
+        if abs(share - AUTO_MIN_COVERED) > 1e-4:  # the record rounds the share to 4 places
+            assert decision["carried"] == ("lasting" if share >= AUTO_MIN_COVERED else "none")
         assert header.get("carried", 0) == (decision["gaussians"] if decision["carried"] == "lasting" else 0)
         decisions.append((share, decision["carried"]))
     _, key_header, _ = read_versioned(read_segment(out, index.segments[0]))

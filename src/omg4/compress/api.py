@@ -127,7 +127,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         meta["rig"] = rig_json(scene.cameras(), len(scene.test_cameras()))
     if cfg.rate_weight:  # provenance of entropy-constrained codebooks; paper-faithful files stay as they were
         meta["rate_weight"] = cfg.rate_weight
-    if model.carry_decision is not None:  # a predicted segment: how many of its Gaussians matched, what it carried
+    if model.carry_decision is not None:  # a predicted segment: what it carried and why
         meta["carry"] = model.carry_decision
     paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written
     sections: dict[str, int] = {}

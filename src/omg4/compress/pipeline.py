@@ -176,7 +176,7 @@ class CompressionPipeline:
             raise OMG4Error(f"unknown predicted MLP mode '{cfg.predicted_mlp}' (choose from "
                             f"{', '.join(appearance_stage.PREDICTED_MLPS)})")
         if not valid_setting(cfg.carry):
-            raise OMG4Error(f"the carry tolerance must be auto or a finite number >= 0, got {cfg.carry!r}")
+            raise OMG4Error(f"the carry setting must be auto, lasting or a finite number >= 0, got {cfg.carry!r}")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         self.world = distributed.world()
@@ -323,8 +323,8 @@ class CompressionPipeline:
         if decision.covered is not None:
             self.log(f"carry {self.cfg.carry}: the segment before's lasting Gaussians cover "
                      f"{100 * decision.covered:.1f} % of this segment's"
-                     + ("" if decision.kind == "lasting" else
-                        f" (under {100 * AUTO_MIN_COVERED:.0f} %): none carried"))
+                     + ("" if decision.kind == "lasting" else ": none lasts and stays put" if decision.covered
+                        >= AUTO_MIN_COVERED else f" (under {100 * AUTO_MIN_COVERED:.0f} %): none carried"))
         if decision.kind == "none":
             return
         keep = torch.ones(self.model.num_gaussians, dtype=torch.bool)

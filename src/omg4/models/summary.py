@@ -61,7 +61,7 @@ def describe_sequence(path: str | os.PathLike) -> dict:
     the decoder does, a predicted one after its reference), with the file's bitrate over the capture and the
     key interval; each segment's ``reference`` is the segment it is predicted from (None: a key segment) and
     ``carried`` how many of its Gaussians are that segment's, as they decoded there (docs/file-format.md §8b), and
-    ``carry`` the compressor's decision (docs/file-format.md §8b: the setting, what it carried and, for ``auto``, the
+    ``carry`` the compressor's decision (docs/file-format.md §8b: the setting, what it carried and, for ``auto`` and ``lasting``, the
     share of the segment's Gaussians the segment before's lasting ones covered; None where the file records none)."""
     decoder = SegmentDecoder(path)
     index = decoder.index
