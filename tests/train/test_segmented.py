@@ -183,9 +183,9 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
     calls = []
     original = segmented.warm_start
 
-    def spy(teacher, scene, cfg, points=None):
+    def spy(teacher, scene, cfg, points=None, held=None):
         calls.append((teacher.num_gaussians, tuple(scene.time_range), cfg.strategy.max_gaussians))
-        return original(teacher, scene, cfg, points)
+        return original(teacher, scene, cfg, points, held)
 
     monkeypatch.setattr(segmented, "warm_start", spy)
     _run(capture, tmp_path / "run", plan)

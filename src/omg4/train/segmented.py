@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Callable
 
 import torch
+from scipy.spatial import cKDTree
 
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
@@ -39,6 +40,7 @@ from omg4.models import load_model
 from omg4.optimize.teaching import taught_by
 from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.train.config import TrainConfig
+from omg4.train.held import held_layer, held_rows
 from omg4.train.run_state import latest_iteration
 from omg4.train.trainer import Trainer, initial_model
 
@@ -92,46 +94,67 @@ def write_plan(run_dir: Path, plan: dict) -> None:
         write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
 
 
-def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None):
+def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: dict[str, torch.Tensor] | None = None
+               ) -> Gaussians4D:
     """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.models.load_model`
     gives its checkpoint) Gaussians that can be drawn somewhere in ``scene``'s time range — opacity times the
     peak temporal marginal over the range (:func:`~omg4.gaussians.visibility.peak_marginal`) at least the
     rasterizer's :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a
     frame — joined by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the
     segment before never showed, as many as ``cfg.strategy.max_gaussians`` leaves room for (the most opaque carried
-    Gaussians first when they alone exceed it)."""
+    Gaussians first when they alone exceed it).
+
+    ``held``, the teacher's Gaussians held fixed (:func:`omg4.train.held.held_layer`), are left out of the model, and
+    the Gaussians made from ``points`` leave out the points they cover (within their largest scale)."""
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
     var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
     peak = opacity * peak_marginal(values["t"], var_t, *scene.time_range)
-    alive = torch.nonzero(peak >= ALPHA_THRESHOLD).reshape(-1)
+    keep = peak >= ALPHA_THRESHOLD
+    config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
+    if held is not None:
+        keep[torch.from_numpy(held_rows(values, teacher.config, tuple(scene.time_range)))] = False
+    alive = torch.nonzero(keep).reshape(-1)
     budget = cfg.strategy.max_gaussians
     if budget and len(alive) > budget:
         alive = alive[torch.argsort(opacity[alive], descending=True, stable=True)[:budget]].sort().values
-    config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
     parts = [{k: values[k][alive] for k in config.schema.param_names}]
     if not budget or len(alive) < budget:
         room = budget - len(alive) if budget else 0  # 0: no cap
-        parts.append(initial_model(scene, cfg.with_strategy(max_gaussians=room), points).params)
+        made = initial_model(scene, cfg.with_strategy(max_gaussians=room), points).params
+        if held is not None and len(held["xyz"]):
+            made = {k: v[~covered(made["xyz"], held)] for k, v in made.items()}
+        parts.append(made)
     return Gaussians4D({k: torch.cat([part[k].detach() for part in parts]) for k in config.schema.param_names},
                        config)  # the trainer sets the active SH degrees of each step
 
 
-def segment_budget(cfg: TrainConfig, first_count: int) -> TrainConfig:
+def covered(xyz: torch.Tensor, held: dict[str, torch.Tensor]) -> torch.Tensor:
+    """[M] bool: which points ``xyz`` [M, 3] lie within the largest scale of one of the ``held`` Gaussians' centres
+    (the nearest one)."""
+    distance, nearest = cKDTree(held["xyz"].double().numpy()).query(xyz.detach().double().numpy(), k=1)
+    size = held["scaling"].double().max(dim=1).values.exp().numpy()[nearest]
+    return torch.from_numpy(distance <= size)
+
+
+def segment_budget(cfg: TrainConfig, first_count: int, held: int = 0) -> TrainConfig:
     """The training settings of a segment that starts from the one before (:func:`warm_start`): at most as many
     Gaussians as the first segment, which learnt from the video alone, holds (``first_count``), or
-    ``cfg.strategy.max_gaussians`` when that is smaller. Without it the carried Gaussians stay and densification adds a
-    fresh segment's worth on top, so every segment would be larger than the one before."""
+    ``cfg.strategy.max_gaussians`` when that is smaller; ``held`` Gaussians held fixed (:mod:`omg4.train.held`)
+    take their share of it, so the segment's own Gaussians are left what the held ones do not already show. Without
+    it the carried Gaussians stay and densification adds a fresh segment's worth on top, so every segment would be
+    larger than the one before."""
     budget = cfg.strategy.max_gaussians
     cap = min(budget, first_count) if budget else first_count
-    return cfg.with_strategy(max_gaussians=cap)
+    return cfg.with_strategy(max_gaussians=max(1, cap - held))
 
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
                    initial_points: Callable[[Scene], object], *, parallel: str = "data", check_replicas: int = 0,
-                   teach: bool = True, log=None, preset: str | None = None) -> list[dict]:
+                   teach: bool = True, hold: bool = False, log=None, preset: str | None = None) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
-    order; with ``parallel="segments"`` the others' segments are read from their folders)."""
+    order; with ``parallel="segments"`` the others' segments are read from their folders). With ``hold`` (and
+    ``teach``) a segment holds the lasting Gaussians of the one before fixed (:mod:`omg4.train.held`)."""
     log = log or logger.info
     if parallel not in PARALLEL_MODES:
         raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")
@@ -148,19 +171,23 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             points = None if resume else initial_points(scene)
             before = plan["segments"][seg["index"] - 1] if seg["index"] else None
             shared = shared_frames(before, seg) if teach and parallel != "segments" else None
-            start, seg_cfg = None, cfg
+            start, held, seg_cfg = None, None, cfg
             if shared is not None:
                 first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
-                seg_cfg = segment_budget(cfg, describe_checkpoint(first)["num_gaussians"])
                 teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)
+                first_count = describe_checkpoint(first)["num_gaussians"]
+                if hold:  # the held rows are the same whether the segment starts or resumes
+                    held = held_layer(teacher, scene.time_range)
+                seg_cfg = segment_budget(cfg, first_count, len(held["xyz"]) if held else 0)
                 if not resume:
-                    start = warm_start(teacher, scene, seg_cfg, points)
+                    start = warm_start(teacher, scene, seg_cfg, points, held)
                 scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
                                   device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
-                f"{' (resuming)' if resume else ''}")
+                f"{' (resuming)' if resume else ''}"
+                + (f", {len(held['xyz']):,} lasting Gaussians of the segment before held" if held else ""))
             Trainer(scene, seg_cfg, folder, points=points, model=start, resume=resume, log=log,
-                    check_replicas=check_replicas, preset=preset).run()
+                    check_replicas=check_replicas, preset=preset, held=held).run()
             del scene
     distributed.barrier("training the segments")
     return [{"index": seg["index"], "frames": seg["frames"],
@@ -168,4 +195,4 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
 
 
 __all__ = ["PARALLEL_MODES", "default_overlap", "plan_capture", "segment_plan", "write_plan", "warm_start",
-           "segment_budget", "train_segments"]
+           "covered", "segment_budget", "train_segments"]

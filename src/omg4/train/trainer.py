@@ -41,6 +41,7 @@ from omg4.optimize.step import backward_batch, step_generator
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
+from omg4.train.held import HeldGaussians4D
 from omg4.train.strategies.densification import DensifyStats
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 from omg4.train.stillness import stillness_penalty
@@ -109,12 +110,16 @@ class Trainer:
     else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
     every that many steps and stops with a one-line error when they differ. ``preset``, the name of the preset
     ``cfg`` started from, is recorded beside it (``config.json``), so a resumed run can check a preset named again.
+    ``held`` (per-Gaussian values by the backbone's names) are Gaussians rendered with the model but held fixed
+    (:mod:`omg4.train.held`): the density control and the budget see the model's own Gaussians only, and the final
+    model holds both.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, run_dir: str | Path, *, points: PointCloud | None = None,
                  model: Gaussians4D | None = None, resume: bool = False, log: Callable[[str], None] | None = None,
-                 progress: bool = True, check_replicas: int = 0, preset: str | None = None):
+                 progress: bool = True, check_replicas: int = 0, preset: str | None = None,
+                 held: dict[str, torch.Tensor] | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         self.world = distributed.world()
@@ -133,6 +138,7 @@ class Trainer:
             "train_config": cfg.to_dict(),
             "world_size": self.world.size,
             **({"preset": preset} if preset else {}),
+            **({"held": int(held["xyz"].shape[0])} if held else {}),
         }
         self.start = 0
         start_it = latest_iteration(self.run_dir) if resume else None
@@ -150,6 +156,9 @@ class Trainer:
             self.model = (model if model is not None else initial_model(scene, cfg, points)).to(self.device)
             self.optimizer = self._make_optimizer()
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
+        if held:
+            self.model = HeldGaussians4D(self.model.params, self.model.config, held, self.model.active_sh_degree,
+                                         self.model.active_sh_degree_t).to(self.device)
         distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
         self.strategy = strategy_for(self.model.config.schema, cfg)
         self.history: list[dict] = []
@@ -173,7 +182,9 @@ class Trainer:
         def on_views(rendered, sl):
             if collecting and rendered.means2d.grad is not None:
                 height, width = rendered.image.shape[1:3]
-                self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, width, height, cfg.batch_size)
+                own = sl.index < model.num_gaussians  # held rows follow the model's own (omg4.train.held)
+                self.stats.add_view(sl.index[own], rendered.means2d.grad[own], rendered.radii[own], width, height,
+                                    cfg.batch_size)
 
         def regularizer(times):
             extra = self.strategy.regularizer(model.params, times, step)
@@ -248,7 +259,8 @@ class Trainer:
         self.save_checkpoint(end)
         model_path = self.run_dir / "model.safetensors"
         if end == cfg.iterations and self.world.main:
-            save_gaussians(model_path, self.model, {**self.metadata, "iteration": end})
+            final = self.model.whole() if isinstance(self.model, HeldGaussians4D) else self.model
+            save_gaussians(model_path, final, {**self.metadata, "iteration": end})
         return TrainResult(self.model, model_path, end, wall, self.history)
 
     def _log_estimate(self, seconds: float, step: int, end: int) -> None:
