@@ -134,3 +134,15 @@ def test_held_segments_keep_the_segment_befores_lasting_gaussians_exactly(captur
         assert model.num_gaussians - count <= first - count  # own Gaussians within what the held leave
         for k, v in held.items():
             torch.testing.assert_close(model.params[k][-count:], v, rtol=0, atol=0)
+
+
+def test_a_forged_held_count_is_refused_with_one_line():
+    from omg4.compress.api import held_count
+    from omg4.errors import CorruptFileError
+
+    model = _gaussians(4)
+    assert held_count("m.safetensors", {}, model) == 0 and held_count("m.safetensors", {"held": 4}, model) == 4
+    for forged in (-1, 5, "2", True, 1.5):
+        with pytest.raises(CorruptFileError, match=r"^m.safetensors: the held count .* is not an integer from 0 to "
+                                                   r"the model's 4 Gaussians$"):
+            held_count("m.safetensors", {"held": forged}, model)

@@ -26,7 +26,7 @@ from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
 from omg4.data.scene import Scene
 from omg4.data.segments import read_run_plan, shared_frames
-from omg4.errors import OMG4Error
+from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians, run_model, save_gaussians
 from omg4.models.compact import CompactModel
@@ -85,7 +85,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
                      codec: str | None = None, stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
                      progress: bool = False, log=None, check_replicas: int = 0,
-                     reference: dict[str, np.ndarray] | None = None) -> dict:
+                     reference: dict[str, np.ndarray] | None = None, held: int = 0) -> dict:
     """Run OMG4 on ``baseline`` and write ``out`` (``codec``: None, the coder of ``cfg``'s mode; ``precision``: the
     compact codec's grids); returns a JSON-ready report. The file's header and the report name the mode of the
     run (:meth:`CompressConfig.mode`: ``"paper"``, ``"omg4"`` or which choices were mixed).
@@ -93,7 +93,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     ``reference``: for a predicted segment of a sequence, the :func:`~omg4.codec.payload.reference_sections` of the
     segment before, decoded; the compression keeps its codebooks and starts from its appearance MLPs
     (``cfg.predicted_mlp``), and the file stores what it kept as references to it, the MLPs as their change, and no
-    camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a).
+    camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a). ``held``: how many of
+    ``baseline``'s last Gaussians training held fixed (the ``held`` of its file's metadata; :class:`CompressionPipeline`).
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
     comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
@@ -112,7 +113,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log,
-                                   check_replicas=check_replicas, reference=reference)
+                                   check_replicas=check_replicas, reference=reference, held=held)
     scores_out, unsaved = out.with_name(out.name + ".scores.npz"), None
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         unsaved = pipeline.ensure_scores()
@@ -165,6 +166,16 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     }
 
 
+def held_count(path: Path, metadata: dict, baseline: Gaussians4D) -> int:
+    """How many of ``baseline``'s last Gaussians its training held fixed (:mod:`omg4.train.held`), from the
+    ``metadata`` of its file ``path``; a count that is not an integer from 0 to the model's is a one-line error."""
+    held = metadata.get("held", 0)
+    if not isinstance(held, int) or isinstance(held, bool) or not 0 <= held <= baseline.num_gaussians:
+        raise CorruptFileError(f"{path}: the held count {held!r} is not an integer from 0 to the model's "
+                               f"{baseline.num_gaussians} Gaussians")
+    return held
+
+
 def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
                       codec: str | None = None, precision: CompactGrids = CompactGrids(), progress: bool = False,
                       log=None, check_replicas: int = 0, teach: bool = True,
@@ -210,11 +221,12 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
             if shared is not None:
                 scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
                                   device=cfg.device)
-            baseline, _ = load_gaussians(run_dir / seg["folder"] / "model.safetensors", cfg.device)
+            trained_path = run_dir / seg["folder"] / "model.safetensors"
+            baseline, trained = load_gaussians(trained_path, cfg.device)
             path = work / f"segment_{seg['index']:03d}.omg4"
             reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
                                             progress=progress, log=log, check_replicas=check_replicas,
-                                            reference=reference))
+                                            reference=reference, held=held_count(trained_path, trained, baseline)))
             if main:
                 parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
             if (teach or key_interval > 1) and seg is not plan["segments"][-1]:
