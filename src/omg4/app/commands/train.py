@@ -146,6 +146,8 @@ def run(args) -> int:
             budget = cfg.strategy.max_gaussians
             cap = f"at most {budget:,} Gaussians" if budget else "no cap on the Gaussian count"
             print(f"preset {preset}{origin}: {cfg.iterations:,} iterations of {cfg.batch_size} views, {cap}")
+    if args.hold_lasting and args.independent_segments:
+        raise OMG4Error("--hold-lasting holds the segment before's Gaussians: not with --independent-segments")
     if args.segment_frames:
         return _train_segments(args, cfg, world, preset)
     for flag, given in (("--overlap", args.overlap is not None), ("--hold-lasting", args.hold_lasting)):
@@ -179,8 +181,6 @@ def run(args) -> int:
 
 def _train_segments(args, cfg, world, preset: str | None) -> int:
     """``--segment-frames``: plan the segments of the capture and train one model per segment (resumable)."""
-    if args.hold_lasting and args.independent_segments:
-        raise OMG4Error("--hold-lasting holds the segment before's Gaussians: not with --independent-segments")
     from omg4 import distributed
     from omg4.atomic import write_text_atomic
     from omg4.train.init import initial_points
