@@ -15,7 +15,7 @@ from omg4.gaussians.checkpoint import load_gaussians
 from omg4.gaussians.model import GaussianConfig, Gaussians4D
 from omg4.models import load_model
 from omg4.train import make_config
-from omg4.train.held import HeldGaussians4D, held_layer, held_rows
+from omg4.train.held import ANCHOR, HeldGaussians4D, anchor_penalty, deviation, held_layer, held_rows
 from omg4.train.init import initial_points
 from omg4.train.segmented import segment_budget, segment_plan, train_segments, warm_start, write_plan
 from omg4.train.trainer import Trainer
@@ -46,24 +46,48 @@ def test_held_rows_are_those_lasting_through_the_range_and_staying_put():
     assert held_rows(model.params, model.config, (1.0, 2.0)).tolist() == [0]  # 2: 1.8 σ from the far end
 
 
-def test_held_gaussians_render_with_the_model_but_take_no_gradient():
+def test_held_gaussians_render_after_the_models_own_and_train_with_them():
     own, held = _gaussians(5, 1), _gaussians(3, 2)
-    for v in own.params.values():
+    for v in [*own.params.values(), *held.params.values()]:
         v.requires_grad_(True)
-    model = HeldGaussians4D(own.params, own.config, held.params)
+    model = HeldGaussians4D(own.params, own.config, held.params, held.params)
     assert model.num_gaussians == 5 and model.num_held == 3
     times, centres = torch.tensor([0.5], dtype=torch.float64), torch.tensor([[0.5, 0.5, -3.0]])
     sl = model.slice_views(times, centres)
-    both = Gaussians4D({k: torch.cat([own.params[k].detach(), held.params[k]]) for k in own.params}, own.config)
+    both = Gaussians4D({k: torch.cat([own.params[k].detach(), held.params[k].detach()]) for k in own.params},
+                       own.config)
     reference = both.slice_views(times, centres)
     assert sl.index.tolist() == reference.index.tolist() and int(sl.index.max()) >= 5  # held rows follow own ones
     torch.testing.assert_close(sl.means, reference.means, rtol=0, atol=0)
     torch.testing.assert_close(sl.colors, reference.colors, rtol=0, atol=0)
     sl.opacities.sum().backward()
-    assert own.params["opacity"].grad is not None and not held.params["opacity"].requires_grad
-    whole = model.whole()
-    assert whole.num_gaussians == 8
-    torch.testing.assert_close(whole.params["xyz"][5:], held.params["xyz"], rtol=0, atol=0)
+    assert own.params["opacity"].grad is not None and held.params["opacity"].grad is not None
+    assert float(model.penalty().detach()) == 0.0  # at the reference
+
+
+def test_the_pull_and_the_snap_measure_changes_in_each_gaussians_own_units():
+    """Centre in units of the largest scale, time centre in the temporal standard deviation (√Σtt: exp(scaling_t)
+    with identity rotations), the rest as they are; the final model keeps its own rows, the held rows that moved
+    beyond SNAP, then the others set back to the reference exactly."""
+    reference = _gaussians(4, 5)
+    reference.params["scaling"][:] = torch.log(torch.tensor([0.1, 0.2, 0.5]))
+    reference.params["scaling_t"][:] = math.log(2.0)
+    moved = {k: v.clone() for k, v in reference.params.items()}
+    moved["xyz"][0, 1] += 0.04  # 0.08 of its largest scale 0.5: kept
+    moved["xyz"][1, 2] -= 0.06  # 0.12: released
+    moved["t"][2] += 0.3  # 0.15 σ_t: released
+    moved["features_dc"][3, 0, 2] += 0.09  # kept
+    dev = deviation(moved, reference.params, reference.config)
+    torch.testing.assert_close(dev, torch.tensor([0.08, 0.12, 0.15, 0.09]), rtol=1e-5, atol=1e-6)
+    expected = ANCHOR * (0.08 ** 2 + 0.12 ** 2 + 0.15 ** 2 + 0.09 ** 2)
+    assert float(anchor_penalty(moved, reference.params, reference.config)) == pytest.approx(expected, rel=1e-4)
+    own = _gaussians(2, 6)
+    model = HeldGaussians4D(own.params, own.config, moved, reference.params)
+    final, exact = model.whole()
+    assert exact == 2 and final.num_gaussians == 6
+    torch.testing.assert_close(final.params["xyz"][2:4], moved["xyz"][[1, 2]], rtol=0, atol=0)  # changed: own
+    for k, v in reference.params.items():
+        torch.testing.assert_close(final.params[k][4:], v[[0, 3]], rtol=0, atol=0)  # stayed: set back exactly
 
 
 def test_the_held_budget_leaves_the_own_gaussians_what_the_held_do_not_take():
@@ -99,23 +123,31 @@ def load_model_from(model: Gaussians4D):
     return WindowedModel(model.params, model.config, 3, 1)
 
 
-def test_the_trainer_holds_its_held_gaussians_through_density_events(capture, tmp_path):
-    """Densification every 2 steps (statistics of own rows only: held rows' view-space gradients are left out),
-    and the final file holds the own Gaussians, then the held ones unchanged."""
+def test_the_trainer_holds_its_held_gaussians_through_density_events_and_resumes_exactly(capture, tmp_path):
+    """Densification every 2 steps (statistics of own rows only: held rows' view-space gradients are left out);
+    the final file holds the own Gaussians, the held ones that changed, then the others as they were; a run stopped
+    and resumed ends as the uninterrupted one, bit for bit."""
     scene = load_scene(capture, frames=range(0, 6), progress=False)
     cfg = make_config("cpu-small", iterations=6, batch_size=2, checkpoint_interval=0, backend="cpu",
                       num_random_points=100, densify_from=1, densify_interval=2, densify_grad_threshold=0.0)
     held = {k: v.detach().clone() for k, v in _gaussians(20, 4).params.items()}
     held["t"][:] = float(np.mean(scene.time_range))
-    trainer = Trainer(scene, cfg, tmp_path / "run", points=initial_points(scene, "random", cfg), held=held,
-                      progress=False)
+    points = initial_points(scene, "random", cfg)
+    trainer = Trainer(scene, cfg, tmp_path / "run", points=points, held=held, progress=False)
     start = trainer.model.num_gaussians
     result = trainer.run()
     assert trainer.model.num_gaussians > start  # the density events ran
     saved, metadata = load_gaussians(result.model_path)
-    assert metadata["held"] == 20 and saved.num_gaussians == trainer.model.num_gaussians + 20
-    for k, v in held.items():
-        torch.testing.assert_close(saved.params[k][-20:], v, rtol=0, atol=0)
+    exact = metadata["held"]
+    assert 0 < exact <= 20 and saved.num_gaussians == trainer.model.num_gaussians + 20
+    kept = {tuple(row) for row in held["xyz"].tolist()}
+    assert sum(tuple(row) in kept for row in saved.params["xyz"][-exact:].tolist()) == exact  # exact copies
+    Trainer(scene, cfg, tmp_path / "split", points=points, held=held, progress=False).run(stop_at=3)
+    resumed = Trainer(scene, cfg, tmp_path / "split", resume=True, held=held, progress=False).run()
+    again, again_meta = load_gaussians(resumed.model_path)
+    assert again_meta["held"] == exact
+    for k, v in saved.params.items():
+        torch.testing.assert_close(again.params[k], v, rtol=0, atol=0)
 
 
 def test_held_segments_keep_the_segment_befores_lasting_gaussians_exactly(capture, tmp_path):
@@ -130,10 +162,11 @@ def test_held_segments_keep_the_segment_befores_lasting_gaussians_exactly(captur
         count = held["xyz"].shape[0]
         assert count > 0  # the setting gives the check something to hold
         model, metadata = load_gaussians(run / seg["folder"] / "model.safetensors")
-        assert metadata["held"] == count == json.loads((run / seg["folder"] / "config.json").read_text())["held"]
-        assert model.num_gaussians - count <= first - count  # own Gaussians within what the held leave
-        for k, v in held.items():
-            torch.testing.assert_close(model.params[k][-count:], v, rtol=0, atol=0)
+        exact = metadata["held"]
+        assert json.loads((run / seg["folder"] / "config.json").read_text())["held_training"] == count
+        assert 0 < exact <= count and model.num_gaussians <= first  # own within what the held leave
+        rows = {tuple(r) for r in held["xyz"].tolist()}
+        assert all(tuple(r) in rows for r in model.params["xyz"][-exact:].tolist())
 
 
 def test_a_forged_held_count_is_refused_with_one_line():

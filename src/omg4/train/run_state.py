@@ -30,14 +30,16 @@ def checkpoint_paths(run_dir: Path, iteration: int) -> tuple[Path, Path]:
 
 
 def save_run_checkpoint(run_dir: Path, iteration: int, model, optimizer, stats, metadata: dict,
-                        keep_last: int = 2) -> Path:
-    """Write the checkpoint of ``iteration`` and remove older ones beyond ``keep_last``."""
+                        extra_state: dict | None = None, keep_last: int = 2) -> Path:
+    """Write the checkpoint of ``iteration`` (``extra_state``: more of the training state, by name) and remove older
+    ones beyond ``keep_last``."""
     model_path, state_path = checkpoint_paths(run_dir, iteration)
     save_gaussians(model_path, model, {**metadata, "iteration": iteration})
     state = _to_cpu({
         "iteration": iteration,
         "optimizer": optimizer.state_dict(),
         "stats": {"grad_sum": stats.grad_sum, "visible_views": stats.visible_views, "max_radii": stats.max_radii},
+        **(extra_state or {}),
     })
     with atomic_path(state_path) as tmp:
         torch.save(state, tmp)

@@ -41,7 +41,7 @@ from omg4.optimize.step import backward_batch, step_generator
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
-from omg4.train.held import HeldGaussians4D
+from omg4.train.held import HeldGaussians4D, split_held
 from omg4.train.strategies.densification import DensifyStats
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
 from omg4.train.stillness import stillness_penalty
@@ -110,9 +110,9 @@ class Trainer:
     else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
     every that many steps and stops with a one-line error when they differ. ``preset``, the name of the preset
     ``cfg`` started from, is recorded beside it (``config.json``), so a resumed run can check a preset named again.
-    ``held`` (per-Gaussian values by the backbone's names) are Gaussians rendered with the model but held fixed
-    (:mod:`omg4.train.held`): the density control and the budget see the model's own Gaussians only, and the final
-    model holds both.
+    ``held`` (per-Gaussian values by the backbone's names) are Gaussians that train with the model, pulled to those
+    values, outside its density control and budget (:mod:`omg4.train.held`); the final model holds its own
+    Gaussians, the held ones that changed, then those set back to ``held`` exactly.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
@@ -138,12 +138,18 @@ class Trainer:
             "train_config": cfg.to_dict(),
             "world_size": self.world.size,
             **({"preset": preset} if preset else {}),
-            **({"held": int(held["xyz"].shape[0])} if held else {}),
         }
         self.start = 0
         start_it = latest_iteration(self.run_dir) if resume else None
+        current, held_state = None, None
         if start_it is not None:
-            self.model, _, state = load_run_checkpoint(self.run_dir, start_it, self.device)
+            self.model, saved, state = load_run_checkpoint(self.run_dir, start_it, self.device)
+            if held:
+                if saved.get("held_training") != int(held["xyz"].shape[0]) or "held_optimizer" not in state:
+                    raise OMG4Error(f"{self.run_dir}: its checkpoint does not hold the {held['xyz'].shape[0]:,} "
+                                    "Gaussians of the segment before this run holds: use --force to start afresh")
+                self.model, current = split_held(self.model, int(held["xyz"].shape[0]))
+                held_state = state["held_optimizer"]
             self.optimizer = self._make_optimizer()
             self.optimizer.load_state_dict(state["optimizer"])
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
@@ -156,9 +162,16 @@ class Trainer:
             self.model = (model if model is not None else initial_model(scene, cfg, points)).to(self.device)
             self.optimizer = self._make_optimizer()
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
+        self.held_optimizer = None
         if held:
-            self.model = HeldGaussians4D(self.model.params, self.model.config, held, self.model.active_sh_degree,
-                                         self.model.active_sh_degree_t).to(self.device)
+            start = {k: (held if current is None else current)[k].detach().clone().requires_grad_(True)
+                     for k in held}
+            self.model = HeldGaussians4D(self.model.params, self.model.config, start, held,
+                                         self.model.active_sh_degree, self.model.active_sh_degree_t).to(self.device)
+            self.held_optimizer = make_adam(self.model.held, baseline_lrs(cfg, self.extent, self.model.config.schema))
+            if held_state is not None:
+                self.held_optimizer.load_state_dict(held_state)
+            self.metadata["held_training"] = self.model.num_held
         distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
         self.strategy = strategy_for(self.model.config.schema, cfg)
         self.history: list[dict] = []
@@ -171,8 +184,10 @@ class Trainer:
     def train_step(self, step: int) -> tuple[float, float]:
         """One optimizer step (1-based ``step``); returns (mean loss, mean PSNR) of the batch."""
         cfg, model = self.cfg, self.model
-        set_position_lr(self.optimizer, step, init=cfg.position_lr_init, final=cfg.position_lr_final,
-                        extent=self.extent, max_steps=cfg.position_lr_max_steps)
+        for optimizer in (self.optimizer, self.held_optimizer):
+            if optimizer is not None:
+                set_position_lr(optimizer, step, init=cfg.position_lr_init, final=cfg.position_lr_final,
+                                extent=self.extent, max_steps=cfg.position_lr_max_steps)
         model.active_sh_degree, model.active_sh_degree_t = active_sh_degrees(
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
@@ -191,12 +206,14 @@ class Trainer:
             if cfg.still_weight:
                 still = cfg.still_weight * stillness_penalty(model.params, model.config, self.scene.time_range)
                 extra = still if extra is None else extra + still
+            if self.held_optimizer is not None:
+                extra = model.penalty() if extra is None else extra + model.penalty()
             return extra
 
         loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
                                           lambda_dssim=cfg.lambda_dssim, what="training", step=step,
                                           device=self.device, on_views=on_views, regularizer=regularizer)
-        step_optimizers([self.optimizer], self.device)
+        step_optimizers([self.optimizer, self.held_optimizer], self.device)
         self.strategy.after_step(model, self.optimizer, self.stats, step, self.extent)
         return loss, batch_psnr
 
@@ -204,7 +221,10 @@ class Trainer:
         """Write the checkpoint of ``step`` (rank 0; the statistics of every rank combined)."""
         stats = self.stats.combined()
         if self.world.main:
-            save_run_checkpoint(self.run_dir, step, self.model, self.optimizer, stats, self.metadata)
+            held = self.held_optimizer is not None
+            save_run_checkpoint(self.run_dir, step, self.model.training_state() if held else self.model,
+                                self.optimizer, stats, self.metadata,
+                                {"held_optimizer": self.held_optimizer.state_dict()} if held else None)
         distributed.barrier("writing a checkpoint")
         return self.run_dir
 
@@ -259,8 +279,14 @@ class Trainer:
         self.save_checkpoint(end)
         model_path = self.run_dir / "model.safetensors"
         if end == cfg.iterations and self.world.main:
-            final = self.model.whole() if isinstance(self.model, HeldGaussians4D) else self.model
-            save_gaussians(model_path, final, {**self.metadata, "iteration": end})
+            final, extra = self.model, {}
+            if self.held_optimizer is not None:
+                final, exact = self.model.whole()
+                extra = {"held": exact}
+                self.log(f"held Gaussians: {exact:,} of {self.model.num_held:,} stayed at the segment before's and are "
+                         "kept exactly; the others changed and are this segment's own")
+            metadata = {k: v for k, v in self.metadata.items() if k != "held_training"}
+            save_gaussians(model_path, final, {**metadata, **extra, "iteration": end})
         return TrainResult(self.model, model_path, end, wall, self.history)
 
     def _log_estimate(self, seconds: float, step: int, end: int) -> None:
