@@ -161,8 +161,8 @@ class CompressionPipeline:
     In a distributed job (:mod:`omg4.distributed`) every rank runs the same stages on a replica, scores and
     fine-tunes on its share of the views, and rank 0 alone logs; ``check_replicas`` > 0 compares the replicas
     every that many iterations. The last ``held`` Gaussians of ``baseline`` are copies of the segment before's that
-    training held fixed (:mod:`omg4.train.held`): a predicted segment that carries that segment's decoded base layer
-    (:meth:`_carry`) drops those that remain, as it drops its own lasting Gaussians the base layer covers.
+    training held and kept exactly (:mod:`omg4.train.held`): a predicted segment that carries that segment's decoded
+    base layer (:meth:`_carry`) drops those that remain, as it drops its own lasting Gaussians the base layer covers.
     """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,

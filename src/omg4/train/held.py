@@ -57,8 +57,10 @@ def _units(reference: dict[str, torch.Tensor], config) -> dict[str, torch.Tensor
 
 
 def _scaled_changes(values, reference, config):
+    """Per attribute, [H, width] changes of ``values`` from ``reference`` in the units of :func:`_units`."""
     units = _units(reference, config)
-    return {k: (values[k] - reference[k].to(values[k].device)).reshape(len(units[k]), -1) / units[k].to(values[k].device)
+    device = values["xyz"].device
+    return {k: (values[k] - reference[k].to(device)).reshape(len(units[k]), -1) / units[k].to(device)
             for k in reference}
 
 

@@ -13,7 +13,8 @@ first step, and it learns those frames as the crossfade from that segment's rend
 (:func:`omg4.optimize.teaching.taught_by`), so the blend of the two models moves from one to the other without a jump. Such a segment
 holds at most as many Gaussians as the first one (:func:`segment_budget`), so memory stays flat however long the
 capture. ``teach=False``, and ``parallel="segments"``, where the segment before may not be trained yet, start every
-segment afresh and learn every frame from the video.
+segment afresh and learn every frame from the video. With ``hold`` a segment also holds the segment before's lasting
+Gaussians at their values there (:mod:`omg4.train.held`), and its own Gaussians get the budget they leave.
 """
 
 from __future__ import annotations
@@ -104,8 +105,8 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: dict[
     segment before never showed, as many as ``cfg.strategy.max_gaussians`` leaves room for (the most opaque carried
     Gaussians first when they alone exceed it).
 
-    ``held``, the teacher's Gaussians held fixed (:func:`omg4.train.held.held_layer`), are left out of the model, and
-    the Gaussians made from ``points`` leave out the points they cover (within their largest scale)."""
+    ``held``, the teacher's Gaussians the segment holds (:func:`omg4.train.held.held_layer`), are left out of the
+    model, and the Gaussians made from ``points`` leave out the points they cover (within their largest scale)."""
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
     var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
@@ -140,7 +141,7 @@ def covered(xyz: torch.Tensor, held: dict[str, torch.Tensor]) -> torch.Tensor:
 def segment_budget(cfg: TrainConfig, first_count: int, held: int = 0) -> TrainConfig:
     """The training settings of a segment that starts from the one before (:func:`warm_start`): at most as many
     Gaussians as the first segment, which learnt from the video alone, holds (``first_count``), or
-    ``cfg.strategy.max_gaussians`` when that is smaller; ``held`` Gaussians held fixed (:mod:`omg4.train.held`)
+    ``cfg.strategy.max_gaussians`` when that is smaller; ``held`` Gaussians held (:mod:`omg4.train.held`)
     take their share of it, so the segment's own Gaussians are left what the held ones do not already show. Without
     it the carried Gaussians stay and densification adds a fresh segment's worth on top, so every segment would be
     larger than the one before."""
@@ -154,7 +155,8 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
                    teach: bool = True, hold: bool = False, log=None, preset: str | None = None) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
     order; with ``parallel="segments"`` the others' segments are read from their folders). With ``hold`` (and
-    ``teach``) a segment holds the lasting Gaussians of the one before fixed (:mod:`omg4.train.held`)."""
+    ``teach``) a segment holds the lasting Gaussians of the one before at their values there
+    (:mod:`omg4.train.held`)."""
     log = log or logger.info
     if parallel not in PARALLEL_MODES:
         raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")

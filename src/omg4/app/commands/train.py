@@ -75,8 +75,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                                "has no jump)")
     segments.add_argument("--hold-lasting", action="store_true",
                           help="a segment holds the Gaussians of the one before that last through its frames and stay "
-                               "put fixed, and learns only what they do not show (not with --independent-segments); "
-                               "compress then carries them as a base layer coded once")
+                               "put: they train pulled to their values there and are set back to them where they "
+                               "stayed, while its own Gaussians learn what they do not show (not with "
+                               "--independent-segments); compress then carries them as a base layer coded once")
     segments.add_argument("--parallel", choices=PARALLEL_MODES, default=PARALLEL_MODES[0],
                           help="in a distributed run: every rank trains every segment together (data, the default) or "
                                "each rank trains whole segments on its own (segments)")
