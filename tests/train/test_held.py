@@ -65,10 +65,11 @@ def test_held_gaussians_render_after_the_models_own_and_train_with_them():
     assert float(model.penalty().detach()) == 0.0  # at the reference
 
 
-def test_the_pull_and_the_snap_measure_changes_in_each_gaussians_own_units():
+def test_the_pull_and_the_snap_measure_changes_of_geometry_in_each_gaussians_own_units():
     """Centre in units of the largest scale, time centre in the temporal standard deviation (√Σtt: exp(scaling_t)
-    with identity rotations), the rest as they are; the final model keeps its own rows, the held rows that moved
-    beyond SNAP, then the others set back to the reference exactly."""
+    with identity rotations), other geometry as it is, appearance (opacity, SH) not at all; the final model keeps
+    its own rows, the held rows that moved beyond SNAP, then the others with their geometry set back to the reference
+    exactly and their appearance as trained."""
     reference = _gaussians(4, 5)
     reference.params["scaling"][:] = torch.log(torch.tensor([0.1, 0.2, 0.5]))
     reference.params["scaling_t"][:] = math.log(2.0)
@@ -76,18 +77,21 @@ def test_the_pull_and_the_snap_measure_changes_in_each_gaussians_own_units():
     moved["xyz"][0, 1] += 0.04  # 0.08 of its largest scale 0.5: kept
     moved["xyz"][1, 2] -= 0.06  # 0.12: released
     moved["t"][2] += 0.3  # 0.15 σ_t: released
-    moved["features_dc"][3, 0, 2] += 0.09  # kept
+    moved["rotation"][3, 0] += 0.09  # kept
+    moved["features_dc"][0] += 5.0  # appearance: free
+    moved["opacity"][3] -= 3.0
     dev = deviation(moved, reference.params, reference.config)
     torch.testing.assert_close(dev, torch.tensor([0.08, 0.12, 0.15, 0.09]), rtol=1e-5, atol=1e-6)
     expected = ANCHOR * (0.08 ** 2 + 0.12 ** 2 + 0.15 ** 2 + 0.09 ** 2)
     assert float(anchor_penalty(moved, reference.params, reference.config)) == pytest.approx(expected, rel=1e-4)
     own = _gaussians(2, 6)
     model = HeldGaussians4D(own.params, own.config, moved, reference.params)
-    final, exact = model.whole()
-    assert exact == 2 and final.num_gaussians == 6
-    torch.testing.assert_close(final.params["xyz"][2:4], moved["xyz"][[1, 2]], rtol=0, atol=0)  # changed: own
-    for k, v in reference.params.items():
-        torch.testing.assert_close(final.params[k][4:], v[[0, 3]], rtol=0, atol=0)  # stayed: set back exactly
+    final, held = model.whole()
+    assert held == 2 and final.num_gaussians == 6
+    torch.testing.assert_close(final.params["xyz"][2:4], moved["xyz"][[1, 2]], rtol=0, atol=0)  # moved: own
+    for k, v in reference.params.items():  # stayed: geometry as the reference, appearance as trained
+        expected_rows = (moved if k in ("opacity", "features_dc", "features_rest") else reference.params)[k][[0, 3]]
+        torch.testing.assert_close(final.params[k][4:], expected_rows, rtol=0, atol=0)
 
 
 def test_the_held_budget_leaves_the_own_gaussians_what_the_held_do_not_take():

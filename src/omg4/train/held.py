@@ -1,18 +1,20 @@
-"""Lasting Gaussians of the segment before, held at their reference while a segment trains (beyond the paper).
+"""Lasting Gaussians of the segment before, held in place while a segment trains (beyond the paper).
 
 A long capture's lasting content — the static set, the slow background — is learnt by the first segment; a segment
 that starts from the one before (:func:`omg4.train.segmented.warm_start`) takes the segment before's Gaussians that
 last through its own time range and stay put there (:func:`omg4.compress.carry_stage.lasting`, the rule by which
 compression carries them as a base layer) and **holds** them: they train with the segment's own Gaussians but
-outside its density control (never densified, pruned or reset, not counted in its Gaussian budget), each pulled to
-its values in the segment before by :func:`anchor_penalty`, so they move only where the video says they changed.
-When training ends, every held Gaussian within :data:`SNAP` of its reference (:func:`deviation`) is set back to it
-exactly; the others — changed content — become the segment's own. The segment's own Gaussians learn what the held
-ones do not show, so their number follows its new and changed content, and the exact copies are what compression
-replaces by the segment before's decoded base layer at about a bit each (docs/file-format.md §8b).
+outside its density control (never densified, pruned or reset, not counted in its Gaussian budget), their geometry
+pulled to its values in the segment before by :func:`anchor_penalty`, so they move only where the video says they
+moved; their appearance (opacity and SH, what compression's appearance MLPs replace, paper §4.4) follows the video
+freely — a change of exposure or light is not a change of place. When training ends, every held Gaussian whose
+geometry stayed within :data:`SNAP` of its reference (:func:`deviation`) has it set back exactly; the others —
+content that moved — become the segment's own. The segment's own Gaussians learn what the held ones do not show, so
+their number follows its new and changed content, and the held ones are what compression replaces by the segment
+before's decoded base layer at about a bit each (docs/file-format.md §8b), coloured by the segment's own MLPs.
 
 A run's checkpoints hold the held Gaussians as they train after its own (``held_training`` in their metadata), so a
-stopped run resumes exactly; its final ``model.safetensors`` holds its own Gaussians, then the exact copies
+stopped run resumes exactly; its final ``model.safetensors`` holds its own Gaussians, then the held ones
 (``held``: their count), so every reader takes it as a plain model.
 """
 
@@ -25,12 +27,12 @@ from omg4.compress.carry_stage import lasting
 from omg4.gaussians.model import Gaussians4D, slice_values
 
 ANCHOR = 1e-3
-"""Weight of the pull of each held Gaussian to its reference (:func:`anchor_penalty`), per Gaussian."""
+"""Weight of the pull of each held Gaussian's geometry to its reference (:func:`anchor_penalty`), per Gaussian."""
 
 SNAP = 0.1
-"""A held Gaussian whose every value is within this of its reference (:func:`deviation`) is set back to it when
+"""A held Gaussian whose geometry is within this of its reference (:func:`deviation`) is set back to it when
 training ends: its centre within a tenth of its largest scale, its time centre within a tenth of its temporal
-standard deviation, every other value (log-scales, rotations, opacity logit, SH coefficients) within 0.1."""
+standard deviation, every other geometric value (log-scales, rotations, motion) within 0.1."""
 
 
 def held_rows(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
@@ -48,32 +50,33 @@ def held_layer(teacher, time_range: tuple[float, float]) -> dict[str, torch.Tens
 
 
 def _units(reference: dict[str, torch.Tensor], config) -> dict[str, torch.Tensor]:
-    """Per row, the unit each attribute's change is measured in (:data:`SNAP`): [H, 1] each."""
+    """Per row, the unit each geometric attribute's change is measured in (:data:`SNAP`): [H, 1] each."""
     size = reference["scaling"].detach().max(dim=1, keepdim=True).values.exp()
     var_t = config.schema.motion({k: v.detach() for k, v in reference.items()}, config)[2]
     ones = torch.ones_like(size)
     return {k: size if k == "xyz" else var_t.reshape(-1, 1).clamp_min(1e-12).sqrt().to(size.dtype) if k == "t"
-            else ones for k in reference}
+            else ones for k in reference if k not in config.schema.by_mlp}
 
 
 def _scaled_changes(values, reference, config):
-    """Per attribute, [H, width] changes of ``values`` from ``reference`` in the units of :func:`_units`."""
+    """Per geometric attribute, [H, width] changes of ``values`` from ``reference`` in the units of :func:`_units`."""
     units = _units(reference, config)
     device = values["xyz"].device
     return {k: (values[k] - reference[k].to(device)).reshape(len(units[k]), -1) / units[k].to(device)
-            for k in reference}
+            for k in units}
 
 
 def anchor_penalty(values: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config) -> torch.Tensor:
-    """:data:`ANCHOR` × Σ over held Gaussians and their values of the squared change from ``reference`` in the units
-    of :func:`deviation`: zero at the reference, so a Gaussian the video does not move stays there."""
+    """:data:`ANCHOR` × Σ over held Gaussians and their geometric values of the squared change from ``reference`` in
+    the units of :func:`deviation`: zero at the reference, so a Gaussian the video does not move stays there."""
     changes = _scaled_changes(values, reference, config)
     return ANCHOR * sum(c.square().sum() for c in changes.values())
 
 
 def deviation(values: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config) -> torch.Tensor:
-    """[H] the largest change of each held Gaussian's values from ``reference`` (centre in units of its largest
-    scale, time centre in its temporal standard deviation, the rest as they are)."""
+    """[H] the largest change of each held Gaussian's geometry from ``reference`` (centre in units of its largest
+    scale, time centre in its temporal standard deviation, the other geometric values as they are; appearance,
+    the backbone's ``by_mlp`` attributes, is left out)."""
     with torch.no_grad():
         changes = _scaled_changes(values, reference, config)
         return torch.stack([c.abs().amax(dim=1) for c in changes.values()]).amax(dim=0)
@@ -115,11 +118,16 @@ class HeldGaussians4D(Gaussians4D):
                            self.config, self.active_sh_degree, self.active_sh_degree_t)
 
     def whole(self) -> tuple[Gaussians4D, int]:
-        """(the final model, how many exact copies end it): own Gaussians, the held ones that moved beyond
-        :data:`SNAP` (changed content, now the segment's own), then the others set back to their reference."""
+        """(the final model, how many held Gaussians end it): own Gaussians, the held ones that moved beyond
+        :data:`SNAP` (changed content, now the segment's own), then the others with their geometry set back to their
+        reference exactly and their appearance as trained."""
         kept = deviation(self.held, self.reference, self.config) <= SNAP
-        params = {k: torch.cat([v.detach(), self.held[k].detach()[~kept], self.reference[k].to(v.device)[kept]])
-                  for k, v in self.params.items()}
+        appearance = self.config.schema.by_mlp
+
+        def stayed(k: str) -> torch.Tensor:
+            return (self.held[k].detach() if k in appearance else self.reference[k].to(self.held[k].device))[kept]
+
+        params = {k: torch.cat([v.detach(), self.held[k].detach()[~kept], stayed(k)]) for k, v in self.params.items()}
         return Gaussians4D(params, self.config, self.active_sh_degree, self.active_sh_degree_t), int(kept.sum())
 
 
