@@ -3,9 +3,10 @@
 One predicted segment of a segmented training run (``--segment``, default 1), compressed from the segment before as
 it decoded from an existing sequence file (so the key segment is the same in every row), once per ``--variants``
 entry: a ``carry`` setting (``0``, ``lasting``, ``auto`` or a tolerance), optionally with ``COVER``,
-``LASTING_MARGINAL`` or ``STILL`` of :mod:`omg4.compress.carry_stage` set for that run (``lasting:cover=0.5``,
-``lasting:margin=0.8``, ``lasting:still=1e9`` for no limit on motion). Each row: the segment's bytes, its own and carried Gaussians, and PSNR / SSIM on the
-test camera over the segment's frames. Every compression runs in a fresh process, one at a time.
+``LASTING_MARGINAL`` or ``STILL`` (:mod:`omg4.compress.carry_stage`, :mod:`omg4.gaussians.visibility`) set for that
+run (``lasting:cover=0.5``, ``lasting:margin=0.8``, ``lasting:still=1e9`` for no limit on motion). Each row: the
+segment's bytes, its own and carried Gaussians, and PSNR / SSIM on the test camera over the segment's frames. Every
+compression runs in a fresh process, one at a time.
 
 Usage::
 
@@ -26,6 +27,8 @@ from omg4.testing.records import save_record
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 KNOBS = {"cover": "COVER", "margin": "LASTING_MARGINAL", "still": "STILL"}
+"""Variant knobs and the constants they set: ``COVER`` in omg4.compress.carry_stage, the others in
+omg4.gaussians.visibility (the lasting rule)."""
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, float]]:
@@ -45,6 +48,7 @@ def one(args, setting: str, knobs: dict[str, float], out: Path) -> dict:
     import time
 
     import omg4.compress.carry_stage as carry_stage
+    import omg4.gaussians.visibility as visibility
     from omg4.codec.payload import decode_payload
     from omg4.codec.references import reference_sections
     from omg4.codec.sequence import SegmentDecoder
@@ -58,7 +62,7 @@ def one(args, setting: str, knobs: dict[str, float], out: Path) -> dict:
     from omg4.optimize.teaching import taught_by
 
     for name, value in knobs.items():
-        setattr(carry_stage, name, value)
+        setattr(carry_stage if name == "COVER" else visibility, name, value)
     plan = read_run_plan(args.run)
     k = args.segment
     before = SegmentDecoder(args.sequence).payload(k - 1)

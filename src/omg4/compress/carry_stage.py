@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from omg4.gaussians.visibility import least_marginal
+from omg4.gaussians.visibility import LASTING_MARGINAL, STILL, lasting
 
 
 CANDIDATES = 8
@@ -44,31 +44,12 @@ AUTO = "auto"
 LASTING = "lasting"
 """The ``carry`` setting that carries the segment before's lasting Gaussians as a base layer (:func:`base_layer`)."""
 
-LASTING_MARGINAL = 0.5
-"""A Gaussian lasts through a segment when its temporal marginal is at least this at both ends of the segment's time
-range (so everywhere between: the marginal is unimodal)..."""
-
-STILL = 1.0
-"""... and stays put: its centre moves (velocity × time from its time centre) at most this many of its largest scale
-anywhere in the segment. A Gaussian fitted to one segment's frames and carried on with its motion extrapolated would
-otherwise drift from where the video shows its content."""
-
 COVER = 1.0
 """An own lasting Gaussian is covered by the base layer when a carried centre lies within this many of its largest
 scale."""
 
 AUTO_MIN_COVERED = 0.1
 """``auto`` carries the base layer where at least this share of a segment's Gaussians are covered by it."""
-
-def lasting(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
-    """[N] bool: which Gaussians last through ``time_range`` and stay put there (:data:`LASTING_MARGINAL` at both its
-    ends, the temporal variance and the velocity in the backbone's own terms, rt4dgs §1.4; :data:`STILL`)."""
-    values = {k: v.detach().cpu() for k, v in values.items()}
-    velocity, _, var_t = config.schema.motion(values, config)
-    mu = values["t"].double().reshape(-1)
-    moved = velocity.double().norm(dim=1) * torch.maximum(*[(mu - end).abs() for end in time_range])
-    size = values["scaling"].double().max(dim=1).values.exp()
-    return ((least_marginal(mu, var_t, *time_range) >= LASTING_MARGINAL) & (moved <= STILL * size)).numpy()
 
 
 def base_layer(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], config,

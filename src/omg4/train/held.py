@@ -2,7 +2,7 @@
 
 A long capture's lasting content — the static set, the slow background — is learnt by the first segment; a segment
 that starts from the one before (:func:`omg4.train.segmented.warm_start`) takes the segment before's Gaussians that
-last through its own time range and stay put there (:func:`omg4.compress.carry_stage.lasting`, the rule by which
+last through its own time range and stay put there (:func:`omg4.gaussians.visibility.lasting`, the rule by which
 compression carries them as a base layer) and **holds** them: they train with the segment's own Gaussians but
 outside its density control (never densified, pruned or reset, not counted in its Gaussian budget), their geometry
 pulled to its values in the segment before by :func:`anchor_penalty`, so they move only where the video says they
@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from omg4.compress.carry_stage import lasting
 from omg4.gaussians.model import Gaussians4D, slice_values
+from omg4.gaussians.visibility import lasting
 
 ANCHOR = 1e-3
 """Weight of the pull of each held Gaussian's geometry to its reference (:func:`anchor_penalty`), per Gaussian."""
@@ -37,7 +37,7 @@ standard deviation, every other geometric value (log-scales, rotations, motion) 
 
 def held_rows(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
     """Rows of the segment before's Gaussians (``values``, ``config``) that a segment of ``time_range`` holds: those
-    that last through it and stay put there (:func:`~omg4.compress.carry_stage.lasting`)."""
+    that last through it and stay put there (:func:`~omg4.gaussians.visibility.lasting`)."""
     return np.flatnonzero(lasting(values, config, time_range))
 
 
