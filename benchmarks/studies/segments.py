@@ -340,7 +340,7 @@ def main() -> None:
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
     r.add_argument("--hold-lasting", action="store_true",
-                   help="each segment holds the lasting Gaussians of the one before fixed (omg4 train --hold-lasting)")
+                   help="each segment holds the lasting Gaussians of the one before (omg4 train --hold-lasting)")
     r.add_argument("--still-weight", type=float, default=0.0,
                    help="training's penalty on the motion of lasting Gaussians (omg4 train --still-weight)")
     r.add_argument("--carry",

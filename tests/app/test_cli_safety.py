@@ -470,6 +470,8 @@ def test_bench_refuses_a_control_that_is_no_baseline_of_the_same_backbone(tiny_s
 def test_holding_lasting_gaussians_needs_segments_taught_by_the_one_before(tiny_scene_dir, tmp_path, capsys):
     base = ["train", str(tiny_scene_dir), "--out", str(tmp_path / "run"), "--iterations", "2", "--hold-lasting"]
     _failed(base, capsys, contains="--hold-lasting needs --segment-frames")
-    _failed([*base, "--segment-frames", "3", "--independent-segments"], capsys,
-            contains="--hold-lasting holds the segment before's Gaussians: not with --independent-segments")
+    for other in (["--independent-segments"], ["--parallel", "segments"]):
+        _failed([*base, "--segment-frames", "3", *other], capsys,
+                contains="--hold-lasting holds the segment before's Gaussians: not with --independent-segments or "
+                         "--parallel segments")
     assert not (tmp_path / "run").exists()

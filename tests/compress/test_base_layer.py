@@ -113,7 +113,7 @@ def test_a_change_in_one_region_is_paid_only_there(capture, tmp_path):
 
 
 def test_the_copies_training_held_are_dropped_for_the_base_layer(capture, tmp_path):
-    """A baseline whose last rows are copies of the segment before's that training held fixed (omg4.train.held):
+    """A baseline whose last rows are the segment before's Gaussians that training held (omg4.train.held):
     the base layer stands in for them whether or not it covers them. Here they lie away from every carried centre
     (not covered), so without the held count they stay as the segment's own."""
     scene, _, changed, cfg, key = capture

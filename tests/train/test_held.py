@@ -1,4 +1,4 @@
-"""Lasting Gaussians of the segment before held fixed while a segment trains (omg4.train.held)."""
+"""Lasting Gaussians of the segment before held while a segment trains (omg4.train.held)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import torch
 
 from omg4.data import load_scene
 from omg4.data.segments import plan_segments
+from omg4.errors import OMG4Error
 from omg4.gaussians.checkpoint import load_gaussians
 from omg4.gaussians.model import GaussianConfig, Gaussians4D
 from omg4.models import load_model
@@ -147,6 +148,9 @@ def test_the_trainer_holds_its_held_gaussians_through_density_events_and_resumes
     kept = {tuple(row) for row in held["xyz"].tolist()}
     assert sum(tuple(row) in kept for row in saved.params["xyz"][-exact:].tolist()) == exact  # exact copies
     Trainer(scene, cfg, tmp_path / "split", points=points, held=held, progress=False).run(stop_at=3)
+    with pytest.raises(OMG4Error, match=r"trains 20 Gaussians held from the segment before: resume it with "
+                                        r"--hold-lasting"):
+        Trainer(scene, cfg, tmp_path / "split", resume=True, progress=False)
     resumed = Trainer(scene, cfg, tmp_path / "split", resume=True, held=held, progress=False).run()
     again, again_meta = load_gaussians(resumed.model_path)
     assert again_meta["held"] == exact
@@ -183,3 +187,10 @@ def test_a_forged_held_count_is_refused_with_one_line():
         with pytest.raises(CorruptFileError, match=r"^m.safetensors: the held count .* is not an integer from 0 to "
                                                    r"the model's 4 Gaussians$"):
             held_count("m.safetensors", {"held": forged}, model)
+
+
+def test_holding_needs_segments_taught_by_the_one_before(capture, tmp_path):
+    plan = segment_plan(plan_segments(12, 6, 2), fps=30.0, first_frame=0, segment_frames=6, overlap=2)
+    for options in ({"teach": False}, {"parallel": "segments"}):
+        with pytest.raises(OMG4Error, match="needs segments taught by it"):
+            train_segments(tmp_path, plan, CFG, None, None, hold=True, log=lambda *_: None, **options)

@@ -94,7 +94,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     segment before, decoded; the compression keeps its codebooks and starts from its appearance MLPs
     (``cfg.predicted_mlp``), and the file stores what it kept as references to it, the MLPs as their change, and no
     camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a). ``held``: how many of
-    ``baseline``'s last Gaussians training kept as exact copies of the segment before's (the ``held`` of its file's
+    ``baseline``'s last Gaussians training held with the segment before's geometry (the ``held`` of its file's
     metadata; :class:`CompressionPipeline`).
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
@@ -168,7 +168,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
 
 
 def held_count(path: Path, metadata: dict, baseline: Gaussians4D) -> int:
-    """How many of ``baseline``'s last Gaussians are exact copies of the segment before's that its training held
+    """How many of ``baseline``'s last Gaussians its training held with the segment before's geometry
     (:mod:`omg4.train.held`), from the ``metadata`` of its file ``path``; a count that is not an integer from 0 to the
     model's is a one-line error."""
     held = metadata.get("held", 0)

@@ -5,9 +5,9 @@ A long capture's lasting content — the static set, the slow background — is 
 learns it again, each a little differently, so coded segment by segment it is paid for in each. At the appearance
 stage (paper §4.4), when a predicted segment switches to the segment before's MLPs, it takes instead the segment
 before's decoded Gaussians that last through its own time range and stay put there — temporal marginal at least
-:data:`LASTING_MARGINAL` at both ends, the time scale in the backbone's own terms (√Σtt of Real-Time4DGS's 4D
-covariance, rt4dgs §1.4; FreeTimeGS's duration), and a centre that moves at most :data:`STILL` of its size — as a
-**base layer**, fixed and exactly as they decoded there, so
+``LASTING_MARGINAL`` at both ends, the time scale in the backbone's own terms (√Σtt of Real-Time4DGS's 4D
+covariance, rt4dgs §1.4; FreeTimeGS's duration), and a centre that moves at most ``STILL`` of its size
+(:func:`omg4.gaussians.visibility.lasting`) — as a **base layer**, fixed and exactly as they decoded there, so
 the file names each with about a bit (:mod:`omg4.codec.carry`); and it drops its own lasting Gaussians that the base
 layer covers (a carried centre within :data:`COVER` of their largest scale). What remains of its own is what it
 adds — new and changed content — so its Gaussian budget follows that (:func:`base_layer`); the fine-tuning that
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from omg4.gaussians.visibility import LASTING_MARGINAL, STILL, lasting
+from omg4.gaussians.visibility import lasting
 
 
 CANDIDATES = 8
@@ -158,5 +158,5 @@ def valid_setting(setting) -> bool:
         and setting >= 0
 
 
-__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "LASTING_MARGINAL", "STILL", "CarryDecision",
-           "base_layer", "carry_matches", "chosen_carry", "lasting", "valid_setting"]
+__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "CarryDecision",
+           "base_layer", "carry_matches", "chosen_carry", "valid_setting"]

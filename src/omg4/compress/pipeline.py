@@ -160,8 +160,8 @@ class CompressionPipeline:
     an unusable device, or one that does not suit ``cfg.backend``, is an :class:`OMG4Error` here.
     In a distributed job (:mod:`omg4.distributed`) every rank runs the same stages on a replica, scores and
     fine-tunes on its share of the views, and rank 0 alone logs; ``check_replicas`` > 0 compares the replicas
-    every that many iterations. The last ``held`` Gaussians of ``baseline`` are copies of the segment before's that
-    training held and kept exactly (:mod:`omg4.train.held`): a predicted segment that carries that segment's decoded
+    every that many iterations. The last ``held`` Gaussians of ``baseline`` are the segment before's that training
+    held, with their geometry there (:mod:`omg4.train.held`): a predicted segment that carries that segment's decoded
     base layer (:meth:`_carry`) drops those that remain, as it drops its own lasting Gaussians the base layer covers.
     """
 

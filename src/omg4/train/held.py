@@ -92,7 +92,7 @@ class HeldGaussians4D(Gaussians4D):
                  active_sh_degree_t: int | None = None):
         super().__init__(params, config, active_sh_degree, active_sh_degree_t)
         self.held = held
-        self.reference = {k: reference[k].detach() for k in config.schema.param_names}
+        self.reference = {k: reference[k].detach().clone() for k in config.schema.param_names}
 
     @property
     def num_held(self) -> int:
@@ -135,9 +135,9 @@ def split_held(model: Gaussians4D, count: int) -> tuple[Gaussians4D, dict[str, t
     """A checkpoint's model (:meth:`HeldGaussians4D.training_state`) parted into its own Gaussians and the last
     ``count``, the held ones."""
     n = model.num_gaussians - count
-    own = Gaussians4D({k: v.detach()[:n] for k, v in model.params.items()}, model.config, model.active_sh_degree,
-                      model.active_sh_degree_t)
-    return own, {k: v.detach()[n:] for k, v in model.params.items()}
+    own = Gaussians4D({k: v.detach()[:n].clone() for k, v in model.params.items()}, model.config,
+                      model.active_sh_degree, model.active_sh_degree_t)
+    return own, {k: v.detach()[n:].clone() for k, v in model.params.items()}
 
 
 __all__ = ["ANCHOR", "SNAP", "held_rows", "held_layer", "anchor_penalty", "deviation", "HeldGaussians4D",

@@ -14,7 +14,8 @@ first step, and it learns those frames as the crossfade from that segment's rend
 holds at most as many Gaussians as the first one (:func:`segment_budget`), so memory stays flat however long the
 capture. ``teach=False``, and ``parallel="segments"``, where the segment before may not be trained yet, start every
 segment afresh and learn every frame from the video. With ``hold`` a segment also holds the segment before's lasting
-Gaussians at their values there (:mod:`omg4.train.held`), and its own Gaussians get the budget they leave.
+Gaussians, their geometry pulled to its values there (:mod:`omg4.train.held`), and its own Gaussians get the budget
+they leave.
 """
 
 from __future__ import annotations
@@ -155,11 +156,13 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
                    teach: bool = True, hold: bool = False, log=None, preset: str | None = None) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
     order; with ``parallel="segments"`` the others' segments are read from their folders). With ``hold`` (and
-    ``teach``) a segment holds the lasting Gaussians of the one before at their values there
-    (:mod:`omg4.train.held`)."""
+    ``teach``, not ``parallel="segments"``) a segment holds the lasting Gaussians of the one before, their geometry
+    pulled to its values there (:mod:`omg4.train.held`)."""
     log = log or logger.info
     if parallel not in PARALLEL_MODES:
         raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")
+    if hold and (not teach or parallel == "segments"):
+        raise OMG4Error("holding the segment before's Gaussians needs segments taught by it (teach, parallel=\"data\")")
     world = distributed.world()
     mine = world.shard(plan["segments"]) if parallel == "segments" else plan["segments"]
     for seg in mine:

@@ -110,9 +110,9 @@ class Trainer:
     else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
     every that many steps and stops with a one-line error when they differ. ``preset``, the name of the preset
     ``cfg`` started from, is recorded beside it (``config.json``), so a resumed run can check a preset named again.
-    ``held`` (per-Gaussian values by the backbone's names) are Gaussians that train with the model, pulled to those
-    values, outside its density control and budget (:mod:`omg4.train.held`); the final model holds its own
-    Gaussians, the held ones that changed, then those set back to ``held`` exactly.
+    ``held`` (per-Gaussian values by the backbone's names) are Gaussians that train with the model outside its density
+    control and budget, their geometry pulled to those values (:mod:`omg4.train.held`); the final model holds its own
+    Gaussians, the held ones that moved, then the others with their geometry set back to ``held`` exactly.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
@@ -150,6 +150,9 @@ class Trainer:
                                     "Gaussians of the segment before this run holds: use --force to start afresh")
                 self.model, current = split_held(self.model, int(held["xyz"].shape[0]))
                 held_state = state["held_optimizer"]
+            elif "held_training" in saved:
+                raise OMG4Error(f"{self.run_dir}: its checkpoint trains {saved['held_training']} Gaussians held from the "
+                                "segment before: resume it with --hold-lasting, or use --force to start afresh")
             self.optimizer = self._make_optimizer()
             self.optimizer.load_state_dict(state["optimizer"])
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
@@ -172,9 +175,14 @@ class Trainer:
             if held_state is not None:
                 self.held_optimizer.load_state_dict(held_state)
             self.metadata["held_training"] = self.model.num_held
-        distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
+        distributed.broadcast_(self._replicated())  # every replica starts from rank 0's model
         self.strategy = strategy_for(self.model.config.schema, cfg)
         self.history: list[dict] = []
+
+    def _replicated(self) -> list[torch.Tensor]:
+        """The tensors every replica of a distributed job holds alike: the model's, and its held Gaussians'."""
+        held = list(self.model.held.values()) if self.held_optimizer is not None else []
+        return [*self.model.params.values(), *held]
 
     def _make_optimizer(self) -> torch.optim.Adam:
         for p in self.model.params.values():
@@ -265,7 +273,7 @@ class Trainer:
                 if cfg.checkpoint_interval and step % cfg.checkpoint_interval == 0 and step != end:
                     self.save_checkpoint(step)
                 if self.check_replicas and step % self.check_replicas == 0:
-                    distributed.check_replicas(list(self.model.params.values()), step)
+                    distributed.check_replicas(self._replicated(), step)
                 if interrupted():
                     break
         bar.close()
@@ -278,16 +286,17 @@ class Trainer:
         wall = time.perf_counter() - t0
         self.save_checkpoint(end)
         model_path = self.run_dir / "model.safetensors"
+        final, extra = self.model, {}
+        if self.held_optimizer is not None:
+            final, kept = self.model.whole()
+            extra = {"held": kept}
         if end == cfg.iterations and self.world.main:
-            final, extra = self.model, {}
             if self.held_optimizer is not None:
-                final, exact = self.model.whole()
-                extra = {"held": exact}
-                self.log(f"held Gaussians: {exact:,} of {self.model.num_held:,} stayed at the segment before's and are "
-                         "kept exactly; the others changed and are this segment's own")
+                self.log(f"held Gaussians: {kept:,} of {self.model.num_held:,} stayed where the segment before had them "
+                         "and take its geometry exactly; the others moved and are this segment's own")
             metadata = {k: v for k, v in self.metadata.items() if k != "held_training"}
             save_gaussians(model_path, final, {**metadata, **extra, "iteration": end})
-        return TrainResult(self.model, model_path, end, wall, self.history)
+        return TrainResult(final, model_path, end, wall, self.history)
 
     def _log_estimate(self, seconds: float, step: int, end: int) -> None:
         """The time the rest of the run will take at the rate of its first steps (the first step's one-off work

@@ -147,8 +147,9 @@ def run(args) -> int:
             budget = cfg.strategy.max_gaussians
             cap = f"at most {budget:,} Gaussians" if budget else "no cap on the Gaussian count"
             print(f"preset {preset}{origin}: {cfg.iterations:,} iterations of {cfg.batch_size} views, {cap}")
-    if args.hold_lasting and args.independent_segments:
-        raise OMG4Error("--hold-lasting holds the segment before's Gaussians: not with --independent-segments")
+    if args.hold_lasting and (args.independent_segments or args.parallel == "segments"):
+        raise OMG4Error("--hold-lasting holds the segment before's Gaussians: not with --independent-segments or "
+                        "--parallel segments")
     if args.segment_frames:
         return _train_segments(args, cfg, world, preset)
     for flag, given in (("--overlap", args.overlap is not None), ("--hold-lasting", args.hold_lasting)):
