@@ -175,6 +175,10 @@ def test_held_segments_keep_the_segment_befores_lasting_gaussians_exactly(captur
         assert 0 < exact <= count and model.num_gaussians <= first  # own within what the held leave
         rows = {tuple(r) for r in held["xyz"].tolist()}
         assert all(tuple(r) in rows for r in model.params["xyz"][-exact:].tolist())
+    (run / "segment_002" / "model.safetensors").unlink()  # continued without holding: refused in one line
+    with pytest.raises(OMG4Error, match="^segment 1 was trained with --hold-lasting: continue the run with it"):
+        train_segments(run, plan, CFG, lambda a, b: load_scene(capture, frames=range(a, b), progress=False),
+                       lambda scene: initial_points(scene, "random", CFG), log=lambda *_: None)
 
 
 def test_a_forged_held_count_is_refused_with_one_line():

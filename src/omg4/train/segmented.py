@@ -179,7 +179,12 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             start, held, seg_cfg = None, None, cfg
             if shared is not None:
                 first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
-                teacher = load_model(Path(run_dir) / before["folder"] / "model.safetensors", cfg.device)
+                before_path = Path(run_dir) / before["folder"] / "model.safetensors"
+                if before["index"] and hold != ("held" in describe_checkpoint(before_path)["metadata_keys"]):
+                    raise OMG4Error(f"segment {before['index']} was trained {'without' if hold else 'with'} "
+                                    f"--hold-lasting: continue the run {'without' if hold else 'with'} it, or use "
+                                    "--force to start afresh")
+                teacher = load_model(before_path, cfg.device)
                 first_count = describe_checkpoint(first)["num_gaussians"]
                 if hold:  # the held rows are the same whether the segment starts or resumes
                     held = held_layer(teacher, scene.time_range)
