@@ -109,16 +109,16 @@ def test_a_warm_start_leaves_out_the_held_gaussians_and_the_points_they_cover(ca
     before.params["scaling_t"][3:] = math.log(0.01)
     before.params["scaling"][:3] = math.log(1e4)  # the held ones cover every point
     teacher = load_model_from(before)
-    held = held_layer(teacher, scene.time_range)
-    assert held["xyz"].shape[0] == 3
+    rows, held = held_layer(teacher, scene.time_range)
+    assert rows.tolist() == [0, 1, 2] and held["xyz"].shape[0] == 3
     points = initial_points(scene, "random", CFG)
-    start = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=0), points, held)
+    start = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=0), points, rows)
     assert start.num_gaussians == 3  # the three fading ones (opaque enough at the centre); no point uncovered
     torch.testing.assert_close(start.params["t"], before.params["t"][3:], rtol=0, atol=0)
     before.params["scaling"][:3] = math.log(1e-4)  # and now none
     teacher = load_model_from(before)
-    held = held_layer(teacher, scene.time_range)
-    start = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=0), points, held)
+    rows, _ = held_layer(teacher, scene.time_range)
+    start = warm_start(teacher, scene, CFG.with_strategy(max_gaussians=0), points, rows)
     assert start.num_gaussians == 3 + len(points.xyz)
 
 
@@ -166,7 +166,7 @@ def test_held_segments_keep_the_segment_befores_lasting_gaussians_exactly(captur
                    lambda scene: initial_points(scene, "random", CFG), hold=True, log=lambda *_: None)
     first = load_gaussians(run / "segment_000" / "model.safetensors")[0].num_gaussians
     for before, seg in zip(plan["segments"], plan["segments"][1:]):
-        held = held_layer(load_model(run / before["folder"] / "model.safetensors"), seg["time_range"])
+        _, held = held_layer(load_model(run / before["folder"] / "model.safetensors"), seg["time_range"])
         count = held["xyz"].shape[0]
         assert count > 0  # the setting gives the check something to hold
         model, metadata = load_gaussians(run / seg["folder"] / "model.safetensors")

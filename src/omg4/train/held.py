@@ -41,12 +41,13 @@ def held_rows(values: dict[str, torch.Tensor], config, time_range: tuple[float, 
     return np.flatnonzero(lasting(values, config, time_range))
 
 
-def held_layer(teacher, time_range: tuple[float, float]) -> dict[str, torch.Tensor]:
+def held_layer(teacher, time_range: tuple[float, float]) -> tuple[np.ndarray, dict[str, torch.Tensor]]:
     """The Gaussians a segment of ``time_range`` holds of ``teacher`` (the segment before's model, as
-    :func:`omg4.models.load_model` gives its checkpoint): per-Gaussian values by its backbone's names, on the CPU."""
+    :func:`omg4.models.load_model` gives its checkpoint): (their rows there, their per-Gaussian values by its
+    backbone's names, on the CPU)."""
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
-    rows = torch.from_numpy(held_rows(values, teacher.config, tuple(time_range)))
-    return {k: values[k][rows] for k in teacher.config.schema.param_names}
+    rows = held_rows(values, teacher.config, tuple(time_range))
+    return rows, {k: values[k][torch.from_numpy(rows)] for k in teacher.config.schema.param_names}
 
 
 def _units(reference: dict[str, torch.Tensor], config) -> dict[str, torch.Tensor]:

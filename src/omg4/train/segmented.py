@@ -27,6 +27,7 @@ import logging
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
@@ -42,7 +43,7 @@ from omg4.models import load_model
 from omg4.optimize.teaching import taught_by
 from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.train.config import TrainConfig
-from omg4.train.held import held_layer, held_rows
+from omg4.train.held import held_layer
 from omg4.train.run_state import latest_iteration
 from omg4.train.trainer import Trainer, initial_model
 
@@ -96,7 +97,7 @@ def write_plan(run_dir: Path, plan: dict) -> None:
         write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
 
 
-def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: dict[str, torch.Tensor] | None = None
+def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: np.ndarray | None = None
                ) -> Gaussians4D:
     """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.models.load_model`
     gives its checkpoint) Gaussians that can be drawn somewhere in ``scene``'s time range — opacity times the
@@ -106,8 +107,9 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: dict[
     segment before never showed, as many as ``cfg.strategy.max_gaussians`` leaves room for (the most opaque carried
     Gaussians first when they alone exceed it).
 
-    ``held``, the teacher's Gaussians the segment holds (:func:`omg4.train.held.held_layer`), are left out of the
-    model, and the Gaussians made from ``points`` leave out the points they cover (within their largest scale)."""
+    ``held``, the rows of the teacher's Gaussians the segment holds (:func:`omg4.train.held.held_layer`), are left
+    out of the model, and the Gaussians made from ``points`` leave out the points they cover (within their largest
+    scale)."""
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
     var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
@@ -115,7 +117,7 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: dict[
     keep = peak >= ALPHA_THRESHOLD
     config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
     if held is not None:
-        keep[torch.from_numpy(held_rows(values, teacher.config, tuple(scene.time_range)))] = False
+        keep[torch.from_numpy(held)] = False
     alive = torch.nonzero(keep).reshape(-1)
     budget = cfg.strategy.max_gaussians
     if budget and len(alive) > budget:
@@ -124,18 +126,18 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: dict[
     if not budget or len(alive) < budget:
         room = budget - len(alive) if budget else 0  # 0: no cap
         made = initial_model(scene, cfg.with_strategy(max_gaussians=room), points).params
-        if held is not None and len(held["xyz"]):
-            made = {k: v[~covered(made["xyz"], held)] for k, v in made.items()}
+        if held is not None and held.size:
+            made = {k: v[~covered(made["xyz"], values["xyz"][held], values["scaling"][held])] for k, v in made.items()}
         parts.append(made)
     return Gaussians4D({k: torch.cat([part[k].detach() for part in parts]) for k in config.schema.param_names},
                        config)  # the trainer sets the active SH degrees of each step
 
 
-def covered(xyz: torch.Tensor, held: dict[str, torch.Tensor]) -> torch.Tensor:
-    """[M] bool: which points ``xyz`` [M, 3] lie within the largest scale of one of the ``held`` Gaussians' centres
-    (the nearest one)."""
-    distance, nearest = cKDTree(held["xyz"].double().numpy()).query(xyz.detach().double().numpy(), k=1)
-    size = held["scaling"].double().max(dim=1).values.exp().numpy()[nearest]
+def covered(xyz: torch.Tensor, centres: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
+    """[M] bool: which points ``xyz`` [M, 3] lie within the largest scale of the nearest of the Gaussians at
+    ``centres`` [H, 3] with ``log_scales`` [H, 3]."""
+    distance, nearest = cKDTree(centres.double().numpy()).query(xyz.detach().double().numpy(), k=1)
+    size = log_scales.double().max(dim=1).values.exp().numpy()[nearest]
     return torch.from_numpy(distance <= size)
 
 
@@ -186,11 +188,12 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
                                     "--force to start afresh")
                 teacher = load_model(before_path, cfg.device)
                 first_count = describe_checkpoint(first)["num_gaussians"]
+                rows = None
                 if hold:  # the held rows are the same whether the segment starts or resumes
-                    held = held_layer(teacher, scene.time_range)
+                    rows, held = held_layer(teacher, scene.time_range)
                 seg_cfg = segment_budget(cfg, first_count, len(held["xyz"]) if held else 0)
                 if not resume:
-                    start = warm_start(teacher, scene, seg_cfg, points, held)
+                    start = warm_start(teacher, scene, seg_cfg, points, rows)
                 scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
                                   device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
