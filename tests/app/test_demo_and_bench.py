@@ -124,6 +124,11 @@ def test_bench_rows_on_a_tiny_scene(tiny_scene, tmp_path, monkeypatch):
                              "(GS+GP)+GM+AC, grids 12/7/7", "(GS+GP)+GM+AC", "(GS+GP)+GM+AC, β=30, grids 12/7/7",
                              "(GS+GP)+GM+AC, β=30", "OMG4-T, grids 12/7/7", "OMG4-T", "OMG4-T, β=30, grids 12/7/7",
                              "OMG4-T, β=30"]
+    # every row compressed omg4's way, not only the first (each row's config is built from run_bench's own `paper`);
+    # the rate weight β = 30 is the one choice set away from the defaults
+    assert {name: r["mode"] for name, r in results.items() if "mode" in r} == {
+        name: "mixed (rate_weight=30.0)" if "β=30" in name else "omg4"
+        for name in results if name.startswith(("GS", "(GS", "OMG4"))}
     n = base.model.num_gaussians
     assert results["GS+AC"]["num_gaussians"] == round(0.2 * n)  # sampling only
     assert results["(GS+GP)+GM+AC"]["num_gaussians"] < results["GS+AC"]["num_gaussians"]

@@ -149,10 +149,10 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
                 distributed.barrier("writing a bench file")
             r = evaluate(load_omg4(path, device), scene.test_views, storage_bytes=path.stat().st_size,
                          backend=backend, device=device, masks=masks)
-            paper = paper_r or r
+            paper_coded = paper_r or r
             r.update(compress_s=report["wall_time_s"], bytes_per_gaussian=path.stat().st_size / r["num_gaussians"],
-                     paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper["psnr"],
-                     paper_codec_ssim=paper["ssim"], rate_weight=beta, grids=asdict(g), preset=preset,
+                     paper_codec_mb=report["paper_file_bytes"] / 2**20, paper_codec_psnr=paper_coded["psnr"],
+                     paper_codec_ssim=paper_coded["ssim"], rate_weight=beta, grids=asdict(g), preset=preset,
                      full_pipeline=stages == FULL_STAGES, stages=report["stages"], file=str(path),
                      mode=report["config"]["mode"])
             results[row_label(name, beta, g)] = r
