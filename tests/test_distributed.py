@@ -47,12 +47,14 @@ def ok(result: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
     return result
 
 
-def assert_same_model(a: Path, b: Path, atol: float = 1e-4) -> None:
+def assert_same_model(a: Path, b: Path, atol: float = 1e-4, loose: dict[str, float] | None = None) -> None:
+    """Every parameter within ``atol`` (``loose``: a wider one for some, with the reason at the call)."""
     ma, _ = load_gaussians(a)
     mb, _ = load_gaussians(b)
     assert ma.num_gaussians == mb.num_gaussians
     for name in ma.params:
-        torch.testing.assert_close(ma.params[name], mb.params[name], atol=atol, rtol=1e-4, msg=name)
+        tol = (loose or {}).get(name, atol)
+        torch.testing.assert_close(ma.params[name], mb.params[name], atol=tol, rtol=1e-4, msg=name)
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +79,10 @@ def test_two_ranks_train_freetimegs_with_relocation_as_one_process(tiny_scene_di
     args = [*TRAIN, "--backbone", "freetimegs", "--budget", "900", "--set", "strategy.relocate_opacity=0.3"]
     ok(omg4("train", str(tiny_scene_dir), "--out", str(tmp_path / "one"), *args))
     ok(omg4("train", str(tiny_scene_dir), "--out", str(tmp_path / "two"), *args, nproc=2))
-    assert_same_model(tmp_path / "one" / "model.safetensors", tmp_path / "two" / "model.safetensors")
+    # the quaternions of Gaussians whose rotation gradient is at rounding level: Adam's normalized step (about its
+    # learning rate, 1e-3) follows the rounding of the two ranks' sum, in either kernel mode; one step's worth
+    assert_same_model(tmp_path / "one" / "model.safetensors", tmp_path / "two" / "model.safetensors",
+                      loose={"rotation": 1e-3})
 
 
 def test_world_size_one_under_torchrun_writes_the_plain_commands_bytes(tiny_scene_dir, single_run, tmp_path):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from omg4.compress.svq import quantized_values
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.model import slice_values
 from omg4.render.view import ViewSlicer
@@ -53,8 +54,8 @@ class CompressibleModel(ViewSlicer):
         """Per-Gaussian values with quantized attributes replaced by their codebook reconstructions, the carried
         Gaussians (fixed) after the model's own rows."""
         values = dict(self.params)
-        for attr, q in self.quantizers.items():
-            recon, start = q.values(), 0
+        for attr, recon in quantized_values(self.quantizers).items():
+            start = 0
             for name, width in self.config.schema.svq_widths(attr):
                 values[name] = recon[:, start:start + width]
                 start += width

@@ -137,8 +137,9 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
                    disable=not (progress and world.main), dynamic_ncols=True)
         for start in starts:
             chunk = views[start:start + max(1, batch_size)]
-            for group, rendered, sl, _, losses in view_losses(model, chunk, background=background, backend=backend,
-                                                              lambda_dssim=lambda_dssim, device=device):
+            for group, rendered, sl, _, losses, _ in view_losses(model, chunk, background=background,
+                                                                 backend=backend, lambda_dssim=lambda_dssim,
+                                                                 device=device):
                 weights = torch.tensor([float(len(views) - start - i) if official_quirk else 1.0 for i in group],
                                        dtype=torch.float64, device=device)
                 (losses * weights.to(losses.dtype)).sum().backward()

@@ -23,10 +23,13 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from numba import njit
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from omg4.codec.payload import QuantizedAttribute
 from omg4.compress.kmeans import kmeans
+from omg4.kernels import runs_cpu_kernels
 
 
 class SubVectorQuantizer(nn.Module):
@@ -129,3 +132,69 @@ class SubVectorQuantizer(nn.Module):
         """Inverse of :meth:`to_quantized` (codebooks as float32 parameters)."""
         return cls([torch.from_numpy(np.asarray(cb, np.float32)) for cb in q.codebooks],
                    torch.from_numpy(np.stack([np.asarray(ix, np.int64) for ix in q.indices], axis=1)))
+
+
+@njit(cache=True)
+def _gather(codebooks_rows, rows, width, out):
+    """``out[g, j·s:(j+1)·s] = codebooks_rows[rows[g, j]]``: every slot's codeword of every Gaussian."""
+    sub = codebooks_rows.shape[1]
+    for g in range(rows.shape[0]):
+        for j in range(rows.shape[1]):
+            r = rows[g, j]
+            for c in range(sub):
+                out[g, j * sub + c] = codebooks_rows[r, c]
+
+
+@njit(cache=True)
+def _scatter(grad, rows, out):
+    """The adjoint of :func:`_gather`: ``out[rows[g, j]] += grad[g, j·s:(j+1)·s]``."""
+    sub = out.shape[1]
+    for g in range(rows.shape[0]):
+        for j in range(rows.shape[1]):
+            r = rows[g, j]
+            for c in range(sub):
+                out[r, c] += grad[g, j * sub + c]
+
+
+class _QuantizedValues(torch.autograd.Function):
+    """Every quantizer's reconstruction ``[N, D]`` at once from its codebooks (the inputs, quantizer after
+    quantizer): one numba gather forward, one scatter into the codebooks' rows backward — the CPU form of
+    :meth:`SubVectorQuantizer.forward` for all of them, without an operation per codebook."""
+
+    @staticmethod
+    def forward(ctx, layout, *codebooks):
+        outputs, start = [], 0
+        ctx.layout = layout
+        for rows, count, _ in layout:
+            books = [cb.data.numpy() for cb in codebooks[start:start + count]]
+            table = books[0] if count == 1 else np.concatenate(books)
+            out = np.empty((rows.shape[0], rows.shape[1] * table.shape[1]), table.dtype)
+            _gather(table, rows, out.shape[1], out)
+            outputs.append(torch.from_numpy(out))
+            start += count
+        return tuple(outputs)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, *grads):
+        result = []
+        for (rows, count, sizes), grad in zip(ctx.layout, grads):
+            total = int(sum(sizes))
+            sub = (grad.shape[1] // rows.shape[1]) if grad is not None else 0
+            acc = np.zeros((total, sub), np.float32 if grad is None else grad.numpy().dtype)
+            if grad is not None:
+                _scatter(np.ascontiguousarray(grad.numpy()), rows, acc)
+            result.extend(torch.from_numpy(part) for part in np.split(acc, np.cumsum(sizes)[:-1]))
+        return (None, *(g if needed else None for g, needed in zip(result, ctx.needs_input_grad[1:])))
+
+
+def quantized_values(quantizers: dict[str, SubVectorQuantizer]) -> dict[str, torch.Tensor]:
+    """``{attribute: [N, D] reconstruction}`` of every quantizer, differentiable in the codebooks: one autograd
+    function for all of them on the CPU (float32 codebooks of one sub-vector length per quantizer, the fused kernels
+    in use), else each quantizer's own :meth:`~SubVectorQuantizer.forward`."""
+    books = [cb for q in quantizers.values() for cb in q.codebooks]
+    if not books or not runs_cpu_kernels(*books) or any(q.table_rows is None for q in quantizers.values()):
+        return {attr: q() for attr, q in quantizers.items()}
+    layout = [(q.table_rows.numpy().reshape(q.indices.shape), len(q.codebooks),
+               tuple(int(cb.shape[0]) for cb in q.codebooks)) for q in quantizers.values()]
+    return dict(zip(quantizers, _QuantizedValues.apply(layout, *books)))

@@ -31,6 +31,7 @@ import torch
 
 from omg4.errors import DataError
 from omg4.gaussians.backbone import BACKBONES, Backbone, activated_scales, backbone_named
+from omg4.gaussians import fused_slice
 from omg4.gaussians.covariance import SliceGeometry, covariance_4d
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
 from omg4.gaussians.sh import colors_from_sh, fold_time_sh, num_sh_coeffs, sh_to_rgb, view_directions
@@ -261,6 +262,9 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
             from terms it computed at load, :func:`~omg4.gaussians.covariance.condition_and_cull`); else the
             backbone's time slice computes it from ``values``.
     """
+    if geometry is None and position_term is None and fused_slice.runs(values, appearance):
+        return fused_slice.fused_slice(values, config, sh_degree, sh_degree_t, timestamps, camera_centers,
+                                       appearance=appearance)
     xyz = values["xyz"]
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)

@@ -21,15 +21,10 @@ import math
 import numpy as np
 import torch
 
-from omg4.gaussians.sh_kernels import basis_from_terms, contract_coefficients, torch_contraction
+from omg4.gaussians.sh_kernels import C0, C1, C2, C3, basis_from_terms, contract_coefficients, torch_contraction
 from omg4.kernels import kernel_mode, runs_cpu_kernels, torch_form
 from omg4.render.small_matmul import small_matmul
 
-C0 = 0.28209479177387814
-C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-      1.445305721320277, -0.5900435899266435)
 MAX_SH_DEGREE = 3
 
 

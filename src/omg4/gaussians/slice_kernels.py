@@ -25,6 +25,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from omg4.gaussians.sh_kernels import basis_values
 from omg4.kernels import configure_numba_cache  # noqa: F401  (numba's cache location, before the kernels)
 
 EXPLICIT, MLP_POSITION_TERM, MLP_CONDITIONED = 0, 1, 2
@@ -91,17 +92,16 @@ def encode_contracted(means, scales, consts, out):
 
 
 @njit(parallel=True, cache=True)
-def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussian, logits, dc, rest, basis_of,
-               basis_monomial, basis_coef, num_basis, band, bands, period, conditioned, out_colors, out_opacities):
+def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussian, logits, dc, rest, num_basis, band,
+               bands, period, conditioned, out_colors, out_opacities):
     """Colours and opacities of the slice rows ``index [M]`` of ``views [M]`` (module docstring): the appearance
     ``logits``, ``dc [·, 3]`` and ``rest [·, K − 1, 3]`` are per Gaussian (``by_gaussian``, stored values) or per
-    slice row (the MLPs' outputs). The basis terms ``(basis_of, basis_monomial [T, 3], basis_coef)`` are
-    :func:`omg4.gaussians.sh._basis_terms`; ``num_basis`` = (degree + 1)², ``bands`` = temporal degree + 1;
-    ``conditioned``: the view direction starts at the moved mean."""
+    slice row (the MLPs' outputs); ``num_basis`` = (degree + 1)², ``bands`` = temporal degree + 1 (the basis of
+    :func:`omg4.gaussians.sh_kernels.basis_values`); ``conditioned``: the view direction starts at the moved mean."""
     for chunk in prange((index.shape[0] + CHUNK - 1) // CHUNK):
         basis = np.zeros(16)
-        monomial = np.empty(4)
         weights = np.empty(bands)
+        wq = np.zeros(band * bands)  # coefficient q = band·n + k weighs cos(2π n Δ / T)·Y_k (0 past the degree)
         for i in range(chunk * CHUNK, min(index.shape[0], (chunk + 1) * CHUNK)):
             g, v = index[i], views[i]
             row = g if by_gaussian else i
@@ -111,22 +111,16 @@ def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussi
             else:
                 dx, dy, dz = xyz[g, 0] - centers[v, 0], xyz[g, 1] - centers[v, 1], xyz[g, 2] - centers[v, 2]
             norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
-            monomial[0], monomial[1], monomial[2], monomial[3] = 1.0, dx / norm, dy / norm, dz / norm
-            basis[:] = 0.0
-            for term in range(basis_of.shape[0]):
-                k = basis_of[term]
-                if k < num_basis:
-                    basis[k] += (basis_coef[term] * monomial[basis_monomial[term, 0]]
-                                 * monomial[basis_monomial[term, 1]] * monomial[basis_monomial[term, 2]])
+            basis_values(dx / norm, dy / norm, dz / norm, num_basis, basis)
             offset = t[g] - times[v]
             for n in range(bands):
                 weights[n] = math.cos(2.0 * math.pi * n * offset / period)
+                for k in range(num_basis):
+                    wq[band * n + k] = weights[n] * basis[k]
             for c in range(3):
-                acc = weights[0] * basis[0] * dc[row, c]
-                for n in range(bands):
-                    for k in range(num_basis):
-                        if n > 0 or k > 0:
-                            acc += weights[n] * basis[k] * rest[row, band * n + k - 1, c]
+                acc = wq[0] * dc[row, c]
+                for q in range(1, band * bands):
+                    acc += wq[q] * rest[row, q - 1, c]
                 out_colors[i, c] = max(acc + 0.5, 0.0)
 
 

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from omg4.gaussians import slice_kernels as sk
-from omg4.gaussians.sh import _basis_terms, num_sh_coeffs
+from omg4.gaussians.sh import num_sh_coeffs
 
 
 @dataclass
@@ -75,8 +75,6 @@ class FrameKernel:
         self.period = float(config.period)
         self.band = int(config.band_size)
         self.conditioned = config.sh_direction == "conditioned"
-        terms = _basis_terms()
-        self.basis = (terms[0], terms[1], terms[2])
         self.model = model  # its active SH degrees are read per frame, as the torch form reads them
         mlp = model.appearance
         if mode == sk.EXPLICIT:
@@ -117,8 +115,7 @@ class FrameKernel:
                      out.covars, marginals)
         logits, dc, rest = (self.logits, self.dc, self.rest) if self.mode == sk.EXPLICIT else self._mlp(out, timestamps)
         sk.color_rows(index, views, times, centers, self.xyz, self.t, out.means, marginals,
-                      self.mode == sk.EXPLICIT, logits, dc, rest, *self.basis,
-                      num_sh_coeffs(self.model.active_sh_degree), self.band, self.model.active_sh_degree_t + 1,
+                      self.mode == sk.EXPLICIT, logits, dc, rest, num_sh_coeffs(self.model.active_sh_degree), self.band, self.model.active_sh_degree_t + 1,
                       self.period, self.conditioned, out.colors, out.opacities)
         return out
 

@@ -14,7 +14,7 @@ import torch
 from omg4 import distributed
 from omg4.data.scene import View
 from omg4.errors import OMG4Error
-from omg4.optimize.loss import photometric_losses
+from omg4.optimize.loss import losses_and_errors
 from omg4.render.view import render_views, view_image, views_by_size
 
 
@@ -28,14 +28,15 @@ def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
 def view_losses(model, views: list[View], *, background: torch.Tensor | None, backend: str, lambda_dssim: float,
                 device: torch.device | str = "cpu"):
     """Render ``views`` in one pass per image size and yield, group by group,
-    ``(positions in views, rendered, time slice, ground truths [V, H, W, 3], per-view losses [V])``
-    (rt4dgs §3.2 loss; :func:`omg4.render.view.render_views`)."""
+    ``(positions in views, rendered, time slice, ground truths [V, H, W, 3], per-view losses [V], per-view sums of
+    squared errors [V])`` (rt4dgs §3.2 loss, :func:`omg4.optimize.loss.losses_and_errors`;
+    :func:`omg4.render.view.render_views`)."""
     for group in views_by_size([v.camera for v in views]):
         members = [views[i] for i in group]
         rendered, sl = render_views(model, [v.camera for v in members], [v.timestamp for v in members],
                                     background=background, backend=backend, device=device)
         gts = torch.stack([view_image(v, device) for v in members])
-        yield group, rendered, sl, gts, photometric_losses(rendered.image, gts, lambda_dssim)
+        yield (group, rendered, sl, gts, *losses_and_errors(rendered.image, gts, lambda_dssim))
 
 
 def backward_batch(model, views: list[View], batch: torch.Tensor, *, background: torch.Tensor, backend: str,
@@ -60,11 +61,10 @@ def backward_batch(model, views: list[View], batch: torch.Tensor, *, background:
     indices = batch.tolist()
     chosen = [views[i] for i in distributed.world().shard(indices)]
     total, psnr_sum, rendered_groups = torch.zeros((), device=device), 0.0, []
-    for _, rendered, sl, gts, losses in view_losses(model, chosen, background=background, backend=backend,
-                                                    lambda_dssim=lambda_dssim, device=device):
+    for _, rendered, sl, gts, losses, squared in view_losses(model, chosen, background=background, backend=backend,
+                                                             lambda_dssim=lambda_dssim, device=device):
         total = total + losses.sum() / len(indices)
-        mse = (rendered.image.detach().clamp(0, 1) - gts).square().mean((1, 2, 3))
-        psnr_sum = psnr_sum + (-10.0 * torch.log10(mse)).sum()
+        psnr_sum = psnr_sum + (-10.0 * torch.log10(squared / gts[0].numel())).sum()
         rendered_groups.append((rendered, sl))
     times = torch.tensor([v.timestamp for v in chosen], dtype=torch.float64)
     extra = regularizer(times) if regularizer and chosen else None
