@@ -1,32 +1,35 @@
-"""Benchmark: one training step and one compression step — wall time and aten operations (the CPU proxy of GPU kernel launches); on CUDA also the kernels launched, their GPU time, the host synchronizations and the GPU busy share (torch profiler).
+"""Benchmark: a training step and the compression steps the pipeline runs — wall time per step, aten operations
+(the CPU proxy of GPU kernel launches) and where a step's time goes; on CUDA also the kernels launched, their GPU
+time, the host synchronizations and the GPU busy share (torch profiler).
 
-On a GPU a step is bound by kernel launches and Python, not by the rasterizer; the number
-of aten operations a step dispatches (forward, backward and optimizer together) is the
-CPU-measurable proxy for that, and the wall time per step is what a CPU user waits.
+On a GPU a step is bound by kernel launches and Python, not by the rasterizer; the number of aten operations a step
+dispatches (forward, backward and optimizer together) is the CPU-measurable proxy for that, and the wall time per
+step is what a CPU user waits.
 
-Workloads (fixed seeds, densification off, every SH degree active so the step is the
-steady-state one):
+Workloads (fixed seeds):
 
-* ``demo``: the demo's synthetic scene (16 cameras × 60 frames, 256×192), 19,000 Gaussians
-  from random points in the common view volume, the demo's batch of 2 (with ``--model``: the
-  trained checkpoint given instead, e.g. the demo's baseline ``omg4_demo/baseline/model.safetensors``);
-* ``basketball``: ``../shared/data/n3dv_basketball`` at 320×180 (``--downscale 2``),
-  60,000 Gaussians, batch 4;
-* with ``--device cuda``: basketball at 200k Gaussians (320×180) and at 1M Gaussians (its full 640×360),
-  batch 4.
+* ``demo``: the demo's synthetic scene (16 cameras × 60 frames, 128×96), the demo's batch of 2; training: 60,000
+  Gaussians from random points, densification off, every SH degree active (with ``--model``: the trained
+  checkpoint given instead, the demo's ``omg4_demo/baseline/model.safetensors``);
+* ``basketball``: ``../shared/data/n3dv_basketball`` at 320×180 (``--downscale 2``), 60,000 Gaussians, batch 4;
+* with ``--device cuda``: basketball at 200k Gaussians (320×180) and at 1M Gaussians (its full 640×360), batch 4.
 
-"train" is :meth:`omg4.train.Trainer.train_step`; "compress" is
-:meth:`omg4.compress.pipeline.CompressionPipeline.finetune_step` after the appearance,
-3D-SVQ and 4D-SVQ stages (the MLP/SVQ fine-tuning that most of OMG4's iterations are).
-Times are the median of ``--steps`` steps after ``--warmup``; the aten count is one step
-under a ``TorchDispatchMode`` that counts every dispatched operator.
+"train" is :meth:`omg4.train.Trainer.train_step`. "compress" runs the OMG4 pipeline on the baseline (``--model``,
+else the training workload's model) as ``omg4 compress --preset M`` runs it — the demo's stage lengths on the demo,
+the ``cpu`` schedule on basketball (``--compress-steps N``: at most N fine-tuning steps per stage, for a quick run)
+— and times every fine-tuning step of every stage on the model the pipeline holds then (after sampling, pruning
+and merging: a few thousand Gaussians). Per stage it records the median step, the steps per second, the Gaussians,
+the aten operations of its 20th step and a torch profile of its 30th: self CPU time by part (rasterization forward
+and backward, the time slice with the appearance MLPs and SH, the loss, the SVQ gathers, the optimizer, the
+autograd engine and the rest).
 
-    python benchmarks/speed/train_step.py [--workloads demo basketball] [--device cpu|cuda]
-                                    [--steps 10] [--parts train compress] [--model CKPT] [--kernels MODE] [--json PATH]
+    python benchmarks/speed/train_step.py [--workloads demo basketball] [--device cpu|cuda] [--steps 10]
+                                    [--parts train compress] [--model CKPT] [--kernels MODE] [--json PATH]
 
 Each run is recorded (:func:`environment.save_record`: commit, date, machine) in
 ``benchmarks/results/train_step.json`` (``train_step_cuda.json`` with ``--device cuda``). To time another
-checkout's code, run with ``PYTHONPATH=<that checkout>/src``: the run records its commit as ``code_commit``.
+checkout's code, run with ``PYTHONPATH=<that checkout>/src``: the run records its commit as ``code_commit``;
+``--against CHECKOUT`` does that in alternating processes.
 """
 
 from __future__ import annotations
@@ -87,10 +90,11 @@ def code_under_test() -> dict:
 
 
 def demo_scene(tmp: Path):
+    """The demo's scene (its :class:`~omg4.app.demo.DemoSettings` sizes)."""
     from omg4.data import load_scene
     from omg4.data.synthetic import SynthConfig, write_synthetic_scene
 
-    write_synthetic_scene(tmp / "demo", SynthConfig(seed=0, num_cameras=16, num_frames=60, width=256, height=192),
+    write_synthetic_scene(tmp / "demo", SynthConfig(seed=0, num_cameras=16, num_frames=60, width=128, height=96),
                           force=True)
     return load_scene(tmp / "demo", progress=False)
 
@@ -105,7 +109,7 @@ def basketball_scene(downscale: int = 2):
 
 
 WORKLOADS = {  # name → (scene factory, Gaussians, batch, devices)
-    "demo": (demo_scene, 19_000, 2, ("cpu", "cuda")),
+    "demo": (demo_scene, 60_000, 2, ("cpu", "cuda")),
     "basketball": (lambda tmp: basketball_scene(), 60_000, 4, ("cpu", "cuda")),
     "basketball-200k": (lambda tmp: basketball_scene(), 200_000, 4, ("cuda",)),
     "basketball-1m": (lambda tmp: basketball_scene(downscale=1), 1_000_000, 4, ("cuda",)),
@@ -187,7 +191,7 @@ def host_synchronizations(step_fn, i: int) -> int:
 
 
 def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, model_path: Path | None = None,
-                 parts: tuple[str, ...] = ("train", "compress")) -> dict:
+                 parts: tuple[str, ...] = ("train", "compress"), compress_steps: int | None = None) -> dict:
     from omg4.compress.pipeline import CompressConfig, CompressionPipeline
     from omg4.data import random_initial_points
     from omg4.gaussians.checkpoint import load_gaussians
@@ -211,13 +215,170 @@ def run_workload(name: str, device: str, warmup: int, steps: int, tmp: Path, mod
         row["train"] = measure(lambda i: trainer.train_step(base + i), device, warmup, steps)
     if "compress" not in parts:
         return row
-    ccfg = CompressConfig(preset="M", stages=("appearance", "svq3d", "svq4d"), schedule="short", batch_size=batch,
-                          device=device)
+    lengths = compression_lengths(name, compress_steps)
+    ccfg = CompressConfig(preset="M", lengths=lengths, batch_size=batch, seed=0, device=device,
+                          baseline_iterations=1500 if name == "demo" else 30_000)
     pipe = CompressionPipeline(trainer.model.detach_copy(), scene, ccfg, progress=False, log=lambda s: None)
-    for e in pipe.events:
-        pipe.apply_event(e.name, e.round, e.iteration)
-    row["compress"] = measure(lambda i: pipe.finetune_step(i), device, warmup, steps)
+    row["compress"] = time_pipeline(pipe, device)
+    row["compress_schedule"] = dict(lengths.__dict__)
     return row
+
+
+def compression_lengths(name: str, limit: int | None):
+    """The stage lengths the workload's compression runs: the demo's on the demo, the cpu schedule elsewhere, each
+    stage at most ``limit`` steps."""
+    from dataclasses import replace
+
+    from omg4.app.demo import DEMO_LENGTHS
+    from omg4.compress.schedule import SCHEDULES
+
+    lengths = DEMO_LENGTHS if name == "demo" else SCHEDULES["cpu"]
+    if limit is None:
+        return lengths
+    return replace(lengths, **{k: min(v, limit) for k, v in lengths.__dict__.items()})
+
+
+OPS_AT, PROFILED_AT = 20, 30
+"""Each stage's fine-tuning step whose aten operations are counted, and the one profiled (counted from 1)."""
+
+
+def time_pipeline(pipe, device: str) -> dict:
+    """Run ``pipe`` whole, timing every fine-tuning step: per stage the median step, steps per second, Gaussians,
+    the aten operations of its :data:`OPS_AT`-th step and the profile of its :data:`PROFILED_AT`-th."""
+    stages: dict[str, dict] = {}
+    original = pipe.finetune_step
+
+    def timed(step: int) -> float:
+        stage = pipe.records[-1].stage
+        entry = stages.setdefault(stage, {"gaussians": pipe.model.num_gaussians, "times": []})
+        k = len(entry["times"]) + 1
+        if k == OPS_AT:
+            counter = OpCounter()
+            with counter:
+                loss = original(step)
+            entry["aten_ops_per_step"] = sum(counter.ops.values())
+            entry["top_ops"] = dict(counter.ops.most_common(8))
+            entry["times"].append(None)
+            return loss
+        if k == PROFILED_AT and not device.startswith("cuda"):
+            entry["profile"], loss = profiled_step(original, step)
+            entry["times"].append(None)
+            return loss
+        sync(device)
+        t0 = time.perf_counter()
+        loss = original(step)
+        sync(device)
+        entry["times"].append(time.perf_counter() - t0)
+        return loss
+
+    pipe.finetune_step = timed
+    labels = install_profile_labels()
+    try:
+        pipe.run()
+    finally:
+        restore(labels)
+    out = {}
+    for stage, entry in stages.items():
+        times = [t for t in entry.pop("times") if t is not None]
+        if not times:
+            continue
+        ms = 1000 * statistics.median(times)
+        out[stage] = {**entry, "steps": len(times), "ms_per_step": ms, "ms_min": 1000 * min(times),
+                      "steps_per_second": 1000 / ms}
+    return out
+
+
+PROFILE_SCOPES = (  # label → (module, attribute) whose calls it covers; the first found of a row's alternatives
+    ("slice", (("omg4.compress.model", "CompressibleModel.slice_views"),)),
+    ("svq", (("omg4.compress.model", "quantized_values"), ("omg4.compress.svq", "SubVectorQuantizer.forward"))),
+    ("appearance MLPs", (("omg4.gaussians.appearance_arrays", "forward"),
+                         ("omg4.gaussians.appearance", "AppearanceMLP.predict_from_position_term"),
+                         ("omg4.gaussians.appearance", "AppearanceMLP.position_term"))),
+    ("rasterization", (("omg4.render.view", "rasterize_views"),)),
+    ("loss", (("omg4.optimize.step", "losses_and_errors"), ("omg4.optimize.step", "photometric_losses"))),
+    ("optimizer", (("omg4.compress.pipeline", "step_optimizers"),)),
+)
+
+
+def install_profile_labels() -> list:
+    """Wrap each scope's function in a ``record_function`` label (what :func:`profiled_step` sorts time by);
+    returns what :func:`restore` puts back."""
+    import importlib
+
+    from torch.profiler import record_function
+
+    saved = []
+    for label, places in PROFILE_SCOPES:
+        for module_name, attr in places:
+            try:
+                module = importlib.import_module(module_name)
+            except ImportError:
+                continue
+            owner, name = (module, attr) if "." not in attr else (getattr(module, attr.split(".")[0], None),
+                                                                   attr.split(".")[1])
+            fn = getattr(owner, name, None) if owner is not None else None
+            if fn is None:
+                continue
+
+            def wrapper(*a, __fn=fn, __label=label, **k):
+                with record_function(f"scope:{__label}"):
+                    return __fn(*a, **k)
+
+            saved.append((owner, name, fn))
+            setattr(owner, name, wrapper)
+    return saved
+
+
+def restore(saved: list) -> None:
+    for owner, name, fn in reversed(saved):
+        setattr(owner, name, fn)
+
+
+def profiled_step(step_fn, step: int) -> tuple[dict, float]:
+    """One step under the torch profiler: self CPU milliseconds by part. A forward operation counts for the innermost
+    scope label around it; a backward one for the scope of the forward operation that made its autograd node
+    ("… backward"); "Python and glue" is the step's wall time no profiled operation took."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        t0 = time.perf_counter()
+        loss = step_fn(step)
+        wall = time.perf_counter() - t0
+    events = prof.events()
+    scope_of_seq: dict[int, str] = {}
+
+    def scope(e):
+        p = e
+        while p is not None:
+            if p.name.startswith("scope:"):
+                return p.name[len("scope:"):]
+            if p.name.startswith("autograd::engine::evaluate_function"):
+                return p
+            p = p.cpu_parent
+        return None
+
+    for e in sorted(events, key=lambda e: e.time_range.start):
+        if e.sequence_nr is not None and e.sequence_nr >= 0 and not e.name.startswith("autograd::"):
+            label = scope(e)
+            if isinstance(label, str):
+                scope_of_seq[e.sequence_nr] = label
+    parts: Counter = Counter()
+    for e in events:
+        if e.name.startswith("scope:"):
+            parts[e.name[len("scope:"):] + " (Python)"] += e.self_cpu_time_total
+            continue
+        label = scope(e)
+        if isinstance(label, str):
+            parts[label] += e.self_cpu_time_total
+        elif label is None:
+            parts["other operations"] += e.self_cpu_time_total
+        else:
+            forward = scope_of_seq.get(label.sequence_nr)
+            parts[f"{forward} backward" if forward else "autograd engine"] += e.self_cpu_time_total
+    total_us = sum(parts.values())
+    parts["Python and glue"] = max(0.0, 1e6 * wall - total_us)
+    return ({"wall_ms": 1000 * wall, "self_cpu_ms": {k: round(v / 1000, 3) for k, v in parts.most_common()}},
+            loss)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,6 +390,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--parts", nargs="+", default=["train", "compress"], choices=["train", "compress"],
                     help="which steps to time (the compression step needs its stages fitted first)")
     ap.add_argument("--model", type=Path, default=None, help="a trained checkpoint for the demo workload")
+    ap.add_argument("--basketball-model", type=Path, default=None,
+                    help="a trained checkpoint for the basketball workload (omg4 train ... --downscale 2)")
+    ap.add_argument("--compress-steps", type=int, default=None,
+                    help="at most this many fine-tuning steps per compression stage (default: the whole schedule)")
     ap.add_argument("--json", type=Path, default=None,
                     help="record file (default benchmarks/results/train_step.json, train_step_cuda.json on CUDA)")
     ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
@@ -249,14 +414,18 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
-            row = run_workload(name, args.device, args.warmup, args.steps, Path(tmp),
-                               args.model if name == "demo" else None, tuple(args.parts))
+            model = {"demo": args.model, "basketball": args.basketball_model}.get(name)
+            row = run_workload(name, args.device, args.warmup, args.steps, Path(tmp), model, tuple(args.parts),
+                               args.compress_steps)
             rows.append(row)
-            print(f"{name:16s} {row['device']:6s} N={row['gaussians']:>9,} B={row['batch']} "
-                  + " | ".join(f"{part} {row[part]['ms_per_step']:8.1f} ms {row[part]['aten_ops_per_step']:6d} ops"
-                               for part in args.parts), flush=True)
-            if kind == "cuda":
-                for part in args.parts:
+            if "train" in row:
+                print(f"{name:16s} {row['device']:6s} N={row['gaussians']:>9,} B={row['batch']} train "
+                      f"{row['train']['ms_per_step']:8.1f} ms {row['train']['aten_ops_per_step']:6d} ops", flush=True)
+            for stage, r in row.get("compress", {}).items():
+                print(f"{name:16s} {row['device']:6s} N={r['gaussians']:>9,} B={row['batch']} compress [{stage}] "
+                      f"{r['ms_per_step']:8.1f} ms {r.get('aten_ops_per_step', 0):6d} ops", flush=True)
+            if kind == "cuda" and "train" in row:
+                for part in ("train",):
                     r = row[part]
                     print(f"  {part}: {r['gpu_launches_per_step']} kernels + {r['gpu_copies_per_step']} copies/fills "
                           f"per step, {r['host_syncs_per_step']} host synchronizations, "
@@ -270,34 +439,54 @@ def main(argv: list[str] | None = None) -> int:
     result["rows"] = {f"{row['workload']}/{row['device']}"
                       f"{'/trained' if row['model'] != 'random initialization' else ''}": row for row in rows}
     save_record(record, result)
-    print("| workload | device | N | batch | train ms/step | train aten ops | compress ms/step | compress aten ops |")
+    print("| workload | device | step | Gaussians | batch | ms/step | steps/s | aten ops |")
     print("|---|---|---|---|---|---|---|---|")
-    for row in rows:
-        cells = [f"{row[part]['ms_per_step']:.1f} | {row[part]['aten_ops_per_step']:,}" if part in row else "– | –"
-                 for part in ("train", "compress")]
-        print(f"| {row['workload']} | {row['device']} | {row['gaussians']:,} | {row['batch']} | {' | '.join(cells)} |")
+    for row, step, r in step_rows(rows):
+        print(f"| {row['workload']} | {row['device']} | {step} | {r.get('gaussians', row['gaussians']):,} | "
+              f"{row['batch']} | {r['ms_per_step']:.1f} | {1000 / r['ms_per_step']:.1f} | "
+              f"{r.get('aten_ops_per_step', 0):,} |")
     return 0
+
+
+def step_rows(rows: list[dict]):
+    """``(row, step name, measurement)`` of every step a run timed: the training step, then each compression
+    stage's."""
+    for row in rows:
+        if "train" in row:
+            yield row, "train", row["train"]
+        for stage, r in row.get("compress", {}).items():
+            yield row, f"compress [{stage}]", r
 
 
 def _before_and_after(args, command: str, record: Path) -> int:
     """``--against``: the benchmark on both codes in alternating processes, one record with every run and the medians."""
-    from alternate import alternating, median_of, save_alternating
+    from alternate import alternating, save_alternating
 
     argv = ["--device", args.device, "--steps", str(args.steps), "--warmup", str(args.warmup), "--parts", *args.parts,
             *(["--workloads", *args.workloads] if args.workloads else []),
-            *(["--model", str(args.model)] if args.model else [])]
+            *(["--model", str(args.model)] if args.model else []),
+            *(["--basketball-model", str(args.basketball_model)] if args.basketball_model else []),
+            *(["--compress-steps", str(args.compress_steps)] if args.compress_steps else [])]
     runs = alternating(Path(__file__), argv, args.against, args.repeats)
     summary = {}
-    for key in runs[0]["rows"]:
-        for part in args.parts:
-            before, after = (median_of(runs, code, lambda r: r["rows"][key][part]["ms_per_step"])
-                             for code in ("before", "after"))
-            ops = {code: next(r["rows"][key][part]["aten_ops_per_step"] for r in runs if r["code"] == code)
+    for key, first in runs[0]["rows"].items():
+        steps = (["train"] if "train" in first else []) + [f"compress/{stage}" for stage in first.get("compress", {})]
+        for step in steps:
+            def value(run, field, code=None):
+                r = run["rows"][key]
+                r = r["train"] if step == "train" else r["compress"].get(step.split("/", 1)[1], {})
+                return r.get(field)
+
+            times = {code: statistics.median(v for run in runs if run["code"] == code
+                                             if (v := value(run, "ms_per_step")) is not None)
+                     for code in ("before", "after")}
+            ops = {code: next((value(run, "aten_ops_per_step") for run in runs if run["code"] == code), None)
                    for code in ("before", "after")}
-            summary[f"{key}/{part}"] = {"ms_before": before, "ms_after": after, "speedup": before / after,
+            summary[f"{key}/{step}"] = {"ms_before": times["before"], "ms_after": times["after"],
+                                        "speedup": times["before"] / times["after"],
                                         "aten_ops_before": ops["before"], "aten_ops_after": ops["after"]}
-            print(f"{key} {part}: {before:.1f} → {after:.1f} ms ({before / after:.2f}×), aten ops {ops['before']} → "
-                  f"{ops['after']}")
+            print(f"{key} {step}: {times['before']:.1f} → {times['after']:.1f} ms "
+                  f"({times['before'] / times['after']:.2f}×), aten ops {ops['before']} → {ops['after']}")
     save_alternating(record, command, args.against, summary, runs)
     return 0
 

@@ -57,8 +57,8 @@ configure_numba_cache()
 def as_numpy(t: torch.Tensor) -> np.ndarray:
     """The numpy view of a CPU tensor for a numba kernel (detached; copied only when not contiguous). A contiguous
     tensor that needs no gradient is viewed as it is, dispatching no operation."""
-    if t.is_contiguous() and not t.requires_grad:
-        return t.numpy()
+    if t.is_contiguous():
+        return t.numpy(force=t.requires_grad)  # force: one detach where the tensor needs a gradient
     return t.detach().contiguous().numpy()
 
 

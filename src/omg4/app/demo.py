@@ -169,6 +169,10 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     report = compress_to_file(baseline.model, scene, ccfg, omg4_path, codec=codec,
                               paper_copy=None if paper_path == omg4_path else paper_path, progress=True)
     timings["compress_s"] = time.perf_counter() - t
+    # the steps' own speed: the training loop's (its checkpoints and test renders included) and each compression
+    # stage's fine-tuning (its steps alone)
+    timings["train_steps_per_second"] = baseline.iterations / baseline.wall_time_s
+    timings["compress_steps_per_second"] = {r["stage"]: r["steps_per_second"] for r in report["stages"]}
 
     control, fine_tuning = None, ccfg.fine_tuning_iterations()
     control_length = settings.train_iterations + fine_tuning

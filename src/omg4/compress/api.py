@@ -157,7 +157,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
         "carried_gaussians": model.num_carried,
         "baseline_gaussians": baseline.num_gaussians,
         "wall_time_s": time.perf_counter() - t0,
-        "stages": [asdict(r) for r in pipeline.records],
+        "stages": [{**asdict(r), "steps_per_second": r.steps_per_second} for r in pipeline.records],
         "config": {"preset": pipeline.size.name, "backbone": baseline.config.backbone, "stages": list(cfg.stages),
                    "mode": meta["mode"],
                    "schedule": cfg.schedule, "codec": codec, "grids": asdict(precision),

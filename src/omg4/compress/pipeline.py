@@ -136,7 +136,8 @@ class CompressConfig:
 class StageRecord:
     """One row of the pipeline's log: the stage, when it ran, the Gaussian count after it, and the training views'
     PSNR in each fifth of the clip (:data:`TIME_BUCKETS`) just before the stage and just after it (before its
-    fine-tuning), so a stage that hurts some times shows where it happens."""
+    fine-tuning), so a stage that hurts some times shows where it happens; then the fine-tuning steps that followed
+    it and their wall time (the steps alone, not the stage log's renders or the view sampler's refreshes)."""
 
     stage: str
     iteration: int
@@ -144,6 +145,13 @@ class StageRecord:
     seconds: float
     psnr_by_time_before: list[float] | None = None
     psnr_by_time_after: list[float] | None = None
+    finetune_steps: int = 0
+    finetune_seconds: float = 0.0
+
+    @property
+    def steps_per_second(self) -> float | None:
+        """The stage's fine-tuning speed (None before its first step)."""
+        return self.finetune_steps / self.finetune_seconds if self.finetune_steps else None
 
 
 TIME_BUCKETS = 5
@@ -475,7 +483,11 @@ class CompressionPipeline:
                 applied = True
             if self.time_balance is not None and (applied or (step - 1) % REFRESH == 0):
                 self.rebalance(log=applied)
+            t0 = time.perf_counter()
             loss = self.finetune_step(step)
+            if self.records:
+                self.records[-1].finetune_steps += 1
+                self.records[-1].finetune_seconds += time.perf_counter() - t0
             loss_ema = loss if loss_ema is None else 0.9 * loss_ema + 0.1 * loss
             bar.update(1)
             if self.check_replicas and step % self.check_replicas == 0:

@@ -29,7 +29,7 @@ from torch.autograd.function import once_differentiable
 
 from omg4.codec.payload import QuantizedAttribute
 from omg4.compress.kmeans import kmeans
-from omg4.kernels import runs_cpu_kernels
+from omg4.kernels import as_numpy, runs_cpu_kernels
 
 
 class SubVectorQuantizer(nn.Module):
@@ -166,7 +166,7 @@ class _QuantizedValues(torch.autograd.Function):
         outputs, start = [], 0
         ctx.layout = layout
         for rows, count, _ in layout:
-            books = [cb.data.numpy() for cb in codebooks[start:start + count]]
+            books = [as_numpy(cb) for cb in codebooks[start:start + count]]
             table = books[0] if count == 1 else np.concatenate(books)
             out = np.empty((rows.shape[0], rows.shape[1] * table.shape[1]), table.dtype)
             _gather(table, rows, out.shape[1], out)

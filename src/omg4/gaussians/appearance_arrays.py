@@ -58,13 +58,13 @@ def contracted(x: np.ndarray) -> np.ndarray:
     return out / x.dtype.type(4.0) + x.dtype.type(0.5)
 
 
-def frequency_encoding(x: np.ndarray, num_freqs: int) -> np.ndarray:
+def frequency_encoding(x: np.ndarray, num_freqs: int) -> torch.Tensor:
     """:func:`omg4.gaussians.appearance.frequency_encoding` of ``x [N, D]``: ``[N, D·2F]`` (sin, cos interleaved)."""
     dtype = x.dtype.type
     scales = dtype(math.pi) * np.exp2(np.arange(num_freqs, dtype=x.dtype))
     phase = torch.from_numpy(x[:, :, None] * scales)  # [N, D, F]
     # torch's sine and cosine, as the torch form takes them (numpy's differ in the last bits)
-    return torch.stack((phase.sin(), phase.cos()), dim=-1).numpy().reshape(x.shape[0], x.shape[1] * 2 * num_freqs)
+    return torch.stack((phase.sin(), phase.cos()), dim=-1).view(x.shape[0], x.shape[1] * 2 * num_freqs)
 
 
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
@@ -139,34 +139,31 @@ def _first_grads(g_first, index, slot, starts, g_position, g_time):
             g_time[v, j] = acc
 
 
-def _mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` by torch's CPU matrix product (faster than numpy's for these shapes) on the arrays' memory."""
-    return torch.mm(torch.from_numpy(a), torch.from_numpy(b)).numpy()
-
-
-def _mm_tn(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``aᵀ @ b`` (a weight's gradient) without copying ``a``."""
-    return torch.mm(torch.from_numpy(a).t(), torch.from_numpy(b)).numpy()
+def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` by torch's CPU matrix product (faster than numpy's for these shapes); the operands and results are
+    tensors on numpy arrays' memory (their ``.numpy()`` views feed the kernels, dispatching nothing)."""
+    return torch.mm(a, b)
 
 
 @dataclass
 class Activations:
     """What :func:`backward` needs of a :func:`forward`: the encodings, hidden activations, head inputs and the
-    joined weights; ``slot``/``encoded`` are the Gaussians whose position part was computed (Real-Time4DGS)."""
+    joined weights (tensors); ``slot``/``encoded`` are the Gaussians whose position part was computed
+    (Real-Time4DGS)."""
 
-    encoded: np.ndarray
-    time_encoded: np.ndarray | None
+    encoded: torch.Tensor
+    time_encoded: torch.Tensor | None
     slot: np.ndarray | None
-    hidden: np.ndarray
-    static_in: np.ndarray
-    view_in: np.ndarray
-    head_hidden: np.ndarray
-    rest_hidden: np.ndarray
+    hidden: torch.Tensor
+    static_in: torch.Tensor
+    view_in: torch.Tensor
+    head_hidden: torch.Tensor
+    rest_hidden: torch.Tensor
     weights: tuple
 
 
 def joined_weights(weights: list[np.ndarray], position_width: int) -> tuple:
-    """The eight ``[out, in]`` weight arrays as the right-hand factors ``[in, out]`` of the products:
+    """The eight ``[out, in]`` weight arrays as the right-hand factors ``[in, out]`` of the products, as tensors:
     (first layer's position part, its time part or None, shared second layer, DC+opacity first layer, DC+opacity
     second layer (block-diagonal), rest first, rest second)."""
     w1, w2, wd1, wd2, wo1, wo2, wr1, wr2 = weights
@@ -175,10 +172,9 @@ def joined_weights(weights: list[np.ndarray], position_width: int) -> tuple:
     second = np.zeros((2 * hidden, wd2.shape[0] + wo2.shape[0]), dtype)
     second[:hidden, :wd2.shape[0]] = wd2.T
     second[hidden:, wd2.shape[0]:] = wo2.T
-    first_pos = np.ascontiguousarray(w1[:, :position_width].T)
     first_time = np.ascontiguousarray(w1[:, position_width:].T) if w1.shape[1] > position_width else None
-    return (first_pos, first_time, np.ascontiguousarray(w2.T), np.ascontiguousarray(np.concatenate([wd1, wo1]).T),
-            second, np.ascontiguousarray(wr1.T), np.ascontiguousarray(wr2.T))
+    arrays = (w1[:, :position_width].T, first_time, w2.T, np.concatenate([wd1, wo1]).T, second, wr1.T, wr2.T)
+    return tuple(None if a is None else torch.from_numpy(np.ascontiguousarray(a)) for a in arrays)
 
 
 def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np.ndarray, f_static: np.ndarray,
@@ -193,7 +189,6 @@ def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np
     joined = joined_weights(weights, 3 * 2 * num_freqs)
     first_pos, first_time, w2, w_head1, w_head2, w_rest1, w_rest2 = joined
     m = index.shape[0]
-    hidden = np.empty((m, w2.shape[0]), dtype)
     if time_input:
         present = np.zeros(xyz.shape[0], np.bool_)
         present[index] = True
@@ -202,22 +197,24 @@ def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np
         slot[gaussians] = np.arange(gaussians.size)
         encoded = frequency_encoding(contracted(xyz[gaussians]), num_freqs)
         time_encoded = frequency_encoding(t_norm.astype(dtype)[:, None], num_freqs)
-        _first_rows(_mm(encoded, first_pos), _mm(time_encoded, first_time), slot, index, views, hidden)
+        hidden = torch.empty((m, w2.shape[0]), dtype=first_pos.dtype)
+        _first_rows(_mm(encoded, first_pos).numpy(), _mm(time_encoded, first_time).numpy(), slot, index, views,
+                    hidden.numpy())
     else:
         slot, time_encoded = None, None
         encoded = frequency_encoding(contracted(moved), num_freqs)
-        hidden = np.maximum(_mm(encoded, first_pos), dtype.type(0.0))
-    shared = _mm(hidden, w2)
+        hidden = _mm(encoded, first_pos).relu_()
+    shared = _mm(hidden, w2).numpy()
     width = shared.shape[1]
-    static_in = np.empty((m, width + 3), dtype)
-    view_in = np.empty((m, width + 3), dtype)
-    _head_inputs(shared, f_static, f_view, index, static_in, view_in)
+    static_in = torch.empty((m, width + 3), dtype=first_pos.dtype)
+    view_in = torch.empty((m, width + 3), dtype=first_pos.dtype)
+    _head_inputs(shared, f_static, f_view, index, static_in.numpy(), view_in.numpy())
     head_hidden = _mm(static_in, w_head1)
-    _leaky_(head_hidden, LEAKY_SLOPE)
+    _leaky_(head_hidden.numpy(), LEAKY_SLOPE)
     rest_hidden = _mm(view_in, w_rest1)
-    _leaky_(rest_hidden, LEAKY_SLOPE)
-    head = _mm(head_hidden, w_head2)  # [M, 4]: DC colour, opacity logit
-    rest = _mm(rest_hidden, w_rest2)
+    _leaky_(rest_hidden.numpy(), LEAKY_SLOPE)
+    head = _mm(head_hidden, w_head2).numpy()  # [M, 4]: DC colour, opacity logit
+    rest = _mm(rest_hidden, w_rest2).numpy()
     saved = (Activations(encoded, time_encoded, slot, hidden, static_in, view_in, head_hidden, rest_hidden, joined)
              if keep else None)
     return head[:, :3], rest.reshape(m, w_rest2.shape[1] // 3, 3), np.ascontiguousarray(head[:, 3]), saved
@@ -230,38 +227,40 @@ def backward(saved: Activations, g_dc: np.ndarray, g_rest: np.ndarray, g_logit: 
     first_pos, first_time, w2, w_head1, w_head2, w_rest1, w_rest2 = saved.weights
     m, dtype = index.shape[0], g_dc.dtype
     n_dc = 3
-    g_head = np.concatenate([g_dc, g_logit[:, None]], axis=1)
-    g_head2 = _mm_tn(saved.head_hidden, g_head)  # [2H, 4]
-    g_head_hidden = _mm(g_head, np.ascontiguousarray(w_head2.T))
-    _activation_grad_(g_head_hidden, saved.head_hidden, LEAKY_SLOPE)
-    g_head1 = _mm_tn(saved.static_in, g_head_hidden)  # [S + 3, 2H]
-    g_static_in = _mm(g_head_hidden, np.ascontiguousarray(w_head1.T))
-    g_rest_flat = np.ascontiguousarray(g_rest.reshape(m, g_rest.shape[1] * 3))
-    g_rest2 = _mm_tn(saved.rest_hidden, g_rest_flat)
-    g_rest_hidden = _mm(g_rest_flat, np.ascontiguousarray(w_rest2.T))
-    _activation_grad_(g_rest_hidden, saved.rest_hidden, LEAKY_SLOPE)
-    g_rest1 = _mm_tn(saved.view_in, g_rest_hidden)
-    g_view_in = _mm(g_rest_hidden, np.ascontiguousarray(w_rest1.T))
+    g_head = torch.from_numpy(np.concatenate([g_dc, g_logit[:, None]], axis=1))
+    g_head2 = _mm(saved.head_hidden.t(), g_head)  # [2H, 4]
+    g_head_hidden = _mm(g_head, w_head2.t())
+    _activation_grad_(g_head_hidden.numpy(), saved.head_hidden.numpy(), LEAKY_SLOPE)
+    g_head1 = _mm(saved.static_in.t(), g_head_hidden)  # [S + 3, 2H]
+    g_static_in = _mm(g_head_hidden, w_head1.t()).numpy()
+    g_rest_flat = torch.from_numpy(g_rest.reshape(m, g_rest.shape[1] * 3))
+    g_rest2 = _mm(saved.rest_hidden.t(), g_rest_flat)
+    g_rest_hidden = _mm(g_rest_flat, w_rest2.t())
+    _activation_grad_(g_rest_hidden.numpy(), saved.rest_hidden.numpy(), LEAKY_SLOPE)
+    g_rest1 = _mm(saved.view_in.t(), g_rest_hidden)
+    g_view_in = _mm(g_rest_hidden, w_rest1.t()).numpy()
     width = w2.shape[1]
-    g_shared = g_static_in[:, :width] + g_view_in[:, :width]
+    g_shared = torch.from_numpy(g_static_in[:, :width] + g_view_in[:, :width])
     starts = view_ranges(views, num_views)
     g_f_static = np.zeros((num_gaussians, 3), dtype)
     g_f_view = np.zeros((num_gaussians, 3), dtype)
     _scatter_features(g_static_in, g_view_in, width, index, starts, g_f_static, g_f_view)
-    g_w2 = _mm_tn(saved.hidden, g_shared)  # [H, S]
-    g_hidden = _mm(g_shared, np.ascontiguousarray(w2.T))
-    _activation_grad_(g_hidden, saved.hidden, 0.0)
+    g_w2 = _mm(saved.hidden.t(), g_shared)  # [H, S]
+    g_hidden = _mm(g_shared, w2.t())
+    _activation_grad_(g_hidden.numpy(), saved.hidden.numpy(), 0.0)
     if saved.slot is not None:
-        g_position = np.zeros((saved.encoded.shape[0], g_hidden.shape[1]), dtype)
-        g_time = np.empty((num_views, g_hidden.shape[1]), dtype)
-        _first_grads(g_hidden, index, saved.slot, starts, g_position, g_time)
-        g_w1 = np.concatenate([_mm_tn(g_position, saved.encoded), _mm_tn(g_time, saved.time_encoded)], axis=1)
+        g_position = torch.zeros((saved.encoded.shape[0], g_hidden.shape[1]), dtype=g_hidden.dtype)
+        g_time = torch.empty((num_views, g_hidden.shape[1]), dtype=g_hidden.dtype)
+        _first_grads(g_hidden.numpy(), index, saved.slot, starts, g_position.numpy(), g_time.numpy())
+        g_w1 = np.concatenate([_mm(g_position.t(), saved.encoded).numpy(),
+                               _mm(g_time.t(), saved.time_encoded).numpy()], axis=1)
     else:
-        g_w1 = _mm_tn(g_hidden, saved.encoded)
+        g_w1 = _mm(g_hidden.t(), saved.encoded).numpy()
     hidden = w_head1.shape[1] // 2
+    g_head1, g_head2 = g_head1.numpy(), g_head2.numpy()
     g_wd1, g_wo1 = g_head1[:, :hidden].T, g_head1[:, hidden:].T
     g_wd2, g_wo2 = g_head2[:hidden, :n_dc].T, g_head2[hidden:, n_dc:].T
-    grads = [g_w1, g_w2.T, g_wd1, g_wd2, g_wo1, g_wo2, g_rest1.T, g_rest2.T]
+    grads = [g_w1, g_w2.numpy().T, g_wd1, g_wd2, g_wo1, g_wo2, g_rest1.numpy().T, g_rest2.numpy().T]
     return [np.ascontiguousarray(g) for g in grads], g_f_static, g_f_view
 
 

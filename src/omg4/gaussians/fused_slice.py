@@ -8,7 +8,7 @@ torch, and everything per row is one function: the cull and the rows' motion, co
 (:mod:`omg4.gaussians.slice_kernels` forward, :mod:`omg4.gaussians.slice_grad_kernels` backward), with the appearance
 either stored per Gaussian (opacity logit, SH) or predicted by the MLPs (:mod:`omg4.gaussians.appearance_arrays`,
 their products in torch on the arrays' memory). Values and gradients are the torch form's (the reference, tested
-against it in float64); the harmonics are summed in float64.
+against it in float64).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from omg4.gaussians import appearance_arrays
 from omg4.gaussians import slice_kernels as sk
 from omg4.gaussians.sh import num_sh_coeffs
 from omg4.gaussians.slice_grad_kernels import slice_rows_backward
-from omg4.kernels import keeping_torch_threads, runs_cpu_kernels
+from omg4.kernels import as_numpy, keeping_torch_threads, runs_cpu_kernels
 from omg4.render.view import TimeSlice
 
 
@@ -50,8 +50,8 @@ def _host(x) -> np.ndarray:
 
 
 def _array(t: torch.Tensor, shape=None) -> np.ndarray:
-    """The numpy view of a CPU tensor (no autograd operation: ``.data`` shares the storage)."""
-    a = t.data.numpy() if t.is_contiguous() else t.data.contiguous().numpy()
+    """The numpy view of a CPU tensor (:func:`omg4.kernels.as_numpy`), reshaped to ``shape`` if given."""
+    a = as_numpy(t)
     return a if shape is None else a.reshape(shape)
 
 
@@ -97,7 +97,7 @@ class _SliceRows(torch.autograd.Function):
                           float(spec.time_range[1] - spec.time_range[0]), spec.conditioned, colors, opacities)
         ctx.spec, ctx.dtype = spec, dtype
         ctx.arrays = (a_xyz, a_t, a_gain, a_var, index, views, times, centers, means, marginals, logits, dc, rest,
-                      saved_mlp)
+                      colors, saved_mlp)
         ctx.shapes = [tuple(a.shape) for a in appearance]
         side.update(index=torch.from_numpy(index), views=torch.from_numpy(views))
         return tuple(torch.from_numpy(a) for a in (means, covars, colors, opacities))
@@ -106,7 +106,7 @@ class _SliceRows(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, g_means, g_covars, g_colors, g_opacities):
         spec = ctx.spec
-        (a_xyz, a_t, a_gain, a_var, index, views, times, centers, means, marginals, logits, dc, rest,
+        (a_xyz, a_t, a_gain, a_var, index, views, times, centers, means, marginals, logits, dc, rest, colors,
          saved_mlp) = ctx.arrays
         n, m, dtype = a_xyz.shape[0], index.shape[0], a_xyz.dtype
         starts = appearance_arrays.view_ranges(views, len(times))
@@ -122,7 +122,7 @@ class _SliceRows(torch.autograd.Function):
         g_rest = np.zeros((rows,) + rest.shape[1:], dtype)
         with keeping_torch_threads():
             slice_rows_backward(index, views, starts, times, centers, a_xyz, a_t, a_gain, a_var, means, marginals,
-                                by_gaussian, logits, dc, rest, num_sh_coeffs(spec.sh_degree),
+                                by_gaussian, logits, dc, rest, colors, num_sh_coeffs(spec.sh_degree),
                                 spec.band, spec.sh_degree_t + 1, float(spec.time_range[1] - spec.time_range[0]),
                                 spec.conditioned, grad_array(g_means, (m, 3)), grad_array(g_covars, (m, 3, 3)),
                                 grad_array(g_colors, (m, 3)), grad_array(g_opacities, (m,)), g_xyz, g_t, g_gain,

@@ -20,6 +20,8 @@ Elsewhere (CUDA) the torch forms run (:func:`torch_contraction`, with
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 import torch
@@ -287,4 +289,19 @@ def basis_gradient(x, y, z, g):
     return gx, gy, gz
 
 
-__all__ = ["basis_from_terms", "basis_gradient", "basis_values", "contract_coefficients", "torch_contraction"]
+
+@njit(cache=True, inline="always")
+def time_weights(offset, period, bands, weights, d_weights):
+    """``weights[n] = cos(2π n Δ / T)`` and ``d_weights[n]`` = its derivative in Δ = ``offset`` for n < ``bands``
+    (rt4dgs §2), from one sine and cosine by the multiple-angle recurrences."""
+    step = 2.0 * math.pi / period
+    c1, s1 = math.cos(step * offset), math.sin(step * offset)
+    cos_prev, sin_prev, cos_n, sin_n = 1.0, 0.0, c1, s1  # the angles 0 and φ = 2π Δ / T
+    weights[0], d_weights[0] = 1.0, 0.0
+    for n in range(1, bands):
+        weights[n] = cos_n
+        d_weights[n] = -n * step * sin_n
+        cos_prev, sin_prev, cos_n, sin_n = cos_n, sin_n, 2.0 * c1 * cos_n - cos_prev, 2.0 * c1 * sin_n - sin_prev
+
+__all__ = ["basis_from_terms", "basis_gradient", "basis_values", "contract_coefficients", "time_weights",
+           "torch_contraction"]

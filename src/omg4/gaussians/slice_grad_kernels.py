@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from omg4.gaussians.sh_kernels import basis_gradient, basis_values
+from omg4.gaussians.sh_kernels import basis_gradient, basis_values, time_weights
 from omg4.kernels import FAST_MATH  # also points numba's cache where it can write
 
 NORM_EPS = 1e-12
@@ -32,17 +32,17 @@ CHUNK = 256
 
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
 def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_t, means, marginals, by_gaussian,
-                        logits, dc, rest, num_basis, band, bands, period,
-                        conditioned, g_means, g_covars, g_colors, g_opacities,
+                        logits, dc, rest, colors, num_basis, band, bands,
+                        period, conditioned, g_means, g_covars, g_colors, g_opacities,
                         g_xyz, g_t, g_gain, g_cov3, g_var, g_logits, g_dc, g_rest):
     """Accumulates the gradients of the rows ``(index [M], views [M])`` (grouped by view; ``starts [V + 1]``).
 
     Inputs as :func:`omg4.gaussians.slice_kernels.color_rows` (``logits``, ``dc [·, 3]``, ``rest [·, K − 1, 3]`` per
-    Gaussian when ``by_gaussian``, else per row) and the rows' output gradients ``g_means [M, 3]``, ``g_covars [M, 3,
+    Gaussian when ``by_gaussian``, else per row), its ``colors [M, 3]`` (where they are 0 the clamp took the
+    gradient), and the rows' output gradients ``g_means [M, 3]``, ``g_covars [M, 3,
     3]``, ``g_colors [M, 3]``, ``g_opacities [M]``. Adds into the per-Gaussian ``g_xyz [N, 3]``, ``g_t [N]``,
     ``g_gain [N, 3]``, ``g_cov3 [N, 3, 3]``, ``g_var [N]`` and writes (``by_gaussian``: adds per Gaussian)
     ``g_logits``, ``g_dc``, ``g_rest``."""
-    two_pi = 2.0 * math.pi
     for v in range(starts.shape[0] - 1):
         first, stop = starts[v], starts[v + 1]
         for chunk in prange((stop - first + CHUNK - 1) // CHUNK):
@@ -50,9 +50,10 @@ def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_
             g_basis = np.empty(16)
             weights = np.empty(3)
             g_weights = np.empty(3)
-            g_pre = np.empty(3)
-            wq = np.empty(16 * 3)
-            gq = np.empty(16 * 3)
+            d_weights = np.empty(3)
+            g_pre = np.empty(3, dc.dtype)  # the coefficients' products in the model's dtype
+            wq = np.empty(16 * 3, dc.dtype)
+            gq = np.empty(16 * 3, dc.dtype)
             for m in range(first + chunk * CHUNK, min(stop, first + (chunk + 1) * CHUNK)):
                 for k in range(16):
                     g_basis[k] = 0.0
@@ -74,20 +75,15 @@ def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_
                 ux, uy, uz = dx / norm, dy / norm, dz / norm
                 basis_values(ux, uy, uz, num_basis, basis)
                 offset = float(t[g]) - float(times[v])  # Δ = μt − τ
-                for n in range(bands):
-                    weights[n] = math.cos(two_pi * n * offset / period)
+                time_weights(offset, period, bands, weights, d_weights)
                 num_q = band * bands  # coefficient q = band·n + k weighs cos(2π n Δ / T)·Y_k (0 past the active degree)
                 for q in range(num_q):
                     wq[q] = 0.0
-                    gq[q] = 0.0
                 for n in range(bands):
                     for k in range(num_basis):
                         wq[band * n + k] = weights[n] * basis[k]
-                for c in range(3):
-                    acc = wq[0] * dc[row, c]
-                    for q in range(1, num_q):
-                        acc += wq[q] * rest[row, q - 1, c]
-                    g_pre[c] = float(g_colors[m, c]) if acc + 0.5 >= 0.0 else 0.0  # the clamp at 0
+                for c in range(3):  # the clamp max(·, 0) passes no gradient where it clamped
+                    g_pre[c] = g_colors[m, c] if colors[m, c] > 0 else 0.0
                 # coefficients (added: rows of one view hold distinct Gaussians), then harmonics and time weights
                 gp0, gp1, gp2 = g_pre[0], g_pre[1], g_pre[2]
                 gq[0] = dc[row, 0] * gp0 + dc[row, 1] * gp1 + dc[row, 2] * gp2
@@ -107,7 +103,7 @@ def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_
                         g_weights[n] += basis[k] * gk
                 g_offset = 0.0
                 for n in range(1, bands):
-                    g_offset -= g_weights[n] * math.sin(two_pi * n * offset / period) * two_pi * n / period
+                    g_offset += g_weights[n] * d_weights[n]
                 # harmonics → unit direction → direction (the norm's clamp passes no gradient to the norm)
                 gx, gy, gz = basis_gradient(ux, uy, uz, g_basis)
                 radial = gx * ux + gy * uy + gz * uz

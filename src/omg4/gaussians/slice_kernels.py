@@ -12,9 +12,9 @@ weights joined at load, :mod:`omg4.models.frame_arrays`: five products in torch 
         W1·Freq(contract(μ)) (FreeTimeGS); heads W_b LeakyReLU(W_a [shared, f]) (LeakyReLU slope 0.01)
     rgb = max(Σ_n cos(2π n (μ_t − τ)/T) Σ_k Y_k(d) c[band·n + k] + ½, 0),   d = (μ or xyz) − camera centre, unit
 
-The arithmetic of the geometry and the encoding's phases is in the model's dtype, as the torch forms run it; the
-harmonics accumulate in float64 (so a float32 model's colours may differ from the torch forms' in the last bits; a
-float64 model's agree to rounding). ``omg4.kernels`` decides when the torch forms run instead
+The arithmetic of the geometry, the encoding's phases and the harmonics' sums is in the model's dtype, as the torch
+forms run it (the basis and time weights in float64; a float32 model's colours may differ from the torch forms' in
+the last bits, a float64 model's agree to rounding). ``omg4.kernels`` decides when the torch forms run instead
 (``OMG4_KERNELS=reference``).
 """
 
@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from omg4.gaussians.sh_kernels import basis_values
+from omg4.gaussians.sh_kernels import basis_values, time_weights
 from omg4.kernels import configure_numba_cache  # noqa: F401  (numba's cache location, before the kernels)
 
 EXPLICIT, MLP_POSITION_TERM, MLP_CONDITIONED = 0, 1, 2
@@ -101,7 +101,8 @@ def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussi
     for chunk in prange((index.shape[0] + CHUNK - 1) // CHUNK):
         basis = np.zeros(16)
         weights = np.empty(bands)
-        wq = np.zeros(band * bands)  # coefficient q = band·n + k weighs cos(2π n Δ / T)·Y_k (0 past the degree)
+        d_weights = np.empty(bands)
+        wq = np.zeros(band * bands, dc.dtype)  # coefficient q = band·n + k weighs cos(2π n Δ / T)·Y_k
         for i in range(chunk * CHUNK, min(index.shape[0], (chunk + 1) * CHUNK)):
             g, v = index[i], views[i]
             row = g if by_gaussian else i
@@ -112,9 +113,8 @@ def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussi
                 dx, dy, dz = xyz[g, 0] - centers[v, 0], xyz[g, 1] - centers[v, 1], xyz[g, 2] - centers[v, 2]
             norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             basis_values(dx / norm, dy / norm, dz / norm, num_basis, basis)
-            offset = t[g] - times[v]
+            time_weights(float(t[g]) - float(times[v]), period, bands, weights, d_weights)
             for n in range(bands):
-                weights[n] = math.cos(2.0 * math.pi * n * offset / period)
                 for k in range(num_basis):
                     wq[band * n + k] = weights[n] * basis[k]
             for c in range(3):

@@ -8,6 +8,7 @@ the parameter tensors *and* their Adam moments together so no stage reaches into
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -72,12 +73,14 @@ def step_optimizers(optimizers, device: torch.device | str) -> None:
     In a distributed job the gradients of every parameter the optimizers hold are first summed over the
     ranks (:func:`omg4.distributed.all_reduce_gradients`), so every replica takes the same step. Runs with
     ``device`` as torch's default device, so state that an optimizer creates lazily (Adam's step counters)
-    lands beside the parameters whatever the caller's default device is.
+    lands beside the parameters whatever the caller's default device is (a default device set for the step
+    intercepts every torch call of the optimizers, so only where the caller's differs).
     """
     present = [opt for opt in optimizers if opt is not None]
     if distributed.world().parallel:
         distributed.all_reduce_gradients([p for opt in present for g in opt.param_groups for p in g["params"]])
-    with torch.device(device):
+    target = torch.device(device)
+    with contextlib.nullcontext() if torch.get_default_device() == target else target:
         for opt in present:
             opt.step()
             opt.zero_grad(set_to_none=True)

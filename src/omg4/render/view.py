@@ -133,9 +133,10 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
         raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
     if _fused_frame(model, backend, device, background):
         return _render_arrays(model, cameras, timestamps, background, batch=True, **raster_kwargs)
-    tensors = [camera_tensors(c) for c in cameras]
-    viewmats, Ks, centers = (to_device(torch.stack(parts), device) for parts in zip(*tensors))
-    times = to_device(torch.tensor(timestamps, dtype=torch.float64, device="cpu"), device)
+    viewmats, Ks, centers = (to_device(torch.from_numpy(np.stack([np.asarray(getattr(c, name), dtype=np.float32)
+                                                                  for c in cameras])), device)
+                             for name in ("viewmat", "K", "center"))  # float32, as camera_tensors gives them
+    times = to_device(torch.from_numpy(np.asarray(timestamps, dtype=np.float64)), device)
     sl = model.slice_views(times, centers)
     width, height = sizes.pop()
     views = sl.views if len(cameras) > 1 else None
