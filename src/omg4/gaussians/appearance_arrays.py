@@ -197,7 +197,7 @@ def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np
         slot[gaussians] = np.arange(gaussians.size)
         encoded = frequency_encoding(contracted(xyz[gaussians]), num_freqs)
         time_encoded = frequency_encoding(t_norm.astype(dtype)[:, None], num_freqs)
-        hidden = torch.empty((m, w2.shape[0]), dtype=first_pos.dtype)
+        hidden = torch.empty((m, w2.shape[0]), dtype=first_pos.dtype, device="cpu")
         _first_rows(_mm(encoded, first_pos).numpy(), _mm(time_encoded, first_time).numpy(), slot, index, views,
                     hidden.numpy())
     else:
@@ -206,8 +206,8 @@ def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np
         hidden = _mm(encoded, first_pos).relu_()
     shared = _mm(hidden, w2).numpy()
     width = shared.shape[1]
-    static_in = torch.empty((m, width + 3), dtype=first_pos.dtype)
-    view_in = torch.empty((m, width + 3), dtype=first_pos.dtype)
+    static_in = torch.empty((m, width + 3), dtype=first_pos.dtype, device="cpu")
+    view_in = torch.empty((m, width + 3), dtype=first_pos.dtype, device="cpu")
     _head_inputs(shared, f_static, f_view, index, static_in.numpy(), view_in.numpy())
     head_hidden = _mm(static_in, w_head1)
     _leaky_(head_hidden.numpy(), LEAKY_SLOPE)
@@ -249,8 +249,8 @@ def backward(saved: Activations, g_dc: np.ndarray, g_rest: np.ndarray, g_logit: 
     g_hidden = _mm(g_shared, w2.t())
     _activation_grad_(g_hidden.numpy(), saved.hidden.numpy(), 0.0)
     if saved.slot is not None:
-        g_position = torch.zeros((saved.encoded.shape[0], g_hidden.shape[1]), dtype=g_hidden.dtype)
-        g_time = torch.empty((num_views, g_hidden.shape[1]), dtype=g_hidden.dtype)
+        g_position = torch.zeros((saved.encoded.shape[0], g_hidden.shape[1]), dtype=g_hidden.dtype, device="cpu")
+        g_time = torch.empty((num_views, g_hidden.shape[1]), dtype=g_hidden.dtype, device="cpu")
         _first_grads(g_hidden.numpy(), index, saved.slot, starts, g_position.numpy(), g_time.numpy())
         g_w1 = np.concatenate([_mm(g_position.t(), saved.encoded).numpy(),
                                _mm(g_time.t(), saved.time_encoded).numpy()], axis=1)
