@@ -69,9 +69,10 @@ def frequency_encoding(x: np.ndarray, num_freqs: int) -> torch.Tensor:
 
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
 def _first_rows(position, time, slot, index, views, out):
-    """``out[m] = ReLU(position[slot[index[m]]] + time[views[m]])`` (hidden width H)."""
+    """``out[m] = ReLU(position[slot[index[m]]] + time[views[m]])`` (hidden width H; ``slot`` None: position has a
+    row per Gaussian)."""
     for m in prange(index.shape[0]):
-        p = slot[index[m]]
+        p = index[m] if slot is None else slot[index[m]]
         v = views[m]
         for j in range(out.shape[1]):
             out[m, j] = max(position[p, j] + time[v, j], 0.0)
@@ -179,27 +180,31 @@ def joined_weights(weights: list[np.ndarray], position_width: int) -> tuple:
 
 def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np.ndarray, f_static: np.ndarray,
             f_view: np.ndarray, index: np.ndarray, views: np.ndarray, t_norm: np.ndarray | None,
-            moved: np.ndarray | None, keep: bool = True):
+            moved: np.ndarray | None, keep: bool = True, position_term: np.ndarray | None = None):
     """``(dc [M, 3], rest [M, R, 3], logit [M], activations or None)`` of the rows ``(index, views)``.
 
     ``weights``: the eight arrays of :func:`weights_of`; ``time_input``: a Real-Time4DGS network (canonical ``xyz``
     [N, 3] and the views' normalized times ``t_norm [V]``), else FreeTimeGS's (``moved [M, 3]``: the rows' positions
-    at their view's time). ``keep``: keep the activations for :func:`backward`."""
+    at their view's time). ``keep``: keep the activations for :func:`backward`. ``position_term [N, H]``: a
+    render-only model's cached first-layer position part of every Gaussian (then nothing is kept)."""
     dtype = xyz.dtype
     joined = joined_weights(weights, 3 * 2 * num_freqs)
     first_pos, first_time, w2, w_head1, w_head2, w_rest1, w_rest2 = joined
     m = index.shape[0]
     if time_input:
-        present = np.zeros(xyz.shape[0], np.bool_)
-        present[index] = True
-        gaussians = np.flatnonzero(present)
-        slot = np.zeros(xyz.shape[0], np.int64)
-        slot[gaussians] = np.arange(gaussians.size)
-        encoded = frequency_encoding(contracted(xyz[gaussians]), num_freqs)
         time_encoded = frequency_encoding(t_norm.astype(dtype)[:, None], num_freqs)
         hidden = torch.empty((m, w2.shape[0]), dtype=first_pos.dtype, device="cpu")
-        _first_rows(_mm(encoded, first_pos).numpy(), _mm(time_encoded, first_time).numpy(), slot, index, views,
-                    hidden.numpy())
+        if position_term is None:  # the position part of every Gaussian the rows show, once each
+            present = np.zeros(xyz.shape[0], np.bool_)
+            present[index] = True
+            gaussians = np.flatnonzero(present)
+            slot = np.zeros(xyz.shape[0], np.int64)
+            slot[gaussians] = np.arange(gaussians.size)
+            encoded = frequency_encoding(contracted(xyz[gaussians]), num_freqs)
+            position_term = _mm(encoded, first_pos).numpy()
+        else:
+            slot, encoded, keep = None, None, False
+        _first_rows(position_term, _mm(time_encoded, first_time).numpy(), slot, index, views, hidden.numpy())
     else:
         slot, time_encoded = None, None
         encoded = frequency_encoding(contracted(moved), num_freqs)

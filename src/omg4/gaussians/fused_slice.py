@@ -5,7 +5,7 @@ cull, the rows' motion, the appearance MLPs and their frequency encoding, the 4D
 node; for the compact models of OMG4's later stages (a few thousand Gaussians) that bookkeeping costs more than the
 arithmetic. Here the backbone's per-Gaussian motion terms (velocity, Σ_3D, Σtt; ``Backbone.motion``) stay in
 torch, and everything per row is one function: the cull and the rows' motion, colour and opacity
-(:mod:`omg4.gaussians.slice_kernels` forward, :mod:`omg4.gaussians.slice_grad_kernels` backward), with the appearance
+(:mod:`omg4.gaussians.slice_kernels`, forward and backward), with the appearance
 either stored per Gaussian (opacity logit, SH) or predicted by the MLPs (:mod:`omg4.gaussians.appearance_arrays`,
 their products in torch on the arrays' memory). Values and gradients are the torch form's (the reference, tested
 against it in float64).
@@ -22,7 +22,6 @@ from torch.autograd.function import once_differentiable
 from omg4.gaussians import appearance_arrays
 from omg4.gaussians import slice_kernels as sk
 from omg4.gaussians.sh import num_sh_coeffs
-from omg4.gaussians.slice_grad_kernels import slice_rows_backward
 from omg4.kernels import as_numpy, keeping_torch_threads, runs_cpu_kernels
 from omg4.render.view import TimeSlice
 
@@ -121,7 +120,7 @@ class _SliceRows(torch.autograd.Function):
         g_logits, g_dc = np.zeros(rows, dtype), np.zeros((rows, 3), dtype)
         g_rest = np.zeros((rows,) + rest.shape[1:], dtype)
         with keeping_torch_threads():
-            slice_rows_backward(index, views, starts, times, centers, a_xyz, a_t, a_gain, a_var, means, marginals,
+            sk.slice_rows_backward(index, views, starts, times, centers, a_xyz, a_t, a_gain, a_var, means, marginals,
                                 by_gaussian, logits, dc, rest, colors, num_sh_coeffs(spec.sh_degree),
                                 spec.band, spec.sh_degree_t + 1, float(spec.time_range[1] - spec.time_range[0]),
                                 spec.conditioned, grad_array(g_means, (m, 3)), grad_array(g_covars, (m, 3, 3)),

@@ -20,7 +20,6 @@ Elsewhere (CUDA) the torch forms run (:func:`torch_contraction`, with
 
 from __future__ import annotations
 
-import math
 
 import numba
 import numpy as np
@@ -247,61 +246,4 @@ def torch_contraction(dc: torch.Tensor, rest: torch.Tensor, weights: torch.Tenso
     return small_matmul(weights.unsqueeze(1), coeffs).squeeze(1)
 
 
-@njit(cache=True, inline="always")
-def basis_values(x, y, z, num_basis, out):
-    """``out[k] = Y_k(x, y, z)`` for k < ``num_basis``, 0 after (the 3DGS real SH of :mod:`omg4.gaussians.sh` up to
-    degree 3, written out; ``out`` float64 [16])."""
-    out[0] = C0
-    out[1] = -C1 * y
-    out[2] = C1 * z
-    out[3] = -C1 * x
-    xx, yy, zz = x * x, y * y, z * z
-    out[4] = C2[0] * x * y
-    out[5] = C2[1] * y * z
-    out[6] = C2[2] * (2.0 * zz - xx - yy)
-    out[7] = C2[3] * x * z
-    out[8] = C2[4] * (xx - yy)
-    out[9] = C3[0] * y * (3.0 * xx - yy)
-    out[10] = C3[1] * x * y * z
-    out[11] = C3[2] * y * (4.0 * zz - xx - yy)
-    out[12] = C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
-    out[13] = C3[4] * x * (4.0 * zz - xx - yy)
-    out[14] = C3[5] * z * (xx - yy)
-    out[15] = C3[6] * x * (xx - 3.0 * yy)
-    for k in range(num_basis, 16):
-        out[k] = 0.0
-
-
-@njit(cache=True, inline="always")
-def basis_gradient(x, y, z, g):
-    """``Σ_k g[k] ∂Y_k/∂(x, y, z)`` of :func:`basis_values` (``g`` zero past the active degree)."""
-    xx, yy, zz = x * x, y * y, z * z
-    gx = (-C1 * g[3] + C2[0] * y * g[4] - 2.0 * C2[2] * x * g[6] + C2[3] * z * g[7] + 2.0 * C2[4] * x * g[8]
-          + 6.0 * C3[0] * x * y * g[9] + C3[1] * y * z * g[10] - 2.0 * C3[2] * x * y * g[11] - 6.0 * C3[3] * x * z * g[12]
-          + C3[4] * (4.0 * zz - 3.0 * xx - yy) * g[13] + 2.0 * C3[5] * x * z * g[14] + 3.0 * C3[6] * (xx - yy) * g[15])
-    gy = (-C1 * g[1] + C2[0] * x * g[4] + C2[1] * z * g[5] - 2.0 * C2[2] * y * g[6] - 2.0 * C2[4] * y * g[8]
-          + 3.0 * C3[0] * (xx - yy) * g[9] + C3[1] * x * z * g[10] + C3[2] * (4.0 * zz - xx - 3.0 * yy) * g[11]
-          - 6.0 * C3[3] * y * z * g[12] - 2.0 * C3[4] * x * y * g[13] - 2.0 * C3[5] * y * z * g[14]
-          - 6.0 * C3[6] * x * y * g[15])
-    gz = (C1 * g[2] + C2[1] * y * g[5] + 4.0 * C2[2] * z * g[6] + C2[3] * x * g[7] + C3[1] * x * y * g[10]
-          + 8.0 * C3[2] * y * z * g[11] + C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * g[12] + 8.0 * C3[4] * x * z * g[13]
-          + C3[5] * (xx - yy) * g[14])
-    return gx, gy, gz
-
-
-
-@njit(cache=True, inline="always")
-def time_weights(offset, period, bands, weights, d_weights):
-    """``weights[n] = cos(2π n Δ / T)`` and ``d_weights[n]`` = its derivative in Δ = ``offset`` for n < ``bands``
-    (rt4dgs §2), from one sine and cosine by the multiple-angle recurrences."""
-    step = 2.0 * math.pi / period
-    c1, s1 = math.cos(step * offset), math.sin(step * offset)
-    cos_prev, sin_prev, cos_n, sin_n = 1.0, 0.0, c1, s1  # the angles 0 and φ = 2π Δ / T
-    weights[0], d_weights[0] = 1.0, 0.0
-    for n in range(1, bands):
-        weights[n] = cos_n
-        d_weights[n] = -n * step * sin_n
-        cos_prev, sin_prev, cos_n, sin_n = cos_n, sin_n, 2.0 * c1 * cos_n - cos_prev, 2.0 * c1 * sin_n - sin_prev
-
-__all__ = ["basis_from_terms", "basis_gradient", "basis_values", "contract_coefficients", "time_weights",
-           "torch_contraction"]
+__all__ = ["C0", "C1", "C2", "C3", "basis_from_terms", "contract_coefficients", "torch_contraction"]

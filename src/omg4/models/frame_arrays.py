@@ -1,19 +1,18 @@
 """A render-only model's frame on arrays: its per-Gaussian arrays made once at load, then per frame the kernels of
-:mod:`omg4.gaussians.slice_kernels` (cull, move, colour; the appearance MLPs between them as a few torch products on
-the arrays' memory), ready for :func:`omg4.render.arrays.rasterize_arrays`.
+:mod:`omg4.gaussians.slice_kernels` (cull, move, colour; the appearance MLPs between them,
+:mod:`omg4.gaussians.appearance_arrays`), ready for :func:`omg4.render.arrays.rasterize_arrays`.
 
 Part of the render-only decoder: it imports no training or compression code.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
+from omg4.gaussians import appearance_arrays
 from omg4.gaussians import slice_kernels as sk
 from omg4.gaussians.sh import num_sh_coeffs
 
@@ -83,12 +82,9 @@ class FrameKernel:
         else:
             self.f_static, self.f_view = array(v["f_static"]), array(v["f_view"])
             self.num_freqs = mlp.num_freqs
-            self.layers = _joined_layers(mlp, self.dtype)
-            if mode == sk.MLP_POSITION_TERM:  # the first layer's position part is the cached term
-                self.position_term = array(model.position_term)
-                self.w_time = array(mlp.shared[0].weight[:, 3 * 2 * mlp.num_freqs:])
-            else:
-                self.scales = np_dtype(math.pi) * np.exp2(np.arange(mlp.num_freqs, dtype=np_dtype))
+            self.weights = [array(w) for w in appearance_arrays.weights_of(mlp)]
+            # the first layer's position part: the model's cached term (Real-Time4DGS)
+            self.position_term = array(model.position_term) if mode == sk.MLP_POSITION_TERM else None
 
     def candidates(self, times: list[float]) -> np.ndarray:
         """The rows of the time windows of ``times`` (every row when one lies outside the model's range)."""
@@ -114,44 +110,22 @@ class FrameKernel:
         sk.move_rows(index, views, times, self.xyz, self.t, self.gain, self.cov3, self.var_t, self.consts, out.means,
                      out.covars, marginals)
         logits, dc, rest = (self.logits, self.dc, self.rest) if self.mode == sk.EXPLICIT else self._mlp(out, timestamps)
-        sk.color_rows(index, views, times, centers, self.xyz, self.t, out.means, marginals,
-                      self.mode == sk.EXPLICIT, logits, dc, rest, num_sh_coeffs(self.model.active_sh_degree), self.band, self.model.active_sh_degree_t + 1,
-                      self.period, self.conditioned, out.colors, out.opacities)
+        sk.color_rows(index, views, times, centers, self.xyz, self.t, out.means, marginals, self.mode == sk.EXPLICIT,
+                      logits, dc, rest, num_sh_coeffs(self.model.active_sh_degree), self.band,
+                      self.model.active_sh_degree_t + 1, self.period, self.conditioned, out.colors, out.opacities)
         return out
 
     def _mlp(self, out: FrameArrays, timestamps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(logits [M], dc [M, 3], rest [M, K − 1, 3])`` of the slice rows from the appearance MLPs (paper §4.4):
-        the joined layers (:func:`_joined_layers`) on the rows' first-layer responses — the cached position term plus
-        the view's time term, or the encoded moved positions."""
-        index, (w1, w2, w_static, w_static2, w_rest, w_rest2) = out.index, self.layers
-        if self.mode == sk.MLP_POSITION_TERM:
-            t0, t1 = self.time_range
-            time_term = sk.time_term((timestamps - t0) / (t1 - t0), self.w_time, self.num_freqs)
-            first = torch.from_numpy(self.position_term[index] + time_term[out.views])
-        else:
-            encoded = np.empty((len(index), 3 * 2 * self.num_freqs), self.np_dtype)
-            sk.encode_contracted(out.means, self.scales, self.consts, encoded)
-            first = torch.from_numpy(encoded).mm(w1)
-        shared = first.relu_().mm(w2)
-        static = F.leaky_relu_(torch.cat([shared, torch.from_numpy(self.f_static[index])], dim=1).mm(w_static))
-        rest = F.leaky_relu_(torch.cat([shared, torch.from_numpy(self.f_view[index])], dim=1).mm(w_rest)).mm(w_rest2)
-        dc_logit = static.mm(w_static2).numpy()  # [M, 4]: the DC colour, then the opacity logit
-        return dc_logit[:, 3], dc_logit[:, :3], rest.numpy().reshape(len(index), rest.shape[1] // 3, 3)
-
-
-def _joined_layers(mlp, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
-    """The appearance MLPs' weights (paper §4.4) as right-hand factors ``[in, out]`` for a frame's products: the
-    shared network's two layers, the DC and opacity heads joined (their first layers side by side, their second
-    layers block-diagonal: one product each for both) and the rest head's two layers."""
-    with torch.no_grad():
-        def right(layer):
-            return layer.weight.detach().to(dtype).t().contiguous()
-
-        w_dc, w_op = right(mlp.dc[2]), right(mlp.opacity[2])  # [H, 3], [H, 1]
-        second = torch.zeros(w_dc.shape[0] + w_op.shape[0], 4, dtype=dtype)
-        second[:w_dc.shape[0], :3], second[w_dc.shape[0]:, 3:] = w_dc, w_op
-        first = torch.cat([right(mlp.dc[0]), right(mlp.opacity[0])], dim=1)
-        return right(mlp.shared[0]), right(mlp.shared[2]), first, second, right(mlp.rest[0]), right(mlp.rest[2])
+        """``(logits [M], dc [M, 3], rest [M, K − 1, 3])`` of the slice rows from the appearance MLPs (paper §4.4,
+        :func:`omg4.gaussians.appearance_arrays.forward`): on the cached position term plus the view's time term, or
+        on the encoded moved positions."""
+        t0, t1 = self.time_range
+        time_input = self.mode == sk.MLP_POSITION_TERM
+        dc, rest, logits, _ = appearance_arrays.forward(
+            self.weights, self.num_freqs, time_input, self.xyz, self.f_static, self.f_view, out.index, out.views,
+            (timestamps - t0) / (t1 - t0) if time_input else None, None if time_input else out.means, keep=False,
+            position_term=self.position_term)
+        return logits, np.ascontiguousarray(dc), rest
 
 
 __all__ = ["FrameArrays", "FrameKernel"]
