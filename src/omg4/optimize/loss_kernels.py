@@ -159,21 +159,13 @@ def loss_backward(images, gts, g, lambda_dssim, grad_losses, d_mu, d_xx, d_xy, g
         l1_scale = (1.0 - lambda_dssim) * grad_losses[v] / n
         tmp = np.empty((height, width), images.dtype)
         src = np.empty((height, width), images.dtype)
-        b_mu = np.empty((height, width), images.dtype)
-        b_xx = np.empty((height, width), images.dtype)
-        b_xy = np.empty((height, width), images.dtype)
-        for h in range(height):
-            for w in range(width):
-                src[h, w] = scale * d_mu[v, c, h, w]
-        _blur(src, tmp, b_mu, g)
-        for h in range(height):
-            for w in range(width):
-                src[h, w] = scale * d_xx[v, c, h, w]
-        _blur(src, tmp, b_xx, g)
-        for h in range(height):
-            for w in range(width):
-                src[h, w] = scale * d_xy[v, c, h, w]
-        _blur(src, tmp, b_xy, g)
+        blurred = np.empty((3, height, width), images.dtype)  # blur(G_μ), blur(G_xx), blur(G_xy)
+        for i, d_map in enumerate((d_mu, d_xx, d_xy)):
+            for h in range(height):
+                for w in range(width):
+                    src[h, w] = scale * d_map[v, c, h, w]
+            _blur(src, tmp, blurred[i], g)
+        b_mu, b_xx, b_xy = blurred[0], blurred[1], blurred[2]
         for h in range(height):
             for w in range(width):
                 x = images[v, h, w, c]
