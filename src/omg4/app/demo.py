@@ -68,7 +68,7 @@ QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=
 """``omg4 demo --quick``: every step of the demo in seconds, to check an installation; its numbers mean nothing."""
 
 SMOKE_CHECK_NOTE = ("--quick is a smoke check of the installation (60 training steps, a few compression steps): its "
-                    "numbers are not the method's quality; omg4 demo without --quick measures it (about 8 minutes "
+                    "numbers are not the method's quality; omg4 demo without --quick measures it (about 7 minutes "
                     "on two CPU cores)")
 
 
@@ -137,7 +137,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     out = Path(out)
     check_demo_folder(out)
     out.mkdir(parents=True, exist_ok=True)
-    timings: dict[str, float] = {}
+    timings: dict[str, float | dict[str, float]] = {}
     torch.manual_seed(settings.seed)
     steps = 6 if settings.equal_training_control else 5
     step = iter(range(1, steps + 1))
