@@ -135,7 +135,7 @@ class SubVectorQuantizer(nn.Module):
 
 
 @njit(cache=True)
-def _gather(codebooks_rows, rows, width, out):
+def _gather(codebooks_rows, rows, out):
     """``out[g, j·s:(j+1)·s] = codebooks_rows[rows[g, j]]``: every slot's codeword of every Gaussian."""
     sub = codebooks_rows.shape[1]
     for g in range(rows.shape[0]):
@@ -164,13 +164,14 @@ class _QuantizedValues(torch.autograd.Function):
     @staticmethod
     def forward(ctx, layout, *codebooks):
         outputs, start = [], 0
-        ctx.layout = layout
+        ctx.layout, ctx.books = layout, []
         for rows, count, _ in layout:
             books = [as_numpy(cb) for cb in codebooks[start:start + count]]
             table = books[0] if count == 1 else np.concatenate(books)
             out = np.empty((rows.shape[0], rows.shape[1] * table.shape[1]), table.dtype)
-            _gather(table, rows, out.shape[1], out)
+            _gather(table, rows, out)
             outputs.append(torch.from_numpy(out))
+            ctx.books.append((table.shape[1], table.dtype))  # the codewords' length and dtype, for the backward
             start += count
         return tuple(outputs)
 
@@ -178,10 +179,8 @@ class _QuantizedValues(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, *grads):
         result = []
-        for (rows, count, sizes), grad in zip(ctx.layout, grads):
-            total = int(sum(sizes))
-            sub = (grad.shape[1] // rows.shape[1]) if grad is not None else 0
-            acc = np.zeros((total, sub), np.float32 if grad is None else grad.numpy().dtype)
+        for (rows, _, sizes), (sub, dtype), grad in zip(ctx.layout, ctx.books, grads):
+            acc = np.zeros((sum(sizes), sub), dtype)
             if grad is not None:
                 _scatter(np.ascontiguousarray(grad.numpy()), rows, acc)
             result.extend(torch.from_numpy(part) for part in np.split(acc, np.cumsum(sizes)[:-1]))

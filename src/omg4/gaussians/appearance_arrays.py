@@ -140,17 +140,12 @@ def _first_grads(g_first, index, slot, starts, g_position, g_time):
             g_time[v, j] = acc
 
 
-def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a @ b`` by torch's CPU matrix product (faster than numpy's for these shapes); the operands and results are
-    tensors on numpy arrays' memory (their ``.numpy()`` views feed the kernels, dispatching nothing)."""
-    return torch.mm(a, b)
-
-
 @dataclass
 class Activations:
     """What :func:`backward` needs of a :func:`forward`: the encodings, hidden activations, head inputs and the
-    joined weights (tensors); ``slot``/``encoded`` are the Gaussians whose position part was computed
-    (Real-Time4DGS)."""
+    joined weights (tensors on the arrays' memory: the products run in torch, faster than numpy's for these shapes,
+    and their ``.numpy()`` views feed the kernels, dispatching nothing); ``slot``/``encoded`` are the Gaussians whose
+    position part was computed (Real-Time4DGS)."""
 
     encoded: torch.Tensor
     time_encoded: torch.Tensor | None
@@ -178,17 +173,17 @@ def joined_weights(weights: list[np.ndarray], position_width: int) -> tuple:
     return tuple(None if a is None else torch.from_numpy(np.ascontiguousarray(a)) for a in arrays)
 
 
-def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np.ndarray, f_static: np.ndarray,
+def forward(joined: tuple, num_freqs: int, time_input: bool, xyz: np.ndarray, f_static: np.ndarray,
             f_view: np.ndarray, index: np.ndarray, views: np.ndarray, t_norm: np.ndarray | None,
             moved: np.ndarray | None, keep: bool = True, position_term: np.ndarray | None = None):
     """``(dc [M, 3], rest [M, R, 3], logit [M], activations or None)`` of the rows ``(index, views)``.
 
-    ``weights``: the eight arrays of :func:`weights_of`; ``time_input``: a Real-Time4DGS network (canonical ``xyz``
-    [N, 3] and the views' normalized times ``t_norm [V]``), else FreeTimeGS's (``moved [M, 3]``: the rows' positions
-    at their view's time). ``keep``: keep the activations for :func:`backward`. ``position_term [N, H]``: a
-    render-only model's cached first-layer position part of every Gaussian (then nothing is kept)."""
+    ``joined``: the networks' weights as :func:`joined_weights` gives them; ``time_input``: a Real-Time4DGS network
+    (canonical ``xyz`` [N, 3] and the views' normalized times ``t_norm [V]``), else FreeTimeGS's (``moved [M, 3]``:
+    the rows' positions at their view's time). ``keep``: keep the activations for :func:`backward`.
+    ``position_term [N, H]``: a render-only model's cached first-layer position part of every Gaussian (it does not
+    train: nothing to keep)."""
     dtype = xyz.dtype
-    joined = joined_weights(weights, 3 * 2 * num_freqs)
     first_pos, first_time, w2, w_head1, w_head2, w_rest1, w_rest2 = joined
     m = index.shape[0]
     if time_input:
@@ -201,66 +196,66 @@ def forward(weights: list[np.ndarray], num_freqs: int, time_input: bool, xyz: np
             slot = np.zeros(xyz.shape[0], np.int64)
             slot[gaussians] = np.arange(gaussians.size)
             encoded = frequency_encoding(contracted(xyz[gaussians]), num_freqs)
-            position_term = _mm(encoded, first_pos).numpy()
+            position_term = (encoded @ first_pos).numpy()
         else:
-            slot, encoded, keep = None, None, False
-        _first_rows(position_term, _mm(time_encoded, first_time).numpy(), slot, index, views, hidden.numpy())
+            slot, encoded = None, None
+        _first_rows(position_term, (time_encoded @ first_time).numpy(), slot, index, views, hidden.numpy())
     else:
         slot, time_encoded = None, None
         encoded = frequency_encoding(contracted(moved), num_freqs)
-        hidden = _mm(encoded, first_pos).relu_()
-    shared = _mm(hidden, w2).numpy()
+        hidden = (encoded @ first_pos).relu_()
+    shared = (hidden @ w2).numpy()
     width = shared.shape[1]
     static_in = torch.empty((m, width + 3), dtype=first_pos.dtype, device="cpu")
     view_in = torch.empty((m, width + 3), dtype=first_pos.dtype, device="cpu")
     _head_inputs(shared, f_static, f_view, index, static_in.numpy(), view_in.numpy())
-    head_hidden = _mm(static_in, w_head1)
+    head_hidden = static_in @ w_head1
     _leaky_(head_hidden.numpy(), LEAKY_SLOPE)
-    rest_hidden = _mm(view_in, w_rest1)
+    rest_hidden = view_in @ w_rest1
     _leaky_(rest_hidden.numpy(), LEAKY_SLOPE)
-    head = _mm(head_hidden, w_head2).numpy()  # [M, 4]: DC colour, opacity logit
-    rest = _mm(rest_hidden, w_rest2).numpy()
+    head = (head_hidden @ w_head2).numpy()  # [M, 4]: DC colour, opacity logit
+    rest = (rest_hidden @ w_rest2).numpy()
     saved = (Activations(encoded, time_encoded, slot, hidden, static_in, view_in, head_hidden, rest_hidden, joined)
              if keep else None)
-    return head[:, :3], rest.reshape(m, w_rest2.shape[1] // 3, 3), np.ascontiguousarray(head[:, 3]), saved
+    return (np.ascontiguousarray(head[:, :3]), rest.reshape(m, w_rest2.shape[1] // 3, 3),
+            np.ascontiguousarray(head[:, 3]), saved)
 
 
 def backward(saved: Activations, g_dc: np.ndarray, g_rest: np.ndarray, g_logit: np.ndarray, index: np.ndarray,
-             views: np.ndarray, num_views: int, num_gaussians: int):
+             starts: np.ndarray, num_gaussians: int):
     """``(weight gradients [out, in] in :data:`WEIGHT_NAMES` order, g_f_static [N, 3], g_f_view [N, 3])`` from the
-    rows' gradients ``g_dc [M, 3]``, ``g_rest [M, R, 3]``, ``g_logit [M]``."""
+    rows' gradients ``g_dc [M, 3]``, ``g_rest [M, R, 3]``, ``g_logit [M]`` (``starts``: :func:`view_ranges`)."""
     first_pos, first_time, w2, w_head1, w_head2, w_rest1, w_rest2 = saved.weights
     m, dtype = index.shape[0], g_dc.dtype
     n_dc = 3
     g_head = torch.from_numpy(np.concatenate([g_dc, g_logit[:, None]], axis=1))
-    g_head2 = _mm(saved.head_hidden.t(), g_head)  # [2H, 4]
-    g_head_hidden = _mm(g_head, w_head2.t())
+    g_head2 = saved.head_hidden.t() @ g_head  # [2H, 4]
+    g_head_hidden = g_head @ w_head2.t()
     _activation_grad_(g_head_hidden.numpy(), saved.head_hidden.numpy(), LEAKY_SLOPE)
-    g_head1 = _mm(saved.static_in.t(), g_head_hidden)  # [S + 3, 2H]
-    g_static_in = _mm(g_head_hidden, w_head1.t()).numpy()
+    g_head1 = saved.static_in.t() @ g_head_hidden  # [S + 3, 2H]
+    g_static_in = (g_head_hidden @ w_head1.t()).numpy()
     g_rest_flat = torch.from_numpy(g_rest.reshape(m, g_rest.shape[1] * 3))
-    g_rest2 = _mm(saved.rest_hidden.t(), g_rest_flat)
-    g_rest_hidden = _mm(g_rest_flat, w_rest2.t())
+    g_rest2 = saved.rest_hidden.t() @ g_rest_flat
+    g_rest_hidden = g_rest_flat @ w_rest2.t()
     _activation_grad_(g_rest_hidden.numpy(), saved.rest_hidden.numpy(), LEAKY_SLOPE)
-    g_rest1 = _mm(saved.view_in.t(), g_rest_hidden)
-    g_view_in = _mm(g_rest_hidden, w_rest1.t()).numpy()
+    g_rest1 = saved.view_in.t() @ g_rest_hidden
+    g_view_in = (g_rest_hidden @ w_rest1.t()).numpy()
     width = w2.shape[1]
     g_shared = torch.from_numpy(g_static_in[:, :width] + g_view_in[:, :width])
-    starts = view_ranges(views, num_views)
     g_f_static = np.zeros((num_gaussians, 3), dtype)
     g_f_view = np.zeros((num_gaussians, 3), dtype)
     _scatter_features(g_static_in, g_view_in, width, index, starts, g_f_static, g_f_view)
-    g_w2 = _mm(saved.hidden.t(), g_shared)  # [H, S]
-    g_hidden = _mm(g_shared, w2.t())
+    g_w2 = saved.hidden.t() @ g_shared  # [H, S]
+    g_hidden = g_shared @ w2.t()
     _activation_grad_(g_hidden.numpy(), saved.hidden.numpy(), 0.0)
     if saved.slot is not None:
         g_position = torch.zeros((saved.encoded.shape[0], g_hidden.shape[1]), dtype=g_hidden.dtype, device="cpu")
-        g_time = torch.empty((num_views, g_hidden.shape[1]), dtype=g_hidden.dtype, device="cpu")
+        g_time = torch.empty((len(starts) - 1, g_hidden.shape[1]), dtype=g_hidden.dtype, device="cpu")
         _first_grads(g_hidden.numpy(), index, saved.slot, starts, g_position.numpy(), g_time.numpy())
-        g_w1 = np.concatenate([_mm(g_position.t(), saved.encoded).numpy(),
-                               _mm(g_time.t(), saved.time_encoded).numpy()], axis=1)
+        g_w1 = np.concatenate([(g_position.t() @ saved.encoded).numpy(),
+                               (g_time.t() @ saved.time_encoded).numpy()], axis=1)
     else:
-        g_w1 = _mm(g_hidden.t(), saved.encoded).numpy()
+        g_w1 = (g_hidden.t() @ saved.encoded).numpy()
     hidden = w_head1.shape[1] // 2
     g_head1, g_head2 = g_head1.numpy(), g_head2.numpy()
     g_wd1, g_wo1 = g_head1[:, :hidden].T, g_head1[:, hidden:].T

@@ -42,6 +42,16 @@ class SliceSpec:
     conditioned: bool
     mlp: tuple[int, bool] | None = None
 
+    @property
+    def period(self) -> float:
+        """T = t1 − t0, the SH time period."""
+        return float(self.time_range[1] - self.time_range[0])
+
+    @property
+    def num_basis(self) -> int:
+        """The active spatial basis functions, (degree + 1)²."""
+        return num_sh_coeffs(self.sh_degree)
+
 
 def _host(x) -> np.ndarray:
     """A float64 numpy copy of a tensor (any device) or array-like: the views' times and centres."""
@@ -85,15 +95,14 @@ class _SliceRows(torch.autograd.Function):
                 dc, rest = _array(appearance[1], (n, 3)), _array(appearance[2])
             else:
                 num_freqs, time_input = spec.mlp
-                t0, t1 = spec.time_range
-                weights = [_array(w) for w in appearance[2:]]
+                joined = appearance_arrays.joined_weights([_array(w) for w in appearance[2:]], 3 * 2 * num_freqs)
                 dc, rest, logits, saved_mlp = appearance_arrays.forward(
-                    weights, num_freqs, time_input, a_xyz, _array(appearance[0]), _array(appearance[1]), index,
-                    views, (spec.times - t0) / (t1 - t0) if time_input else None, None if time_input else means)
-                dc = np.ascontiguousarray(dc)
+                    joined, num_freqs, time_input, a_xyz, _array(appearance[0]), _array(appearance[1]), index,
+                    views, (spec.times - spec.time_range[0]) / spec.period if time_input else None,
+                    None if time_input else means)
             sk.color_rows(index, views, times, centers, a_xyz, a_t, means, marginals, spec.mlp is None, logits, dc,
-                          rest, num_sh_coeffs(spec.sh_degree), spec.band, spec.sh_degree_t + 1,
-                          float(spec.time_range[1] - spec.time_range[0]), spec.conditioned, colors, opacities)
+                          rest, spec.num_basis, spec.band, spec.sh_degree_t + 1, spec.period, spec.conditioned, colors,
+                          opacities)
         ctx.spec, ctx.dtype = spec, dtype
         ctx.arrays = (a_xyz, a_t, a_gain, a_var, index, views, times, centers, means, marginals, logits, dc, rest,
                       colors, saved_mlp)
@@ -121,16 +130,16 @@ class _SliceRows(torch.autograd.Function):
         g_rest = np.zeros((rows,) + rest.shape[1:], dtype)
         with keeping_torch_threads():
             sk.slice_rows_backward(index, views, starts, times, centers, a_xyz, a_t, a_gain, a_var, means, marginals,
-                                by_gaussian, logits, dc, rest, colors, num_sh_coeffs(spec.sh_degree),
-                                spec.band, spec.sh_degree_t + 1, float(spec.time_range[1] - spec.time_range[0]),
-                                spec.conditioned, grad_array(g_means, (m, 3)), grad_array(g_covars, (m, 3, 3)),
-                                grad_array(g_colors, (m, 3)), grad_array(g_opacities, (m,)), g_xyz, g_t, g_gain,
-                                g_cov3, g_var, g_logits, g_dc, g_rest)
+                                   by_gaussian, logits, dc, rest, colors, spec.num_basis, spec.band,
+                                   spec.sh_degree_t + 1, spec.period, spec.conditioned, grad_array(g_means, (m, 3)),
+                                   grad_array(g_covars, (m, 3, 3)), grad_array(g_colors, (m, 3)),
+                                   grad_array(g_opacities, (m,)), g_xyz, g_t, g_gain, g_cov3, g_var, g_logits, g_dc,
+                                   g_rest)
             if by_gaussian:
                 appearance_grads = [g_logits.reshape(ctx.shapes[0]), g_dc.reshape(ctx.shapes[1]), g_rest]
             elif any(ctx.needs_input_grad[7:]):
                 weight_grads, g_static, g_view = appearance_arrays.backward(saved_mlp, g_dc, g_rest, g_logits, index,
-                                                                            views, len(times), n)
+                                                                            starts, n)
                 appearance_grads = [g_static, g_view, *weight_grads]
             else:
                 appearance_grads = [None] * len(ctx.shapes)

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 from omg4.errors import DataError
-from omg4.gaussians.backbone import BACKBONES, Backbone, activated_scales, backbone_named
 from omg4.gaussians import fused_slice
+from omg4.gaussians.backbone import BACKBONES, Backbone, activated_scales, backbone_named
 from omg4.gaussians.covariance import SliceGeometry, covariance_4d
 from omg4.gaussians.rotation import ROTATION_CONVENTIONS
 from omg4.gaussians.sh import colors_from_sh, fold_time_sh, num_sh_coeffs, sh_to_rgb, view_directions

@@ -20,7 +20,6 @@ Elsewhere (CUDA) the torch forms run (:func:`torch_contraction`, with
 
 from __future__ import annotations
 
-
 import numba
 import numpy as np
 import torch

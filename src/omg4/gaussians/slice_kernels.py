@@ -82,8 +82,9 @@ def basis_gradient(x, y, z, g):
     """``Σ_k g[k] ∂Y_k/∂(x, y, z)`` of :func:`basis_values` (``g`` zero past the active degree)."""
     xx, yy, zz = x * x, y * y, z * z
     gx = (-C1 * g[3] + C2[0] * y * g[4] - 2.0 * C2[2] * x * g[6] + C2[3] * z * g[7] + 2.0 * C2[4] * x * g[8]
-          + 6.0 * C3[0] * x * y * g[9] + C3[1] * y * z * g[10] - 2.0 * C3[2] * x * y * g[11] - 6.0 * C3[3] * x * z * g[12]
-          + C3[4] * (4.0 * zz - 3.0 * xx - yy) * g[13] + 2.0 * C3[5] * x * z * g[14] + 3.0 * C3[6] * (xx - yy) * g[15])
+          + 6.0 * C3[0] * x * y * g[9] + C3[1] * y * z * g[10] - 2.0 * C3[2] * x * y * g[11]
+          - 6.0 * C3[3] * x * z * g[12] + C3[4] * (4.0 * zz - 3.0 * xx - yy) * g[13] + 2.0 * C3[5] * x * z * g[14]
+          + 3.0 * C3[6] * (xx - yy) * g[15])
     gy = (-C1 * g[1] + C2[0] * x * g[4] + C2[1] * z * g[5] - 2.0 * C2[2] * y * g[6] - 2.0 * C2[4] * y * g[8]
           + 3.0 * C3[0] * (xx - yy) * g[9] + C3[1] * x * z * g[10] + C3[2] * (4.0 * zz - xx - 3.0 * yy) * g[11]
           - 6.0 * C3[3] * y * z * g[12] - 2.0 * C3[4] * x * y * g[13] - 2.0 * C3[5] * y * z * g[14]
@@ -92,7 +93,6 @@ def basis_gradient(x, y, z, g):
           + 8.0 * C3[2] * y * z * g[11] + C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * g[12] + 8.0 * C3[4] * x * z * g[13]
           + C3[5] * (xx - yy) * g[14])
     return gx, gy, gz
-
 
 
 @njit(cache=True, inline="always")
@@ -107,6 +107,21 @@ def time_weights(offset, period, bands, weights, d_weights):
         weights[n] = cos_n
         d_weights[n] = -n * step * sin_n
         cos_prev, sin_prev, cos_n, sin_n = cos_n, sin_n, 2.0 * c1 * cos_n - cos_prev, 2.0 * c1 * sin_n - sin_prev
+
+
+@njit(cache=True, inline="always")
+def row_weights(dx, dy, dz, offset, num_basis, band, bands, period, basis, weights, d_weights, wq):
+    """A row's SH weights: ``wq[band·n + k] = cos(2π n Δ / T)·Y_k(d / ‖d‖)`` for the direction ``d = (dx, dy, dz)``
+    and Δ = ``offset`` (entries past the active degree untouched), with ``basis``, ``weights`` and ``d_weights`` as
+    :func:`basis_values` and :func:`time_weights` fill them; returns the unit direction and the clamped norm."""
+    norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), NORM_EPS)
+    ux, uy, uz = dx / norm, dy / norm, dz / norm
+    basis_values(ux, uy, uz, num_basis, basis)
+    time_weights(offset, period, bands, weights, d_weights)
+    for n in range(bands):
+        for k in range(num_basis):
+            wq[band * n + k] = weights[n] * basis[k]
+    return ux, uy, uz, norm
 
 
 @njit(parallel=True, cache=True)
@@ -139,8 +154,8 @@ def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussi
                bands, period, conditioned, out_colors, out_opacities):
     """Colours and opacities of the slice rows ``index [M]`` of ``views [M]`` (module docstring): the appearance
     ``logits``, ``dc [·, 3]`` and ``rest [·, K − 1, 3]`` are per Gaussian (``by_gaussian``, stored values) or per
-    slice row (the MLPs' outputs); ``num_basis`` = (degree + 1)², ``bands`` = temporal degree + 1 (the basis of
-    :func:`omg4.gaussians.sh_kernels.basis_values`); ``conditioned``: the view direction starts at the moved mean."""
+    slice row (the MLPs' outputs); ``num_basis`` = (degree + 1)², ``bands`` = temporal degree + 1
+    (:func:`row_weights`); ``conditioned``: the view direction starts at the moved mean."""
     for chunk in prange((index.shape[0] + CHUNK - 1) // CHUNK):
         basis = np.zeros(16)
         weights = np.empty(bands)
@@ -154,12 +169,8 @@ def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussi
                 dx, dy, dz = means[i, 0] - centers[v, 0], means[i, 1] - centers[v, 1], means[i, 2] - centers[v, 2]
             else:
                 dx, dy, dz = xyz[g, 0] - centers[v, 0], xyz[g, 1] - centers[v, 1], xyz[g, 2] - centers[v, 2]
-            norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), NORM_EPS)
-            basis_values(dx / norm, dy / norm, dz / norm, num_basis, basis)
-            time_weights(float(t[g]) - float(times[v]), period, bands, weights, d_weights)
-            for n in range(bands):
-                for k in range(num_basis):
-                    wq[band * n + k] = weights[n] * basis[k]
+            row_weights(dx, dy, dz, float(t[g]) - float(times[v]), num_basis, band, bands, period, basis, weights,
+                        d_weights, wq)
             for c in range(3):
                 acc = wq[0] * dc[row, c]
                 for q in range(1, band * bands):
@@ -170,16 +181,14 @@ def color_rows(index, views, times, centers, xyz, t, means, marginals, by_gaussi
 @njit(parallel=True, cache=True, fastmath=FAST_MATH)
 def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_t, means, marginals, by_gaussian,
                         logits, dc, rest, colors, num_basis, band, bands, period, conditioned, g_means, g_covars,
-                        g_colors, g_opacities,
-                        g_xyz, g_t, g_gain, g_cov3, g_var, g_logits, g_dc, g_rest):
+                        g_colors, g_opacities, g_xyz, g_t, g_gain, g_cov3, g_var, g_logits, g_dc, g_rest):
     """Accumulates the gradients of the rows ``(index [M], views [M])`` (grouped by view; ``starts [V + 1]``).
 
-    Inputs as :func:`color_rows` (``logits``, ``dc [·, 3]``, ``rest [·, K − 1, 3]`` per
-    Gaussian when ``by_gaussian``, else per row), its ``colors [M, 3]`` (where they are 0 the clamp took the
-    gradient), and the rows' output gradients ``g_means [M, 3]``, ``g_covars [M, 3,
-    3]``, ``g_colors [M, 3]``, ``g_opacities [M]``. Adds into the per-Gaussian ``g_xyz [N, 3]``, ``g_t [N]``,
-    ``g_gain [N, 3]``, ``g_cov3 [N, 3, 3]``, ``g_var [N]`` and writes (``by_gaussian``: adds per Gaussian)
-    ``g_logits``, ``g_dc``, ``g_rest``."""
+    Inputs as :func:`color_rows` (``logits``, ``dc [·, 3]``, ``rest [·, K − 1, 3]`` per Gaussian when
+    ``by_gaussian``, else per row), its ``colors [M, 3]`` (where they are 0 the clamp took the gradient), and the
+    rows' output gradients ``g_means [M, 3]``, ``g_covars [M, 3, 3]``, ``g_colors [M, 3]``, ``g_opacities [M]``. Adds
+    into the per-Gaussian ``g_xyz [N, 3]``, ``g_t [N]``, ``g_gain [N, 3]``, ``g_cov3 [N, 3, 3]``, ``g_var [N]`` and
+    into ``g_logits``, ``g_dc``, ``g_rest`` (per Gaussian when ``by_gaussian``, else per row)."""
     for v in range(starts.shape[0] - 1):
         first, stop = starts[v], starts[v + 1]
         for chunk in prange((stop - first + CHUNK - 1) // CHUNK):
@@ -208,17 +217,11 @@ def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_
                     dx, dy, dz = means[m, 0] - centers[v, 0], means[m, 1] - centers[v, 1], means[m, 2] - centers[v, 2]
                 else:
                     dx, dy, dz = xyz[g, 0] - centers[v, 0], xyz[g, 1] - centers[v, 1], xyz[g, 2] - centers[v, 2]
-                norm = max(math.sqrt(float(dx) * dx + float(dy) * dy + float(dz) * dz), NORM_EPS)
-                ux, uy, uz = dx / norm, dy / norm, dz / norm
-                basis_values(ux, uy, uz, num_basis, basis)
-                offset = float(t[g]) - float(times[v])  # Δ = μt − τ
-                time_weights(offset, period, bands, weights, d_weights)
                 num_q = band * bands  # coefficient q = band·n + k weighs cos(2π n Δ / T)·Y_k (0 past the active degree)
                 for q in range(num_q):
                     wq[q] = 0.0
-                for n in range(bands):
-                    for k in range(num_basis):
-                        wq[band * n + k] = weights[n] * basis[k]
+                ux, uy, uz, norm = row_weights(float(dx), float(dy), float(dz), float(t[g]) - float(times[v]),
+                                               num_basis, band, bands, period, basis, weights, d_weights, wq)
                 for c in range(3):  # the clamp max(·, 0) passes no gradient where it clamped
                     g_pre[c] = g_colors[m, c] if colors[m, c] > 0 else 0.0
                 # coefficients (added: rows of one view hold distinct Gaussians), then harmonics and time weights
@@ -276,5 +279,6 @@ def slice_rows_backward(index, views, starts, times, centers, xyz, t, gain, var_
                         g_cov3[g, a, b] += g_covars[m, a, b]
 
 
-__all__ = ["CHUNK", "CONSTS", "EXPLICIT", "MLP_CONDITIONED", "MLP_POSITION_TERM", "NORM_EPS", "basis_gradient", "basis_values",
-           "color_rows", "cull", "kernel_consts", "move_rows", "slice_rows_backward", "time_weights"]
+__all__ = ["CHUNK", "CONSTS", "EXPLICIT", "MLP_CONDITIONED", "MLP_POSITION_TERM", "NORM_EPS", "basis_gradient",
+           "basis_values", "color_rows", "cull", "kernel_consts", "move_rows", "row_weights", "slice_rows_backward",
+           "time_weights"]

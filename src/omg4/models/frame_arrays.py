@@ -82,7 +82,8 @@ class FrameKernel:
         else:
             self.f_static, self.f_view = array(v["f_static"]), array(v["f_view"])
             self.num_freqs = mlp.num_freqs
-            self.weights = [array(w) for w in appearance_arrays.weights_of(mlp)]
+            self.joined = appearance_arrays.joined_weights([array(w) for w in appearance_arrays.weights_of(mlp)],
+                                                           3 * 2 * mlp.num_freqs)
             # the first layer's position part: the model's cached term (Real-Time4DGS)
             self.position_term = array(model.position_term) if mode == sk.MLP_POSITION_TERM else None
 
@@ -122,10 +123,10 @@ class FrameKernel:
         t0, t1 = self.time_range
         time_input = self.mode == sk.MLP_POSITION_TERM
         dc, rest, logits, _ = appearance_arrays.forward(
-            self.weights, self.num_freqs, time_input, self.xyz, self.f_static, self.f_view, out.index, out.views,
+            self.joined, self.num_freqs, time_input, self.xyz, self.f_static, self.f_view, out.index, out.views,
             (timestamps - t0) / (t1 - t0) if time_input else None, None if time_input else out.means, keep=False,
             position_term=self.position_term)
-        return logits, np.ascontiguousarray(dc), rest
+        return logits, dc, rest
 
 
 __all__ = ["FrameArrays", "FrameKernel"]

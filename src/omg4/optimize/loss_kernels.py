@@ -100,26 +100,16 @@ def loss_forward(images, gts, g, lambda_dssim, c1, c2, losses, sq_errors, d_mu, 
                 x[h, w] = images[v, h, w, c]
                 y[h, w] = gts[v, h, w, c]
         tmp = np.empty((height, width), images.dtype)
-        mu_x = np.empty((height, width), images.dtype)
-        mu_y = np.empty((height, width), images.dtype)
-        e_xx = np.empty((height, width), images.dtype)
-        e_yy = np.empty((height, width), images.dtype)
-        e_xy = np.empty((height, width), images.dtype)
         prod = np.empty((height, width), images.dtype)
-        _blur(x, tmp, mu_x, g)
-        _blur(y, tmp, mu_y, g)
-        for h in range(height):
-            for w in range(width):
-                prod[h, w] = x[h, w] * x[h, w]
-        _blur(prod, tmp, e_xx, g)
-        for h in range(height):
-            for w in range(width):
-                prod[h, w] = y[h, w] * y[h, w]
-        _blur(prod, tmp, e_yy, g)
-        for h in range(height):
-            for w in range(width):
-                prod[h, w] = x[h, w] * y[h, w]
-        _blur(prod, tmp, e_xy, g)
+        stats = np.empty((5, height, width), images.dtype)  # μx, μy, E[x²], E[y²], E[xy]
+        _blur(x, tmp, stats[0], g)
+        _blur(y, tmp, stats[1], g)
+        for i, (a, b) in enumerate(((x, x), (y, y), (x, y))):
+            for h in range(height):
+                for w in range(width):
+                    prod[h, w] = a[h, w] * b[h, w]
+            _blur(prod, tmp, stats[2 + i], g)
+        mu_x, mu_y, e_xx, e_yy, e_xy = stats[0], stats[1], stats[2], stats[3], stats[4]
         s_l1 = 0.0
         s_ssim = 0.0
         s_sq = 0.0

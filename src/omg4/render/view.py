@@ -81,6 +81,12 @@ def camera_tensors(camera: Camera, device: torch.device | str = "cpu") -> tuple[
                  for value in (camera.viewmat, camera.K, camera.center))
 
 
+def camera_arrays(cameras: list[Camera], name: str) -> np.ndarray:
+    """The cameras' ``name`` (``viewmat``, ``K`` or ``center``) stacked, ``[V, …]`` float32 (as :func:`camera_tensors`
+    gives them)."""
+    return np.stack([np.asarray(getattr(c, name), dtype=np.float32) for c in cameras])
+
+
 def render_view(model: SlicedModel, camera: Camera, timestamp: float, *, background: torch.Tensor | None = None,
                 backend: str = "auto", device: torch.device | str = "cpu", **raster_kwargs):
     """Render ``model`` at ``camera`` and ``timestamp``.
@@ -133,9 +139,8 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
         raise ValueError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
     if _fused_frame(model, backend, device, background):
         return _render_arrays(model, cameras, timestamps, background, batch=True, **raster_kwargs)
-    viewmats, Ks, centers = (to_device(torch.from_numpy(np.stack([np.asarray(getattr(c, name), dtype=np.float32)
-                                                                  for c in cameras])), device)
-                             for name in ("viewmat", "K", "center"))  # float32, as camera_tensors gives them
+    viewmats, Ks, centers = (to_device(torch.from_numpy(camera_arrays(cameras, name)), device)
+                             for name in ("viewmat", "K", "center"))
     times = to_device(torch.from_numpy(np.asarray(timestamps, dtype=np.float64)), device)
     sl = model.slice_views(times, centers)
     width, height = sizes.pop()
@@ -159,8 +164,8 @@ def _render_arrays(model, cameras: list[Camera], timestamps: list[float], backgr
     ``frame_kernel``: its slice and the rasterizer on numpy arrays, no torch operation (the results wrap them)."""
     kernel = model.frame_kernel
 
-    def stacked(name: str) -> np.ndarray:  # float32 first, as camera_tensors gives them to the torch forms
-        return np.stack([np.asarray(getattr(c, name), dtype=np.float32) for c in cameras]).astype(kernel.np_dtype)
+    def stacked(name: str) -> np.ndarray:
+        return camera_arrays(cameras, name).astype(kernel.np_dtype)
 
     sl = kernel.frame(np.asarray(timestamps, dtype=np.float64), stacked("center"))
     out = rasterize_arrays(sl.means, sl.covars, sl.colors, sl.opacities, sl.views, stacked("viewmat"), stacked("K"),
