@@ -14,10 +14,21 @@ from omg4.testing.browser import served
 from PIL import Image
 
 from omg4.app.cli import main
+from omg4.errors import CorruptFileError
 from omg4.metrics import psnr
 from omg4.testing import forge
 
-PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,"></head>
+PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
+<script>
+  // the page's own count of the WebGL objects alive (made and not yet deleted), by kind
+  window.glLive = {};
+  for (const kind of ["Buffer", "Texture", "Program", "VertexArray", "Framebuffer"]) {
+    const proto = WebGL2RenderingContext.prototype, make = proto["create" + kind], drop = proto["delete" + kind];
+    window.glLive[kind] = 0;
+    proto["create" + kind] = function () { window.glLive[kind]++; return make.call(this); };
+    proto["delete" + kind] = function (o) { if (o) window.glLive[kind]--; return drop.call(this, o); };
+  }
+</script></head>
 <body style="margin: 0">
 <p>Someone's own page.</p>
 <script type="module" src="player/element.js"></script>
@@ -119,11 +130,15 @@ def test_the_element_fills_its_box_with_controls_and_takes_a_camera(chromium, si
         wrong = chromium.evaluate("(() => { try { document.getElementById('scene').camera = 'nope'; } "
                                   "catch (e) { return e.message; } })()")
         assert wrong.startswith("no camera named 'nope'")
-        # a new src: the file shown before is let go, the new one loads and is ready again
+        # a new src: the file shown before is let go (its GL objects deleted), the new one loads and is ready again
+        live = chromium.evaluate("({...window.glLive})")
+        assert live["Buffer"] > 0 and live["Texture"] > 0 and live["Program"] > 0
         again = chromium.evaluate("""(async () => { const s = document.getElementById('scene');
           s.setAttribute('src', 'player/model.omg4?again'); const ready = await s.ready;
-          return [ready.gaussians, s.frames > 0]; })()""")
-        assert again == [1200, True]
+          await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
+          return [ready.gaussians, s.frames > 0, {...window.glLive}]; })()""")
+        assert again[:2] == [1200, True]
+        assert again[2] == live  # as many alive as one file needs: the old file's all deleted
 
 
 def test_a_predicted_sequence_plays_through_the_element(chromium, tmp_path, tiny_scene_dir):
@@ -143,15 +158,21 @@ def test_a_hostile_file_raises_the_error_event_in_one_line_and_the_page_lives_on
     base = forge.valid_file(tmp_path / "m.omg4", 300, codec="compact", seed=5, codebook_scale=0.25)
     folder = tmp_path / "player"
     assert main(["export", str(tmp_path / "m.omg4"), "--format", "web", "--out", str(folder)]) == 0
-    refused = 0
+    verdicts = []
     with served(tmp_path) as url:
         for i, (kind, data) in enumerate(forge.forged_files(base, 12, seed=3)):
             (folder / "model.omg4").write_bytes(data)
             page(tmp_path, f'src="player/model.omg4?case={i}" time="0"')
             result = opened(chromium, f"{url}/page.html")
+            # the reference: what omg4's own decoder makes of the same bytes
+            try:
+                python_refuses = forge.exercise(folder / "model.omg4") != "ok"
+            except CorruptFileError:
+                python_refuses = True
+            verdicts.append((kind, "error" in result, python_refuses))
             if "error" not in result:
+                assert result["ready"]["gaussians"] > 0, kind  # a file the element takes, it shows
                 continue
-            refused += 1
             events = chromium.evaluate("window.events")
             (error,) = [detail for name, detail in events if name == "error"]
             assert error["message"] == result["message"] and error["message"] and "\n" not in error["message"], kind
@@ -159,4 +180,5 @@ def test_a_hostile_file_raises_the_error_event_in_one_line_and_the_page_lives_on
                                       ".textContent")
             assert shown == error["message"]
             assert chromium.evaluate("document.querySelector('p').textContent") == "Someone's own page."
-    assert refused >= 6
+    assert [(kind, browser) for kind, browser, _ in verdicts] == [(kind, python) for kind, _, python in verdicts]
+    assert sum(browser for _, browser, _ in verdicts) >= 6  # most forgeries are refusals: the error path is exercised

@@ -153,7 +153,8 @@ export class Renderer {
     gl.vertexAttribIPointer(2, 1, gl.INT, 4, 0);
     const triangles = new Uint32Array(6 * n);
     for (let q = 0; q < n; q++) triangles.set([4 * q, 4 * q + 1, 4 * q + 2, 4 * q + 2, 4 * q + 1, 4 * q + 3], 6 * q);
-    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
+    this.triangles = gl.createBuffer();
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.triangles);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, triangles, gl.STATIC_DRAW);
     gl.bindVertexArray(null);
     this.target = null;
@@ -345,7 +346,8 @@ export class Renderer {
   dispose() {
     const gl = this.gl;
     for (const texture of Object.values(this.textures)) gl.deleteTexture(texture);
-    for (const buffer of [...this.weightBuffers, this.feedback, this.corners, this.cornerIndex]) gl.deleteBuffer(buffer);
+    const buffers = [...this.weightBuffers, this.feedback, this.corners, this.cornerIndex, this.triangles];
+    for (const buffer of buffers) gl.deleteBuffer(buffer);
     for (const program of [this.slice, this.splat]) gl.deleteProgram(program);
     gl.deleteVertexArray(this.splatVao);
     gl.deleteVertexArray(this.emptyVao);
