@@ -216,8 +216,14 @@ def test_explicit_cpu_under_a_meta_default_device_writes_the_same_file(baseline,
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 @pytest.mark.gpu
 def test_cuda_compression_tracks_the_cpu_run(baseline, tiny_scene, tmp_path, scores_file):
-    """The same scores on both devices give the same sampled and pruned sets; the CUDA-written file
-    decodes on the CPU and on CUDA and renders close to the CPU-written one."""
+    """The same scores on both devices give the same sampled and pruned sets; the CUDA-written file decodes on the CPU
+    and on CUDA and renders close to the CPU-written one.
+
+    The bounds: the SD scores sum gradients that ``test_rasterizer_gsplat`` holds to 1e-3 of their norm on the two
+    rasterizers, so 1e-2 of their sum (ten times, for the views' sum); two compressions part as float32 rounding
+    grows over their steps, so the CUDA file's PSNR is held to the spread of two CPU seeds (at least the 0.05 dB an
+    image 1e-4 off moves it: ΔPSNR ≈ 4.34 · 2 · 1e-4 / RMSE); one file rendered on either device differs only by
+    the rasterizers, so 0.05 dB."""
     from omg4.compress.score import SDScores, compute_sd_scores
     from omg4.evaluate import evaluate
     from omg4.models import load_model
@@ -226,20 +232,21 @@ def test_cuda_compression_tracks_the_cpu_run(baseline, tiny_scene, tmp_path, sco
     gpu_scores = compute_sd_scores(baseline.model.to("cuda"), tiny_scene.train_views, device="cuda", progress=False)
     assert gpu_scores.static.device.type == "cpu"
     rel = (gpu_scores.static - cpu_scores.static).abs().sum() / cpu_scores.static.abs().sum()
-    assert float(rel) < 0.05
+    assert float(rel) < 1e-2
     reports, results = {}, {}
-    for device, backend in (("cpu", "cpu"), ("cuda", "auto")):
+    for device, backend, seed in (("cpu", "cpu", 0), ("cuda", "auto", 0), ("cpu_seed1", "cpu", 1)):
         out = tmp_path / f"{device}.omg4"
-        cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend=backend, device=device)
+        cfg = CompressConfig(lengths=LENGTHS, batch_size=1, backend=backend, device=device.split("_")[0], seed=seed)
         reports[device] = compress_to_file(baseline.model, tiny_scene, cfg, out, scores_path=scores_file,
                                            progress=False, log=lambda *_: None)
         results[device] = evaluate(load_model(out), tiny_scene.test_views, lpips_nets=(), progress=False)
     counts = {d: {r["stage"]: r["num_gaussians"] for r in rep["stages"]} for d, rep in reports.items()}
     assert counts["cuda"]["sample"] == counts["cpu"]["sample"] and counts["cuda"]["prune"] == counts["cpu"]["prune"]
-    assert results["cuda"]["psnr"] == pytest.approx(results["cpu"]["psnr"], abs=0.5)
+    seeds_spread = abs(results["cpu_seed1"]["psnr"] - results["cpu"]["psnr"])
+    assert results["cuda"]["psnr"] == pytest.approx(results["cpu"]["psnr"], abs=max(seeds_spread, 0.05))
     on_gpu = evaluate(load_model(tmp_path / "cuda.omg4", "cuda"), tiny_scene.test_views, lpips_nets=(),
                       backend="auto", progress=False, device="cuda")
-    assert on_gpu["psnr"] == pytest.approx(results["cuda"]["psnr"], abs=0.1)
+    assert on_gpu["psnr"] == pytest.approx(results["cuda"]["psnr"], abs=0.05)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")

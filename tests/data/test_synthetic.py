@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from omg4.app.cli import main
+from omg4.data import load_scene
 from omg4.data.synthetic import SynthConfig, SyntheticScene, box_filter, camera_rays, write_synthetic_scene
 from omg4.errors import OMG4Error
 
@@ -246,9 +247,6 @@ def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
 def test_reads_back_as_n3dv_scene(tiny):
     """The N3DV reader sees cam00 as the test camera, all frames, and cameras that project
     the ray caster's surface points onto the samples that saw them (in its normalized world)."""
-    load_scene = pytest.importorskip("omg4.data").__dict__.get("load_scene")
-    if load_scene is None:
-        pytest.skip("omg4.data.load_scene not available yet")
     loaded = load_scene(tiny)
     assert [c.name for c in loaded.test_cameras()] == ["cam00"]
     assert sorted(c.name for c in loaded.train_cameras()) == ["cam01", "cam02", "cam03"]

@@ -12,7 +12,7 @@ from omg4.data.scene import Camera
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.slice_kernels import EXPLICIT, MLP_CONDITIONED, MLP_POSITION_TERM
-from omg4.kernels import kernel_mode, using_kernels
+from omg4.kernels import using_kernels
 from omg4.models.windowed import WindowedModel
 from omg4.render.view import render_view, render_views
 
@@ -133,15 +133,29 @@ def test_one_gaussian():
     assert_same_frame(fused, reference, 1e-9)
 
 
-def test_the_reference_switch_turns_the_fused_frame_off():
+def test_the_reference_switch_turns_the_fused_frame_off(monkeypatch):
     m = model("rt4dgs", False, torch.float32)
-    assert kernel_mode() == "fused"
+    calls = {"fused": 0, "torch": 0}
+    fused_frame, torch_slice = type(m.frame_kernel).frame, type(m).slice_views
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(type(m.frame_kernel), "frame", counted("fused", fused_frame))
+    monkeypatch.setattr(type(m), "slice_views", counted("torch", torch_slice))
+    render_view(m, camera(), 0.5, backend="cpu")
+    assert calls == {"fused": 1, "torch": 0}  # the default frame: the fused kernels, no torch slice
     with using_kernels("reference"):
-        assert kernel_mode() == "reference"
+        render_view(m, camera(), 0.5, backend="cpu")
+    assert calls == {"fused": 1, "torch": 1}  # the reference frame: the torch slice, the fused kernels untouched
+    render_view(m, camera(), 0.5, backend="cpu")
+    assert calls == {"fused": 2, "torch": 1}  # the switch is undone on leaving
     with pytest.raises(ValueError, match="unknown kernels"):
         with using_kernels("fast"):
             pass
-    assert m.frame_kernel is not None
 
 
 def test_the_active_sh_degrees_are_read_per_frame():

@@ -50,23 +50,36 @@ def test_explicit_cpu_under_a_meta_default_device_matches_the_default_run(tiny_s
 @needs_cuda
 @pytest.mark.gpu
 def test_cuda_training_tracks_the_cpu_run(tiny_scene, tmp_path):
-    """A few steps without densification: per-step losses agree (the two rasterizers match to float
-    tolerance) and the models render the test views alike; checkpoints hold CPU tensors and resume on CUDA."""
+    """Each step from the same state on both devices (the CPU run's parameters and Adam state copied to CUDA first,
+    no densification): the losses differ only by the two rasterizers' disagreement, which
+    ``test_rasterizer_gsplat`` bounds at 1e-4 of the image; 1e-3 leaves ten times that for the D-SSIM's quotients
+    over flat windows. The same model then evaluates alike on both devices: an image 1e-4 off moves a PSNR near
+    25 dB by under 0.02 dB (ΔPSNR ≈ 4.34 · 2 · 1e-4 / RMSE), so 0.05. Checkpoints hold CPU tensors and resume on
+    CUDA."""
     steps = 6
     cpu = Trainer(tiny_scene, small_config(densify_until=0, iterations=steps), tmp_path / "cpu", **quiet())
     gpu = Trainer(tiny_scene, small_config(densify_until=0, iterations=steps, device="cuda", backend="auto"),
                   tmp_path / "gpu", **quiet())
     assert gpu.model.params["xyz"].is_cuda and gpu.background.is_cuda and gpu.stats.grad_sum.is_cuda
+
+    def same_state():
+        with torch.no_grad():
+            for name, value in cpu.model.params.items():
+                gpu.model.params[name].copy_(value)
+        gpu.optimizer.load_state_dict(cpu.optimizer.state_dict())  # moves Adam's moments to the parameters' device
+
     for s in range(1, steps + 1):
+        same_state()
         loss_cpu, _ = cpu.train_step(s)
         loss_gpu, _ = gpu.train_step(s)
-        assert loss_gpu == pytest.approx(loss_cpu, rel=2e-2), s
+        assert loss_gpu == pytest.approx(loss_cpu, rel=1e-3), s
     assert all(v.is_cuda for p in gpu.optimizer.state.values() for k, v in p.items() if k != "step")
     from omg4.train.trainer import evaluate_psnr
 
+    same_state()
     p_cpu = evaluate_psnr(cpu.model, tiny_scene.test_views, cpu.background, "cpu")
     p_gpu = evaluate_psnr(gpu.model, tiny_scene.test_views, gpu.background, "auto", "cuda")
-    assert p_gpu == pytest.approx(p_cpu, abs=0.3)
+    assert p_gpu == pytest.approx(p_cpu, abs=0.05)
     gpu.save_checkpoint(steps)
     state = torch.load(tmp_path / "gpu" / "checkpoints" / f"state_{steps:07d}.pt", weights_only=True)
     assert all(v.device.type == "cpu" for v in state["stats"].values())

@@ -47,17 +47,28 @@ window.omg4Ready = (async () => {
   scene.add(mesh);
   const camera = Omg4Splats.threeCamera(resized(preset, WIDTH, HEIGHT));
   let frames = 0;
+  window.omg4Spark = { scene, get frames() { return frames; } };
   await new Promise((done) => renderer.setAnimationLoop(() => { renderer.render(scene, camera); if (++frames === 3) done(); }));
   return { frames };
 })();
 </script></body></html>"""
 
-SETTLE = "new Promise((done) => setTimeout(done, 1500))"  # Spark sorts on a worker: a few frames later it has sorted
+# Spark sorts on a worker, frames after the first: wait until its SparkRenderer (Spark 2.2.0, package.json) has sorted
+# and has nothing left to sort, then for two frames drawn in that order
+SETTLE = """(async () => {
+  const spark = window.omg4Spark.scene.children.find((c) => "sortDirty" in c);
+  const sorted = () => spark.lastSortTime > 0 && !spark.sorting && !spark.sortDirty;
+  const frame = () => new Promise((r) => requestAnimationFrame(r));
+  for (let i = 0; i < 3000 && !sorted(); i++) await frame();
+  if (!sorted()) throw new Error("Spark never finished sorting");
+  const drawn = window.omg4Spark.frames;
+  while (window.omg4Spark.frames < drawn + 2) await frame();
+  return true; })()"""
 CANVAS = "document.querySelector('canvas').toDataURL('image/png')"
 
 
 def image(browser) -> np.ndarray:
-    browser.evaluate(SETTLE)
+    assert browser.evaluate(SETTLE, timeout=120)
     url = browser.evaluate(CANVAS)
     return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), np.float64)
 
