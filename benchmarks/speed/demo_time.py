@@ -41,11 +41,12 @@ def run_demo(src: Path, folder: Path) -> dict:
     methods = {name: {k: row[k] for k in ("psnr", "ssim", "lpips_alex", "psnr_dynamic", "fps", "num_gaussians",
                                           "storage_mb") if k in row}
                for name, row in results["methods"].items()}
-    timings = results["timings"]
-    if "compress_steps_per_second" not in timings:  # code from before the demo recorded its speeds
-        stages = results["compression"].get("stages", [])
-        timings["compress_steps_per_second"] = {r["stage"]: r.get("steps_per_second") for r in stages}
-    return {"wall_time_s": seconds, "max_rss_mb": rss, "timings": timings, "methods": methods,
+    timings = {k: v for k, v in results["timings"].items() if not isinstance(v, dict)}
+    speeds = results.get("speeds") or {  # code from before the demo recorded its speeds apart
+        "train_steps_per_second": timings.pop("train_steps_per_second", None),
+        "compress_steps_per_second": results["timings"].get("compress_steps_per_second")
+        or {r["stage"]: r.get("steps_per_second") for r in results["compression"].get("stages", [])}}
+    return {"wall_time_s": seconds, "max_rss_mb": rss, "timings": timings, "speeds": speeds, "methods": methods,
             "per_frame_difference": {k: v for k, v in results["per_frame_difference"].items()
                                      if not isinstance(v, (list, dict))}}
 
@@ -70,10 +71,10 @@ def main(argv: list[str] | None = None) -> int:
                 folder = Path(tmp) / f"{code}{rep}"
                 run = run_demo(src, folder)
                 runs.append({"code": code, "rep": rep, "code_commit": commit_of(src.parent), **run})
-                steps = run["timings"]["compress_steps_per_second"]
+                steps = run["speeds"]["compress_steps_per_second"]
                 print(f"{code} {rep}: {run['wall_time_s']:.0f} s (training {run['timings']['train_s']:.0f} s, "
                       f"compression {run['timings']['compress_s']:.0f} s); steps/s: training "
-                      f"{run['timings'].get('train_steps_per_second', float('nan')):.1f}, "
+                      f"{run['speeds']['train_steps_per_second'] or float('nan'):.1f}, "
                       + ", ".join(f"{k} {v:.1f}" for k, v in steps.items() if v), flush=True)
     command = shlex.join(["python", "benchmarks/speed/demo_time.py", *(sys.argv[1:] if argv is None else argv)])
     save_record(args.json, {"command": command, "method": "omg4 demo in a fresh folder under GNU time, nothing else "

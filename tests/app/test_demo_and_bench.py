@@ -1,6 +1,7 @@
 """The main job and the benchmark run end to end at tiny sizes and write what they promise."""
 
 import json
+import runpy
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -58,6 +59,16 @@ def test_quick_demo_writes_results_plot_video_and_file(tmp_path, monkeypatch, ca
     # sampling 4, pruning 4, two merge rounds of 4, appearance 8, SVQ 4 + 4
     control = saved["equal_training_control"]
     assert control["iterations"] == 60 + 32
+    # timings are the parts' seconds, which add up to the run; the speeds stand apart
+    assert set(saved["timings"]) == {"synth_s", "train_s", "compress_s", "control_s", "eval_s", "outputs_s"}
+    assert saved["speeds"]["train_steps_per_second"] > 0
+    assert set(saved["speeds"]["compress_steps_per_second"]) == {r["stage"] for r in saved["compression"]["stages"]}
+    # the seeds study reads the demo's results as they are
+    study = runpy.run_path(str(Path(__file__).parents[2] / "benchmarks" / "studies" / "demo_seeds.py"),
+                           run_name="demo_seeds")
+    row = study["row_of"](saved)
+    assert row["wall_s"] == sum(saved["timings"].values()) and row["delta_psnr"] == (
+        methods["OMG4-M"]["psnr"] - methods["Real-Time4DGS (baseline)"]["psnr"])
     assert json.loads((out / "control" / "config.json").read_text())["train_config"]["iterations"] == 92
     assert control["delta_psnr"] == methods["OMG4-M"]["psnr"] - methods[CONTROL_ROW]["psnr"]
     frames = control["per_frame_difference"]["psnr"]
