@@ -29,7 +29,7 @@ compressed with ``--preset`` (default M).
 
     python benchmarks/studies/segments.py prediction --synthetic 240 [--key-intervals 1 4 8] [--whole-clip]
     python benchmarks/studies/segments.py prediction DATA --downscale 2 --segment-frames 24 --overlap 6 --name bb
-        [--preset T] [--carry auto|lasting|0.5|0] [--still-weight 0.01] [--hold-lasting]
+        [--preset T] [--carry auto|lasting|0.5|0]
 
 ``--compress-from-video`` compresses segments trained as usual (taught by the segment before) from the video alone.
 ``--whole-clip`` adds the control: one model of the whole capture, trained for as many steps as all segments
@@ -262,8 +262,7 @@ def prediction(args) -> None:
     work = Path(args.work) / args.name
     data = _capture(args)
     reader = ["--downscale", str(args.downscale)]
-    train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume", "--still-weight", str(args.still_weight),
-             *(["--hold-lasting"] if args.hold_lasting else [])]
+    train = ["--preset", "cpu-small", "--checkpoint-interval", "0", "--resume"]
     compress = ["--preset", args.preset, "--schedule", args.schedule, "--force", "--predicted-mlp", args.predicted_mlp,
                 *(["--carry", str(args.carry)] if args.carry is not None else []), *paper_flag(args)]
     run_dir = work / "run"
@@ -274,7 +273,6 @@ def prediction(args) -> None:
               "frames": scene.num_frames, "segment_frames": args.segment_frames, "overlap": args.overlap,
               "iterations_per_segment": args.iterations, "schedule": args.schedule, "preset": args.preset,
               "predicted_mlp": args.predicted_mlp, "carry": args.carry or ("0" if args.paper else "auto"),
-              "still_weight": args.still_weight, "hold_lasting": args.hold_lasting,
               "train_s": train_s,
               "segments": len(read_run_plan(run_dir)["segments"]), "rows": []}
     for key_interval in args.key_intervals:
@@ -339,10 +337,6 @@ def main() -> None:
     r.add_argument("--whole-iterations", type=int, help="its training steps (default: all the segments' together)")
     r.add_argument("--predicted-mlp", choices=["tune", "keep"], default="tune",
                    help="what a predicted segment does with the MLPs of the one before (omg4 compress --predicted-mlp)")
-    r.add_argument("--hold-lasting", action="store_true",
-                   help="each segment holds the lasting Gaussians of the one before (omg4 train --hold-lasting)")
-    r.add_argument("--still-weight", type=float, default=0.0,
-                   help="training's penalty on the motion of lasting Gaussians (omg4 train --still-weight)")
     r.add_argument("--carry",
                    help="what a predicted segment carries of the segment before's Gaussians: auto, lasting, a "
                         "tolerance or 0 (omg4 compress --carry; unset: its default, auto, or 0 with --paper)")

@@ -65,12 +65,11 @@ def train_baseline(scene: Scene, config: TrainConfig | None = None, run_dir: str
 
 def train_segments(data: str | os.PathLike, run_dir: str | os.PathLike, segment_frames: int,
                    config: TrainConfig | None = None, *, overlap: int | None = None, init: str = "auto",
-                   teach: bool = True, hold: bool = False, **scene_options) -> list[dict]:
+                   teach: bool = True, **scene_options) -> list[dict]:
     """Train a long capture (``data``: an N3DV or Panoptic folder) as segments of ``segment_frames`` frames sharing
     ``overlap`` (default: :func:`omg4.train.segmented.default_overlap`), as ``omg4 train --segment-frames`` does:
     the plan (``segments.json``) and one run folder per segment in ``run_dir``; segments already trained are kept,
     so a second call resumes. ``teach``: a segment's shared frames show the crossfade from the segment before;
-    ``hold``: a segment holds the segment before's lasting Gaussians (``--hold-lasting``, :mod:`omg4.train.held`);
     ``scene_options``: :func:`load_scene`'s reader options (``downscale``, ``cameras``, ...). Returns one summary
     per segment."""
     cfg = config or TrainConfig()
@@ -78,7 +77,7 @@ def train_segments(data: str | os.PathLike, run_dir: str | os.PathLike, segment_
     plan = plan_capture(capture, segment_frames, overlap)
     write_plan(Path(run_dir), plan)
     return segmented.train_segments(Path(run_dir), plan, cfg, _segment_scenes(data, cfg.background, scene_options),
-                                    lambda scene: initial_points(scene, init, cfg), teach=teach, hold=hold)
+                                    lambda scene: initial_points(scene, init, cfg), teach=teach)
 
 
 def compress_segments(run_dir: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike,

@@ -7,7 +7,9 @@ values. Nested configs (``CompressConfig.merge``, ``CompressConfig.lengths``) ar
 so a run's own record reproduces it. Unknown keys and values of the wrong type are one-line
 :class:`~omg4.errors.OMG4Error` s naming the closest valid keys. A config class may list settings that moved
 (``MOVED_SETTINGS``: earlier name → dotted name now); those are read under their new names, with a one-line
-deprecation message.
+deprecation message. It may list settings it no longer has (``REMOVED_SETTINGS``: name → (the value that meant
+"off", why it went)): an earlier record or file that holds one at that value is read without it; any other value is
+a one-line error saying why, since the run it describes cannot be made again.
 """
 
 from __future__ import annotations
@@ -34,6 +36,18 @@ def tell_moved(old: str, new: str) -> None:
     if old not in _told:
         _told.add(old)
         logger.warning(f"the setting '{old}' is now '{new}'; the old name is deprecated")
+
+
+def drop_removed(cls, values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` without the settings ``cls`` no longer has (``REMOVED_SETTINGS``) that hold their "off" value; one
+    that holds another is a one-line error naming why it was removed."""
+    removed = getattr(cls, "REMOVED_SETTINGS", {})
+    for key in [k for k in values if k in removed]:
+        off, why = removed[key]
+        if values[key] != off:
+            raise OMG4Error(f"the setting '{key}' ({values[key]!r}) was removed: {why}")
+        del values[key]
+    return values
 
 
 def knob(default, help: str):
@@ -133,7 +147,7 @@ def check_settings(cls, values: dict[str, Any], *, extra: tuple[str, ...] = ()) 
     wrong type are one-line errors."""
     table, moved = settings_of(cls), getattr(cls, "MOVED_SETTINGS", {})
     out = {}
-    for key, value in values.items():
+    for key, value in drop_removed(cls, dict(values)).items():
         if key in moved and key not in table:
             tell_moved(key, moved[key])
             key = moved[key]

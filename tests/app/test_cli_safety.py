@@ -467,11 +467,18 @@ def test_bench_refuses_a_control_that_is_no_baseline_of_the_same_backbone(tiny_s
     assert not (tmp_path / "bench").exists()
 
 
-def test_holding_lasting_gaussians_needs_segments_taught_by_the_one_before(tiny_scene_dir, tmp_path, capsys):
-    base = ["train", str(tiny_scene_dir), "--out", str(tmp_path / "run"), "--iterations", "2", "--hold-lasting"]
-    _failed(base, capsys, contains="--hold-lasting needs --segment-frames")
-    for other in (["--independent-segments"], ["--parallel", "segments"]):
-        _failed([*base, "--segment-frames", "3", *other], capsys,
-                contains="--hold-lasting holds the segment before's Gaussians: not with --independent-segments or "
-                         "--parallel segments")
+def test_a_removed_setting_is_read_off_and_refused_on(tiny_scene_dir, tmp_path, capsys):
+    """A config file (or a run's record) may hold a setting that was removed: at its "off" value it is read without
+    it; any other value asks for a run this version cannot make, so it is one line saying why."""
+    from omg4.train import TrainConfig
+
+    config = tmp_path / "old.json"
+    config.write_text(json.dumps({"train_config": {"iterations": 2, "still_weight": 0.01}}))
+    _refused(["train", str(tiny_scene_dir), "--out", str(tmp_path / "run"), "--config", str(config)], capsys,
+             contains="the setting 'still_weight' (0.01) was removed: the penalty on lasting Gaussians' motion did "
+                      "not pay")
     assert not (tmp_path / "run").exists()
+    record = {**TrainConfig().to_dict(), "still_weight": 0.0}
+    assert TrainConfig.from_dict(record) == TrainConfig()
+    with pytest.raises(Exception, match="'still_weight' \\(0.5\\) was removed"):
+        TrainConfig.from_dict({**record, "still_weight": 0.5})

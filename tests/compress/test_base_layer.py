@@ -5,6 +5,7 @@ rendered from a known model, so what changed is known exactly."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,10 +14,11 @@ import torch
 from omg4.codec.container import read_versioned
 from omg4.codec.payload import decode_payload
 from omg4.codec.references import reference_sections
-from omg4.compress.api import compress_to_file
+from omg4.compress.api import compress_to_file, refuse_held
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import StageLengths
 from omg4.data import load_scene
+from omg4.errors import OMG4Error
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.render.view import render_view
 
@@ -112,24 +114,10 @@ def test_a_change_in_one_region_is_paid_only_there(capture, tmp_path):
     assert (distance < 0.15).mean() >= 0.9, np.sort(distance)  # the segment's own Gaussians are the blob's
 
 
-def test_the_copies_training_held_are_dropped_for_the_base_layer(capture, tmp_path):
-    """A baseline whose last rows are the segment before's Gaussians that training held (omg4.train.held):
-    the base layer stands in for them whether or not it covers them. Here they lie away from every carried centre
-    (not covered), so without the held count they stay as the segment's own."""
-    scene, _, changed, cfg, key = capture
-    held_xyz = torch.tensor([-0.25, -0.2, 0.0]) + 0.02 * torch.randn(30, 3, generator=torch.Generator().manual_seed(2))
-    extra = lasting_model(held_xyz, torch.full((30, 3), 0.5), changed.config.time_range)
-    extra.params["scaling"][:] = float(np.log(0.005))
-    baseline = Gaussians4D({k: torch.cat([v, extra.params[k]]) for k, v in changed.params.items()}, changed.config)
-    reference = reference_sections(decode_payload(key))
-
-    def own_near_held(held: int) -> int:
-        out = tmp_path / f"held{held}.omg4"
-        compress_to_file(baseline, video_of(scene(4, 10), changed), cfg, out, progress=False, log=lambda *_: None,
-                         reference=reference, held=held)
-        _, header, _ = read_versioned(out)
-        own = np.asarray(decode_payload(out, reference).xyz[header["carried"]:], np.float32)
-        return int((np.linalg.norm(own - held_xyz.mean(0).numpy(), axis=1) < 0.1).sum())
-
-    assert own_near_held(0) >= 5  # kept as its own, the base layer not covering them (measured: 10, merging joins some)
-    assert own_near_held(30) == 0
+def test_a_segment_trained_holding_the_one_before_is_refused():
+    """Training that held the segment before's Gaussians was removed; its files (``held`` in their metadata) would be
+    compressed with those copies as the segment's own, so compressing them is one line saying why."""
+    refuse_held(Path("segment_001/model.safetensors"), {"iteration": 10})
+    with pytest.raises(OMG4Error, match="trained with --hold-lasting .removed: ") as caught:
+        refuse_held(Path("segment_001/model.safetensors"), {"iteration": 10, "held": 30})
+    assert "\n" not in str(caught.value)

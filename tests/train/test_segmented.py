@@ -121,7 +121,6 @@ def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_can_be_d
     """Carried: opacity × exp(−½ gap² / σ_t²) ≥ 1/255, the gap from the time centre to the segment's range (σ_t:
     exp of ``scaling_t`` with identity rotations); then fresh Gaussians up to the cap; over the cap, the most
     opaque carried."""
-    import dataclasses
     import math
 
     import torch
@@ -165,8 +164,6 @@ def test_a_segment_starts_from_the_gaussians_of_the_segment_before_that_can_be_d
 
 
 def test_a_warm_started_segment_holds_at_most_the_first_segments_gaussians():
-    import dataclasses
-
     from omg4.train.segmented import segment_budget
 
     assert segment_budget(CFG.with_strategy(max_gaussians=0), 150).strategy.max_gaussians == 150
@@ -183,9 +180,9 @@ def test_a_taught_segment_starts_from_the_one_before(capture, tmp_path, monkeypa
     calls = []
     original = segmented.warm_start
 
-    def spy(teacher, scene, cfg, points=None, held=None):
+    def spy(teacher, scene, cfg, points=None):
         calls.append((teacher.num_gaussians, tuple(scene.time_range), cfg.strategy.max_gaussians))
-        return original(teacher, scene, cfg, points, held)
+        return original(teacher, scene, cfg, points)
 
     monkeypatch.setattr(segmented, "warm_start", spy)
     _run(capture, tmp_path / "run", plan)

@@ -25,8 +25,8 @@ from omg4.compress.modes import choice_value
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
 from omg4.data.scene import Scene
-from omg4.data.segments import read_run_plan, shared_frames
-from omg4.errors import CorruptFileError, OMG4Error
+from omg4.data.segments import HOLD_LASTING_REMOVED, read_run_plan, shared_frames
+from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.checkpoint import load_gaussians, run_model, save_gaussians
 from omg4.models.compact import CompactModel
@@ -85,7 +85,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
                      codec: str | None = None, stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
                      progress: bool = False, log=None, check_replicas: int = 0,
-                     reference: dict[str, np.ndarray] | None = None, held: int = 0) -> dict:
+                     reference: dict[str, np.ndarray] | None = None) -> dict:
     """Run OMG4 on ``baseline`` and write ``out`` (``codec``: None, the coder of ``cfg``'s mode; ``precision``: the
     compact codec's grids); returns a JSON-ready report. The file's header and the report name the mode of the
     run (:meth:`CompressConfig.mode`: ``"paper"``, ``"omg4"`` or which choices were mixed).
@@ -93,9 +93,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     ``reference``: for a predicted segment of a sequence, the :func:`~omg4.codec.payload.reference_sections` of the
     segment before, decoded; the compression keeps its codebooks and starts from its appearance MLPs
     (``cfg.predicted_mlp``), and the file stores what it kept as references to it, the MLPs as their change, and no
-    camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a). ``held``: how many of
-    ``baseline``'s last Gaussians training held with the segment before's geometry (the ``held`` of its file's
-    metadata; :class:`CompressionPipeline`).
+    camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a).
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
     comparison point of the "compact" codec; its size is reported as ``paper_file_bytes``).
@@ -114,7 +112,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log,
-                                   check_replicas=check_replicas, reference=reference, held=held)
+                                   check_replicas=check_replicas, reference=reference)
     scores_out, unsaved = out.with_name(out.name + ".scores.npz"), None
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         unsaved = pipeline.ensure_scores()
@@ -167,15 +165,11 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     }
 
 
-def held_count(path: Path, metadata: dict, baseline: Gaussians4D) -> int:
-    """How many of ``baseline``'s last Gaussians its training held with the segment before's geometry
-    (:mod:`omg4.train.held`), from the ``metadata`` of its file ``path``; a count that is not an integer from 0 to the
-    model's is a one-line error."""
-    held = metadata.get("held", 0)
-    if not isinstance(held, int) or isinstance(held, bool) or not 0 <= held <= baseline.num_gaussians:
-        raise CorruptFileError(f"{path}: the held count {held!r} is not an integer from 0 to the model's "
-                               f"{baseline.num_gaussians} Gaussians")
-    return held
+def refuse_held(path: Path, metadata: dict) -> None:
+    """A segment trained with ``--hold-lasting`` (``held`` in the ``metadata`` of its file ``path``) is a one-line
+    error: that training was removed, and its held Gaussians would be compressed as the segment's own."""
+    if "held" in metadata:
+        raise OMG4Error(f"{path}: trained with --hold-lasting ({HOLD_LASTING_REMOVED}): train the segments again")
 
 
 def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out: str | Path, *,
@@ -225,10 +219,11 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
                                   device=cfg.device)
             trained_path = run_dir / seg["folder"] / "model.safetensors"
             baseline, trained = load_gaussians(trained_path, cfg.device)
+            refuse_held(trained_path, trained)
             path = work / f"segment_{seg['index']:03d}.omg4"
             reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
                                             progress=progress, log=log, check_replicas=check_replicas,
-                                            reference=reference, held=held_count(trained_path, trained, baseline)))
+                                            reference=reference))
             if main:
                 parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
             if (teach or key_interval > 1) and seg is not plan["segments"][-1]:

@@ -168,14 +168,12 @@ class CompressionPipeline:
     an unusable device, or one that does not suit ``cfg.backend``, is an :class:`OMG4Error` here.
     In a distributed job (:mod:`omg4.distributed`) every rank runs the same stages on a replica, scores and
     fine-tunes on its share of the views, and rank 0 alone logs; ``check_replicas`` > 0 compares the replicas
-    every that many iterations. The last ``held`` Gaussians of ``baseline`` are the segment before's that training
-    held, with their geometry there (:mod:`omg4.train.held`): a predicted segment that carries that segment's decoded
-    base layer (:meth:`_carry`) drops those that remain, as it drops its own lasting Gaussians the base layer covers.
+    every that many iterations.
     """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
                  progress: bool = True, log=None, check_replicas: int = 0,
-                 reference: dict[str, np.ndarray] | None = None, held: int = 0):
+                 reference: dict[str, np.ndarray] | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         if cfg.score_weighting not in SCORE_WEIGHTINGS:
@@ -194,7 +192,6 @@ class CompressionPipeline:
         self.progress, self.log = progress and self.world.main, (log or logger.info) if self.world.main else (lambda *_: None)
         self.check_replicas = check_replicas
         self.reference = reference
-        self.held = torch.arange(baseline.num_gaussians) >= baseline.num_gaussians - held  # [N] bool, follows removals
         self.schema: Backbone = baseline.config.schema
         self.size = cfg.size(baseline.config.backbone)
         self.device = resolve_device(cfg.device)
@@ -234,7 +231,6 @@ class CompressionPipeline:
     def _remove(self, keep: torch.Tensor) -> None:
         """Keep the Gaussians ``keep`` (bool [N], any device) in the params, quantizers and scores."""
         keep_rows(self.model.params, self.optimizer, keep.to(self.device))
-        self.held = self.held[keep.cpu()]
         for q in self.model.quantizers.values():
             q.select(keep)
         if self.scores is not None:
@@ -340,8 +336,6 @@ class CompressionPipeline:
         if decision.kind == "none":
             return
         dropped = decision.own_rows
-        if decision.kind == "lasting" and bool(self.held.any()):  # the base layer stands in for the held copies too
-            dropped = np.union1d(dropped, np.flatnonzero(self.held.numpy())).astype(np.int64)
         keep = torch.ones(self.model.num_gaussians, dtype=torch.bool)
         keep[torch.from_numpy(dropped[:self.model.num_gaussians - 1])] = False
         self._remove(keep)

@@ -128,5 +128,10 @@ def read_run_plan(run_dir: Path) -> dict:
     return plan
 
 
-__all__ = ["PLAN_FILE", "Segment", "plan_segments", "crossfade_weight", "blend_weights", "near_boundary", "shared_frames",
-           "segment_folder", "is_segmented_run", "read_run_plan"]
+HOLD_LASTING_REMOVED = ("removed: a segment holding the one before's lasting Gaussians in training did not pay once "
+                        "compressed (docs/results.md, 'Lasting Gaussians held in training'; "
+                        "benchmarks/results/segments_prediction_basketball24.json)")
+"""Why runs and files of segments trained with ``--hold-lasting`` are refused (it was removed)."""
+
+__all__ = ["HOLD_LASTING_REMOVED", "PLAN_FILE", "Segment", "plan_segments", "crossfade_weight", "blend_weights",
+           "near_boundary", "shared_frames", "segment_folder", "is_segmented_run", "read_run_plan"]

@@ -24,7 +24,7 @@ import torch
 
 from omg4.errors import OMG4Error
 from omg4.optimize.parameters import LEARNING_RATES as LR
-from omg4.settings import apply_settings, knob, tell_moved
+from omg4.settings import apply_settings, drop_removed, knob, tell_moved
 from omg4.train.strategies import StrategySettings
 from omg4.train.strategies.base import ScheduledEvents
 
@@ -51,8 +51,6 @@ class TrainConfig:
     scaling_lr: float = knob(LR.scaling_lr, "learning rate of the log scales (spatial and temporal)")
     rotation_lr: float = knob(LR.rotation_lr, "quaternion learning rate")
     lambda_dssim: float = knob(0.2, "weight of the D-SSIM term in the loss (rt4dgs §3.2)")
-    still_weight: float = knob(0.0, "weight of the penalty on the motion of Gaussians that last through the clip "
-                                    "(omg4.train.stillness; beyond the paper; 0: none)")
     sh_increase_interval: int = knob(1000, "steps per SH degree: spatial 0 → max, then temporal 0 → max")
     num_random_points: int = knob(100_000, "initial points made when the data has none (random, rays, mvs)")
     test_interval: int = knob(0, "test PSNR every N steps (0: only at the end)")
@@ -68,6 +66,11 @@ class TrainConfig:
 
     MOVED_SETTINGS: ClassVar[dict[str, str]] = {name: f"strategy.{name}" for name in STRATEGY_SETTINGS}
     """Earlier flat names of settings, and where they are now (read with a one-line deprecation message)."""
+
+    REMOVED_SETTINGS: ClassVar[dict[str, tuple[object, str]]] = {
+        "still_weight": (0.0, "the penalty on lasting Gaussians' motion did not pay (docs/results.md, 'Lasting "
+                              "Gaussians as a base layer'; benchmarks/results/segments_carry_synthetic240.json)")}
+    """Settings no longer here: their "off" value, and why they went (:func:`omg4.settings.drop_removed`)."""
 
     def __getattr__(self, name: str):  # only for names that are no field: an earlier flat strategy setting
         if name in STRATEGY_SETTINGS:
@@ -87,6 +90,7 @@ class TrainConfig:
         """The config a run's record holds (nested, or flat as records made before ``strategy`` were: read
         silently, a record not being the user's writing)."""
         names = {f.name for f in fields(TrainConfig)}
+        d = drop_removed(TrainConfig, dict(d))
         kwargs = {k: (tuple(v) if k == "background" else v) for k, v in d.items() if k in names}
         inner = dict(kwargs.pop("strategy", None) or {})
         inner.update({k: v for k, v in d.items() if k in STRATEGY_SETTINGS})

@@ -13,9 +13,7 @@ first step, and it learns those frames as the crossfade from that segment's rend
 (:func:`omg4.optimize.teaching.taught_by`), so the blend of the two models moves from one to the other without a jump. Such a segment
 holds at most as many Gaussians as the first one (:func:`segment_budget`), so memory stays flat however long the
 capture. ``teach=False``, and ``parallel="segments"``, where the segment before may not be trained yet, start every
-segment afresh and learn every frame from the video. With ``hold`` a segment also holds the segment before's lasting
-Gaussians, their geometry pulled to its values there (:mod:`omg4.train.held`), and its own Gaussians get the budget
-they leave.
+segment afresh and learn every frame from the video.
 """
 
 from __future__ import annotations
@@ -27,14 +25,13 @@ import logging
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import Scene
-from omg4.data.segments import PLAN_FILE, Segment, plan_segments, segment_folder, shared_frames
+from omg4.data.segments import (HOLD_LASTING_REMOVED, PLAN_FILE, Segment, plan_segments, segment_folder,
+                                shared_frames)
 from omg4.errors import OMG4Error
 from omg4.gaussians.checkpoint import describe_checkpoint
 from omg4.gaussians.model import Gaussians4D
@@ -43,7 +40,6 @@ from omg4.models import load_model
 from omg4.optimize.teaching import taught_by
 from omg4.render.projection import ALPHA_THRESHOLD
 from omg4.train.config import TrainConfig
-from omg4.train.held import held_layer
 from omg4.train.run_state import latest_iteration
 from omg4.train.trainer import Trainer, initial_model
 
@@ -97,27 +93,20 @@ def write_plan(run_dir: Path, plan: dict) -> None:
         write_text_atomic(path, json.dumps(plan, indent=2) + "\n")
 
 
-def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: np.ndarray | None = None
-               ) -> Gaussians4D:
+def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None) -> Gaussians4D:
     """The model a segment starts from: ``teacher``'s (the segment before's, as :func:`omg4.models.load_model`
     gives its checkpoint) Gaussians that can be drawn somewhere in ``scene``'s time range — opacity times the
     peak temporal marginal over the range (:func:`~omg4.gaussians.visibility.peak_marginal`) at least the
     rasterizer's :data:`~omg4.render.projection.ALPHA_THRESHOLD`, so no other carried Gaussian could change a
     frame — joined by Gaussians made from ``points`` (:func:`~omg4.train.trainer.initial_model`) for what the
     segment before never showed, as many as ``cfg.strategy.max_gaussians`` leaves room for (the most opaque carried
-    Gaussians first when they alone exceed it).
-
-    ``held``, the rows of the teacher's Gaussians the segment holds (:func:`omg4.train.held.held_layer`), are left
-    out of the model, and the Gaussians made from ``points`` leave out the points they cover (within their largest
-    scale)."""
+    Gaussians first when they alone exceed it)."""
     values = {k: v.detach().to("cpu") for k, v in teacher.values.items()}
     var_t = teacher.config.schema.motion(values, teacher.config)[2]
     opacity = torch.sigmoid(values["opacity"].reshape(-1).double())
     peak = opacity * peak_marginal(values["t"], var_t, *scene.time_range)
     keep = peak >= ALPHA_THRESHOLD
     config = dataclasses.replace(teacher.config, time_range=tuple(scene.time_range))
-    if held is not None:
-        keep[torch.from_numpy(held)] = False
     alive = torch.nonzero(keep).reshape(-1)
     budget = cfg.strategy.max_gaussians
     if budget and len(alive) > budget:
@@ -125,46 +114,28 @@ def warm_start(teacher, scene: Scene, cfg: TrainConfig, points=None, held: np.nd
     parts = [{k: values[k][alive] for k in config.schema.param_names}]
     if not budget or len(alive) < budget:
         room = budget - len(alive) if budget else 0  # 0: no cap
-        made = initial_model(scene, cfg.with_strategy(max_gaussians=room), points).params
-        if held is not None and held.size:
-            made = {k: v[~covered(made["xyz"], values["xyz"][held], values["scaling"][held])] for k, v in made.items()}
-        parts.append(made)
+        parts.append(initial_model(scene, cfg.with_strategy(max_gaussians=room), points).params)
     return Gaussians4D({k: torch.cat([part[k].detach() for part in parts]) for k in config.schema.param_names},
                        config)  # the trainer sets the active SH degrees of each step
 
 
-def covered(xyz: torch.Tensor, centres: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
-    """[M] bool: which points ``xyz`` [M, 3] lie within the largest scale of the nearest of the Gaussians at
-    ``centres`` [H, 3] with ``log_scales`` [H, 3]."""
-    distance, nearest = cKDTree(centres.double().numpy()).query(xyz.detach().double().numpy(), k=1)
-    size = log_scales.double().max(dim=1).values.exp().numpy()[nearest]
-    return torch.from_numpy(distance <= size)
-
-
-def segment_budget(cfg: TrainConfig, first_count: int, held: int = 0) -> TrainConfig:
+def segment_budget(cfg: TrainConfig, first_count: int) -> TrainConfig:
     """The training settings of a segment that starts from the one before (:func:`warm_start`): at most as many
     Gaussians as the first segment, which learnt from the video alone, holds (``first_count``), or
-    ``cfg.strategy.max_gaussians`` when that is smaller; ``held`` Gaussians held (:mod:`omg4.train.held`)
-    take their share of it, so the segment's own Gaussians are left what the held ones do not already show. Without
-    it the carried Gaussians stay and densification adds a fresh segment's worth on top, so every segment would be
-    larger than the one before."""
+    ``cfg.strategy.max_gaussians`` when that is smaller. Without it the carried Gaussians stay and densification adds
+    a fresh segment's worth on top, so every segment would be larger than the one before."""
     budget = cfg.strategy.max_gaussians
-    cap = min(budget, first_count) if budget else first_count
-    return cfg.with_strategy(max_gaussians=max(1, cap - held))
+    return cfg.with_strategy(max_gaussians=min(budget, first_count) if budget else first_count)
 
 
 def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Callable[[int, int], Scene],
                    initial_points: Callable[[Scene], object], *, parallel: str = "data", check_replicas: int = 0,
-                   teach: bool = True, hold: bool = False, log=None, preset: str | None = None) -> list[dict]:
+                   teach: bool = True, log=None, preset: str | None = None) -> list[dict]:
     """Train every segment of ``plan`` not yet done; returns one summary per segment (this rank's, in segment
-    order; with ``parallel="segments"`` the others' segments are read from their folders). With ``hold`` (and
-    ``teach``, not ``parallel="segments"``) a segment holds the lasting Gaussians of the one before, their geometry
-    pulled to its values there (:mod:`omg4.train.held`)."""
+    order; with ``parallel="segments"`` the others' segments are read from their folders)."""
     log = log or logger.info
     if parallel not in PARALLEL_MODES:
         raise OMG4Error(f"unknown --parallel {parallel!r} (choose from {', '.join(PARALLEL_MODES)})")
-    if hold and (not teach or parallel == "segments"):
-        raise OMG4Error("holding the segment before's Gaussians needs segments taught by it (teach, parallel=\"data\")")
     world = distributed.world()
     mine = world.shard(plan["segments"]) if parallel == "segments" else plan["segments"]
     for seg in mine:
@@ -178,29 +149,23 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             points = None if resume else initial_points(scene)
             before = plan["segments"][seg["index"] - 1] if seg["index"] else None
             shared = shared_frames(before, seg) if teach and parallel != "segments" else None
-            start, held, seg_cfg = None, None, cfg
+            start, seg_cfg = None, cfg
             if shared is not None:
                 first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
                 before_path = Path(run_dir) / before["folder"] / "model.safetensors"
-                if before["index"] and hold != ("held" in describe_checkpoint(before_path)["metadata_keys"]):
-                    raise OMG4Error(f"segment {before['index']} was trained {'without' if hold else 'with'} "
-                                    f"--hold-lasting: continue the run {'without' if hold else 'with'} it, or use "
-                                    "--force to start afresh")
+                if "held" in describe_checkpoint(before_path)["metadata_keys"]:
+                    raise OMG4Error(f"segment {before['index']} was trained with --hold-lasting "
+                                    f"({HOLD_LASTING_REMOVED}): use --force to start afresh")
                 teacher = load_model(before_path, cfg.device)
-                first_count = describe_checkpoint(first)["num_gaussians"]
-                rows = None
-                if hold:  # the held rows are the same whether the segment starts or resumes
-                    rows, held = held_layer(teacher, scene.time_range)
-                seg_cfg = segment_budget(cfg, first_count, len(held["xyz"]) if held else 0)
+                seg_cfg = segment_budget(cfg, describe_checkpoint(first)["num_gaussians"])
                 if not resume:
-                    start = warm_start(teacher, scene, seg_cfg, points, rows)
+                    start = warm_start(teacher, scene, seg_cfg, points)
                 scene = taught_by(scene, teacher, shared, background=cfg.background, backend=cfg.backend,
                                   device=cfg.device)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
-                f"{' (resuming)' if resume else ''}"
-                + (f", {len(held['xyz']):,} lasting Gaussians of the segment before held" if held else ""))
+                f"{' (resuming)' if resume else ''}")
             Trainer(scene, seg_cfg, folder, points=points, model=start, resume=resume, log=log,
-                    check_replicas=check_replicas, preset=preset, held=held).run()
+                    check_replicas=check_replicas, preset=preset).run()
             del scene
     distributed.barrier("training the segments")
     return [{"index": seg["index"], "frames": seg["frames"],
@@ -208,4 +173,4 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
 
 
 __all__ = ["PARALLEL_MODES", "default_overlap", "plan_capture", "segment_plan", "write_plan", "warm_start",
-           "covered", "segment_budget", "train_segments"]
+           "segment_budget", "train_segments"]

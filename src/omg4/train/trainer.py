@@ -30,6 +30,7 @@ from omg4 import distributed
 from omg4.atomic import write_text_atomic
 from omg4.data import random_initial_points
 from omg4.data.scene import PointCloud, Scene, View
+from omg4.data.segments import HOLD_LASTING_REMOVED
 from omg4.device import resolve_device
 from omg4.errors import OMG4Error
 from omg4.gaussians import GaussianConfig, Gaussians4D
@@ -41,10 +42,8 @@ from omg4.optimize.step import backward_batch, step_generator
 from omg4.render.api import resolve_backend
 from omg4.render.view import render_image, view_image
 from omg4.train.config import TrainConfig
-from omg4.train.held import HeldGaussians4D, split_held
 from omg4.train.strategies.densification import DensifyStats
 from omg4.train.run_state import latest_iteration, load_run_checkpoint, save_run_checkpoint
-from omg4.train.stillness import stillness_penalty
 from omg4.train.strategies import strategy_for
 
 logger = logging.getLogger(__name__)
@@ -110,16 +109,12 @@ class Trainer:
     else from :func:`initial_model` of ``points``. ``check_replicas`` > 0 compares the replicas' parameters
     every that many steps and stops with a one-line error when they differ. ``preset``, the name of the preset
     ``cfg`` started from, is recorded beside it (``config.json``), so a resumed run can check a preset named again.
-    ``held`` (per-Gaussian values by the backbone's names) are Gaussians that train with the model outside its density
-    control and budget, their geometry pulled to those values (:mod:`omg4.train.held`); the final model holds its own
-    Gaussians, the held ones that moved, then the others with their geometry set back to ``held`` exactly.
     Raises :class:`OMG4Error` at once when ``cfg.device`` is unusable or does not suit ``cfg.backend``.
     """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, run_dir: str | Path, *, points: PointCloud | None = None,
                  model: Gaussians4D | None = None, resume: bool = False, log: Callable[[str], None] | None = None,
-                 progress: bool = True, check_replicas: int = 0, preset: str | None = None,
-                 held: dict[str, torch.Tensor] | None = None):
+                 progress: bool = True, check_replicas: int = 0, preset: str | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         self.world = distributed.world()
@@ -141,18 +136,11 @@ class Trainer:
         }
         self.start = 0
         start_it = latest_iteration(self.run_dir) if resume else None
-        current, held_state = None, None
         if start_it is not None:
             self.model, saved, state = load_run_checkpoint(self.run_dir, start_it, self.device)
-            if held:
-                if saved.get("held_training") != int(held["xyz"].shape[0]) or "held_optimizer" not in state:
-                    raise OMG4Error(f"{self.run_dir}: its checkpoint does not hold the {held['xyz'].shape[0]:,} "
-                                    "Gaussians of the segment before this run holds: use --force to start afresh")
-                self.model, current = split_held(self.model, int(held["xyz"].shape[0]))
-                held_state = state["held_optimizer"]
-            elif "held_training" in saved:
-                raise OMG4Error(f"{self.run_dir}: its checkpoint trains {saved['held_training']} Gaussians held from the "
-                                "segment before: resume it with --hold-lasting, or use --force to start afresh")
+            if "held_training" in saved:
+                raise OMG4Error(f"{self.run_dir}: its checkpoint trains Gaussians held from the segment before "
+                                f"(--hold-lasting, {HOLD_LASTING_REMOVED}): use --force to start afresh")
             self.optimizer = self._make_optimizer()
             self.optimizer.load_state_dict(state["optimizer"])
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
@@ -165,24 +153,9 @@ class Trainer:
             self.model = (model if model is not None else initial_model(scene, cfg, points)).to(self.device)
             self.optimizer = self._make_optimizer()
             self.stats = DensifyStats(self.model.num_gaussians, self.device)
-        self.held_optimizer = None
-        if held:
-            start = {k: (held if current is None else current)[k].detach().clone().requires_grad_(True)
-                     for k in held}
-            self.model = HeldGaussians4D(self.model.params, self.model.config, start, held,
-                                         self.model.active_sh_degree, self.model.active_sh_degree_t).to(self.device)
-            self.held_optimizer = make_adam(self.model.held, baseline_lrs(cfg, self.extent, self.model.config.schema))
-            if held_state is not None:
-                self.held_optimizer.load_state_dict(held_state)
-            self.metadata["held_training"] = self.model.num_held
-        distributed.broadcast_(self._replicated())  # every replica starts from rank 0's model
+        distributed.broadcast_(list(self.model.params.values()))  # every replica starts from rank 0's model
         self.strategy = strategy_for(self.model.config.schema, cfg)
         self.history: list[dict] = []
-
-    def _replicated(self) -> list[torch.Tensor]:
-        """The tensors every replica of a distributed job holds alike: the model's, and its held Gaussians'."""
-        held = list(self.model.held.values()) if self.held_optimizer is not None else []
-        return [*self.model.params.values(), *held]
 
     def _make_optimizer(self) -> torch.optim.Adam:
         for p in self.model.params.values():
@@ -192,10 +165,8 @@ class Trainer:
     def train_step(self, step: int) -> tuple[float, float]:
         """One optimizer step (1-based ``step``); returns (mean loss, mean PSNR) of the batch."""
         cfg, model = self.cfg, self.model
-        for optimizer in (self.optimizer, self.held_optimizer):
-            if optimizer is not None:
-                set_position_lr(optimizer, step, init=cfg.position_lr_init, final=cfg.position_lr_final,
-                                extent=self.extent, max_steps=cfg.position_lr_max_steps)
+        set_position_lr(self.optimizer, step, init=cfg.position_lr_init, final=cfg.position_lr_final,
+                        extent=self.extent, max_steps=cfg.position_lr_max_steps)
         model.active_sh_degree, model.active_sh_degree_t = active_sh_degrees(
             step, cfg.sh_increase_interval, model.config.sh_degree, model.config.sh_degree_t)
         views = self.scene.train_views
@@ -205,23 +176,15 @@ class Trainer:
         def on_views(rendered, sl):
             if collecting and rendered.means2d.grad is not None:
                 height, width = rendered.image.shape[1:3]
-                own = sl.index < model.num_gaussians  # held rows follow the model's own (omg4.train.held)
-                self.stats.add_view(sl.index[own], rendered.means2d.grad[own], rendered.radii[own], width, height,
-                                    cfg.batch_size)
+                self.stats.add_view(sl.index, rendered.means2d.grad, rendered.radii, width, height, cfg.batch_size)
 
         def regularizer(times):
-            extra = self.strategy.regularizer(model.params, times, step)
-            if cfg.still_weight:
-                still = cfg.still_weight * stillness_penalty(model.params, model.config, self.scene.time_range)
-                extra = still if extra is None else extra + still
-            if self.held_optimizer is not None:
-                extra = model.penalty() if extra is None else extra + model.penalty()
-            return extra
+            return self.strategy.regularizer(model.params, times, step)
 
         loss, batch_psnr = backward_batch(model, views, batch, background=self.background, backend=cfg.backend,
                                           lambda_dssim=cfg.lambda_dssim, what="training", step=step,
                                           device=self.device, on_views=on_views, regularizer=regularizer)
-        step_optimizers([self.optimizer, self.held_optimizer], self.device)
+        step_optimizers([self.optimizer], self.device)
         self.strategy.after_step(model, self.optimizer, self.stats, step, self.extent)
         return loss, batch_psnr
 
@@ -229,10 +192,7 @@ class Trainer:
         """Write the checkpoint of ``step`` (rank 0; the statistics of every rank combined)."""
         stats = self.stats.combined()
         if self.world.main:
-            held = self.held_optimizer is not None
-            save_run_checkpoint(self.run_dir, step, self.model.training_state() if held else self.model,
-                                self.optimizer, stats, self.metadata,
-                                {"held_optimizer": self.held_optimizer.state_dict()} if held else None)
+            save_run_checkpoint(self.run_dir, step, self.model, self.optimizer, stats, self.metadata)
         distributed.barrier("writing a checkpoint")
         return self.run_dir
 
@@ -273,7 +233,7 @@ class Trainer:
                 if cfg.checkpoint_interval and step % cfg.checkpoint_interval == 0 and step != end:
                     self.save_checkpoint(step)
                 if self.check_replicas and step % self.check_replicas == 0:
-                    distributed.check_replicas(self._replicated(), step)
+                    distributed.check_replicas(list(self.model.params.values()), step)
                 if interrupted():
                     break
         bar.close()
@@ -286,17 +246,9 @@ class Trainer:
         wall = time.perf_counter() - t0
         self.save_checkpoint(end)
         model_path = self.run_dir / "model.safetensors"
-        final, extra = self.model, {}
-        if self.held_optimizer is not None:
-            final, kept = self.model.whole()
-            extra = {"held": kept}
         if end == cfg.iterations and self.world.main:
-            if self.held_optimizer is not None:
-                self.log(f"held Gaussians: {kept:,} of {self.model.num_held:,} stayed where the segment before had them "
-                         "and take its geometry exactly; the others moved and are this segment's own")
-            metadata = {k: v for k, v in self.metadata.items() if k != "held_training"}
-            save_gaussians(model_path, final, {**metadata, **extra, "iteration": end})
-        return TrainResult(final, model_path, end, wall, self.history)
+            save_gaussians(model_path, self.model, {**self.metadata, "iteration": end})
+        return TrainResult(self.model, model_path, end, wall, self.history)
 
     def _log_estimate(self, seconds: float, step: int, end: int) -> None:
         """The time the rest of the run will take at the rate of its first steps (the first step's one-off work

@@ -73,11 +73,6 @@ def configure(p: argparse.ArgumentParser) -> None:
                                "Gaussians as the first segment, and learns the frames it shares with the one before "
                                "as the crossfade from that segment's renders into the video, so the blend of the two "
                                "has no jump)")
-    segments.add_argument("--hold-lasting", action="store_true",
-                          help="a segment holds the Gaussians of the one before that last through its frames and stay "
-                               "put: they train pulled to their values there and are set back to them where they "
-                               "stayed, while its own Gaussians learn what they do not show (not with "
-                               "--independent-segments); compress then carries them as a base layer coded once")
     segments.add_argument("--parallel", choices=PARALLEL_MODES, default=PARALLEL_MODES[0],
                           help="in a distributed run: every rank trains every segment together (data, the default) or "
                                "each rank trains whole segments on its own (segments)")
@@ -147,14 +142,10 @@ def run(args) -> int:
             budget = cfg.strategy.max_gaussians
             cap = f"at most {budget:,} Gaussians" if budget else "no cap on the Gaussian count"
             print(f"preset {preset}{origin}: {cfg.iterations:,} iterations of {cfg.batch_size} views, {cap}")
-    if args.hold_lasting and (args.independent_segments or args.parallel == "segments"):
-        raise OMG4Error("--hold-lasting holds the segment before's Gaussians: not with --independent-segments or "
-                        "--parallel segments")
     if args.segment_frames:
         return _train_segments(args, cfg, world, preset)
-    for flag, given in (("--overlap", args.overlap is not None), ("--hold-lasting", args.hold_lasting)):
-        if given:
-            raise OMG4Error(f"{flag} needs --segment-frames")
+    if args.overlap is not None:
+        raise OMG4Error("--overlap needs --segment-frames")
     scene = distributed.main_first(lambda: load_scene_from_args(args, background=cfg.background))
     resuming = args.resume and latest_iteration(args.out) is not None
     points = None if resuming else initial_points(scene, args.init, cfg)  # a resumed run has its Gaussians
@@ -204,7 +195,7 @@ def _train_segments(args, cfg, world, preset: str | None) -> int:
 
     summaries = train_segments(args.out, plan, cfg, segment_scenes(args, cfg.background), lambda scene: initial_points(scene, args.init, cfg),
                                parallel=args.parallel, check_replicas=args.check_replicas,
-                               teach=not args.independent_segments, hold=args.hold_lasting, preset=preset)
+                               teach=not args.independent_segments, preset=preset)
     if not world.main:
         return 0
     print(f"trained {len(summaries)} segments of {args.segment_frames} frames (sharing {plan['overlap']}) -> {args.out}")
