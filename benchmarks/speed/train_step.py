@@ -399,8 +399,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--against", type=Path, default=None, metavar="CHECKOUT",
                     help="time that checkout's code too, the two taking turns in separate processes (alternate.py)")
     ap.add_argument("--repeats", type=int, default=2, help="with --against: runs of each side")
-    ap.add_argument("--kernels", default=None, help="the per-Gaussian kernels (omg4's --kernels: fused, reference, "
-                                                     "compiled; default: $OMG4_KERNELS or fused)")
+    ap.add_argument("--kernels", default=None, help="the per-Gaussian kernels (omg4's --kernels: fused or reference; "
+                                                     "default: $OMG4_KERNELS or fused)")
     args = ap.parse_args(argv)
     if args.kernels:
         os.environ["OMG4_KERNELS"] = args.kernels  # read by omg4.kernels; inherited by --against's processes

@@ -28,7 +28,6 @@ _PUBLIC = {
     "register_backbone": "omg4.gaussians.backbone",
     "DensityStrategy": "omg4.train.strategies",
     "using_kernels": "omg4.kernels",
-    "set_kernel_mode": "omg4.kernels",
     "OMG4Error": "omg4.errors",
     "CorruptFileError": "omg4.errors",
 }

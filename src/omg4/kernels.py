@@ -1,7 +1,7 @@
 """The numba runtime every CPU kernel shares (the rasterizer's and the Gaussians' SH and conditioning kernels):
 where numba caches compiled code, the fast-math flags, handing tensors to kernels, and keeping torch's thread
 count while numba's OpenMP pool runs; and which kernels do the per-Gaussian work (:func:`kernel_mode`: the
-numba ones, the pure-torch reference, or that reference compiled by ``torch.compile``, :func:`torch_form`).
+numba ones or the pure-torch reference).
 
 numba's on-disk cache goes to ``NUMBA_CACHE_DIR`` when set, else beside each kernel's module, or to
 ``~/.cache/omg4/numba`` when the package directory is read-only; importing this module decides it, before any
@@ -11,9 +11,7 @@ kernel is defined (numba binds the cache location at decoration time).
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
-import warnings
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
 
@@ -62,90 +60,49 @@ def as_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-KERNEL_MODES = ("fused", "reference", "compiled")
+KERNEL_MODES = ("fused", "reference")
 """``fused``: the per-Gaussian numba kernels run where they can, the torch forms elsewhere (the default);
-``reference``: the pure-torch forms everywhere (the reference the kernels are tested against); ``compiled``: the
-torch forms compiled by ``torch.compile`` (:func:`torch_form`: inductor's Triton kernels on CUDA, its C++ kernels on
-the CPU, which need a C++ compiler). The rasterizer's kernels run in all three."""
+``reference``: the pure-torch forms everywhere (the reference the kernels are tested against). The rasterizer's
+kernels run in both."""
 
 _chosen_mode: str | None = None
+"""The kernels :func:`using_kernels` chose for the code it runs (a command: ``--kernels``; every thread sees it)."""
 
 
 def kernel_mode() -> str:
-    """The kernels in use: :func:`set_kernel_mode`'s choice, else ``$OMG4_KERNELS``, else ``fused``."""
+    """The kernels in use: :func:`using_kernels`'s choice, else ``$OMG4_KERNELS``, else ``fused``; the one place that
+    decides (every operation with a kernel asks :func:`runs_cpu_kernels`, a model's frame :func:`fused_kernels`)."""
     mode = _chosen_mode or os.environ.get("OMG4_KERNELS") or KERNEL_MODES[0]
     if mode not in KERNEL_MODES:
         raise ValueError(f"unknown kernels '{mode}' (OMG4_KERNELS): choose from {', '.join(KERNEL_MODES)}")
     return mode
 
 
-def set_kernel_mode(mode: str | None) -> None:
-    """Use the ``mode`` kernels from now on (None: back to ``$OMG4_KERNELS`` or the default)."""
+@contextlib.contextmanager
+def using_kernels(mode: str | None) -> Iterator[None]:
+    """Run the body with the ``mode`` kernels (:data:`KERNEL_MODES`; None: those already in use); the choice before
+    holds again after it."""
     global _chosen_mode
     if mode is not None and mode not in KERNEL_MODES:
         raise ValueError(f"unknown kernels '{mode}': choose from {', '.join(KERNEL_MODES)}")
-    _chosen_mode = mode
-
-
-@contextlib.contextmanager
-def using_kernels(mode: str) -> Iterator[None]:
-    """Run the body with the ``mode`` kernels (:data:`KERNEL_MODES`)."""
-    before = _chosen_mode
-    set_kernel_mode(mode)
+    before, _chosen_mode = _chosen_mode, mode or _chosen_mode
     try:
         yield
     finally:
-        set_kernel_mode(before)
+        _chosen_mode = before
+
+
+def fused_kernels() -> bool:
+    """Whether the fused kernels are in use (else the pure-torch reference)."""
+    return kernel_mode() == "fused"
 
 
 def runs_cpu_kernels(*tensors: torch.Tensor) -> bool:
     """Whether the numba kernels take ``tensors``: the fused kernels in use, all on the CPU, all float32 or all
     float64 (else the torch forms run)."""
     dtype = tensors[0].dtype
-    return kernel_mode() == "fused" and dtype in (torch.float32, torch.float64) and all(
+    return fused_kernels() and dtype in (torch.float32, torch.float64) and all(
         t.device.type == "cpu" and t.dtype == dtype for t in tensors)
-
-
-def torch_form(fn: Callable) -> Callable:
-    """``fn``, a per-Gaussian function of torch operations, as the kernels in use run it: itself, or with the
-    ``compiled`` kernels its ``torch.compile`` form (shapes dynamic; compiled on first use per dtype and device, a
-    few seconds to tens of seconds, then cached by torch on disk). A call with an empty tensor, or whose first
-    tensor (the Gaussians or rows) has one row, runs ``fn`` itself: the compiler specializes sizes 0 and 1, and
-    such edge cases would each compile anew."""
-    if kernel_mode() != "compiled":
-        return fn
-    compiled = _compiled(fn)
-
-    def run(*args, **kwargs):
-        tensors = [a for a in args if isinstance(a, torch.Tensor)]
-        if tensors[0].shape[0] < 2 or any(t.numel() == 0 for t in tensors):
-            return fn(*args, **kwargs)
-        with warnings.catch_warnings():  # the forms' constant tables come from lru_cache'd builders, traced as such
-            warnings.filterwarnings("ignore", message="Dynamo detected a call to a `functools.lru_cache`")
-            return compiled(*args, **kwargs)
-
-    return run
-
-
-@functools.lru_cache(maxsize=None)
-def _compiled(fn: Callable) -> Callable:
-    """``torch.compile(fn)`` with dynamic shapes, made once per function."""
-    return torch.compile(fn, dynamic=True)
-
-
-def compile_failure(exc: BaseException) -> str | None:
-    """The one-line message for ``exc`` when it is ``torch.compile`` failing to compile the ``compiled`` kernels (in
-    their forward or, later, inside ``backward()``), else None. Seen on an H200 with torch 2.11: inductor's Triton
-    code generation asserted on the backward graph of a 200,000-Gaussian training step."""
-    from torch._dynamo.exc import BackendCompilerFailed  # torch._dynamo only once a command has failed
-
-    if not isinstance(exc, BackendCompilerFailed):
-        return None
-    inner = getattr(exc, "inner_exception", None) or exc
-    detail = str(inner).strip().splitlines()
-    cause = type(inner).__name__ + (f": {detail[0][:160]}" if detail else "")
-    return (f"torch.compile could not compile the per-Gaussian kernels (torch {torch.__version__}, {cause}); "
-            f"run without --kernels compiled (the default kernels compute the same)")
 
 
 @contextlib.contextmanager
@@ -160,5 +117,5 @@ def keeping_torch_threads() -> Iterator[None]:
             torch.set_num_threads(torch_threads)
 
 
-__all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "compile_failure", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
-           "resolve_cache_dir", "runs_cpu_kernels", "set_kernel_mode", "torch_form", "using_kernels"]
+__all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
+           "fused_kernels", "resolve_cache_dir", "runs_cpu_kernels", "using_kernels"]

@@ -275,23 +275,24 @@ def test_train_force_keeps_the_old_run_when_the_initialization_fails(tiny_scene_
     assert all(f.read_text() == "the earlier run" for f in files)
 
 
-def test_a_kernel_compilation_failing_inside_training_is_a_one_line_error(tiny_scene_dir, tmp_path, capsys,
-                                                                        monkeypatch):
-    from torch._inductor.exc import InductorError
+def test_kernels_are_the_commands_choice_for_its_run_only(tiny_scene_dir, tmp_path, monkeypatch):
+    """``--kernels`` holds while the command runs, where every operation asks the one place that decides, and not
+    after it (nor does parsing ``--device`` choose); the command's own failure leaves the choice as it was."""
+    from omg4.errors import OMG4Error
+    from omg4.kernels import kernel_mode, runs_cpu_kernels
 
-    def failing_step(self, step):  # as inductor failed on a GPU: in the backward graph's code generation
-        raise InductorError(AssertionError("tiling split"), None)
+    seen = []
 
-    monkeypatch.setattr("omg4.train.trainer.Trainer.train_step", failing_step)
-    _failed(["train", str(tiny_scene_dir), "--out", str(tmp_path / "run"), "--iterations", "2"], capsys,
-            contains="torch.compile could not compile the per-Gaussian kernels")
+    def recording_step(self, step):
+        seen.append((kernel_mode(), runs_cpu_kernels(torch.zeros(2))))
+        raise OMG4Error("stop here")
 
-    def other_failure(self, step):
-        raise RuntimeError("not a compilation")
-
-    monkeypatch.setattr("omg4.train.trainer.Trainer.train_step", other_failure)
-    with pytest.raises(RuntimeError, match="not a compilation"):
-        main(["train", str(tiny_scene_dir), "--out", str(tmp_path / "run2"), "--iterations", "2"])
+    monkeypatch.setattr("omg4.train.trainer.Trainer.train_step", recording_step)
+    base = ["train", str(tiny_scene_dir), "--iterations", "2"]
+    assert main([*base, "--out", str(tmp_path / "a"), "--kernels", "reference"]) == 2
+    assert kernel_mode() == "fused" and runs_cpu_kernels(torch.zeros(2))
+    assert main([*base, "--out", str(tmp_path / "b")]) == 2
+    assert seen == [("reference", False), ("fused", True)]
 
 
 @pytest.mark.parametrize("name", ["model.safetensors", "config.json", "checkpoints/summary.json"])

@@ -95,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     from omg4.allocator import keep_freed_memory
 
     keep_freed_memory()
+    from omg4.kernels import using_kernels
+
     try:
-        with library_messages_shown():
+        with library_messages_shown(), using_kernels(getattr(args, "kernels", None)):  # for this command only
             status = int(modules[args.command].run(args) or 0)
         distributed.finish()
         if distributed.launched():
@@ -111,23 +113,12 @@ def main(argv: list[str] | None = None) -> int:
         if hint is None:
             raise
         return _fail(args.command, f"this needs {e.name}, which is not installed: {hint}", e)
-    except RuntimeError as e:
-        from omg4.kernels import compile_failure
-
-        if (message := compile_failure(e)) is None:
-            raise
-        return _fail(args.command, message, e)
     except KeyboardInterrupt:
         print(f"omg4 {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into a pager or `head` that closed early
         sys.stderr.close()
         return 0
-    finally:
-        if getattr(args, "kernels", None):  # --kernels holds for this command only (main may run again in a process)
-            from omg4.kernels import set_kernel_mode
-
-            set_kernel_mode(None)
 
 
 class _AboveProgressBars(logging.Handler):

@@ -20,7 +20,7 @@ import torch
 
 from omg4.gaussians.covariance_kernels import kernel_conditioning_terms
 from omg4.gaussians.rotation import build_rotation_4d
-from omg4.kernels import runs_cpu_kernels, torch_form
+from omg4.kernels import runs_cpu_kernels
 from omg4.render.small_matmul import small_matmul
 
 
@@ -112,14 +112,13 @@ def conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tenso
     ``gain = Σ12 / Σtt`` [N, 3] (the velocity of the conditional mean), ``Σ_3D = Σ11 − Σ12 Σ12ᵀ / Σtt``
     [N, 3, 3] and ``Σtt`` [N], with ``Σ4 = L Lᵀ``, ``L = R4 diag(s)``. Differentiable (first order)
     w.r.t. the three inputs. On the CPU (float32/float64) one numba pass per Gaussian
-    (:mod:`omg4.gaussians.covariance_kernels`); elsewhere :func:`torch_conditioning_terms`, compiled with the
-    ``compiled`` kernels (:func:`omg4.kernels.torch_form`).
+    (:mod:`omg4.gaussians.covariance_kernels`); elsewhere :func:`torch_conditioning_terms`.
 
     Args: as :func:`covariance_4d`.
     """
     if runs_cpu_kernels(scales, q_l, q_r):
         return kernel_conditioning_terms(scales, q_l, q_r, convention)
-    return torch_form(torch_conditioning_terms)(scales, q_l, q_r, convention)
+    return torch_conditioning_terms(scales, q_l, q_r, convention)
 
 
 def torch_conditioning_terms(scales: torch.Tensor, q_l: torch.Tensor, q_r: torch.Tensor, convention: str = "flip"
@@ -169,7 +168,7 @@ def condition_and_cull(xyz: torch.Tensor, t: torch.Tensor, gain: torch.Tensor, c
         views, index = (p_t > time_cull).nonzero(as_tuple=True)
     if rows is not None:
         index = rows.index_select(0, index)
-    means, covars, marginal, dt = torch_form(conditioned_rows)(xyz, t_all, gain, cov3, var_t, times, views, index)
+    means, covars, marginal, dt = conditioned_rows(xyz, t_all, gain, cov3, var_t, times, views, index)
     return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=dt, views=views)
 
 

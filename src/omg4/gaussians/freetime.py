@@ -21,7 +21,6 @@ import torch
 from omg4.gaussians.covariance import SliceGeometry, temporal_marginal
 from omg4.gaussians.initial import log_time_scale, neighbour_log_scales, spatial_params
 from omg4.gaussians.rotation import build_rotation_3d
-from omg4.kernels import torch_form
 from omg4.render.small_matmul import small_matmul
 
 
@@ -63,8 +62,8 @@ def slice_geometry_ftgs(xyz: torch.Tensor, t: torch.Tensor, log_duration: torch.
     var_t = duration_variance(log_duration)
     p_t = temporal_marginal(times[:, None] - t[None, :, 0], var_t)  # [V, N]
     views, index = (p_t > time_cull).nonzero(as_tuple=True)
-    means, covars, marginal, dt = torch_form(moving_rows)(xyz, t[:, 0], var_t, velocity, log_scales, quaternions,
-                                                          times, views, index)
+    means, covars, marginal, dt = moving_rows(xyz, t[:, 0], var_t, velocity, log_scales, quaternions, times, views,
+                                              index)
     return SliceGeometry(index=index, means=means, covars=covars, marginal=marginal, dt=dt, views=views)
 
 

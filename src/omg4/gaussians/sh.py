@@ -21,8 +21,8 @@ import math
 import numpy as np
 import torch
 
-from omg4.gaussians.sh_kernels import C0, C1, C2, C3, basis_from_terms, contract_coefficients, torch_contraction
-from omg4.kernels import kernel_mode, runs_cpu_kernels, torch_form
+from omg4.gaussians.sh_kernels import C0, C1, C2, C3, basis_from_terms, contract_coefficients
+from omg4.kernels import runs_cpu_kernels
 from omg4.render.small_matmul import small_matmul
 
 MAX_SH_DEGREE = 3
@@ -90,13 +90,12 @@ def _basis_16(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     return basis_by_table(dirs, degree)
 
 
-def basis_by_table(dirs: torch.Tensor, degree: int, table: torch.Tensor | None = None) -> torch.Tensor:
+def basis_by_table(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """:func:`_basis_16` as torch operations — the cubic monomials of ``d`` times a constant table (one
-    product, no operation per basis function): the form devices other than the CPU run. ``table``: that
-    table of ``degree`` when the caller has it (a compiled caller takes it as an input)."""
+    product, no operation per basis function): the form devices other than the CPU run."""
     p = torch.cat([torch.ones_like(dirs[:, :1]), dirs], dim=1)  # [N, 4]
     monomials = (p[:, :, None, None] * p[:, None, :, None] * p[:, None, None, :]).reshape(-1, 64)
-    return monomials @ (_basis_table(degree, dirs.dtype, str(dirs.device)) if table is None else table)
+    return monomials @ _basis_table(degree, dirs.dtype, str(dirs.device))
 
 
 def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
@@ -192,25 +191,10 @@ def eval_sh_4d(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: t
 
 def colors_from_sh(coeffs: torch.Tensor | tuple[torch.Tensor, torch.Tensor], dirs: torch.Tensor, dt: torch.Tensor, period: float, degree: int,
                    degree_t: int, *, band_size: int = 16, rows: torch.Tensor | None = None) -> torch.Tensor:
-    """rgb = max(SH4D + 0.5, 0) (rt4dgs §1.5 (4)); arguments as :func:`eval_sh_4d`. Returns [M, C]. With the
-    ``compiled`` kernels, :func:`torch_colors` compiled (:func:`omg4.kernels.torch_form`)."""
-    if kernel_mode() == "compiled":
-        dc, rest = (coeffs[:, :1], coeffs[:, 1:]) if torch.is_tensor(coeffs) else coeffs
-        _check_layout(rest, degree, degree_t, band_size, offset=1)
-        table = _basis_table(degree, dirs.dtype, str(dirs.device))
-        return torch_form(torch_colors)(dc, rest, dirs, dt, rows, table, period, degree_t, band_size)
+    """rgb = max(SH4D + 0.5, 0) (rt4dgs §1.5 (4)); arguments as :func:`eval_sh_4d`. Returns [M, C]."""
     return (eval_sh_4d(coeffs, dirs, dt, period, degree, degree_t, band_size=band_size, rows=rows)
             + 0.5).clamp_min(0.0)
 
-
-def torch_colors(dc: torch.Tensor, rest: torch.Tensor, dirs: torch.Tensor, dt: torch.Tensor, rows: torch.Tensor | None,
-                 table: torch.Tensor, period: float, degree_t: int, band_size: int) -> torch.Tensor:
-    """:func:`colors_from_sh` in torch operations only (the basis by :func:`basis_by_table` from its ``table`` of
-    the active degree, the weighted sum by :func:`~omg4.gaussians.sh_kernels.torch_contraction`): the form
-    ``torch.compile`` takes whole."""
-    weights = (time_weights(dt, period, degree_t).unsqueeze(-1)
-               * basis_by_table(dirs, 0, table)[:, :band_size].unsqueeze(1)).reshape(-1, (degree_t + 1) * band_size)
-    return (torch_contraction(dc, rest, weights.to(dc.dtype), rows) + 0.5).clamp_min(0.0)
 
 
 def view_directions(points: torch.Tensor, camera_center: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
@@ -220,4 +204,4 @@ def view_directions(points: torch.Tensor, camera_center: torch.Tensor, eps: floa
 
 
 __all__ = ["C0", "C1", "C2", "C3", "MAX_SH_DEGREE", "num_sh_coeffs", "rgb_to_sh", "sh_to_rgb", "sh_basis", "basis_by_table", "eval_sh",
-           "time_weights", "fold_time_sh", "eval_sh_4d", "colors_from_sh", "torch_colors", "view_directions"]
+           "time_weights", "fold_time_sh", "eval_sh_4d", "colors_from_sh", "view_directions"]

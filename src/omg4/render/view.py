@@ -20,7 +20,7 @@ import torch
 from omg4.data.scene import Camera, View
 from omg4.device import to_device
 from omg4.errors import OMG4Error
-from omg4.kernels import kernel_mode
+from omg4.kernels import fused_kernels
 from omg4.render.api import rasterize, rasterize_views, resolve_backend
 from omg4.render.arrays import rasterize_arrays
 from omg4.render.rendered import Rendered
@@ -153,7 +153,7 @@ def render_views(model: BatchSlicedModel, cameras: list[Camera], timestamps: lis
 def _fused_frame(model, backend: str, device, background) -> bool:
     """Whether ``model``'s frames run as the fused CPU kernels on arrays (a render-only model's ``frame_kernel``, the
     cpu rasterizer, the fused kernels in use, :mod:`omg4.kernels`; no gradient asked of the background)."""
-    return (getattr(model, "frame_kernel", None) is not None and kernel_mode() == "fused"
+    return (getattr(model, "frame_kernel", None) is not None and fused_kernels()
             and not (background is not None and background.requires_grad)
             and resolve_backend(backend, torch.device(device)) == "cpu")
 

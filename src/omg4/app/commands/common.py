@@ -173,9 +173,7 @@ def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, fr
                    help=f"where to compute (default cpu): {DEVICE_HELP}")
     p.add_argument("--kernels", choices=list(KERNEL_MODES), default=None,
                    help="per-Gaussian work on the fused numba kernels on the CPU (fused, the default; "
-                        "$OMG4_KERNELS), as the pure-torch reference they are tested against (reference), or as "
-                        "that reference compiled by torch.compile (compiled, experimental: Triton kernels on CUDA, "
-                        "whose training backward torch 2.11 failed to compile; needs a C++ compiler on the CPU)")
+                        "$OMG4_KERNELS) or as the pure-torch reference they are tested against (reference)")
 
 
 def fill_device_arguments(args, settings: dict) -> None:
@@ -188,19 +186,17 @@ def fill_device_arguments(args, settings: dict) -> None:
 
 
 def device_from_args(args):
-    """The torch device of ``--device``, checked against ``--backend`` when the command has one; ``--kernels`` chosen
-    for the process (:func:`omg4.kernels.set_kernel_mode`).
+    """The torch device of ``--device``, checked against ``--backend`` when the command has one; ``$OMG4_KERNELS``
+    checked (``--kernels`` is chosen by :func:`omg4.app.cli.main` for the command).
 
     Raises a one-line :class:`OMG4Error` for an unusable device or a backend that cannot
     render there (the cpu rasterizer on CUDA, gsplat off CUDA).
     """
     from omg4.device import resolve_device
     from omg4.errors import OMG4Error
-    from omg4.kernels import kernel_mode, set_kernel_mode
+    from omg4.kernels import kernel_mode
     from omg4.render.api import resolve_backend
 
-    if getattr(args, "kernels", None):
-        set_kernel_mode(args.kernels)
     try:
         kernel_mode()
     except ValueError as exc:
