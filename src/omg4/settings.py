@@ -175,7 +175,7 @@ def convert(key: str, value: Any, kind) -> Any:
                 return convert(key, value, option)
             except OMG4Error:
                 continue
-        raise OMG4Error(f"setting '{key}' expects {_type_name(kind)}, got {value!r}")
+        raise OMG4Error(f"setting '{key}' expects {type_name(kind)}, got {value!r}")
     origin = typing.get_origin(kind)
     if origin is tuple:
         if isinstance(value, str):
@@ -206,12 +206,12 @@ def convert(key: str, value: Any, kind) -> Any:
             return value
     elif kind is Any:
         return value
-    raise OMG4Error(f"setting '{key}' expects {_type_name(kind)}, got {value!r}")
+    raise OMG4Error(f"setting '{key}' expects {type_name(kind)}, got {value!r}")
 
 
-def _type_name(kind) -> str:
+def type_name(kind) -> str:
     if _is_union(kind):
-        return " or ".join(_type_name(a) for a in typing.get_args(kind))
+        return " or ".join(type_name(a) for a in typing.get_args(kind))
     if kind is type(None):
         return "null"
     if typing.get_origin(kind) is tuple:
@@ -245,5 +245,5 @@ def config_dict(config) -> dict[str, Any]:
     return json.loads(json.dumps(dataclasses.asdict(config)))
 
 
-__all__ = ["knob", "tell_moved", "Setting", "settings_of", "read_config_file", "flatten", "parse_assignments", "check_settings", "convert",
-           "apply_settings", "config_dict"]
+__all__ = ["knob", "tell_moved", "drop_removed", "Setting", "settings_of", "read_config_file", "flatten",
+           "parse_assignments", "check_settings", "convert", "type_name", "apply_settings", "config_dict"]

@@ -154,3 +154,27 @@ def test_info_prints_a_carry_decision_of_this_build_and_of_an_earlier_one_and_ig
     for forged in (None, [], {"covered_share": "many"}, {"matched_share": True, "tolerance": 1}, {"setting": "auto"}):
         assert _carry_decision(forged) == ""
     assert "\x1b" not in _carry_decision({"setting": "\x1b[2J", "carried": "none", "covered_share": 0.5})
+
+
+@pytest.mark.parametrize("command", sorted(TABLES))
+def test_help_shows_at_most_thirty_options(command):
+    shown = [a for a in _subparser(command)._actions
+             if a.option_strings and a.help is not argparse.SUPPRESS]
+    assert len(shown) <= 30, [a.option_strings[0] for a in shown]
+
+
+@pytest.mark.parametrize("command, config_class", [("train", "TrainConfig"), ("compress", "CompressConfig")])
+def test_settings_lists_every_setting_that_set_takes(command, config_class, capsys):
+    import omg4.compress.pipeline
+    import omg4.train.config
+    from omg4.settings import check_settings, settings_of
+
+    cls = getattr(omg4.train.config, config_class, None) or getattr(omg4.compress.pipeline, config_class)
+    with pytest.raises(SystemExit) as done:
+        _build_parser(command)[0].parse_args([command, "--settings"])
+    assert done.value.code == 0
+    listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()[1:]]
+    assert listed == list(settings_of(cls))
+    for name, setting in settings_of(cls).items():  # each is a name --set takes, with the field's default
+        if setting.default is not None:
+            assert check_settings(cls, {name: setting.default}) == {name: setting.default}

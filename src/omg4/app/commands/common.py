@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import unicodedata
 from pathlib import Path
 
@@ -171,9 +172,9 @@ def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, fr
                             "or gsplat (cuda only)")
     p.add_argument("--device", default=None if from_settings else "cpu",
                    help=f"where to compute (default cpu): {DEVICE_HELP}")
-    p.add_argument("--kernels", choices=list(KERNEL_MODES), default=None,
-                   help="per-Gaussian work on the fused numba kernels on the CPU (fused, the default; "
-                        "$OMG4_KERNELS) or as the pure-torch reference they are tested against (reference)")
+    # not in --help (a check of the kernels, not a setting): the per-Gaussian work on the fused numba kernels on the
+    # CPU (fused, the default; $OMG4_KERNELS) or as the pure-torch reference they are tested against (reference)
+    p.add_argument("--kernels", choices=list(KERNEL_MODES), default=None, help=argparse.SUPPRESS)
 
 
 def fill_device_arguments(args, settings: dict) -> None:
@@ -273,8 +274,10 @@ def printable(value: object) -> str:
 
 def add_settings_arguments(p: argparse.ArgumentParser, config_class, *, shortcuts: tuple[str, ...], section: str,
                            defaults: str = "the defaults") -> None:
-    """``--config FILE``, ``--set KEY=VALUE`` and one ``--field-name`` flag per field of ``config_class`` (dotted
-    nested fields: ``--merge-grid-size``) that the command's own flags (``shortcuts``) do not already set.
+    """``--config FILE``, ``--set KEY=VALUE``, ``--settings`` (every field of ``config_class`` listed, then exit) and
+    one ``--field-name`` flag per field (dotted nested fields: ``--merge-grid-size``) that the command's own flags
+    (``shortcuts``) do not already set; those flags are left out of ``--help``, which shows what users change, and
+    ``--settings`` lists them all.
 
     Precedence (:func:`settings_from_args`): the preset < the file < ``--set`` < the flags.
     """
@@ -285,20 +288,41 @@ def add_settings_arguments(p: argparse.ArgumentParser, config_class, *, shortcut
                         f"(a run's own record, which holds them under '{section}', reproduces the run)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", dest="settings",
                    help="one setting by its field name (repeatable; values as JSON, e.g. background=[1,1,1], "
-                        "merge.grid_size=0.2)")
-    group = p.add_argument_group(f"every {config_class.__name__} field (also settable by --config and --set; "
-                                 f"{defaults})")
+                        "merge.grid_size=0.2); --settings lists them")
     table = settings_of(config_class)
+    p.add_argument("--settings", action=_ListSettings, nargs=0, table=table, defaults=defaults,
+                   help=f"list every setting --set and --config take ({config_class.__name__}: learning rates, "
+                        "schedules and the like, with their defaults) and exit")
     for name, setting in table.items():
-        if name in shortcuts:
-            continue
-        default = "" if setting.default is None else f" (default {setting.default})"
-        group.add_argument(_setting_flag(name), dest=_setting_dest(name), type=_setting_type(name, setting.type),
-                           metavar="VALUE", help=setting.help.replace("%", "%%") + default)
+        if name not in shortcuts:
+            p.add_argument(_setting_flag(name), dest=_setting_dest(name), type=_setting_type(name, setting.type),
+                           help=argparse.SUPPRESS)
     for old, new in getattr(config_class, "MOVED_SETTINGS", {}).items():  # earlier flags, read as deprecated names
         if old not in shortcuts and new not in shortcuts:
-            group.add_argument(_setting_flag(old), dest=_setting_dest(old), type=_setting_type(old, table[new].type),
-                               help=argparse.SUPPRESS)
+            p.add_argument(_setting_flag(old), dest=_setting_dest(old), type=_setting_type(old, table[new].type),
+                           help=argparse.SUPPRESS)
+
+
+class _ListSettings(argparse.Action):
+    """``--settings``: print every setting (name, type, default, meaning) and exit."""
+
+    def __init__(self, *args, table, defaults: str, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.table, self.defaults = table, defaults
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from omg4.settings import type_name
+
+        print(f"settings ({self.defaults}); set one with --set NAME=VALUE, several in a --config file, or as "
+              "--NAME-WITH-DASHES VALUE:")
+        width = max(len(name) for name in self.table)
+        try:
+            for name, setting in self.table.items():
+                default = "" if setting.default is None else f", default {setting.default}"
+                print(f"  {name:<{width}}  {setting.help} ({type_name(setting.type)}{default})")
+        except BrokenPipeError:  # piped into a pager or `head` that closed early
+            sys.stderr.close()
+        parser.exit()
 
 
 def _setting_flag(name: str) -> str:
@@ -343,7 +367,5 @@ def add_distributed_arguments(p: argparse.ArgumentParser, *, replicas: bool = Tr
     p.add_argument("--nproc", type=int_at_least(1), metavar="N",
                    help="run as N processes on this machine (torch.distributed: gloo on cpu, one GPU each on cuda); "
                         "for several machines start the same command with torchrun")
-    if replicas:
-        p.add_argument("--check-replicas", type=int_at_least(0), default=0, metavar="K",
-                       help="in a distributed run, compare a hash of every rank's parameters every K steps and stop "
-                            "with an error when they differ (0: never)")
+    if replicas:  # a debugging aid, not in --help: compare a hash of every rank's parameters every K steps (0: never)
+        p.add_argument("--check-replicas", type=int_at_least(0), default=0, metavar="K", help=argparse.SUPPRESS)

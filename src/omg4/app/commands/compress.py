@@ -55,30 +55,22 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "sample+prune,merge,appearance,svq3d,svq4d)")
     p.add_argument("--stop-after", choices=list(MINIMIZING_STAGES),
                    help="stop after this stage and write a checkpoint of the minimized model")
-    p.add_argument("--num-merge", type=int_at_least(1), help=f"merge rounds M (default {CompressConfig.num_merge})")
     p.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH_SIZE),
                    help=f"views per fine-tuning step (default {CompressConfig.batch_size}, at most {MAX_BATCH_SIZE})")
-    p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help="override the preset's sampling ratio, in (0, 1]")
-    p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True),
-                   help="override the preset's pruning quantile p, in [0, 1)")
+    # the preset's sampling ratio, in (0, 1], and pruning quantile, in [0, 1), overridden (left to --settings)
+    p.add_argument("--tau-gs", type=float_in(0.0, 1.0), help=argparse.SUPPRESS)
+    p.add_argument("--prune-quantile", type=float_in(0.0, 1.0, low_open=False, high_open=True), help=argparse.SUPPRESS)
     add_codec_argument(p, from_settings=True)
     p.add_argument("--grid-bits", type=compact_grids, metavar="POS,ROT,TIME[,W,LS[,CB[,EX]]]", help=GRID_BITS_HELP)
     add_rate_weight_argument(p)
     p.add_argument("--scores", type=Path, help="reuse SD scores saved by an earlier run (.npz)")
-    p.add_argument("--official-score-quirk", action="store_true", default=None,
-                   help="accumulate the time gradient without zeroing, as the official release does")
-    p.add_argument("--score-weighting", choices=list(SCORE_WEIGHTINGS),
-                   help="what sampling and pruning rank by: lifetime-weighted SD scores (beyond the paper, the "
-                        "default: the clip's first and last frames keep as large a share of their Gaussians as its "
-                        "middle) or the paper's")
-    p.add_argument("--time-sampling", choices=list(TIME_SAMPLINGS),
-                   help="how fine-tuning draws its views: more often in the spans of the clip that fell further "
-                        "below the baseline (beyond the paper, the default: deficit) or uniformly (the paper); "
-                        "--score-weighting paper --time-sampling uniform is the paper's selection and draw")
-    p.add_argument("--baseline-iterations", type=int_at_least(1),
-                   help="iterations the baseline was trained for (the position learning rate continues its decay; "
-                        "default: what the baseline's checkpoint records, else "
-                        f"{CompressConfig.baseline_iterations})")
+    # settings with flags of their own that --help leaves to --settings (--paper switches the choices among them)
+    p.add_argument("--num-merge", type=int_at_least(1), help=argparse.SUPPRESS)
+    p.add_argument("--official-score-quirk", action="store_true", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--score-weighting", choices=list(SCORE_WEIGHTINGS), help=argparse.SUPPRESS)
+    p.add_argument("--time-sampling", choices=list(TIME_SAMPLINGS), help=argparse.SUPPRESS)
+    p.add_argument("--baseline-iterations", type=int_at_least(1), help=argparse.SUPPRESS)
+    p.add_argument("--predicted-mlp", choices=list(PREDICTED_MLPS), help=argparse.SUPPRESS)
     add_background_argument(p)
     add_device_arguments(p, from_settings=True)
     p.add_argument("--seed", type=seed, help=f"random seed (default {CompressConfig.seed})")
@@ -92,10 +84,6 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "segment before (they take its codebooks and store its appearance MLPs as a change), so a "
                         f"seek decodes at most N segments; 1 codes every segment alone (default {DEFAULT_KEY_INTERVAL}; "
                         "1 with --paper)")
-    p.add_argument("--predicted-mlp", choices=list(PREDICTED_MLPS),
-                   help="what a predicted segment does with the segment before's appearance MLPs: fine-tune them and "
-                        "store the change (tune, the default) or keep them as they are and store nothing (keep: a "
-                        "smaller file, a little further below each segment coded alone)")
     add_force_argument(p)
     add_distributed_arguments(p)
     add_settings_arguments(p, CompressConfig, shortcuts=SHORTCUTS, section="compress_config",

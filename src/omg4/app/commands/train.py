@@ -39,14 +39,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     budget.add_argument("--budget", type=int_at_least(1), dest="max_gaussians", metavar="N",
                         help="FreeTimeGS: the fixed Gaussian count (default: one per initial point); "
                              "the same as --max-gaussians")
-    p.add_argument("--densify-until", type=int_at_least(0), help="last densification iteration")
-    p.add_argument("--densify-interval", type=int_at_least(1), help="iterations between densification events")
-    p.add_argument("--test-interval", type=int_at_least(0),
-                   help="evaluate test PSNR every N iterations (0 = only at the end)")
+    # settings with flags of their own that --help leaves to --settings
+    p.add_argument("--densify-until", type=int_at_least(0), help=argparse.SUPPRESS)
+    p.add_argument("--densify-interval", type=int_at_least(1), help=argparse.SUPPRESS)
+    p.add_argument("--test-interval", type=int_at_least(0), help=argparse.SUPPRESS)
+    p.add_argument("--num-random-points", type=int_at_least(1), help=argparse.SUPPRESS)
     p.add_argument("--checkpoint-interval", type=int_at_least(0),
                    help="write a resumable checkpoint every N iterations (0 = only at the end)")
-    p.add_argument("--num-random-points", type=int_at_least(1),
-                   help="initial points (random, rays, mvs) when the data has no points3d.ply")
     p.add_argument("--init", choices=list(INIT_MODES), default="auto",
                    help="initial points: auto (points3d.ply if present, else mvs for multi-view video, else "
                         "random), random, rays (coloured points along the first frame's pixel rays), mvs "
