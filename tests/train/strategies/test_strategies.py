@@ -49,22 +49,14 @@ def test_a_class_is_taken_as_it_is_and_none_trains_a_fixed_set():
     assert type(fixed) is DensityStrategy and fixed.max_gaussians == 321
 
 
-def test_hooks_that_still_take_the_config_run_with_a_deprecation_warning():
-    seen = []
-
+def test_hooks_that_still_take_the_config_are_a_one_line_error():
     class Old(DensityStrategy):
-        def collects_statistics(self, cfg, step):
-            seen.append((cfg.densify_from, step))  # the flat name these hooks knew
+        def collects_statistics(self, cfg, step):  # the form before strategies owned their settings
             return True
 
-        def after_step(self, model, optimizer, stats, cfg, step, extent):
-            seen.append((model, cfg.seed, step, extent))
-
-    with pytest.warns(DeprecationWarning, match="hooks that take the TrainConfig are deprecated"):
-        old = strategy_for(dataclasses.replace(RT4DGS, training=Old), CFG)
-    assert old.collects_statistics(9) is True and old.grows_until() == 0
-    old.after_step("model", None, None, 10, 2.5)
-    assert seen == [(123, 9), ("model", 7, 10, 2.5)]
+    with pytest.raises(OMG4Error, match="Old: density-control hooks no longer take the TrainConfig") as caught:
+        strategy_for(dataclasses.replace(RT4DGS, training=Old), CFG)
+    assert "\n" not in str(caught.value)
 
 
 def test_an_unknown_name_is_a_one_line_error():

@@ -18,17 +18,20 @@ the commands' flags with no other change.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import typing
 
 from omg4.errors import OMG4Error
 from omg4.gaussians.backbone import Backbone
 from omg4.train.strategies.base import RUN_FIELDS, DensityStrategy, ScheduledEvents
 from omg4.train.strategies.densification import Densification
-from omg4.train.strategies.legacy import ConfigHooks, config_positions
 from omg4.train.strategies.relocation import Relocation
 
 STRATEGIES: dict[str, type[DensityStrategy]] = {"densification": Densification, "relocation": Relocation}
 """Every named density control."""
+
+HOOKS = ("initial_points", "grows_until", "collects_statistics", "regularizer", "after_step")
+"""The hooks the trainer calls (:class:`~omg4.train.strategies.base.DensityStrategy`)."""
 
 
 def settings_class(strategies: typing.Iterable[type[DensityStrategy]]) -> type:
@@ -67,8 +70,9 @@ def strategy_for(backbone: Backbone, cfg) -> DensityStrategy:
             raise OMG4Error(f"backbone {backbone.name} names the density control {spec!r}, which is not one of "
                             f"{', '.join(STRATEGIES)}")
         spec = STRATEGIES[spec]
-    if config_positions(spec):
-        return ConfigHooks(spec(), cfg)
+    if any("cfg" in inspect.signature(getattr(spec, hook)).parameters for hook in HOOKS):
+        raise OMG4Error(f"{spec.__name__}: density-control hooks no longer take the TrainConfig; give the strategy "
+                        "its settings as dataclass fields (DensityStrategy.from_config)")
     return spec.from_config(cfg)
 
 
