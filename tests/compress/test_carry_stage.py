@@ -154,7 +154,7 @@ def test_only_auto_or_a_finite_tolerance_is_a_setting():
 def test_the_config_carries_by_default_but_not_the_papers_way_and_takes_any_setting():
     from omg4.compress.pipeline import CompressConfig
 
-    assert CompressConfig().carry == "auto" and CompressConfig(paper=True).carry == 0.0
-    assert CompressConfig(carry="lasting").carry == "lasting"
-    assert CompressConfig(carry="auto").carry == "auto"
-    assert dataclasses.replace(CompressConfig(carry=0.25), seed=3).carry == 0.25
+    assert CompressConfig().choice("carry") == "auto" and CompressConfig(paper=True).choice("carry") == 0.0
+    assert CompressConfig(carry="lasting").choice("carry") == "lasting"
+    assert CompressConfig(carry="auto").choice("carry") == "auto"
+    assert dataclasses.replace(CompressConfig(carry=0.25), seed=3).choice("carry") == 0.25

@@ -61,7 +61,7 @@ def test_the_defaults_of_the_table_are_the_code_defaults():
     cfg = CompressConfig()
     for c in CHOICES:
         if hasattr(cfg, c.setting):
-            assert getattr(cfg, c.setting) == c.default, c.setting
+            assert cfg.choice(c.setting) == c.default, c.setting
     assert BY_SETTING["codec"].default == CODECS[0]
     assert BY_SETTING["key_interval"].default == DEFAULT_KEY_INTERVAL
 
@@ -77,13 +77,18 @@ def test_the_switch_sets_every_choice_of_the_config_and_explicit_values_win():
     cfg = CompressConfig(paper=True)
     for c in CHOICES:
         if hasattr(cfg, c.setting):
-            assert getattr(cfg, c.setting) == c.paper, c.setting
+            assert cfg.choice(c.setting) == c.paper, c.setting
+            assert getattr(cfg.resolved(), c.setting) == c.paper, c.setting
     assert cfg.mode("paper") == "paper" and CompressConfig().mode("compact") == "omg4"
     mixed = CompressConfig(paper=True, time_sampling="deficit")
-    assert mixed.time_sampling == "deficit" and mixed.score_weighting == "paper"
+    assert mixed.choice("time_sampling") == "deficit" and mixed.choice("score_weighting") == "paper"
     assert mixed.mode("paper") == "mixed (codec=paper, score_weighting=paper, carry=0.0)"
-    # a copy keeps what it holds
-    assert dataclasses.replace(cfg, seed=1).time_sampling == "uniform"
+    # a copy keeps what it holds, and the switch works on a copy as on a new config
+    assert dataclasses.replace(cfg, seed=1).choice("time_sampling") == "uniform"
+    switched = dataclasses.replace(CompressConfig(), paper=True)
+    assert switched.resolved() == CompressConfig(paper=True).resolved() and switched.mode("paper") == "paper"
+    assert dataclasses.replace(mixed, paper=False).choice("time_sampling") == "deficit"  # what it set, it keeps
+    assert dataclasses.replace(mixed, paper=False).choice("score_weighting") == "lifetime"
 
 
 def test_mode_of_judges_only_the_settings_given():
@@ -115,7 +120,7 @@ def test_the_compress_command_takes_the_switch(extra, expected):
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
     cfg = pipeline_config(args, settings, "cpu")
     for key, value in expected.items():
-        assert getattr(cfg, key) == value, key
+        assert getattr(cfg.resolved(), key) == value, key
 
 
 @pytest.mark.parametrize("command", ["demo", "bench"])
@@ -158,9 +163,9 @@ def test_the_switch_outranks_a_records_choices_and_a_recorded_codec_can_be_overr
         settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
         settings.pop("codec"), settings.pop("grid_bits")
         cfg = pipeline_config(args, settings, "cpu")
-        assert (cfg.score_weighting, cfg.time_sampling) == expected, extra
+        assert (cfg.choice("score_weighting"), cfg.choice("time_sampling")) == expected, extra
         if "--carry" in extra:
-            assert cfg.carry == 0.5
+            assert cfg.choice("carry") == 0.5
     run = tmp_path / "r"
     assert main(["train", str(tiny_scene_dir), "--out", str(run), "--iterations", "4", "--backend", "cpu",
                  "--preset", "cpu-small"]) == 0

@@ -165,7 +165,7 @@ def test_lifetime_weighting_ranks_sampling_and_pruning_by_weighted_scores(tiny_s
     captured = []
     sampling = pl.sampling_mask
     monkeypatch.setattr(pl, "sampling_mask", lambda s, ratio: captured.append(s) or sampling(s, ratio))
-    assert CompressConfig().score_weighting == "lifetime"  # the default, beyond the paper
+    assert CompressConfig().choice("score_weighting") == "lifetime"  # the default, beyond the paper
     cfg = CompressConfig(preset="M", stages=("sample", "prune"), lengths=LENGTHS, batch_size=1, backend="cpu")
     CompressionPipeline(model, tiny_scene, cfg, scores=scores(n0), progress=False, log=lambda *_: None).run()
     torch.testing.assert_close(captured[0].static, scores(n0).static * weights)

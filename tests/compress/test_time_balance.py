@@ -116,7 +116,7 @@ def test_the_pipeline_measures_the_baseline_first_and_draws_every_batch_from_the
 
 
 def test_the_deficit_draw_is_the_default_the_paper_draw_a_switch_and_an_unknown_one_is_refused(tiny_scene):
-    assert CompressConfig().time_sampling == "deficit"
+    assert CompressConfig().choice("time_sampling") == "deficit"
     model = initial_model(tiny_scene, make_config("cpu-small", num_random_points=50, max_gaussians=50, backend="cpu"))
     default = CompressionPipeline(model, tiny_scene, CompressConfig(backend="cpu"), progress=False)
     assert isinstance(default.time_balance, DeficitSampler)

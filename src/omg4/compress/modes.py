@@ -54,8 +54,8 @@ def choice_value(setting: str, paper: bool) -> Any:
 
 
 def choices_of(config) -> dict[str, Any]:
-    """The values ``config`` (a :class:`~omg4.compress.pipeline.CompressConfig`) holds of the choices."""
-    return {c.setting: getattr(config, c.setting) for c in CHOICES if hasattr(config, c.setting)}
+    """The values of the choices in the run ``config`` (a :class:`~omg4.compress.pipeline.CompressConfig`) makes."""
+    return {c.setting: config.choice(c.setting) for c in CHOICES if hasattr(config, c.setting)}
 
 
 def mode_of(values: dict[str, Any]) -> str:

@@ -66,8 +66,9 @@ class CompressConfig:
     (:func:`omg4.compress.kmeans.kmeans`: an index bit costs β times the mean k-means distortion), so index
     usage becomes skewed and the entropy-coded indices shrink; 0 keeps the paper's k-means.
 
-    ``paper=True`` (:mod:`omg4.compress.modes`) gives every choice left unset at construction the paper's value; a
-    config holds the values it resolved, so ``dataclasses.replace(cfg, paper=True)`` keeps them: build a new one.
+    ``paper=True`` (:mod:`omg4.compress.modes`) gives every choice left unset (None) the paper's value; a choice is
+    read through :meth:`choice`, which resolves it then, so ``dataclasses.replace(cfg, paper=True)`` switches every
+    unset choice as ``CompressConfig(paper=True)`` does.
     """
 
     preset: str | None = knob(None, "size preset (L, M, S, T; None: the backbone's default)")
@@ -104,10 +105,15 @@ class CompressConfig:
                                            "enough of its own), lasting (always), a tolerance (those within it, in "
                                            "units of their size) or 0 (none); unset: auto, or 0 with paper=true")
 
-    def __post_init__(self):
-        for name in ("score_weighting", "time_sampling", "carry"):  # the choices whose paper value is not the default
-            if getattr(self, name) is None:
-                setattr(self, name, modes.choice_value(name, self.paper))
+    def choice(self, name: str):
+        """The value of the choice ``name`` (:data:`omg4.compress.modes.CHOICES`) in this run: its setting, else the
+        paper's value with ``paper``, else omg4's default — the one place that resolves it."""
+        value = getattr(self, name)
+        return modes.choice_value(name, self.paper) if value is None else value
+
+    def resolved(self) -> "CompressConfig":
+        """A copy with every unset choice set to its value in this run (what a record of the run holds)."""
+        return replace(self, **{c.setting: self.choice(c.setting) for c in modes.CHOICES if hasattr(self, c.setting)})
 
     def mode(self, codec: str | None = None, key_interval: int | None = None) -> str:
         """The mode these settings (and ``codec``, a sequence's ``key_interval``, when given) amount to
@@ -176,6 +182,7 @@ class CompressionPipeline:
                  reference: dict[str, np.ndarray] | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
+        cfg = cfg.resolved()
         if cfg.score_weighting not in SCORE_WEIGHTINGS:
             raise OMG4Error(f"unknown score weighting '{cfg.score_weighting}' (choose from {', '.join(SCORE_WEIGHTINGS)})")
         if cfg.time_sampling not in TIME_SAMPLINGS:

@@ -181,7 +181,7 @@ def write_record(path, cfg: CompressConfig, codec: str, precision) -> None:
     from omg4.atomic import write_text_atomic
     from omg4.settings import config_dict
 
-    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg), "mode": cfg.mode(codec), "codec": codec,
+    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg.resolved()), "mode": cfg.mode(codec), "codec": codec,
                                         "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
 
 
