@@ -104,7 +104,7 @@ def test_the_density_controls_sit_below_the_training_config_and_trainer():
     found = {m: [name for name in imports(p.read_text()) if _within(name, "train")
                  and not _within(name, "train.strategies")]
              for m, p in modules().items() if _within(m, "train.strategies")}
-    assert len(found) == 5 and {m: names for m, names in found.items() if names} == {}
+    assert len(found) == 4 and {m: names for m, names in found.items() if names} == {}
     assert imports("from omg4.train.config import TrainConfig\n") == ["train.config"]
 
 

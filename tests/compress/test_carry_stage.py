@@ -11,8 +11,8 @@ import torch
 
 import numpy as np
 
-from omg4.compress.carry_stage import AUTO_MIN_COVERED, COVER, base_layer, carry_matches, chosen_carry, valid_setting
-from omg4.gaussians.visibility import LASTING_MARGINAL, STILL, lasting
+from omg4.compress.carry_stage import (AUTO_MIN_COVERED, COVER, LASTING_MARGINAL, STILL, base_layer, carry_matches,
+                                       chosen_carry, lasting, valid_setting)
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.rotation import build_rotation_4d
 

@@ -7,7 +7,7 @@ stage (paper §4.4), when a predicted segment switches to the segment before's M
 before's decoded Gaussians that last through its own time range and stay put there — temporal marginal at least
 ``LASTING_MARGINAL`` at both ends, the time scale in the backbone's own terms (√Σtt of Real-Time4DGS's 4D
 covariance, rt4dgs §1.4; FreeTimeGS's duration), and a centre that moves at most ``STILL`` of its size
-(:func:`omg4.gaussians.visibility.lasting`) — as a **base layer**, fixed and exactly as they decoded there, so
+(:func:`lasting`) — as a **base layer**, fixed and exactly as they decoded there, so
 the file names each with about a bit (:mod:`omg4.codec.carry`); and it drops its own lasting Gaussians that the base
 layer covers (a carried centre within :data:`COVER` of their largest scale). What remains of its own is what it
 adds — new and changed content — so its Gaussian budget follows that (:func:`base_layer`); the fine-tuning that
@@ -32,7 +32,34 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from omg4.gaussians.visibility import lasting
+from omg4.gaussians.visibility import least_marginal
+
+
+LASTING_MARGINAL = 0.5
+"""A Gaussian lasts through a segment when its temporal marginal is at least this at both ends of the segment's time
+range (so everywhere between: the marginal is unimodal)..."""
+
+STILL = 1.0
+"""... and stays put: its centre moves (velocity × time from its time centre) at most this many of its largest scale
+anywhere in the segment. A Gaussian fitted to one segment's frames and carried on with its motion extrapolated would
+otherwise drift from where the video shows its content."""
+
+
+def lasting(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
+    """[N] bool: which Gaussians last through ``time_range`` and stay put there (:data:`LASTING_MARGINAL` at both its
+    ends, the temporal variance and the velocity in the backbone's own terms, rt4dgs §1.4; :data:`STILL`)."""
+    values = {k: v.detach().cpu() for k, v in values.items()}
+    velocity, _, var_t = config.schema.motion(values, config)
+    mu = values["t"].double().reshape(-1)
+    moved = velocity.double().norm(dim=1) * torch.maximum(*[(mu - end).abs() for end in time_range])
+    size = torch.from_numpy(largest_scale(values))
+    return ((least_marginal(mu, var_t, *time_range) >= LASTING_MARGINAL) & (moved <= STILL * size)).numpy()
+
+
+def largest_scale(values: dict[str, torch.Tensor]) -> np.ndarray:
+    """[N] float64: each Gaussian's largest spatial scale (the size the lasting rule, the base layer's cover and the
+    one-to-one match measure distances in)."""
+    return np.exp(values["scaling"].detach().cpu().double().numpy().max(axis=1))
 
 
 CANDIDATES = 8
@@ -62,7 +89,7 @@ def base_layer(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor],
     if not ref_rows.size or not own_lasting.size:
         return np.zeros(0, np.int64), ref_rows.astype(np.int64)
     xyz = own["xyz"].detach().cpu().double().numpy()[own_lasting]
-    size = np.exp(own["scaling"].detach().cpu().double().numpy()[own_lasting].max(axis=1))
+    size = largest_scale(own)[own_lasting]
     distance, _ = cKDTree(reference["xyz"].detach().cpu().double().numpy()[ref_rows]).query(xyz, k=1)
     return own_lasting[distance <= COVER * size].astype(np.int64), ref_rows.astype(np.int64)
 
@@ -87,7 +114,7 @@ def carry_matches(own: dict[str, torch.Tensor], reference: dict[str, torch.Tenso
     near = near.reshape(len(a["xyz"]), k)
     rows = np.repeat(np.arange(len(a["xyz"])), k)
     cols = near.ravel()
-    size = np.exp(a["scaling"].max(axis=1))[rows]
+    size = largest_scale(own)[rows]
     distance = np.max([
         np.linalg.norm(a["xyz"][rows] - b["xyz"][cols], axis=1) / size,
         np.abs(a["t"][rows, 0] - b["t"][cols, 0]) / np.maximum(a["time_std"][rows], 1e-12),
@@ -158,5 +185,5 @@ def valid_setting(setting) -> bool:
         and setting >= 0
 
 
-__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "CarryDecision",
-           "base_layer", "carry_matches", "chosen_carry", "valid_setting"]
+__all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "LASTING_MARGINAL", "STILL", "CarryDecision",
+           "base_layer", "carry_matches", "chosen_carry", "largest_scale", "lasting", "valid_setting"]

@@ -17,7 +17,6 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 DEFAULT_WINDOWS = 32
@@ -82,26 +81,4 @@ class VisibilityIndex:
         return torch.cat([self.rows[i] for i in k]).unique()
 
 
-LASTING_MARGINAL = 0.5
-"""A Gaussian lasts through a segment when its temporal marginal is at least this at both ends of the segment's time
-range (so everywhere between: the marginal is unimodal)..."""
-
-STILL = 1.0
-"""... and stays put: its centre moves (velocity × time from its time centre) at most this many of its largest scale
-anywhere in the segment. A Gaussian fitted to one segment's frames and carried on with its motion extrapolated would
-otherwise drift from where the video shows its content."""
-
-
-def lasting(values: dict[str, torch.Tensor], config, time_range: tuple[float, float]) -> np.ndarray:
-    """[N] bool: which Gaussians last through ``time_range`` and stay put there (:data:`LASTING_MARGINAL` at both its
-    ends, the temporal variance and the velocity in the backbone's own terms, rt4dgs §1.4; :data:`STILL`)."""
-    values = {k: v.detach().cpu() for k, v in values.items()}
-    velocity, _, var_t = config.schema.motion(values, config)
-    mu = values["t"].double().reshape(-1)
-    moved = velocity.double().norm(dim=1) * torch.maximum(*[(mu - end).abs() for end in time_range])
-    size = values["scaling"].double().max(dim=1).values.exp()
-    return ((least_marginal(mu, var_t, *time_range) >= LASTING_MARGINAL) & (moved <= STILL * size)).numpy()
-
-
-__all__ = ["DEFAULT_WINDOWS", "LASTING_MARGINAL", "STILL", "VisibilityIndex", "lasting", "least_marginal",
-           "peak_marginal"]
+__all__ = ["DEFAULT_WINDOWS", "VisibilityIndex", "least_marginal", "peak_marginal"]
