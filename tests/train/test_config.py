@@ -23,7 +23,7 @@ def test_longer_run_scales_the_interval_up():
 
 @pytest.mark.parametrize("interval", [3, 40])
 def test_an_explicit_interval_is_taken_as_given(interval):
-    assert make_config("official", iterations=5000, densify_interval=interval).densify_interval == interval
+    assert make_config("official", iterations=5000, densify_interval=interval).strategy.densify_interval == interval
 
 
 def _nearest_half_even(x: float) -> int:

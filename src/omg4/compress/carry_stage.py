@@ -20,7 +20,8 @@ interval.
 (the paper's way: every segment coded whole). A number T > 0 carries one to one instead: each own Gaussian within T
 of one of the segment before's — centres in units of its largest scale, time centres in units of its temporal
 standard deviation, the largest difference of sorted log-scales and of static appearance features — is replaced by
-it, closest pairs first (:func:`carry_matches`; docs/results.md, "Carried Gaussians", measures both).
+it, closest pairs first (:func:`carry_matches`; docs/results.md measures both: "Carried Gaussians" and "Lasting
+Gaussians as a base layer").
 """
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ def read_run_plan(run_dir: Path) -> dict:
 
 
 HOLD_LASTING_REMOVED = ("removed: a segment holding the one before's lasting Gaussians in training did not pay once "
-                        "compressed (docs/results.md, 'Lasting Gaussians held in training'; "
+                        "compressed (docs/results.md, 'Options removed, and why'; "
                         "benchmarks/results/segments_prediction_basketball24.json)")
 """Why runs and files of segments trained with ``--hold-lasting`` are refused (it was removed)."""
 

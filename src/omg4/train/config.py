@@ -12,7 +12,8 @@ pruning, never resets opacities, and adds the 4D regularization ``lambda_reg`` �
 until ``densify_until`` (FreeTimeGS §3.3–3.4). Which of these a run uses is its backbone's density control
 (:mod:`omg4.train.strategies`), whose settings the config holds nested as ``strategy`` (``strategy.densify_until``).
 Every field is settable by name (:mod:`omg4.settings`). The settings' earlier flat names (``densify_until``) still
-work — as keyword arguments, in config files, records and ``--set`` — each with a one-line deprecation message.
+read in config files, records and ``--set`` (config files and ``--set`` with a one-line deprecation message), and
+:func:`make_config` takes the density control's settings by their own names.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import torch
 
 from omg4.errors import OMG4Error
 from omg4.optimize.parameters import LEARNING_RATES as LR
-from omg4.settings import apply_settings, drop_removed, knob, tell_moved
+from omg4.settings import apply_settings, drop_removed, knob
 from omg4.train.strategies import StrategySettings
 from omg4.train.strategies.base import ScheduledEvents
 
@@ -68,15 +69,9 @@ class TrainConfig:
     """Earlier flat names of settings, and where they are now (read with a one-line deprecation message)."""
 
     REMOVED_SETTINGS: ClassVar[dict[str, tuple[object, str]]] = {
-        "still_weight": (0.0, "the penalty on lasting Gaussians' motion did not pay (docs/results.md, 'Lasting "
-                              "Gaussians as a base layer'; benchmarks/results/segments_carry_synthetic240.json)")}
+        "still_weight": (0.0, "the penalty on lasting Gaussians' motion did not pay (docs/results.md, 'Options "
+                              "removed, and why'; benchmarks/results/segments_carry_synthetic240.json)")}
     """Settings no longer here: their "off" value, and why they went (:func:`omg4.settings.drop_removed`)."""
-
-    def __getattr__(self, name: str):  # only for names that are no field: an earlier flat strategy setting
-        if name in STRATEGY_SETTINGS:
-            deprecated(name)
-            return getattr(self.strategy, name)
-        raise AttributeError(f"'TrainConfig' object has no attribute '{name}'")
 
     def with_strategy(self, **changes) -> "TrainConfig":
         """A copy with the density control's settings ``changes`` (``max_gaussians=…``)."""
@@ -96,34 +91,6 @@ class TrainConfig:
         inner.update({k: v for k, v in d.items() if k in STRATEGY_SETTINGS})
         known = {k: v for k, v in inner.items() if k in STRATEGY_SETTINGS}
         return TrainConfig(**kwargs, strategy=StrategySettings(**known))
-
-
-def deprecated(name: str) -> None:
-    """The one-line message, once per process and name, that the flat setting ``name`` is now
-    ``strategy.<name>``."""
-    tell_moved(name, f"strategy.{name}")
-
-
-def nest_flat_settings(kwargs: dict) -> dict:
-    """``kwargs`` of :class:`TrainConfig` with its earlier flat strategy settings moved into ``kwargs["strategy"]``
-    (the defaults when not given; one deprecation message per name)."""
-    flat = {k: kwargs.pop(k) for k in list(kwargs) if k in STRATEGY_SETTINGS}
-    if flat:
-        for name in flat:
-            deprecated(name)
-        kwargs["strategy"] = replace(kwargs.get("strategy") or StrategySettings(), **flat)
-    return kwargs
-
-
-_generated_init = TrainConfig.__init__
-
-
-def _init_taking_flat_settings(self, **kwargs):
-    _generated_init(self, **nest_flat_settings(kwargs))
-
-
-_init_taking_flat_settings.__doc__ = _generated_init.__doc__
-TrainConfig.__init__ = _init_taking_flat_settings  # TrainConfig(densify_until=…) and replace(cfg, densify_until=…)
 
 
 PRESETS: dict[str, dict] = {
