@@ -183,7 +183,7 @@ def run_seed(spec: SceneSpec, root: Path, seed: int, variants: list[str], device
         rows = frame_rows(load_model(out, device), scene.test_views, device)
         delta = frame_differences(rows, base, keys=("psnr",))
         summary = frame_summary(delta, "psnr")
-        row[variant] = {"mode": cfg.mode("compact"), "file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
+        row[variant] = {"mode": dataclasses.replace(cfg, codec="compact").mode(), "file_bytes": out.stat().st_size, "mean_delta_psnr": summary["mean"],
                         "worst_delta_psnr": summary["min"], "worst_frame": summary["worst"]["frame"],
                         "p5_delta_psnr": summary["p5"], "delta_psnr_per_frame": [r["psnr"] for r in delta],
                         "kept_visible_share_per_frame": kept_shares(model, scene, scores, cfg.score_weighting)}

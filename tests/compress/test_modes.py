@@ -16,7 +16,7 @@ from omg4.codec.payload import CODECS
 from omg4.codec.sequence import DEFAULT_KEY_INTERVAL
 from omg4.compress.modes import BY_SETTING, CHOICES, choice_value, mode_of
 from omg4.compress.pipeline import CompressConfig
-from omg4.settings import settings_of
+from omg4.settings import check_settings, settings_of
 
 README = (Path(__file__).resolve().parents[2] / "README.md").read_text()
 
@@ -79,16 +79,23 @@ def test_the_switch_sets_every_choice_of_the_config_and_explicit_values_win():
         if hasattr(cfg, c.setting):
             assert cfg.choice(c.setting) == c.paper, c.setting
             assert getattr(cfg.resolved(), c.setting) == c.paper, c.setting
-    assert cfg.mode("paper") == "paper" and CompressConfig().mode("compact") == "omg4"
+    assert cfg.mode() == "paper" and CompressConfig().mode() == "omg4" and CompressConfig(codec="compact").mode() == "omg4"
     mixed = CompressConfig(paper=True, time_sampling="deficit")
     assert mixed.choice("time_sampling") == "deficit" and mixed.choice("score_weighting") == "paper"
-    assert mixed.mode("paper") == "mixed (codec=paper, score_weighting=paper, carry=0.0)"
+    assert mixed.mode() == "mixed (codec=paper, score_weighting=paper, carry=0.0)"
+    assert mixed.mode(sequence=True) == "mixed (codec=paper, score_weighting=paper, key_interval=1, carry=0.0)"
     # a copy keeps what it holds, and the switch works on a copy as on a new config
     assert dataclasses.replace(cfg, seed=1).choice("time_sampling") == "uniform"
     switched = dataclasses.replace(CompressConfig(), paper=True)
-    assert switched.resolved() == CompressConfig(paper=True).resolved() and switched.mode("paper") == "paper"
+    assert switched.resolved() == CompressConfig(paper=True).resolved() and switched.mode() == "paper"
     assert dataclasses.replace(mixed, paper=False).choice("time_sampling") == "deficit"  # what it set, it keeps
     assert dataclasses.replace(mixed, paper=False).choice("score_weighting") == "lifetime"
+    # the coder and a sequence's key interval are settings like the others, resolved by the same method
+    assert (cfg.choice("codec"), cfg.choice("key_interval")) == ("paper", 1)
+    assert (CompressConfig().choice("codec"), CompressConfig().choice("key_interval")) == (CODECS[0], DEFAULT_KEY_INTERVAL)
+    assert dataclasses.replace(cfg, codec="ans").mode() == "mixed (codec=ans, score_weighting=paper, " \
+                                                        "time_sampling=uniform, carry=0.0)"
+    assert check_settings(CompressConfig, {"codec": "ans", "key_interval": 4}) == {"codec": "ans", "key_interval": 4}
 
 
 def test_mode_of_judges_only_the_settings_given():

@@ -84,7 +84,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     from omg4.models import load_model
     from omg4.models.compact import load_omg4
 
-    codec = codec or choice_value("codec", paper)
+    codec = CompressConfig(paper=paper, codec=codec).choice("codec")
     table_rows = baseline.config.schema.paper_rows
     names = rows or list(table_rows)
     for g in grids:

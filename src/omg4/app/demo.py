@@ -162,11 +162,11 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log=print
     omg4_path = out / "scene_M.omg4"
     ccfg = CompressConfig(paper=settings.paper, preset="M", lengths=settings.compress_lengths, batch_size=settings.batch_size,
                           seed=settings.seed, baseline_iterations=settings.train_iterations,
-                          device=str(device))
-    codec = settings.codec or choice_value("codec", settings.paper)
+                          device=str(device), codec=settings.codec)
+    codec = ccfg.choice("codec")
     # the same pipeline result with the paper-faithful coder (the main file itself when it is coded so)
     paper_path = omg4_path if codec == choice_value("codec", paper=True) else out / "scene_M_paper_codec.omg4"
-    report = compress_to_file(baseline.model, scene, ccfg, omg4_path, codec=codec,
+    report = compress_to_file(baseline.model, scene, ccfg, omg4_path,
                               paper_copy=None if paper_path == omg4_path else paper_path, progress=True)
     timings["compress_s"] = time.perf_counter() - t
     # the steps' own speed: the training loop's (its checkpoints and test renders included) and each compression

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,6 @@ from omg4.codec.references import reference_sections
 from omg4.codec.rig import rig_json
 from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
 from omg4.compress.model import CompressibleModel
-from omg4.compress.modes import choice_value
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
 from omg4.data.scene import Scene
@@ -107,7 +106,8 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     """
     main = distributed.world().main
     out = Path(out)
-    codec = codec or choice_value("codec", cfg.paper)
+    cfg = replace(cfg, codec=codec) if codec else cfg
+    codec = cfg.choice("codec")
     check_codec(codec, precision)  # before the pipeline's minutes, not after
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
@@ -121,7 +121,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
                 unsaved.save(scores_out)
             unsaved = None
     model = pipeline.run(stop_after=stop_after)
-    meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "mode": cfg.mode(codec), "scene": scene.name,
+    meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "mode": cfg.mode(), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
     if reference is None:  # a predicted segment leaves the rig to its sequence's first segment
         meta["rig"] = rig_json(scene.cameras(), len(scene.test_cameras()))
@@ -192,8 +192,8 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     :func:`compress_to_file` report, and the file's bytes, duration and bitrate.
     """
     log = log or logger.info
-    codec = codec or choice_value("codec", cfg.paper)
-    key_interval = choice_value("key_interval", cfg.paper) if key_interval is None else key_interval
+    cfg = replace(cfg, **{k: v for k, v in (("codec", codec), ("key_interval", key_interval)) if v is not None})
+    codec, key_interval = cfg.choice("codec"), cfg.choice("key_interval")
     if not valid_key_interval(key_interval):
         raise OMG4Error(f"the key interval must be an integer from 1 to {MAX_KEY_INTERVAL}, got {key_interval!r}")
 
@@ -233,7 +233,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
                 if teach:
                     teacher, before = CompactModel(previous, cfg.device), seg
             del scene, baseline
-        mode = cfg.mode(codec, key_interval=key_interval)
+        mode = cfg.mode(sequence=True)
         if main:
             write_sequence(out, parts, fps=plan["fps"], meta={"segment_frames": plan["segment_frames"],
                                                               "overlap": plan["overlap"], "mode": mode},

@@ -104,6 +104,12 @@ class CompressConfig:
                                            "in place of its own, a bit each: auto (the lasting ones where they cover "
                                            "enough of its own), lasting (always), a tolerance (those within it, in "
                                            "units of their size) or 0 (none); unset: auto, or 0 with paper=true")
+    codec: str | None = knob(None, "the .omg4 file's coder: compact (beyond the paper: codewords without their "
+                                   "order, 8-bit MLP weights), ans, or paper (the paper's Huffman + LZMA); unset: "
+                                   "compact, or paper with paper=true")
+    key_interval: int | None = knob(None, "a segmented run: every N-th segment coded alone and the others predicted "
+                                          "from the segment before (beyond the paper); unset: 8, or 1 with "
+                                          "paper=true")
 
     def choice(self, name: str):
         """The value of the choice ``name`` (:data:`omg4.compress.modes.CHOICES`) in this run: its setting, else the
@@ -115,11 +121,13 @@ class CompressConfig:
         """A copy with every unset choice set to its value in this run (what a record of the run holds)."""
         return replace(self, **{c.setting: self.choice(c.setting) for c in modes.CHOICES if hasattr(self, c.setting)})
 
-    def mode(self, codec: str | None = None, key_interval: int | None = None) -> str:
-        """The mode these settings (and ``codec``, a sequence's ``key_interval``, when given) amount to
-        (:func:`omg4.compress.modes.mode_of`)."""
-        options = {"codec": codec, "key_interval": key_interval}
-        return modes.mode_of({**modes.choices_of(self), **{k: v for k, v in options.items() if v is not None}})
+    def mode(self, *, sequence: bool = False) -> str:
+        """The mode these settings amount to (:func:`omg4.compress.modes.mode_of`); the key interval counts for a
+        ``sequence`` only."""
+        values = modes.choices_of(self)
+        if not sequence:
+            del values["key_interval"]
+        return modes.mode_of(values)
 
     def size(self, backbone: str = "rt4dgs") -> SizePreset:
         p = size_preset(self.preset, backbone)

@@ -56,13 +56,12 @@ def run(args) -> int:
     from omg4.app.outputs import check_outputs
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.api import baseline_file, read_baseline, trained_iterations
-    from omg4.compress.modes import choice_value
     from omg4.compress.schedule import default_schedule
     from omg4.errors import OMG4Error
     from omg4.gaussians.checkpoint import describe_checkpoint
 
     grids = tuple(args.grid_bits or (CompactGrids(),))
-    codec = args.codec or choice_value("codec", bool(args.paper))
+    codec = CompressConfig(paper=bool(args.paper), codec=args.codec).choice("codec")
     for g in grids:
         check_codec(codec, g)
     check_outputs({"--out": args.out}, inputs=[args.data, args.model, args.control], datasets=[args.data],

@@ -29,7 +29,7 @@ from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 #: the CompressConfig fields this command has its own flags for
 SHORTCUTS = ("paper", "preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
              "official_score_quirk", "score_weighting", "time_sampling", "baseline_iterations", "background", "backend",
-             "device", "seed", "predicted_mlp")
+             "device", "seed", "predicted_mlp", "codec", "key_interval")
 #: options of the command itself that a config file may set (as the record beside the output does)
 COMMAND_KEYS = ("codec", "grid_bits")
 
@@ -102,17 +102,16 @@ def run(args) -> int:
     from omg4.errors import OMG4Error
 
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
-    file_codec = settings.pop("codec", None)
-    codec = args.codec or (None if args.paper else file_codec)  # --paper: the paper's coder unless --codec names one
     grid_text = settings.pop("grid_bits", None)
     precision = args.grid_bits or (compact_grids(grid_text) if grid_text else CompactGrids())
-    check_codec(codec or choice_value("codec", bool(args.paper or settings.get("paper"))), precision)
+    paper = bool(args.paper or settings.get("paper"))  # --paper: the paper's coder unless --codec names one
+    check_codec(args.codec or (None if args.paper else settings.get("codec")) or choice_value("codec", paper), precision)
     if args.stop_after and args.grid_bits:
         raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
     fill_device_arguments(args, settings)
     world, device = distributed.init(device_from_args(args))
     cfg = pipeline_config(args, settings, device)
-    codec = codec or choice_value("codec", cfg.paper)
+    codec = cfg.choice("codec")
     check_codec(codec, precision)
     computes_scores = args.scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune"))
     scores_out = args.out.with_name(args.out.name + ".scores.npz") if computes_scores else None
@@ -181,7 +180,7 @@ def write_record(path, cfg: CompressConfig, codec: str, precision) -> None:
     from omg4.atomic import write_text_atomic
     from omg4.settings import config_dict
 
-    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg.resolved()), "mode": cfg.mode(codec), "codec": codec,
+    write_text_atomic(path, json.dumps({"compress_config": config_dict(cfg.resolved()), "mode": cfg.mode(), "codec": codec,
                                         "grid_bits": ",".join(map(str, astuple(precision)))}, indent=2) + "\n")
 
 
