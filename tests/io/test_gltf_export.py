@@ -1,6 +1,7 @@
-"""glTF export of a time slice (``KHR_gaussian_splatting``): the file read back holds the slice's values (parsed
-here by hand, quaternions turned into matrices by scipy), the command writes it, and Khronos's glTF-Validator finds
-nothing wrong with it but the extension's attribute names, which its release predates."""
+"""glTF export of a time slice (``KHR_gaussian_splatting``): the file read back holds the slice's values turned to
+glTF's +Y up (parsed here by hand, quaternions turned into matrices by scipy), re-renders from the turned camera as
+our 4D render does, carries ``COLOR_0``, the command writes it, and Khronos's glTF-Validator finds nothing wrong with
+it but the extension's attribute names, which its release predates."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from omg4.app.cli import main
@@ -19,7 +21,12 @@ from omg4.errors import CorruptFileError, OMG4Error
 from omg4.io.gltf_export import read_gltf_splats, write_gltf_splats
 from omg4.io.ply_export import slice_in_float64
 from omg4.models import load_model
+from omg4.render.api import rasterize
+from omg4.render.paths import bounds_camera
+from omg4.render.view import render_view
 from omg4.testing import forge
+
+from test_ply_export import eval_real_sh, read_ply
 
 ROOT = Path(__file__).resolve().parents[2]
 VALIDATOR = ROOT / "node_modules" / "gltf-validator"
@@ -50,9 +57,14 @@ def parsed(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
         acc = doc["accessors"][i]
         view = doc["bufferViews"][acc["bufferView"]]
         width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[acc["type"]]
-        assert acc["componentType"] == 5126 and view["byteLength"] == 4 * width * acc["count"]
-        out[name] = np.frombuffer(blob, "<f4", width * acc["count"], view["byteOffset"]).reshape(acc["count"], -1)
+        dtype = {5126: "<f4", 5121: "u1"}[acc["componentType"]]
+        assert view["byteLength"] == np.dtype(dtype).itemsize * width * acc["count"]
+        out[name] = np.frombuffer(blob, dtype, width * acc["count"], view["byteOffset"]).reshape(acc["count"], -1)
     return doc, out
+
+
+# omg4's world (+Z up) seen in glTF's (+Y up): written here from the convention, not taken from the code under test
+TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 def test_a_slice_read_back_holds_the_slices_values(omg4_file, tmp_path, capsys):
@@ -69,7 +81,8 @@ def test_a_slice_read_back_holds_the_slices_values(omg4_file, tmp_path, capsys):
     assert doc["extensionsUsed"] == ["KHR_gaussian_splatting"] and doc["asset"]["extras"]["time"] == tau
     m = sl.index.numel()
     assert m > 50 and len(a["POSITION"]) == m
-    np.testing.assert_allclose(a["POSITION"], sl.means.numpy(), rtol=1e-6, atol=1e-6)
+    assert doc["asset"]["extras"]["up"] == [0.0, 1.0, 0.0]
+    np.testing.assert_allclose(a["POSITION"], sl.means.numpy() @ TO_GLTF.T, rtol=1e-6, atol=1e-6)
     pos = doc["accessors"][primitive["attributes"]["POSITION"]]
     np.testing.assert_allclose(pos["min"], a["POSITION"].min(0)) and np.testing.assert_allclose(pos["max"],
                                                                                                a["POSITION"].max(0))
@@ -79,16 +92,67 @@ def test_a_slice_read_back_holds_the_slices_values(omg4_file, tmp_path, capsys):
     s = a[PREFIX + "SCALE"].astype(np.float64)
     assert (s > 0).all()
     cov = np.einsum("nij,nj,nkj->nik", R, s * s, R)
-    expected = sl.covars.numpy()
+    expected = TO_GLTF @ sl.covars.numpy() @ TO_GLTF.T
     np.testing.assert_allclose(cov, expected, rtol=1e-4, atol=1e-6 * np.abs(expected).max())
     np.testing.assert_allclose(a[PREFIX + "OPACITY"][:, 0], sl.opacities.numpy(), rtol=1e-6, atol=1e-7)
     k = sl.sh.shape[1]
     degree = int(np.sqrt(k)) - 1
     names = [f"{PREFIX}SH_DEGREE_{l}_COEF_{n}" for l in range(degree + 1) for n in range(2 * l + 1)]
     assert [n for n in primitive["attributes"] if "SH_DEGREE" in n] == names
-    np.testing.assert_allclose(np.stack([a[n] for n in names], 1), sl.sh.numpy(), rtol=1e-6, atol=1e-6)
+    sh = np.stack([a[n] for n in names], 1).astype(np.float64)
+    np.testing.assert_allclose(sh[:, 0], sl.sh.numpy()[:, 0], rtol=1e-6, atol=1e-6)  # the base colour turns with nothing
+    directions = np.random.default_rng(0).normal(size=(m, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    np.testing.assert_allclose(eval_real_sh(sh, directions @ TO_GLTF.T), eval_real_sh(sl.sh.numpy(), directions),
+                               atol=1e-5)  # a splat's colour seen along the turned direction: as before along d
+    # COLOR_0: the base colour and the opacity, as normalized bytes
+    rgba = np.concatenate([np.clip(0.5 + 0.28209479177387814 * sl.sh.numpy()[:, 0], 0, 1),
+                           sl.opacities.numpy()[:, None]], 1)
+    color = doc["accessors"][primitive["attributes"]["COLOR_0"]]
+    assert color["componentType"] == 5121 and color["normalized"] is True and color["type"] == "VEC4"
+    np.testing.assert_array_equal(a["COLOR_0"], np.round(rgba * 255).astype(np.uint8))
     back = read_gltf_splats(tmp_path / "s.glb")  # the library's reader agrees with this one
-    np.testing.assert_array_equal(back["sh"], np.stack([a[n] for n in names], 1).astype(np.float64))
+    np.testing.assert_array_equal(back["sh"], sh)
+
+
+def test_the_upright_slice_renders_from_the_turned_camera_as_the_4d_model(omg4_file, tmp_path):
+    """A camera of omg4's world looks at the glTF slice through the same turn (world-to-camera V · TO_GLTFᵀ): the 3D
+    splats rendered so are our 4D render of that time."""
+    model = load_model(omg4_file)
+    tau = float(np.mean(model.config.time_range))
+    assert main(["export", str(omg4_file), "--out", str(tmp_path / "s.glb"), "--time", repr(tau)]) == 0
+    g = read_gltf_splats(tmp_path / "s.glb")
+    camera = bounds_camera(model.values["xyz"].numpy(), 96, 64)
+    turn = np.eye(4)
+    turn[:3, :3] = TO_GLTF.T
+    viewmat = camera.viewmat @ turn  # glTF's world → omg4's → the camera
+    R = Rotation.from_quat(g["rotations"]).as_matrix()
+    cov = np.einsum("nij,nj,nkj->nik", R, g["scales"] ** 2, R)
+    d = g["means"] - TO_GLTF @ camera.center
+    colors = np.maximum(eval_real_sh(g["sh"], d / np.linalg.norm(d, axis=1, keepdims=True)) + 0.5, 0)
+    as_3d = rasterize(*(torch.as_tensor(x, dtype=torch.float32) for x in (g["means"], cov, colors, g["opacities"])),
+                      torch.as_tensor(viewmat, dtype=torch.float32), torch.as_tensor(camera.K, dtype=torch.float32),
+                      camera.width, camera.height, backend="cpu")
+    with torch.no_grad():
+        as_4d, _ = render_view(model, camera, tau, backend="cpu")
+    assert as_4d.image.std() > 0.02  # the camera sees the model
+    np.testing.assert_allclose(as_3d.image.numpy(), as_4d.image.numpy(), atol=2e-3)
+
+
+def test_the_original_world_is_written_as_it_is_and_names_its_up(omg4_file, tmp_path):
+    header, sections = forge.split_container(omg4_file.read_bytes())
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ np.array(
+        [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # a dataset whose up is its −y
+    header["meta"]["normalization"] = {"scale": 2.0, "rotation": R.tolist(), "translation": [0.5, -1.0, 2.0]}
+    moved = tmp_path / "moved.omg4"
+    moved.write_bytes(forge.assemble_container(header, sections))
+    assert main(["export", str(moved), "--out", str(tmp_path / "o.glb"), "--time", "0.4", "--original-world"]) == 0
+    assert main(["export", str(moved), "--out", str(tmp_path / "o.ply"), "--time", "0.4", "--original-world"]) == 0
+    doc, a = parsed(tmp_path / "o.glb")
+    assert doc["asset"]["extras"]["world"] == "original"
+    np.testing.assert_allclose(doc["asset"]["extras"]["up"], R.T @ [0.0, 0.0, 1.0], atol=1e-12)
+    names, v = read_ply(tmp_path / "o.ply")
+    np.testing.assert_allclose(a["POSITION"], np.stack([v[k] for k in "xyz"], 1), atol=1e-6)
 
 
 def test_several_slices_and_refusals(omg4_file, tmp_path, capsys):

@@ -5,12 +5,17 @@ primitive whose attributes are, per Gaussian: ``POSITION`` (the mean), ``KHR_gau
 quaternion in glTF's (x, y, z, w) order), ``KHR_gaussian_splatting:SCALE`` (linear σ along the principal axes),
 ``KHR_gaussian_splatting:OPACITY`` (linear, in [0, 1]) and the real SH coefficients
 ``KHR_gaussian_splatting:SH_DEGREE_l_COEF_n`` (RGB, n = m + l, the 3DGS basis and signs, colour = SH + 0.5 clamped at
-zero) — exactly the slice :mod:`omg4.io.ply_export` writes to ``.ply``: conditional means and covariances at τ, the
-opacity times the temporal marginal, the 4D SH folded at τ (rt4dgs §1.4, §2). Every accessor is float32, one
-buffer view each, in one binary chunk; ``kernel`` ``ellipse``, ``colorSpace`` ``srgb_rec709_display`` (the
-training images' display-referred sRGB). The coordinates are the model's world (or, with a normalization, the
-dataset's original world), under the identity node: glTF's +Y-up convention is not imposed on a capture whose up
-is its own.
+zero) — the slice :mod:`omg4.io.ply_export` writes to ``.ply``: conditional means and covariances at τ, the
+opacity times the temporal marginal, the 4D SH folded at τ (rt4dgs §1.4, §2). ``COLOR_0`` holds each splat's base
+colour (SH degree 0) and opacity as normalized unsigned bytes, for viewers without the extension. The splat
+attributes are float32, one buffer view each, in one binary chunk; ``kernel`` ``ellipse``, ``colorSpace``
+``srgb_rec709_display`` (the training images' display-referred sRGB).
+
+glTF is +Y up; omg4's normalized world is +Z up (:mod:`omg4.data.normalize`). The export turns the slice into glTF's
+convention, :data:`Y_UP`: (x, y, z) → (x, z, −y), baked into the positions, covariances and SH coefficients (the SH
+by :func:`omg4.io.ply_export.sh_rotation_matrix`) rather than set as a node rotation, because a splat reader that
+reads the primitive's attributes alone still shows it upright. With a normalization (``--original-world``) the
+dataset's own world is written as it is, and ``asset.extras`` names its up direction.
 """
 
 from __future__ import annotations
@@ -25,12 +30,16 @@ import numpy as np
 from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import CorruptFileError, OMG4Error
-from omg4.io.ply_export import covariance_to_scale_rotation, world_slice
+from omg4.gaussians.sh import C0
+from omg4.io.ply_export import covariance_to_scale_rotation, sh_rotation_matrix, world_slice
 
 EXTENSION = "KHR_gaussian_splatting"
 MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
-FLOAT, ARRAY_BUFFER, POINTS = 5126, 34962, 0
+FLOAT, UNSIGNED_BYTE, ARRAY_BUFFER, POINTS = 5126, 5121, 34962, 0
 SH_COUNTS = (1, 4, 9, 16)
+
+Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""omg4's normalized world (+Z up) to glTF's (+Y up): a rotation of −90° about x, (x, y, z) → (x, z, −y)."""
 
 
 def sh_semantic(k: int) -> str:
@@ -64,11 +73,15 @@ def write_gltf_splats(path: str | os.PathLike, means: np.ndarray, covars: np.nda
         raise OMG4Error(f"{path}: the model's values are not finite in float32 (NaN or beyond ±3.4e38); nothing written")
     rotation = arrays[f"{EXTENSION}:ROTATION"]
     rotation /= np.linalg.norm(rotation, axis=1, keepdims=True).astype("<f4")  # unit in float32 too
+    rgba = np.concatenate([np.clip(0.5 + C0 * sh[:, 0, :], 0.0, 1.0), columns[f"{EXTENSION}:OPACITY"][:, None]], 1)
+    arrays["COLOR_0"] = np.round(rgba * 255.0).astype(np.uint8)  # the base colour, for viewers without the extension
     blob, views, accessors, attributes = bytearray(), [], [], {}
     for name, a in arrays.items():
         views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": a.nbytes, "target": ARRAY_BUFFER})
         accessor = {"bufferView": len(views) - 1, "componentType": FLOAT, "count": m,
                     "type": "SCALAR" if a.ndim == 1 else f"VEC{a.shape[1]}"}
+        if a.dtype == np.uint8:
+            accessor.update(componentType=UNSIGNED_BYTE, normalized=True)
         if name == "POSITION":  # glTF requires its bounds
             accessor.update(min=a.min(0).tolist() if m else [0.0] * 3, max=a.max(0).tolist() if m else [0.0] * 3)
         attributes[name] = len(accessors)
@@ -150,9 +163,17 @@ def export_gltf(path: str | os.PathLike, model, timestamp: float, *, normalizati
     :func:`omg4.io.ply_export.export_ply` writes, the same arguments; the time and world are recorded in
     ``asset.extras``. Returns the number of Gaussians written."""
     means, covars, opacities, sh = world_slice(model, timestamp, normalization)
-    extras = {"time": float(timestamp), "world": "original" if normalization is not None else "normalized"}
+    if normalization is None:  # glTF's +Y up (module docstring)
+        degree = int(round(np.sqrt(sh.shape[1]))) - 1
+        means, covars = means @ Y_UP.T, np.einsum("ij,njk,lk->nil", Y_UP, covars, Y_UP)
+        sh = np.einsum("kj,njc->nkc", sh_rotation_matrix(Y_UP.T, degree), sh)  # colour at Y_UP d = before at d
+        extras = {"time": float(timestamp), "world": "normalized", "up": [0.0, 1.0, 0.0],
+                  "from_omg4_world": Y_UP.tolist()}
+    else:
+        up = np.asarray(normalization.rotation, np.float64).T @ [0.0, 0.0, 1.0]  # the normalized +z, there
+        extras = {"time": float(timestamp), "world": "original", "up": up.tolist()}
     write_gltf_splats(path, means, covars, opacities, sh, extras=extras)
     return len(means)
 
 
-__all__ = ["EXTENSION", "export_gltf", "read_gltf_splats", "sh_semantic", "write_gltf_splats"]
+__all__ = ["EXTENSION", "Y_UP", "export_gltf", "read_gltf_splats", "sh_semantic", "write_gltf_splats"]
