@@ -6,8 +6,8 @@ compression runs again as the demo runs it (preset M, the demo's stage lengths, 
 end of every stage's fine-tuning (before the next stage's event) and at the end, records per test frame:
 
 * ``psnr``: the pipeline's model on the test camera (before entropy coding), and the baseline's;
-* ``alive``: Gaussians whose temporal marginal at the frame's time passes the render's cull (1/255), and
-  ``opacity_mass``: Σ opacity × marginal there (the backbone's own time scale, rt4dgs §1.4);
+* ``alive``: the Gaussians the frame's time slice keeps after the temporal cull, and ``opacity_mass``: the sum of
+  their opacities there (opacity × temporal marginal, rt4dgs §1.4; the appearance MLP's opacity once it has one);
 * ``score_mass`` (once, the baseline's): Σ of the SD scores (static + |dynamic|) × marginal at the frame's time;
 * ``draws`` (at the end): how many fine-tuning steps drew a view of the frame's time (the deficit sampler's or
   the uniform draw's).
@@ -30,27 +30,20 @@ import torch  # noqa: E402
 from omg4.testing.records import save_record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parents[1] / "results" / "stage_frames.json"
-CULL = 1.0 / 255.0
-
-
-def frame_stats(values: dict[str, torch.Tensor], config, times: np.ndarray) -> tuple[list[int], list[float]]:
-    """(alive Gaussians, opacity mass) at each of ``times`` for per-Gaussian ``values`` of ``config``'s backbone."""
-    values = {k: v.detach().cpu().double() for k, v in values.items()}
-    _, _, var_t = config.schema.motion(values, config)
-    mu = values["t"].reshape(-1)
-    marginal = torch.exp(-0.5 * (torch.as_tensor(times)[:, None] - mu[None, :]) ** 2 / var_t.clamp_min(1e-30))
-    opacity = torch.sigmoid(values["opacity"].reshape(-1))
-    return (marginal > CULL).sum(1).tolist(), (marginal * opacity).sum(1).tolist()
-
-
-def frames_psnr(model, views, background) -> list[float]:
-    """PSNR of ``model`` on each test view (clamped renders)."""
+def frames(model, views, background) -> dict[str, list]:
+    """Per test view: ``psnr`` of ``model``'s clamped render, ``alive`` (the Gaussians its time slice keeps after the
+    temporal cull) and ``opacity_mass`` (the sum of their opacities there: opacity × temporal marginal)."""
     from omg4.metrics import psnr
     from omg4.render.view import render_view, view_image
 
+    out = {"psnr": [], "alive": [], "opacity_mass": []}
     with torch.no_grad():
-        return [float(psnr(render_view(model, v.camera, v.timestamp, background=background, backend="cpu")[0]
-                           .image.clamp(0, 1), view_image(v))) for v in views]
+        for v in views:
+            rendered, sl = render_view(model, v.camera, v.timestamp, background=background, backend="cpu")
+            out["psnr"].append(float(psnr(rendered.image.clamp(0, 1), view_image(v))))
+            out["alive"].append(int(sl.index.numel()))
+            out["opacity_mass"].append(float(sl.opacities.sum()))
+    return out
 
 
 def run_one(folder: Path) -> dict:
@@ -75,18 +68,14 @@ def run_one(folder: Path) -> dict:
     _, _, var_t = baseline.config.schema.motion({k: v.double() for k, v in values.items()}, baseline.config)
     marginal = torch.exp(-0.5 * (torch.as_tensor(times)[:, None] - values["t"].double().reshape(-1)[None]) ** 2
                          / var_t.clamp_min(1e-30))
-    alive, mass = frame_stats(values, baseline.config, times)
-    out = {"seed": seed, "times": times.tolist(), "baseline": {"psnr": frames_psnr(baseline, views, background),
-                                                              "alive": alive, "opacity_mass": mass},
+    out = {"seed": seed, "times": times.tolist(), "baseline": frames(baseline, views, background),
            "score_mass": (marginal * weight[None]).sum(1).tolist(), "stages": {}}
     pipe = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=False, log=lambda *_: None)
     apply_event, draws = pipe.apply_event, np.zeros(len(times), np.int64)
     frame_of = {t: i for i, t in enumerate(times.tolist())}
 
     def record(name: str) -> None:
-        alive, mass = frame_stats(pipe.model.explicit_values(), pipe.model.config, times)
-        out["stages"][name] = {"psnr": frames_psnr(pipe.model, views, background), "alive": alive,
-                               "opacity_mass": mass, "gaussians": pipe.model.num_gaussians}
+        out["stages"][name] = {**frames(pipe.model, views, background), "gaussians": pipe.model.num_gaussians}
 
     def recording_event(name, round_index, iteration):
         if pipe.records:  # the stage before, at the end of its fine-tuning
