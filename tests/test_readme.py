@@ -21,17 +21,19 @@ def test_the_readme_is_short():
 
 
 def test_the_python_example_runs_and_prints_what_the_readme_says(tmp_path, monkeypatch, capsys):
-    """The example's figures as the README states them: rounded to 0.1 dB, and float32 summation order moves them
-    across processors (one thread against two moved the printed PSNR by 0.004 dB on a 2-core Xeon), so 0.2 dB."""
+    """The example's figures as the README states them, within 0.25 dB: a fixed-seed run does not take the same float32
+    path every time (docs/results.md, "The steps the pipeline runs"): six runs of the example (a 2-core Xeon, and a
+    fresh clone's CI) gave 22.79 to 23.00 dB and baselines of 23.28 to 23.44 dB, within 0.12 dB of the stated 22.9
+    and 23.4."""
     (example,) = [block for block in code_blocks("python") if "import omg4" in block]
-    claimed, claimed_baseline = map(float, re.search(r"It prints about ([\d.]+) dB \(its baseline: ([\d.]+) dB\)",
+    claimed, claimed_baseline = map(float, re.search(r"It prints about ([\d.]+) dB \(its baseline: ([\d.]+) dB",
                                                      README).groups())
     monkeypatch.chdir(tmp_path)
     names = {}
     exec(compile(example, "README.md", "exec"), names)
     psnr = float(capsys.readouterr().out.strip().splitlines()[-1])
     baseline = names["omg4"].evaluate_model(names["run"].model, names["scene"].test_views, lpips_nets=())["psnr"]
-    assert psnr == pytest.approx(claimed, abs=0.2) and baseline == pytest.approx(claimed_baseline, abs=0.2)
+    assert psnr == pytest.approx(claimed, abs=0.25) and baseline == pytest.approx(claimed_baseline, abs=0.25)
     assert (tmp_path / "scene_M.omg4").stat().st_size < 200_000 and (tmp_path / "run" / "model.safetensors").exists()
 
 
