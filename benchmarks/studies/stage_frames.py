@@ -19,7 +19,10 @@ a run on two cores. Record: ``benchmarks/results/stage_frames.json``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import shlex
+import sys
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the omg4 command: idle threads must not spin
@@ -52,8 +55,7 @@ def run_one(folder: Path) -> dict:
     from omg4.compress.score import SDScores
     from omg4.data import load_scene
     from omg4.gaussians.checkpoint import load_gaussians
-
-    import json
+    from omg4.gaussians.covariance import temporal_marginal
 
     seed = json.loads((folder / "baseline" / "config.json").read_text())["train_config"]["seed"]  # the demo's
     scene = load_scene(folder / "scene", progress=False)
@@ -66,8 +68,7 @@ def run_one(folder: Path) -> dict:
     weight = (scores.static + scores.dynamic.abs()).double()
     values = {k: v.detach() for k, v in baseline.params.items()}
     _, _, var_t = baseline.config.schema.motion({k: v.double() for k, v in values.items()}, baseline.config)
-    marginal = torch.exp(-0.5 * (torch.as_tensor(times)[:, None] - values["t"].double().reshape(-1)[None]) ** 2
-                         / var_t.clamp_min(1e-30))
+    marginal = temporal_marginal(torch.as_tensor(times)[:, None] - values["t"].double().reshape(-1)[None], var_t)
     out = {"seed": seed, "times": times.tolist(), "baseline": frames(baseline, views, background),
            "score_mass": (marginal * weight[None]).sum(1).tolist(), "stages": {}}
     pipe = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=False, log=lambda *_: None)
@@ -111,9 +112,6 @@ def main(argv: list[str] | None = None) -> int:
         delta = np.array(final) - np.array(run["baseline"]["psnr"])
         print(f"seed {run['seed']}: mean {delta.mean():+.3f} dB, worst {delta.min():+.3f} dB at frame "
               f"{int(delta.argmin())}", flush=True)
-    import shlex
-    import sys
-
     command = shlex.join(["python", "benchmarks/studies/stage_frames.py", *(sys.argv[1:] if argv is None else argv)])
     save_record(args.json, {"command": command, "runs": runs})
     return 0

@@ -15,6 +15,7 @@ import torch
 from PIL import Image
 
 from omg4.app.cli import main
+from omg4.io.gltf_export import read_gltf_splats
 from omg4.metrics import psnr
 from omg4.models import load_model
 from omg4.render.paths import bounds_camera
@@ -81,9 +82,7 @@ def test_playcanvas_draws_the_glb_slice_upright_where_omg4_render_draws_it(chrom
     model = load_model(tmp_path / "m.omg4")
     tau = float(np.mean(model.config.time_range))
     assert main(["export", str(tmp_path / "m.omg4"), "--out", str(tmp_path / "slice.glb"), "--time", repr(tau)]) == 0
-    doc_json = (tmp_path / "slice.glb").read_bytes()
-    length = int.from_bytes(doc_json[12:16], "little")
-    turn = np.asarray(json.loads(doc_json[20:20 + length])["asset"]["extras"]["from_omg4_world"])
+    turn = np.asarray(read_gltf_splats(tmp_path / "slice.glb")["document"]["asset"]["extras"]["from_omg4_world"])
     camera = bounds_camera(model.values["xyz"].numpy(), WIDTH, HEIGHT)  # principal point at the centre
     with torch.no_grad():
         reference = render_view(model, camera, tau, backend="cpu")[0].image.clamp(0, 1).numpy()

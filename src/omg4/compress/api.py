@@ -221,7 +221,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
             baseline, trained = load_gaussians(trained_path, cfg.device)
             refuse_held(trained_path, trained)
             path = work / f"segment_{seg['index']:03d}.omg4"
-            reports.append(compress_to_file(baseline, scene, cfg, path, codec=codec, precision=precision,
+            reports.append(compress_to_file(baseline, scene, cfg, path, precision=precision,
                                             progress=progress, log=log, check_replicas=check_replicas,
                                             reference=reference))
             if main:

@@ -30,8 +30,7 @@ import torch
 from omg4 import distributed
 from omg4.atomic import write_text_atomic
 from omg4.data.scene import Scene
-from omg4.data.segments import (HOLD_LASTING_REMOVED, PLAN_FILE, Segment, plan_segments, segment_folder,
-                                shared_frames)
+from omg4.data.segments import PLAN_FILE, Segment, plan_segments, segment_folder, shared_frames
 from omg4.errors import OMG4Error
 from omg4.gaussians.checkpoint import describe_checkpoint
 from omg4.gaussians.model import Gaussians4D
@@ -153,9 +152,6 @@ def train_segments(run_dir: Path, plan: dict, cfg: TrainConfig, load_scene: Call
             if shared is not None:
                 first = Path(run_dir) / plan["segments"][0]["folder"] / "model.safetensors"
                 before_path = Path(run_dir) / before["folder"] / "model.safetensors"
-                if "held" in describe_checkpoint(before_path)["metadata_keys"]:
-                    raise OMG4Error(f"segment {before['index']} was trained with --hold-lasting "
-                                    f"({HOLD_LASTING_REMOVED}): use --force to start afresh")
                 teacher = load_model(before_path, cfg.device)
                 seg_cfg = segment_budget(cfg, describe_checkpoint(first)["num_gaussians"])
                 if not resume:

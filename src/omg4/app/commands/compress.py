@@ -97,15 +97,12 @@ def run(args) -> int:
     from omg4.atomic import write_text_atomic
     from omg4.codec.payload import CompactGrids, check_codec
     from omg4.compress.api import compress_to_file, read_baseline, trained_iterations
-    from omg4.compress.modes import choice_value
     from omg4.data.segments import is_segmented_run
     from omg4.errors import OMG4Error
 
     settings = settings_from_args(args, CompressConfig, section="compress_config", extra=COMMAND_KEYS)
     grid_text = settings.pop("grid_bits", None)
     precision = args.grid_bits or (compact_grids(grid_text) if grid_text else CompactGrids())
-    paper = bool(args.paper or settings.get("paper"))  # --paper: the paper's coder unless --codec names one
-    check_codec(args.codec or (None if args.paper else settings.get("codec")) or choice_value("codec", paper), precision)
     if args.stop_after and args.grid_bits:
         raise OMG4Error("--grid-bits sets how an .omg4 file is coded; --stop-after writes a checkpoint instead")
     fill_device_arguments(args, settings)
