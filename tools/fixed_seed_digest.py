@@ -3,7 +3,8 @@
 For Real-Time4DGS and FreeTimeGS: trains a baseline on a tiny synthetic scene (5 cameras × 6 frames,
 64×48; 120 iterations with densification or relocation), compresses it with every OMG4 stage (a few
 iterations each), decodes the file and renders the test view, then prints SHA-256 digests of the trained
-parameters, of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image.
+parameters, of the decoded per-Gaussian values, codebooks and MLP weights, and of the rendered image; and of the
+written scene's files (its videos must come out the same in every run: ``write_video(reproducible=True)``).
 With ``--against CHECKOUT`` the same runs are made with that checkout's code too (its ``src`` first on
 ``PYTHONPATH``) and the record says which digests are equal — refactorings that must not change behaviour keep
 every digest — and, where they differ, by how much the trained parameters (after the run, and after its first
@@ -55,6 +56,7 @@ def main() -> None:
     write_synthetic_scene(scene_dir, SynthConfig(num_cameras=5, num_frames=6, width=64, height=48, num_points=600),
                           progress=False, force=True)
     scene = load_scene(scene_dir, progress=False)
+    scene_files = digest(*(np.frombuffer(f.read_bytes(), np.uint8) for f in sorted(scene_dir.iterdir())))
     results = {}
     for backbone in ("rt4dgs", "freetimegs"):
         extra = {"max_gaussians": 1500} if backbone == "freetimegs" else {}
@@ -68,7 +70,8 @@ def main() -> None:
         path = args.work / f"model_{backbone}.omg4"
         compress_to_file(trained.model, scene, CompressConfig(lengths=lengths, batch_size=2, backend="cpu"), path,
                          progress=False, log=lambda *_: None)
-        results[backbone] = digests(trained, one_step, path, scene, args.work / f"arrays_{backbone}.npz")
+        results[backbone] = {"scene_files": scene_files,
+                             **digests(trained, one_step, path, scene, args.work / f"arrays_{backbone}.npz")}
     if args.print:
         print(json.dumps(results))
         return

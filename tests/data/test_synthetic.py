@@ -87,6 +87,7 @@ def test_layout(tiny):
         K, _, W, H = llff_to_opencv(pb[i])
         assert (W, H) == (64, 48) and 30 < K[0, 0] < 100  # ~55° horizontal field of view
         assert 0 < pb[i, 15] < pb[i, 16]  # near < far
+        assert b"bframes=0" in (tiny / f"cam{i:02d}.mp4").read_bytes()  # written reproducibly (x264's own record)
     meta = json.loads((tiny / "synth.json").read_text())
     assert meta["seed"] == 3 and meta["num_frames"] == 6 and meta["fps"] == 30
     assert len(read_ply(tiny / "points3d.ply")) == 500

@@ -98,6 +98,7 @@ def test_videos_are_synchronized_by_their_sound_and_trimmed_to_the_shared_span(p
     assert len(prepared_frames) == 16 - max(LATE)
     errors = [np.abs(prepared_frames[3].astype(float) - clip[k].astype(float)).mean() for k in range(16)]
     assert int(np.argmin(errors)) == max(LATE) + 3  # the same instant of the clip
+    assert b"bframes=0" in (out / f"{name}.mp4").read_bytes()  # written reproducibly (x264's record of its settings)
 
 
 def _refused(argv, capsys, contains: str) -> None:
@@ -166,5 +167,6 @@ def test_a_calibration_the_halves_refuse_is_mapped_again_with_the_next_seed(rig,
     with caplog.at_level(logging.INFO, logger="omg4.prepare.pipeline"), contextlib.redirect_stdout(io.StringIO()):
         assert main(["prepare", str(raw), "--out", str(tmp_path / "data"), "--threads", "1"]) == 0
     record = json.loads((tmp_path / "data" / "calibration.json").read_text())
-    assert seeds == [0, 1] and record["mapper_seed"] == 1
+    # the planted refusal of seed 0 is followed by seed 1; a seed the halves refuse on their own is followed too
+    assert seeds[:2] == [0, 1] and record["mapper_seed"] == seeds[-1] and len(seeds) <= 3
     assert "the halves disagree (planted); mapping again with the random seed 1" in caplog.text

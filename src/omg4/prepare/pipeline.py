@@ -254,7 +254,7 @@ def _write_videos(folder: Path, order: list[Source], offsets: Offsets, sources: 
         first = skip[source.stem]
         undistort = undistorters[source.stem]
         frames = (undistort(image) for _, image in source.frames(list(range(first, first + length))))
-        write_video(folder / f"{names[source.stem]}.mp4", frames, fps=fps)
+        write_video(folder / f"{names[source.stem]}.mp4", frames, fps=fps, reproducible=True)
 
 
 def _write_geometry(folder: Path, order: list[Source], cameras: dict, points: np.ndarray, colors: np.ndarray,

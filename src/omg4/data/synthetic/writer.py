@@ -92,7 +92,8 @@ def write_synthetic_scene(out_dir: str | os.PathLike, config: SynthConfig = Synt
                     bar.update(1)
 
             for i, cam in enumerate(cams):
-                write_video(tmp / f"{cam.name}.mp4", frames(i, scene.static_layer(i)), fps=config.fps, crf=config.crf)
+                write_video(tmp / f"{cam.name}.mp4", frames(i, scene.static_layer(i)), fps=config.fps, crf=config.crf,
+                            reproducible=True)
         points = PointCloud(xyz=np.concatenate(xyz)[: config.num_points], rgb=np.concatenate(rgb)[: config.num_points])
         poses_bounds = llff_poses_bounds(cams, near, far)
         np.save(tmp / "poses_bounds.npy", poses_bounds)
