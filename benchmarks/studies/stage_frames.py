@@ -12,8 +12,12 @@ end of every stage's fine-tuning (before the next stage's event) and at the end,
 * ``draws`` (at the end): how many fine-tuning steps drew a view of the frame's time (the deficit sampler's or
   the uniform draw's).
 
-Usage: ``python benchmarks/studies/stage_frames.py DEMO_FOLDER [DEMO_FOLDER ...] [--json PATH]``; about 4 minutes
-a run on two cores. Record: ``benchmarks/results/stage_frames.json``.
+``--frame-floor F`` sets pruning's frame floor (default: the code's; ``0``: the pruning of the paper's Eq. 2, as
+these runs had before the floor); where the run's score file has no frame ranks (written before them) the scores are
+computed again, as the pipeline would.
+
+Usage: ``python benchmarks/studies/stage_frames.py DEMO_FOLDER [DEMO_FOLDER ...] [--frame-floor F] [--json PATH]``;
+about 4 minutes a run on two cores. Record: ``benchmarks/results/stage_frames.json``.
 """
 
 from __future__ import annotations
@@ -49,10 +53,10 @@ def frames(model, views, background) -> dict[str, list]:
     return out
 
 
-def run_one(folder: Path) -> dict:
+def run_one(folder: Path, frame_floor: float | None = None) -> dict:
     from omg4.app.demo import DEMO_LENGTHS
     from omg4.compress.pipeline import CompressConfig, CompressionPipeline
-    from omg4.compress.score import SDScores
+    from omg4.compress.score import SDScores, compute_sd_scores
     from omg4.data import load_scene
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.gaussians.covariance import temporal_marginal
@@ -63,13 +67,17 @@ def run_one(folder: Path) -> dict:
     views = sorted(scene.test_views, key=lambda v: v.timestamp)
     times = np.array([v.timestamp for v in views])
     background = torch.zeros(3)
-    cfg = CompressConfig(preset="M", lengths=DEMO_LENGTHS, batch_size=2, seed=seed, baseline_iterations=1500)
+    cfg = CompressConfig(preset="M", lengths=DEMO_LENGTHS, batch_size=2, seed=seed, baseline_iterations=1500,
+                         frame_floor=frame_floor)
     scores = SDScores.load(folder / "scene_M.omg4.scores.npz", baseline.num_gaussians)
+    if scores.frame_rank is None and cfg.choice("frame_floor") > 0:
+        scores = compute_sd_scores(baseline, scene.train_views, background=torch.zeros(3), backend="cpu",
+                                   progress=False)
     weight = (scores.static + scores.dynamic.abs()).double()
     values = {k: v.detach() for k, v in baseline.params.items()}
     _, _, var_t = baseline.config.schema.motion({k: v.double() for k, v in values.items()}, baseline.config)
     marginal = temporal_marginal(torch.as_tensor(times)[:, None] - values["t"].double().reshape(-1)[None], var_t)
-    out = {"seed": seed, "times": times.tolist(), "baseline": frames(baseline, views, background),
+    out = {"seed": seed, "frame_floor": cfg.choice("frame_floor"), "times": times.tolist(), "baseline": frames(baseline, views, background),
            "score_mass": (marginal * weight[None]).sum(1).tolist(), "stages": {}}
     pipe = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=False, log=lambda *_: None)
     apply_event, draws = pipe.apply_event, np.zeros(len(times), np.int64)
@@ -102,11 +110,12 @@ def run_one(folder: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("demos", nargs="+", type=Path, help="omg4 demo output folders")
+    ap.add_argument("--frame-floor", type=float, default=None, help="pruning's frame floor (default: the code's)")
     ap.add_argument("--json", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     runs = {}
     for folder in args.demos:
-        run = run_one(folder)
+        run = run_one(folder, args.frame_floor)
         runs[str(run["seed"])] = run
         final = list(run["stages"].values())[-1]["psnr"]
         delta = np.array(final) - np.array(run["baseline"]["psnr"])

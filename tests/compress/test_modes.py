@@ -82,8 +82,8 @@ def test_the_switch_sets_every_choice_of_the_config_and_explicit_values_win():
     assert cfg.mode() == "paper" and CompressConfig().mode() == "omg4" and CompressConfig(codec="compact").mode() == "omg4"
     mixed = CompressConfig(paper=True, time_sampling="deficit")
     assert mixed.choice("time_sampling") == "deficit" and mixed.choice("score_weighting") == "paper"
-    assert mixed.mode() == "mixed (codec=paper, score_weighting=paper, carry=0.0)"
-    assert mixed.mode(sequence=True) == "mixed (codec=paper, score_weighting=paper, key_interval=1, carry=0.0)"
+    assert mixed.mode() == "mixed (codec=paper, score_weighting=paper, frame_floor=0.0, carry=0.0)"
+    assert mixed.mode(sequence=True) == "mixed (codec=paper, score_weighting=paper, frame_floor=0.0, key_interval=1, carry=0.0)"
     # a copy keeps what it holds, and the switch works on a copy as on a new config
     assert dataclasses.replace(cfg, seed=1).choice("time_sampling") == "uniform"
     switched = dataclasses.replace(CompressConfig(), paper=True)
@@ -93,7 +93,7 @@ def test_the_switch_sets_every_choice_of_the_config_and_explicit_values_win():
     # the coder and a sequence's key interval are settings like the others, resolved by the same method
     assert (cfg.choice("codec"), cfg.choice("key_interval")) == ("paper", 1)
     assert (CompressConfig().choice("codec"), CompressConfig().choice("key_interval")) == (CODECS[0], DEFAULT_KEY_INTERVAL)
-    assert dataclasses.replace(cfg, codec="ans").mode() == "mixed (codec=ans, score_weighting=paper, " \
+    assert dataclasses.replace(cfg, codec="ans").mode() == "mixed (codec=ans, score_weighting=paper, frame_floor=0.0, " \
                                                         "time_sampling=uniform, carry=0.0)"
     assert check_settings(CompressConfig, {"codec": "ans", "key_interval": 4}) == {"codec": "ans", "key_interval": 4}
 

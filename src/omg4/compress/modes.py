@@ -34,6 +34,7 @@ CHOICES: tuple[Choice, ...] = (
     Choice("codec", "paper", CODECS[0], "file coding"),
     Choice("rate_weight", 0.0, 0.0, "codebooks"),
     Choice("score_weighting", "paper", "lifetime", "sampling and pruning"),
+    Choice("frame_floor", 0.0, 0.02, "sampling and pruning"),
     Choice("time_sampling", "uniform", "deficit", "fine-tuning views"),
     Choice("key_interval", 1, DEFAULT_KEY_INTERVAL, "segments of a long capture"),
     Choice("carry", 0.0, "auto", "segments of a long capture"),

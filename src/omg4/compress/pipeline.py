@@ -88,6 +88,9 @@ class CompressConfig:
     time_sampling: str | None = knob(None, "fine-tuning draws its views more often in the spans of the clip that "
                                            "fell further below the baseline (deficit, beyond the paper) or uniformly "
                                            "(uniform, the paper); unset: deficit, or uniform with paper=true")
+    frame_floor: float | None = knob(None, "pruning also keeps what a single frame's static score ranks among its "
+                                           "largest (this share of the Gaussians; beyond the paper), at an equal "
+                                           "count; unset: 0.02, or 0 with paper=true")
     baseline_iterations: int = knob(30_000, "the baseline's steps: the position learning rate continues its decay")
     position_lr_init: float = knob(1.6e-4, "the baseline's initial position learning rate (× extent)")
     position_lr_final: float = knob(1.6e-6, "the baseline's final position learning rate (× extent)")
@@ -202,6 +205,12 @@ class CompressionPipeline:
             raise OMG4Error(f"the carry setting must be auto, lasting or a finite number >= 0, got {cfg.carry!r}")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
+        if not 0.0 <= cfg.frame_floor < 1.0:
+            raise OMG4Error(f"pruning's frame floor must be in [0, 1), got {cfg.frame_floor}")
+        prunes = any(stage in cfg.stages for stage in ("prune", "sample+prune"))
+        if prunes and cfg.frame_floor > 0 and scores is not None and scores.frame_rank is None:
+            raise OMG4Error("the SD scores given have no frame ranks (written by an older omg4): compute them again, "
+                            "or prune without the frame floor (frame_floor = 0)")
         self.world = distributed.world()
         self.scene, self.cfg = scene, cfg
         self.progress, self.log = progress and self.world.main, (log or logger.info) if self.world.main else (lambda *_: None)
@@ -277,13 +286,13 @@ class CompressionPipeline:
 
     def stage_prune(self) -> None:
         """Gaussian Pruning (paper §4.2) on the stored scores of the sampled set."""
-        self._remove(pruning_mask(self.selection_scores(), self.size.prune_quantile))
+        self._remove(pruning_mask(self.selection_scores(), self.size.prune_quantile, self.cfg.choice("frame_floor")))
 
     def stage_sample_prune(self) -> None:
         """Sampling and pruning applied at once (the paper's GS+GP ablation row)."""
         scores = self.selection_scores()
         keep = sampling_mask(scores, self.size.tau_gs)
-        keep[keep.clone()] = pruning_mask(scores.select(keep), self.size.prune_quantile)
+        keep[keep.clone()] = pruning_mask(scores.select(keep), self.size.prune_quantile, self.cfg.choice("frame_floor"))
         self._remove(keep)
 
     def _bake_merge(self) -> None:

@@ -39,37 +39,66 @@ from omg4.optimize.step import view_losses
 
 @dataclass
 class SDScores:
-    """Raw (unnormalized) per-Gaussian scores: ``static`` [N] ≥ 0 and signed ``dynamic`` [N], float64 on the CPU."""
+    """Raw (unnormalized) per-Gaussian scores: ``static`` [N] ≥ 0 and signed ``dynamic`` [N], float64 on the CPU;
+    ``frame_rank`` [N] (int64, or None where not computed): the Gaussian's best place, over the clip's frames, in a
+    frame's own static score (0: some frame's largest; :data:`UNRANKED` where no frame's score holds it), which the
+    frame floor of pruning protects by (:func:`omg4.compress.pruning.pruning_mask`)."""
 
     static: torch.Tensor
     dynamic: torch.Tensor
+    frame_rank: torch.Tensor | None = None
 
     def select(self, keep: torch.Tensor) -> "SDScores":
         """The scores of the kept Gaussians (bool mask or index)."""
-        return SDScores(self.static[keep], self.dynamic[keep])
+        return SDScores(self.static[keep], self.dynamic[keep],
+                        None if self.frame_rank is None else self.frame_rank[keep])
 
     def weighted(self, weights: torch.Tensor) -> "SDScores":
-        """Both scores times per-Gaussian ``weights`` [N] (≥ 0)."""
+        """Both scores times per-Gaussian ``weights`` [N] (≥ 0); the frame ranks as they are."""
         w = weights.to(self.static.dtype)
-        return SDScores(self.static * w, self.dynamic * w)
+        return SDScores(self.static * w, self.dynamic * w, self.frame_rank)
 
     def save(self, path: str | Path) -> None:
-        """Write both scores as float64 ``.npz`` (atomically)."""
+        """Write the scores as float64 ``.npz`` (the frame ranks as int64), atomically."""
+        ranks = {} if self.frame_rank is None else {"frame_rank": self.frame_rank.long().cpu().numpy()}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, static=self.static.double().cpu().numpy(), dynamic=self.dynamic.double().cpu().numpy())
+                np.savez(f, static=self.static.double().cpu().numpy(), dynamic=self.dynamic.double().cpu().numpy(),
+                         **ranks)
 
     @staticmethod
     def load(path: str | Path, num_gaussians: int) -> "SDScores":
-        """Read scores saved by :meth:`save`; checks they belong to a model of ``num_gaussians``."""
+        """Read scores saved by :meth:`save` (a file without frame ranks, as older versions wrote, reads with
+        ``frame_rank`` None); checks they belong to a model of ``num_gaussians``."""
         try:
             with np.load(path, allow_pickle=False) as z:
                 s, d = torch.from_numpy(z["static"]), torch.from_numpy(z["dynamic"])
+                r = torch.from_numpy(z["frame_rank"]) if "frame_rank" in z.files else None
         except Exception as e:
             raise CorruptFileError(f"{path}: not a score file ({type(e).__name__})") from None
-        if s.shape != (num_gaussians,) or d.shape != (num_gaussians,):
+        if s.shape != (num_gaussians,) or d.shape != (num_gaussians,) or (r is not None and r.shape != s.shape):
             raise CorruptFileError(f"{path}: scores for {s.shape[0]} Gaussians, the model has {num_gaussians}")
-        return SDScores(s, d)
+        if r is not None and (r.dtype != torch.int64 or bool((r < 0).any())):
+            raise CorruptFileError(f"{path}: frame ranks must be non-negative integers")
+        return SDScores(s, d, r)
+
+
+UNRANKED = np.iinfo(np.int64).max
+"""The frame rank of a Gaussian no frame's static score holds (it never projects into a training view)."""
+
+
+def frame_ranks(per_frame: torch.Tensor) -> torch.Tensor:
+    """Each Gaussian's best place [N] (int64) over the rows of ``per_frame`` [F, N] (a frame's static scores): 0 for a
+    frame's largest, ties by lower index; :data:`UNRANKED` where every row holds 0."""
+    n = per_frame.shape[1]
+    best = torch.full((n,), UNRANKED, dtype=torch.int64, device="cpu")
+    places = torch.arange(n, dtype=torch.int64, device="cpu")
+    for row in per_frame.cpu():
+        order = torch.sort(-row, stable=True).indices
+        place = torch.empty(n, dtype=torch.int64, device="cpu")
+        place[order] = places
+        best = torch.minimum(best, torch.where(row > 0, place, UNRANKED))
+    return best
 
 
 SCORE_WEIGHTINGS = ("paper", "lifetime")
@@ -120,11 +149,16 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
 
     In a distributed job each rank scores its share of the batches and the sums are combined, so every rank
     holds the scores of all the views.
+
+    The static score is also summed per frame (the views of one timestamp), [F, N] float32 (4·F·N bytes: 14 MB for
+    60 frames of 60k Gaussians), and reduced to each Gaussian's best place in a frame (:func:`frame_ranks`).
     """
     world = distributed.world()
     n = model.params["t"].shape[0]
     static = torch.zeros(n, dtype=torch.float64, device=device)
     dynamic = torch.zeros(n, dtype=torch.float64, device=device)
+    frame_of = {t: i for i, t in enumerate(sorted({v.timestamp for v in views}))}
+    per_frame = torch.zeros(len(frame_of), n, dtype=torch.float32, device=device)
     saved_flags = {k: p.requires_grad for k, p in model.params.items()}
     t_param = model.params["t"]
     for p in model.params.values():
@@ -146,6 +180,8 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
                 if rendered.means2d.grad is not None:
                     g2d = rendered.means2d.grad.double().norm(dim=-1) / weights.index_select(0, sl.views)
                     static.index_add_(0, sl.index, g2d)
+                    frames = torch.tensor([frame_of[chunk[i].timestamp] for i in group], device=device)
+                    per_frame.index_put_((frames.index_select(0, sl.views), sl.index), g2d.float(), accumulate=True)
                 if t_param.grad is not None:
                     dynamic += t_param.grad.double().squeeze(1)
                 t_param.grad = None
@@ -154,5 +190,5 @@ def compute_sd_scores(model, views: list[View], *, background: torch.Tensor | No
     finally:
         for k, p in model.params.items():
             p.requires_grad_(saved_flags[k])
-    distributed.all_reduce_([static, dynamic], "sum", "combining the SD scores")
-    return SDScores(static.cpu(), dynamic.cpu())
+    distributed.all_reduce_([static, dynamic, per_frame], "sum", "combining the SD scores")
+    return SDScores(static.cpu(), dynamic.cpu(), frame_ranks(per_frame))

@@ -28,7 +28,7 @@ from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 
 #: the CompressConfig fields this command has its own flags for
 SHORTCUTS = ("paper", "preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
-             "official_score_quirk", "score_weighting", "time_sampling", "baseline_iterations", "background", "backend",
+             "official_score_quirk", "score_weighting", "frame_floor", "time_sampling", "baseline_iterations", "background", "backend",
              "device", "seed", "predicted_mlp", "codec", "key_interval")
 #: options of the command itself that a config file may set (as the record beside the output does)
 COMMAND_KEYS = ("codec", "grid_bits")
@@ -69,6 +69,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--official-score-quirk", action="store_true", default=None, help=argparse.SUPPRESS)
     p.add_argument("--score-weighting", choices=list(SCORE_WEIGHTINGS), help=argparse.SUPPRESS)
     p.add_argument("--time-sampling", choices=list(TIME_SAMPLINGS), help=argparse.SUPPRESS)
+    p.add_argument("--frame-floor", type=float, help=argparse.SUPPRESS)
     p.add_argument("--baseline-iterations", type=int_at_least(1), help=argparse.SUPPRESS)
     p.add_argument("--predicted-mlp", choices=list(PREDICTED_MLPS), help=argparse.SUPPRESS)
     add_background_argument(p)
