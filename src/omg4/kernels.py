@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import weakref
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
 
@@ -53,11 +54,31 @@ configure_numba_cache()
 
 
 def as_numpy(t: torch.Tensor) -> np.ndarray:
-    """The numpy view of a CPU tensor for a numba kernel (detached; copied only when not contiguous). A contiguous
-    tensor that needs no gradient is viewed as it is, dispatching no operation."""
-    if t.is_contiguous():
-        return t.numpy(force=t.requires_grad)  # force: one detach where the tensor needs a gradient
-    return t.detach().contiguous().numpy()
+    """The numpy view of a CPU tensor for a numba kernel (detached; copied, by numpy, only when not contiguous).
+    A tensor that needs no gradient is viewed as it is, and a parameter (a leaf that needs one) through the view kept
+    from its first hand-off (:func:`_parameter_view`): neither dispatches an operation. Any other tensor that needs a
+    gradient costs one ``detach``."""
+    if t.requires_grad and t.is_leaf and t.is_contiguous():
+        return _parameter_view(t)
+    array = t.numpy(force=t.requires_grad)
+    return array if t.is_contiguous() else np.ascontiguousarray(array)
+
+
+_PARAMETER_VIEWS: dict[int, tuple[weakref.ref, int, np.ndarray]] = {}
+"""id(parameter) → (a weak reference to it, its data pointer, its numpy view). The view's base is a detached alias,
+so it does not keep the parameter alive; the entry goes with the parameter."""
+
+
+def _parameter_view(t: torch.Tensor) -> np.ndarray:
+    """The numpy view of parameter ``t``, the same from step to step while ``t`` keeps its memory (optimizers update it
+    in place; a parameter replaced or resized has a new pointer or shape, and gets a new view)."""
+    key = id(t)
+    kept = _PARAMETER_VIEWS.get(key)
+    if kept is not None and kept[0]() is t and kept[1] == t.data_ptr() and kept[2].shape == tuple(t.shape):
+        return kept[2]
+    view = t.numpy(force=True)
+    _PARAMETER_VIEWS[key] = (weakref.ref(t, lambda _, key=key: _PARAMETER_VIEWS.pop(key, None)), t.data_ptr(), view)
+    return view
 
 
 KERNEL_MODES = ("fused", "reference")
