@@ -55,7 +55,9 @@ class SliceSpec:
 
 def _host(x) -> np.ndarray:
     """A float64 numpy copy of a tensor (any device) or array-like: the views' times and centres."""
-    return (x.detach().cpu().numpy() if torch.is_tensor(x) else np.asarray(x)).astype(np.float64)
+    if torch.is_tensor(x):  # a CPU tensor without a gradient is viewed without an operation
+        return x.numpy(force=x.requires_grad or x.device.type != "cpu").astype(np.float64)
+    return np.asarray(x).astype(np.float64)
 
 
 def _array(t: torch.Tensor, shape=None) -> np.ndarray:
