@@ -199,3 +199,19 @@ def test_bench_refuses_rate_weights_that_would_share_rows_or_files(tiny_scene, t
     # exponents keep their sign in file names: 1e6 and 1e-6 are two files
     assert row_file(tmp_path, "OMG4-T", 1e6) != row_file(tmp_path, "OMG4-T", 1e-6)
     assert not (tmp_path / "bench").exists()  # refused before anything was written
+
+
+def test_bench_reuses_scores_only_with_the_frame_ranks_pruning_needs(tmp_path):
+    """An earlier bench's scores serve again when they hold frame ranks; an older omg4's (none) are computed again; a
+    damaged file is left to the compression's one-line refusal."""
+    from omg4.app.bench import _reusable
+    from omg4.compress.score import SDScores
+
+    path = tmp_path / "sd_scores.npz"
+    assert not _reusable(path, 4)
+    SDScores(torch.rand(4, dtype=torch.float64), torch.randn(4, dtype=torch.float64)).save(path)
+    assert not _reusable(path, 4)
+    SDScores(torch.rand(4, dtype=torch.float64), torch.randn(4, dtype=torch.float64), torch.arange(4)).save(path)
+    assert _reusable(path, 4)
+    path.write_bytes(b"not a score file")
+    assert _reusable(path, 4)

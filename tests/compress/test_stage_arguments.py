@@ -16,7 +16,7 @@ from omg4.compress import appearance_stage, merging
 from omg4.compress import pipeline as pl
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.schedule import StageLengths
-from omg4.compress.score import SDScores
+from omg4.compress.score import UNRANKED, SDScores
 from omg4.compress.svq import SubVectorQuantizer
 from omg4.train import make_config
 from omg4.train.trainer import initial_model
@@ -51,7 +51,8 @@ def baseline(scene, backbone="rt4dgs", n=400):
 def scores(n, seed=0):
     g = torch.Generator().manual_seed(seed)
     return SDScores(torch.rand(n, generator=g, dtype=torch.float64),
-                    torch.randn(n, generator=g, dtype=torch.float64))
+                    torch.randn(n, generator=g, dtype=torch.float64),
+                    torch.full((n,), UNRANKED))  # no frame's own largest: the frame floor adds nothing to Eq. 2
 
 
 class Recorder:
@@ -68,9 +69,10 @@ class Recorder:
             self.calls.append(("sample", {"n": s.static.shape[0], "ratio": ratio}))
             return sampling(s, ratio)
 
-        def pruning_mask(s, p):
-            self.calls.append(("prune", {"n": s.static.shape[0], "p": p, "static": s.static.clone()}))
-            return pruning(s, p)
+        def pruning_mask(s, p, frame_floor=0.0):
+            self.calls.append(("prune", {"n": s.static.shape[0], "p": p, "static": s.static.clone(),
+                                         "frame_floor": frame_floor}))
+            return pruning(s, p, frame_floor)
 
         def build_merge_groups(xyz, t, dc, time_range, grid, mc):
             self.calls.append(("merge", {"n": xyz.shape[0], "grid": grid, "time_range": time_range, "config": mc,
@@ -190,7 +192,7 @@ def test_every_preset_reaches_the_stages_with_the_papers_settings(tiny_scene, mo
         pipeline.apply_event(event.name, event.round, event.iteration)
     tau, p, codebooks = PAPER_PRESETS[backbone][preset]
     assert rec.of("sample") == [{"n": 200, "ratio": tau}]
-    assert [(c["n"], c["p"]) for c in rec.of("prune")] == [(round(tau * 200), p)]
+    assert [(c["n"], c["p"], c["frame_floor"]) for c in rec.of("prune")] == [(round(tau * 200), p, 0.02)]
     attributes = [*STAGE_3D, *(("scale_t", "rotation_r") if backbone == "rt4dgs" else ("duration", "velocity"))]
     assert [(c["sub_len"], c["k"], c["width"]) for c in rec.of("svq")] == [
         (SUB_LENGTHS[a][0], codebooks[a], SUB_LENGTHS[a][1]) for a in attributes]

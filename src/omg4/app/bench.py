@@ -101,7 +101,7 @@ def run_bench(scene, baseline, baseline_path: Path, out: Path, *, schedule: str 
     out.mkdir(parents=True, exist_ok=True)
     baseline = baseline.to(device)
     scores_path = out / "sd_scores.npz"
-    if not distributed.gather_objects(scores_path.exists(), "looking for the SD scores")[0]:
+    if not distributed.gather_objects(_reusable(scores_path, baseline.num_gaussians), "looking for the SD scores")[0]:
         scores = compute_sd_scores(baseline, scene.train_views, backend=backend, device=device, progress=main)
         if main:
             scores.save(scores_path)
@@ -191,4 +191,19 @@ def _strip(results: dict[str, dict]) -> dict:
     return {k: {kk: vv for kk, vv in v.items() if kk != "per_view"} for k, v in results.items()}
 
 
+def _reusable(scores_path: Path, num_gaussians: int) -> bool:
+    """Whether an earlier run's SD scores can serve again: they exist and hold the frame ranks pruning's frame floor
+    needs (an older omg4 wrote none: they are computed again). A damaged file is left for the compression to refuse."""
+    from omg4.compress.score import SDScores
+    from omg4.errors import CorruptFileError
+
+    if not scores_path.exists():
+        return False
+    try:
+        return SDScores.load(scores_path, num_gaussians).frame_rank is not None
+    except CorruptFileError:
+        return True
+
+
 __all__ = ["bench_table", "rate_distortion_curves", "row_file", "row_label", "run_bench"]
+

@@ -40,6 +40,8 @@ def pruning_mask(scores: SDScores, p: float, frame_floor: float = 0.0) -> torch.
     if scores.frame_rank is None:
         raise OMG4Error("pruning's frame floor needs the scores' frame ranks (computed by this version's SD score)")
     floor = (scores.frame_rank < round(frame_floor * scores.static.numel())).to(keep.device)
+    if not bool((floor & ~keep).any()):  # Eq. 2 keeps the floor already
+        return keep
     target = int(keep.sum())
     lo, hi = p, 1.0  # bisect the quantile: the union's count falls as it rises
     for _ in range(BISECTIONS):
