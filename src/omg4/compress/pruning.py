@@ -7,7 +7,8 @@ Beyond the paper, a **frame floor** (``frame_floor`` f > 0, the default 0.02) al
 the ``f·n`` largest static scores of some single frame (:attr:`~omg4.compress.score.SDScores.frame_rank`), and raises
 the quantile until the kept count is the paper's rule's again, so the file does not grow. Scores summed over the clip
 rank a Gaussian that a few frames need (a fast event, the clip's last frames) below one every frame uses a little;
-pruning by them alone opened every dip of the demo's per-frame curve (docs/results.md, "Which stage opens a dip").
+pruning by them alone opened every dip of the demo's per-frame curve (docs/results.md, "Which stage opens a dip, and
+pruning's frame floor").
 """
 
 from __future__ import annotations
