@@ -13,8 +13,8 @@ end of every stage's fine-tuning (before the next stage's event) and at the end,
   the uniform draw's).
 
 ``--frame-floor F`` sets pruning's frame floor (default: the code's; ``0``: the pruning of the paper's Eq. 2, as
-these runs had before the floor); where the run's score file has no frame ranks (written before them) the scores are
-computed again, as the pipeline would.
+these runs had before the floor); where the run's score file has no frame ranks (written before them) the pipeline
+computes the scores again.
 
 Usage: ``python benchmarks/studies/stage_frames.py DEMO_FOLDER [DEMO_FOLDER ...] [--frame-floor F] [--json PATH]``;
 about 4 minutes a run on two cores. Record: ``benchmarks/results/stage_frames.json``.
@@ -56,7 +56,7 @@ def frames(model, views, background) -> dict[str, list]:
 def run_one(folder: Path, frame_floor: float | None = None) -> dict:
     from omg4.app.demo import DEMO_LENGTHS
     from omg4.compress.pipeline import CompressConfig, CompressionPipeline
-    from omg4.compress.score import SDScores, compute_sd_scores
+    from omg4.compress.score import SDScores
     from omg4.data import load_scene
     from omg4.gaussians.checkpoint import load_gaussians
     from omg4.gaussians.covariance import temporal_marginal
@@ -71,15 +71,16 @@ def run_one(folder: Path, frame_floor: float | None = None) -> dict:
                          frame_floor=frame_floor)
     scores = SDScores.load(folder / "scene_M.omg4.scores.npz", baseline.num_gaussians)
     if scores.frame_rank is None and cfg.choice("frame_floor") > 0:
-        scores = compute_sd_scores(baseline, scene.train_views, background=torch.zeros(3), backend="cpu",
-                                   progress=False)
-    weight = (scores.static + scores.dynamic.abs()).double()
+        scores = None  # the pipeline computes them again, with the frame ranks
     values = {k: v.detach() for k, v in baseline.params.items()}
     _, _, var_t = baseline.config.schema.motion({k: v.double() for k, v in values.items()}, baseline.config)
     marginal = temporal_marginal(torch.as_tensor(times)[:, None] - values["t"].double().reshape(-1)[None], var_t)
-    out = {"seed": seed, "frame_floor": cfg.choice("frame_floor"), "times": times.tolist(), "baseline": frames(baseline, views, background),
-           "score_mass": (marginal * weight[None]).sum(1).tolist(), "stages": {}}
+    baseline_frames = frames(baseline, views, background)
     pipe = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=False, log=lambda *_: None)
+    scores = pipe.ensure_scores()
+    weight = (scores.static + scores.dynamic.abs()).double()
+    out = {"seed": seed, "frame_floor": cfg.choice("frame_floor"), "times": times.tolist(), "baseline": baseline_frames,
+           "score_mass": (marginal * weight[None]).sum(1).tolist(), "stages": {}}
     apply_event, draws = pipe.apply_event, np.zeros(len(times), np.int64)
     frame_of = {t: i for i, t in enumerate(times.tolist())}
 

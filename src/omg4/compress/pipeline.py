@@ -31,7 +31,7 @@ from omg4.compress import appearance_stage, merging, modes
 from omg4.compress.carry_stage import AUTO_MIN_COVERED, chosen_carry, valid_setting
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
-from omg4.compress.pruning import pruning_mask
+from omg4.compress.pruning import check_frame_floor, pruning_mask
 from omg4.compress.sampling import sampling_mask
 from omg4.compress.schedule import SCHEDULES, StageLengths, build_events
 from omg4.compress.score import SCORE_WEIGHTINGS, SDScores, compute_sd_scores, lifetime_weights
@@ -205,8 +205,7 @@ class CompressionPipeline:
             raise OMG4Error(f"the carry setting must be auto, lasting or a finite number >= 0, got {cfg.carry!r}")
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
-        if not 0.0 <= cfg.frame_floor < 1.0:
-            raise OMG4Error(f"pruning's frame floor must be in [0, 1), got {cfg.frame_floor}")
+        check_frame_floor(cfg.frame_floor)
         prunes = any(stage in cfg.stages for stage in ("prune", "sample+prune"))
         if prunes and cfg.frame_floor > 0 and scores is not None and scores.frame_rank is None:
             raise OMG4Error("the SD scores given have no frame ranks (written by an older omg4): compute them again, "

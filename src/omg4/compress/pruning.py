@@ -20,9 +20,10 @@ from omg4.compress.score import SDScores
 from omg4.errors import OMG4Error
 
 
-def quantile(x: torch.Tensor, q: float) -> float:
-    """The q-quantile of ``x`` (linear interpolation; any size, unlike ``torch.quantile``)."""
-    return float(np.quantile(x.double().cpu().numpy(), q))
+def check_frame_floor(frame_floor: float) -> None:
+    """One-line :class:`OMG4Error` unless the frame floor's share is in [0, 1)."""
+    if not 0.0 <= frame_floor < 1.0:
+        raise OMG4Error(f"pruning's frame floor must be in [0, 1), got {frame_floor}")
 
 
 def pruning_mask(scores: SDScores, p: float, frame_floor: float = 0.0) -> torch.Tensor:
@@ -31,29 +32,29 @@ def pruning_mask(scores: SDScores, p: float, frame_floor: float = 0.0) -> torch.
     p' drops one Gaussian of each score; more only where the floor alone holds more). ``scores.frame_rank`` needed."""
     if not 0.0 <= p <= 1.0:
         raise OMG4Error(f"pruning quantile p must be in [0, 1], got {p}")
-    if not 0.0 <= frame_floor < 1.0:
-        raise OMG4Error(f"pruning's frame floor must be in [0, 1), got {frame_floor}")
+    check_frame_floor(frame_floor)
+    device = scores.static.device
     if scores.static.numel() == 0:
-        return torch.zeros(0, dtype=torch.bool, device=scores.static.device)
-    keep = _eq2(scores, p)
-    if frame_floor == 0.0:
-        return keep
-    if scores.frame_rank is None:
-        raise OMG4Error("pruning's frame floor needs the scores' frame ranks (computed by this version's SD score)")
-    floor = (scores.frame_rank < round(frame_floor * scores.static.numel())).to(keep.device)
-    if not bool((floor & ~keep).any()):  # Eq. 2 keeps the floor already
-        return keep
-    target = int(keep.sum())
-    lo, hi = p, 1.0  # bisect the quantile: the union's count falls as it rises
-    for _ in range(BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if int((_eq2(scores, mid) | floor).sum()) > target else (lo, mid)
-    return _eq2(scores, hi) | floor
+        return torch.zeros(0, dtype=torch.bool, device=device)
+    S, T = scores.static.double().cpu().numpy(), scores.dynamic.double().cpu().numpy()
+
+    def eq2(q: float) -> np.ndarray:
+        return (S >= np.quantile(S, q)) | (T >= np.quantile(T, q))  # linear interpolation, any size
+
+    keep = eq2(p)
+    if frame_floor > 0.0:
+        if scores.frame_rank is None:
+            raise OMG4Error("pruning's frame floor needs the scores' frame ranks (computed by this version's SD score)")
+        floor = (scores.frame_rank < round(frame_floor * len(S))).cpu().numpy()
+        if (floor & ~keep).any():  # what Eq. 2 does not keep already
+            target = int(keep.sum())
+            lo, hi = p, 1.0  # bisect the quantile: the union's count falls as it rises
+            for _ in range(BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if int((eq2(mid) | floor).sum()) > target else (lo, mid)
+            keep = eq2(hi) | floor
+    return torch.from_numpy(keep).to(device)
 
 
 BISECTIONS = 30
 """Halvings of the quantile's interval in the frame floor's search (to 1e-9 of the range)."""
-
-
-def _eq2(scores: SDScores, p: float) -> torch.Tensor:
-    return (scores.static >= quantile(scores.static, p)) | (scores.dynamic >= quantile(scores.dynamic, p))

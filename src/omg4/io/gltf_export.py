@@ -12,9 +12,9 @@ attributes are float32, one buffer view each, in one binary chunk; ``kernel`` ``
 ``srgb_rec709_display`` (the training images' display-referred sRGB).
 
 glTF is +Y up; omg4's normalized world is +Z up (:mod:`omg4.data.normalize`). The export turns the slice into glTF's
-convention, :data:`Y_UP`: (x, y, z) → (x, z, −y), baked into the positions, covariances and SH coefficients (the SH
-by :func:`omg4.io.ply_export.sh_rotation_matrix`) rather than set as a node rotation, because a splat reader that
-reads the primitive's attributes alone still shows it upright. With a normalization (``--original-world``) the
+convention, :data:`Y_UP`: (x, y, z) → (x, z, −y), baked into the positions, covariances and SH coefficients
+(:func:`omg4.io.ply_export.turned_covariances_and_sh`) rather than set as a node rotation, because a splat reader
+that reads the primitive's attributes alone still shows it upright. With a normalization (``--original-world``) the
 dataset's own world is written as it is, and ``asset.extras`` names its up direction.
 """
 
@@ -30,8 +30,8 @@ import numpy as np
 from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import CorruptFileError, OMG4Error
-from omg4.gaussians.sh import C0
-from omg4.io.ply_export import covariance_to_scale_rotation, sh_rotation_matrix, world_slice
+from omg4.gaussians.sh import sh_to_rgb
+from omg4.io.ply_export import covariance_to_scale_rotation, turned_covariances_and_sh, world_slice
 
 EXTENSION = "KHR_gaussian_splatting"
 MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -73,7 +73,7 @@ def write_gltf_splats(path: str | os.PathLike, means: np.ndarray, covars: np.nda
         raise OMG4Error(f"{path}: the model's values are not finite in float32 (NaN or beyond ±3.4e38); nothing written")
     rotation = arrays[f"{EXTENSION}:ROTATION"]
     rotation /= np.linalg.norm(rotation, axis=1, keepdims=True).astype("<f4")  # unit in float32 too
-    rgba = np.concatenate([np.clip(0.5 + C0 * sh[:, 0, :], 0.0, 1.0), columns[f"{EXTENSION}:OPACITY"][:, None]], 1)
+    rgba = np.concatenate([np.clip(sh_to_rgb(sh[:, 0, :]), 0.0, 1.0), columns[f"{EXTENSION}:OPACITY"][:, None]], 1)
     arrays["COLOR_0"] = np.round(rgba * 255.0).astype(np.uint8)  # the base colour, for viewers without the extension
     blob, views, accessors, attributes = bytearray(), [], [], {}
     for name, a in arrays.items():
@@ -164,9 +164,7 @@ def export_gltf(path: str | os.PathLike, model, timestamp: float, *, normalizati
     ``asset.extras``. Returns the number of Gaussians written."""
     means, covars, opacities, sh = world_slice(model, timestamp, normalization)
     if normalization is None:  # glTF's +Y up (module docstring)
-        degree = int(round(np.sqrt(sh.shape[1]))) - 1
-        means, covars = means @ Y_UP.T, np.einsum("ij,njk,lk->nil", Y_UP, covars, Y_UP)
-        sh = np.einsum("kj,njc->nkc", sh_rotation_matrix(Y_UP.T, degree), sh)  # colour at Y_UP d = before at d
+        means, (covars, sh) = means @ Y_UP.T, turned_covariances_and_sh(covars, sh, Y_UP)
         extras = {"time": float(timestamp), "world": "normalized", "up": [0.0, 1.0, 0.0],
                   "from_omg4_world": Y_UP.tolist()}
     else:

@@ -90,15 +90,21 @@ def _logit(p: np.ndarray, eps: float = 1e-7) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
+def turned_covariances_and_sh(covars: np.ndarray, sh: np.ndarray,
+                              turn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A slice's covariances [M, 3, 3] and SH [M, K, 3] in a world turned by ``turn`` [3, 3] (x → turn · x): turn Σ turnᵀ,
+    and the SH whose colour along turn · d is the one before along d (:func:`sh_rotation_matrix` of turnᵀ)."""
+    degree = int(round(np.sqrt(sh.shape[1]))) - 1
+    return (np.einsum("ij,njk,lk->nil", turn, covars, turn),
+            np.einsum("kj,njc->nkc", sh_rotation_matrix(turn.T, degree), sh))
+
+
 def _to_original_world(means: np.ndarray, covars: np.ndarray, sh: np.ndarray,
                        normalization: Normalization) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Map a slice from the normalized world (x_n = s (R x + t)) back to the original world."""
     R, s = np.asarray(normalization.rotation, dtype=np.float64), float(normalization.scale)
-    means = normalization.invert_points(means)
-    covars = np.einsum("ji,njk,kl->nil", R, covars, R) / (s * s)  # Rᵀ Σ R / s²
-    degree = int(round(np.sqrt(sh.shape[1]))) - 1
-    sh = np.einsum("kj,njc->nkc", sh_rotation_matrix(R, degree), sh)  # directions d_n = R d_o
-    return means, covars, sh
+    covars, sh = turned_covariances_and_sh(covars, sh, R.T)  # Rᵀ Σ R; directions d_n = R d_o
+    return normalization.invert_points(means), covars / (s * s), sh
 
 
 def write_3dgs_ply(path: str | os.PathLike, means: np.ndarray, covars: np.ndarray, opacities: np.ndarray,
@@ -194,5 +200,6 @@ def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
     return int(means.shape[0])
 
 
-__all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "write_3dgs_ply",
+__all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "turned_covariances_and_sh",
+           "write_3dgs_ply",
            "export_ply", "export_time_slice_ply", "model_in_float64", "slice_in_float64", "world_slice"]
