@@ -55,16 +55,30 @@ RESULTS = REPO / "benchmarks" / "results"
 SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 
+METADATA_OPS = frozenset({"aten.detach", "aten.lift_fresh", "aten.view", "aten.t", "aten.slice", "aten.as_strided",
+                          "aten.expand", "aten.unsqueeze", "aten.squeeze", "aten.select", "aten._unsafe_view",
+                          "aten.alias", "aten.transpose", "aten.permute"})
+"""Operations that make a tensor over memory that exists (views, the tensor of a kernel's output): they launch no
+kernel on a GPU; counted apart (``metadata_ops``)."""
+
+
 class OpCounter(TorchDispatchMode):
-    """Counts every aten operator dispatched while active."""
+    """Counts every aten operator dispatched while active, but the benchmark's own profiler labels."""
 
     def __init__(self):
         super().__init__()
         self.ops: Counter = Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.ops[str(func.overloadpacket)] += 1
+        name = str(func.overloadpacket)
+        if not name.startswith("profiler."):
+            self.ops[name] += 1
         return func(*args, **(kwargs or {}))
+
+    @property
+    def metadata(self) -> int:
+        """How many of the counted operations are :data:`METADATA_OPS`."""
+        return sum(n for op, n in self.ops.items() if op in METADATA_OPS)
 
 
 def keep_freed_memory_if_present() -> None:
@@ -140,7 +154,7 @@ def measure(step_fn, device: str, warmup: int, steps: int) -> dict:
         step_fn(i + 1)
     top = counter.ops.most_common(8)
     row = {"ms_per_step": 1000 * statistics.median(times), "ms_min": 1000 * min(times),
-           "aten_ops_per_step": sum(counter.ops.values()), "top_ops": dict(top)}
+           "aten_ops_per_step": sum(counter.ops.values()), "metadata_ops": counter.metadata, "top_ops": dict(top)}
     if device.startswith("cuda"):
         row.update(gpu_profile(step_fn, i + 2, row["ms_per_step"]))
     return row
@@ -257,6 +271,7 @@ def time_pipeline(pipe, device: str) -> dict:
             with counter:
                 loss = original(step)
             entry["aten_ops_per_step"] = sum(counter.ops.values())
+            entry["metadata_ops"] = counter.metadata
             entry["top_ops"] = dict(counter.ops.most_common(8))
             entry["times"].append(None)
             return loss

@@ -392,6 +392,38 @@ def test_gradients_reach_logits_and_all_members():
         assert analytic == pytest.approx((up - down) / 2e-6, rel=1e-5, abs=1e-9)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_fused_proxy_matches_autograd_of_the_torch_form(dtype):
+    """The proxy rows' numpy forward and backward (the CPU kernels' path) against the torch form (the reference),
+    with random logits so the weights differ within each group."""
+    from omg4.kernels import using_kernels
+
+    g = torch.Generator().manual_seed(3)
+    base = {k: v.to(dtype) for k, v in _params(10, seed=2).items()}
+    probe = {k: torch.randn(v.shape, generator=g, dtype=dtype) for k, v in base.items()}
+    logits = {name: torch.randn(7, generator=g, dtype=dtype) for name in RT4DGS.merged.values()}
+    results = []
+    for mode in ("reference", "fused"):
+        proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged).to(dtype)
+        with torch.no_grad():
+            for name, p in proxy.logits.items():
+                p.copy_(logits[name])
+        params = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+        with using_kernels(mode):
+            values, keep = proxy.apply(params)
+            sum((values[k][keep] * probe[k][keep]).sum() for k in values).backward()
+        results.append(({k: v.detach() for k, v in values.items()}, {k: p.grad for k, p in params.items()},
+                        {k: p.grad for k, p in proxy.logits.items()}))
+    (ref_values, ref_grads, ref_logits), (values, grads, logit_grads) = results
+    tol = {"rtol": 1e-12, "atol": 1e-13} if dtype == torch.float64 else {"rtol": 2e-6, "atol": 1e-6}
+    for name in ref_values:
+        torch.testing.assert_close(values[name], ref_values[name], **tol, msg=name)
+        torch.testing.assert_close(grads[name], ref_grads[name], **tol, msg=name)
+    for name, want in ref_logits.items():
+        assert want.abs().min() > 0
+        torch.testing.assert_close(logit_grads[name], want, **tol, msg=name)
+
+
 def test_param_groups_for_adam():
     proxy = MergeProxy(_toy_groups(), 10, RT4DGS.merged)
     groups = proxy.param_groups(0.01)

@@ -54,7 +54,7 @@ def _views(seed: int, v: int):
     return times, centers
 
 
-def _slice_and_grads(mode, config, values, appearance, times, centers, sh=(3, 2), seed=0):
+def _slice_and_grads(mode, config, values, appearance, times, centers, sh=(3, 2), seed=0, rows=None):
     leaves = {k: v.clone().requires_grad_(True) for k, v in values.items()}
     mlp = None
     if appearance is not None:
@@ -63,7 +63,7 @@ def _slice_and_grads(mode, config, values, appearance, times, centers, sh=(3, 2)
         mlp.load_state_dict(appearance.state_dict())
     degree_t = min(sh[1], config.sh_degree_t)
     with using_kernels(mode):
-        sl = slice_values(leaves, config, sh[0], degree_t, times, centers, appearance=mlp)
+        sl = slice_values(leaves, config, sh[0], degree_t, times, centers, appearance=mlp, rows=rows)
     g = torch.Generator().manual_seed(seed + 7)
     outs = (sl.means, sl.covars, sl.colors, sl.opacities)
     loss = sum((o * torch.randn(o.shape, generator=g, dtype=o.dtype)).sum() for o in outs)
@@ -75,11 +75,11 @@ def _slice_and_grads(mode, config, values, appearance, times, centers, sh=(3, 2)
     return sl, grads
 
 
-def _compare(backbone, mlp, n=40, v=3, seed=0, sh=(3, 2), **kw):
+def _compare(backbone, mlp, n=40, v=3, seed=0, sh=(3, 2), rows=None, **kw):
     config, values, appearance = _values(backbone, n, mlp, seed, **kw)
     times, centers = _views(seed, v)
-    ref, ref_grads = _slice_and_grads("reference", config, values, appearance, times, centers, sh, seed)
-    got, got_grads = _slice_and_grads("fused", config, values, appearance, times, centers, sh, seed)
+    ref, ref_grads = _slice_and_grads("reference", config, values, appearance, times, centers, sh, seed, rows)
+    got, got_grads = _slice_and_grads("fused", config, values, appearance, times, centers, sh, seed, rows)
     assert torch.equal(got.index, ref.index) and torch.equal(got.views, ref.views)
     for name in ("means", "covars", "colors", "opacities"):  # float64 sums in another order: relative to the largest
         want = getattr(ref, name)
@@ -118,6 +118,31 @@ def test_edges_one_gaussian_none_in_view_and_a_time_outside_the_clip():
     sl, grads = _slice_and_grads("fused", config, values, appearance, far, centers)
     assert sl.index.numel() == 0 and sl.means.shape == (0, 3)
     _compare("rt4dgs", True, n=30, v=2, t_spread=3.0)  # Gaussians that live outside the clip
+
+
+@pytest.mark.parametrize("mlp", [False, True])
+def test_a_slice_of_some_rows_is_the_slice_of_those_rows_gathered(mlp):
+    """A merge round renders all rows but the merged-away members (paper §4.3): sliced in place, the rows and
+    values are the slice of the gathered rows, the index refers to the model's rows, the others get no gradient."""
+    n = 40
+    rows = torch.tensor([i for i in range(n) if i % 3 != 1 and i != 38])
+    ref, ref_grads = _compare("rt4dgs", mlp, n=n, rows=rows)  # fused in place against the torch form
+    config, values, appearance = _values("rt4dgs", n, mlp, 0)
+    times, centers = _views(0, 3)
+    gathered, gathered_grads = _slice_and_grads("reference", config, {k: v[rows] for k, v in values.items()},
+                                                appearance, times, centers)
+    assert torch.equal(ref.index, rows[gathered.index]) and torch.equal(ref.views, gathered.views)
+    assert ref.num_total == n and gathered.index.numel() > 40
+    for name in ("means", "covars", "colors", "opacities"):
+        torch.testing.assert_close(getattr(ref, name), getattr(gathered, name), rtol=0, atol=0)
+    left_out = torch.ones(n, dtype=torch.bool)
+    left_out[rows] = False
+    for name, grad in ref_grads.items():
+        if name.startswith("mlp."):
+            torch.testing.assert_close(grad, gathered_grads[name], rtol=1e-12, atol=1e-14)
+            continue
+        assert not grad[left_out].any(), name
+        torch.testing.assert_close(grad[rows], gathered_grads[name], rtol=1e-12, atol=1e-14)
 
 
 def test_the_fused_function_serves_cpu_models_of_one_float_dtype_only():

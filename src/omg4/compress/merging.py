@@ -12,10 +12,55 @@ the round the proxy values are baked into the representatives and the other memb
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from torch.autograd.function import once_differentiable
 
 from omg4.compress.merge_clusters import (MergeConfig, MergeGroups, StarClusters, build_merge_groups,
                                           build_star_clusters, make_disjoint)
+from omg4.kernels import as_numpy, runs_cpu_kernels
+
+
+class _ProxyRows(torch.autograd.Function):
+    """One merged attribute's rows with each group's representative replaced by its proxy (Eq. 5), forward and
+    backward in numpy on the CPU: the torch form of :meth:`MergeProxy.apply` is about 30 operations per attribute
+    and as many again backward, for a few hundred members. (proxy, logits [M], values [N, ...]) → values [N, ...];
+    the same arithmetic as the torch form, tested against it in float64."""
+
+    @staticmethod
+    def forward(ctx, proxy: "MergeProxy", logits: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        members, group_of, representative = (as_numpy(t) for t in (proxy.members, proxy.group_of,
+                                                                   proxy.representative))
+        sig = 1.0 / (1.0 + np.exp(-as_numpy(logits)))
+        s = sig + np.asarray(1e-12, sig.dtype)
+        total = np.bincount(group_of, s, minlength=proxy.num_groups).astype(s.dtype) + s.dtype.type(1e-12)
+        w = s / total[group_of]  # the logits' dtype, the values' too (runs_cpu_kernels)
+        values = as_numpy(v).reshape(v.shape[0], -1)
+        rows = values[members]  # [M, D]
+        proxies = np.zeros((proxy.num_groups, values.shape[1]), values.dtype)
+        np.add.at(proxies, group_of, w[:, None] * rows)
+        out = values.copy()
+        out[representative] = proxies
+        ctx.saved = (members, group_of, representative, sig, s, total, w, rows, tuple(v.shape))
+        return torch.from_numpy(out).reshape(v.shape)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        members, group_of, representative, sig, s, total, w, rows, shape = ctx.saved
+        g = as_numpy(grad_out.contiguous()).reshape(shape[0], -1)
+        g_rep = g[representative][group_of]  # each member's proxy gradient [M, D]
+        grad_v = grad_logits = None
+        if ctx.needs_input_grad[2]:
+            grad_v = g.copy()
+            grad_v[representative] = 0.0
+            grad_v[members] += w[:, None] * g_rep  # members are disjoint: each row once
+            grad_v = torch.from_numpy(grad_v).reshape(shape)
+        if ctx.needs_input_grad[1]:
+            g_w = (rows * g_rep).sum(axis=1).astype(s.dtype)  # ∂L/∂w_i
+            spread = np.bincount(group_of, g_w * s, minlength=total.shape[0]).astype(s.dtype) / (total * total)
+            grad_logits = torch.from_numpy((g_w / total[group_of] - spread[group_of]) * sig * (1.0 - sig))
+        return None, grad_logits, grad_v
 
 
 class MergeProxy(torch.nn.Module):
@@ -34,6 +79,10 @@ class MergeProxy(torch.nn.Module):
         self.register_buffer("members", groups.members)
         self.register_buffer("group_of", groups.group_of)
         self.register_buffer("representative", groups.representative)
+        keep = torch.ones(self.num_gaussians, dtype=torch.bool, device=groups.members.device)
+        keep[groups.members] = False
+        keep[groups.representative] = True
+        self.kept, self.rendered = keep, torch.nonzero(keep).squeeze(1)  # fixed for the round: made once
         m = groups.members.shape[0]
         dev = groups.members.device
         self.logits = torch.nn.ParameterDict(
@@ -55,10 +104,7 @@ class MergeProxy(torch.nn.Module):
 
     def keep_mask(self) -> torch.Tensor:
         """Bool [N]: False for the non-representative members (removed by the merge)."""
-        keep = torch.ones(self.num_gaussians, dtype=torch.bool, device=self.members.device)
-        keep[self.members] = False
-        keep[self.representative] = True
-        return keep
+        return self.kept
 
     def apply(self, params: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """Effective parameters with each group as its proxy, and the rows to render.
@@ -76,11 +122,14 @@ class MergeProxy(torch.nn.Module):
             if attr not in params:
                 continue
             v = params[attr]
+            if runs_cpu_kernels(v, self.logits[logit]):
+                values[attr] = _ProxyRows.apply(self, self.logits[logit], v)
+                continue
             w = self.weights(logit).to(v.dtype).reshape(-1, *([1] * (v.dim() - 1)))
             proxy = torch.zeros((self.num_groups, *v.shape[1:]), dtype=v.dtype, device=v.device)
             proxy = proxy.index_add(0, self.group_of, w * v[self.members])
             values[attr] = v.index_copy(0, self.representative, proxy)
-        return values, torch.nonzero(self.keep_mask()).squeeze(1)
+        return values, self.rendered
 
     @torch.no_grad()
     def bake(self, params: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], torch.Tensor]:

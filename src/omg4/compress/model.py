@@ -77,11 +77,11 @@ class CompressibleModel(ViewSlicer):
         The Real-Time4DGS conditioning and 4D SH of the baseline, with the appearance MLPs
         (when present) evaluated only on the rows that pass the temporal cull.
         """
-        values, keep = self.merged_values()
+        values, rows = self.explicit_values(), None
+        if self.merge is not None:  # every row's values, the proxies' in their representatives' rows
+            values, rows = self.merge.apply(values)
         sl = slice_values(values, self.config, self.active_sh_degree, self.active_sh_degree_t, timestamps,
-                          camera_centers, appearance=self.appearance)
-        if keep is not None:
-            sl.index = keep[sl.index]
+                          camera_centers, appearance=self.appearance, rows=rows)
         sl.num_total = self.num_gaussians + self.num_carried
         return sl
 

@@ -30,7 +30,8 @@ from omg4.render.view import TimeSlice
 class SliceSpec:
     """What a slice computes besides its tensors: the views' times ``[V]`` (float64) and camera centres
     ``[V, 3]``, the model's settings and where its appearance comes from (``mlp``: the networks' frequency count
-    and whether they take the time)."""
+    and whether they take the time). ``rows`` (int64, ascending) limits the slice to those Gaussians (a merge round's
+    rendered rows, paper §4.3); None: every Gaussian."""
 
     times: np.ndarray
     centers: np.ndarray
@@ -41,6 +42,7 @@ class SliceSpec:
     sh_degree_t: int
     conditioned: bool
     mlp: tuple[int, bool] | None = None
+    rows: np.ndarray | None = None
 
     @property
     def period(self) -> float:
@@ -82,11 +84,13 @@ class _SliceRows(torch.autograd.Function):
         times = spec.times.astype(np_dtype)
         centers = spec.centers.astype(np_dtype)
         consts = sk.kernel_consts(spec.time_cull, np_dtype)
-        rows = np.arange(n, dtype=np.int64)
-        keep = np.empty((len(times), n), dtype=np.bool_)
+        rows = np.arange(n, dtype=np.int64) if spec.rows is None else spec.rows
+        keep = np.empty((len(times), rows.shape[0]), dtype=np.bool_)
         with keeping_torch_threads():
             sk.cull(rows, a_t, a_var, times, consts, keep)
             views, index = np.nonzero(keep)
+            if spec.rows is not None:
+                index = rows[index]
             m = index.shape[0]
             means, covars = np.empty((m, 3), np_dtype), np.empty((m, 3, 3), np_dtype)
             colors, opacities, marginals = np.empty((m, 3), np_dtype), np.empty(m, np_dtype), np.empty(m, np_dtype)
@@ -151,14 +155,16 @@ class _SliceRows(torch.autograd.Function):
 
 
 def fused_slice(values: dict[str, torch.Tensor], config, sh_degree: int, sh_degree_t: int, timestamps,
-                camera_centers, appearance=None) -> TimeSlice:
+                camera_centers, appearance=None, rows: torch.Tensor | None = None) -> TimeSlice:
     """:func:`omg4.gaussians.model.slice_values` (without a renderer's caches) as the fused function: the backbone's
     motion terms in torch, then :class:`_SliceRows`. ``values`` and the MLPs (if any) are CPU tensors of one dtype,
-    float32 or float64 (:func:`runs`)."""
+    float32 or float64 (:func:`runs`); ``rows`` as :func:`~omg4.gaussians.model.slice_values`'s, culled without a
+    gather."""
     gain, cov3, var_t = config.schema.motion(values, config)
     spec = SliceSpec(times=_host(timestamps).reshape(-1), centers=_host(camera_centers).reshape(-1, 3),
                      time_range=tuple(config.time_range), time_cull=config.time_cull, band=config.band_size,
-                     sh_degree=sh_degree, sh_degree_t=sh_degree_t, conditioned=config.sh_direction == "conditioned")
+                     sh_degree=sh_degree, sh_degree_t=sh_degree_t, conditioned=config.sh_direction == "conditioned",
+                     rows=None if rows is None else as_numpy(rows))
     if appearance is None:
         inputs = (values["opacity"], values["features_dc"], values["features_rest"])
     else:

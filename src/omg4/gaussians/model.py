@@ -241,7 +241,7 @@ def _moved_leaf(value: torch.Tensor, device: torch.device | str) -> torch.Tensor
 def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_degree: int, sh_degree_t: int,
                  timestamps: torch.Tensor, camera_centers: torch.Tensor, *,
                  appearance: "AppearanceMLP | None" = None, position_term: torch.Tensor | None = None,
-                 geometry: SliceGeometry | None = None) -> TimeSlice:
+                 geometry: SliceGeometry | None = None, rows: torch.Tensor | None = None) -> TimeSlice:
     """The 3D Gaussians that raw per-Gaussian ``values`` show to ``V`` views (rt4dgs §1.4 + §2).
 
     Positions, covariances, opacity · p_t and the cull p_t ≤ ``time_cull`` for all views
@@ -261,10 +261,20 @@ def slice_values(values: dict[str, torch.Tensor], config: GaussianConfig, sh_deg
         geometry: the slice's geometry at ``timestamps`` when the caller has it (a render-only model conditions
             from terms it computed at load, :func:`~omg4.gaussians.covariance.condition_and_cull`); else the
             backbone's time slice computes it from ``values``.
+        rows: int64 [K] ascending: only these Gaussians take part (a merge round's rendered rows, paper §4.3); the
+            slice's ``index`` still refers to the rows of ``values``.
     """
     if geometry is None and position_term is None and fused_slice.runs(values, appearance):
         return fused_slice.fused_slice(values, config, sh_degree, sh_degree_t, timestamps, camera_centers,
-                                       appearance=appearance)
+                                       appearance=appearance, rows=rows)
+    if rows is not None:  # the torch form: slice the gathered rows, then refer the index back
+        if geometry is not None:
+            raise ValueError("a slice of some rows computes its own geometry")
+        sl = slice_values({k: v[rows] for k, v in values.items()}, config, sh_degree, sh_degree_t, timestamps,
+                          camera_centers, appearance=appearance,
+                          position_term=None if position_term is None else position_term[rows])
+        sl.index, sl.num_total = rows[sl.index], int(values["xyz"].shape[0])
+        return sl
     xyz = values["xyz"]
     times64 = torch.as_tensor(timestamps, dtype=torch.float64, device=xyz.device).reshape(-1)
     centers = torch.as_tensor(camera_centers, dtype=xyz.dtype, device=xyz.device).reshape(-1, 3)
