@@ -12,7 +12,7 @@ from omg4.render.paths import bounds_camera
 from omg4.render.view import render_view
 from omg4.testing import forge
 
-from test_ply_export import eval_real_sh, ply_gaussians, read_ply
+from test_ply_export import PLY_WORLD, eval_real_sh, ply_gaussians, read_ply
 
 
 @pytest.fixture(scope="module")
@@ -28,12 +28,13 @@ def test_ply_slice_of_a_decoded_model_renders_like_the_4d_model(omg4_file, tmp_p
     tau = t0 + 0.37 * (t1 - t0)
     assert main(["export", str(omg4_file), "--out", str(tmp_path / "s.ply"), "--time", repr(tau)]) == 0
     names, v = read_ply(tmp_path / "s.ply")
-    means, cov, opacity, sh = ply_gaussians(names, v)
+    means, cov, opacity, sh = ply_gaussians(names, v)  # in the 3DGS viewers' y-down world
     camera = bounds_camera(model.values["xyz"].numpy(), 96, 64)
-    d = means - camera.center
+    d = means - PLY_WORLD @ camera.center
     colors = np.maximum(eval_real_sh(sh, d / np.linalg.norm(d, axis=1, keepdims=True)) + 0.5, 0)
+    turned_view = camera.viewmat @ np.block([[PLY_WORLD.T, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])
     as_3d = rasterize(*(torch.as_tensor(a, dtype=torch.float32) for a in (means, cov, colors, opacity)),
-                      torch.as_tensor(camera.viewmat, dtype=torch.float32),
+                      torch.as_tensor(turned_view, dtype=torch.float32),
                       torch.as_tensor(camera.K, dtype=torch.float32), camera.width, camera.height, backend="cpu")
     with torch.no_grad():
         as_4d, sl = render_view(model, camera, tau, backend="cpu")
@@ -66,9 +67,13 @@ def test_original_world_undoes_the_files_normalization(omg4_file, tmp_path):
     names, norm = read_ply(tmp_path / "n.ply")
     _, orig = read_ply(tmp_path / "o.ply")
     x_norm, x_orig = (np.stack([v[k] for k in "xyz"], 1).astype(np.float64) for v in (norm, orig))
+    x_norm = x_norm @ PLY_WORLD  # the normalized slice is written y down: back to omg4's world
     np.testing.assert_allclose(2.0 * (x_orig @ R.T + [0.5, -1.0, 2.0]), x_norm, atol=1e-5)
-    cov_norm, cov_orig = ply_gaussians(names, norm)[1], ply_gaussians(names, orig)[1]
+    cov_norm, cov_orig = PLY_WORLD.T @ ply_gaussians(names, norm)[1] @ PLY_WORLD, ply_gaussians(names, orig)[1]
     np.testing.assert_allclose(4.0 * R @ cov_orig @ R.T, cov_norm, rtol=1e-4, atol=1e-7)
+    comments = [ln for ln in (tmp_path / "o.ply").read_bytes().split(b"end_header")[0].decode().splitlines()
+                if ln.startswith("comment ")]
+    np.testing.assert_allclose(np.array(comments[-1].split()[2:], float), R.T @ [0.0, 0.0, 1.0], atol=1e-9)
     assert main(["export", str(omg4_file), "--out", str(tmp_path / "x.ply"), "--original-world"]) == 0
 
 

@@ -14,6 +14,10 @@ from omg4.io.ply_export import export_ply, export_time_slice_ply, rotation_to_qu
 C0 = 0.28209479177387814
 
 
+PLY_WORLD = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]])
+"""The 3DGS viewers' y-down world a .ply is written in, from omg4's +Z-up one: (x, y, z) → (−x, −z, −y)."""
+
+
 def read_ply(path):
     """Minimal binary_little_endian float-only PLY reader → (names, structured array)."""
     data = path.read_bytes()
@@ -81,14 +85,17 @@ def test_export_layout_and_values(tmp_path):
     assert names[54:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     sl = model.slice_at(tau, torch.from_numpy(cam))
     assert count == len(v) == sl.index.numel() and 0 < count < 60
-    means, cov, opac, sh = ply_gaussians(names, v)
-    np.testing.assert_allclose(means, sl.means.numpy(), atol=2e-6)
-    np.testing.assert_allclose(cov, sl.covars.numpy(), rtol=1e-4, atol=1e-7)
+    means, cov, opac, sh = ply_gaussians(names, v)  # in the y-down world
+    np.testing.assert_allclose(means, sl.means.numpy() @ PLY_WORLD.T, atol=2e-6)
+    np.testing.assert_allclose(cov, PLY_WORLD @ sl.covars.numpy() @ PLY_WORLD.T, rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(opac, sl.opacities.numpy(), rtol=1e-5, atol=1e-7)
-    d = means - cam
+    d = means - PLY_WORLD @ cam  # the camera in the same world: the colours it sees are the model's
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     np.testing.assert_allclose(np.maximum(eval_real_sh(sh, d) + 0.5, 0), sl.colors.numpy(), atol=2e-5)
     assert not np.any([v["nx"], v["ny"], v["nz"]])
+    header = (tmp_path / "s.ply").read_bytes().split(b"end_header")[0].decode().splitlines()
+    written = next(ln for ln in header if ln.startswith("comment from_omg4_world ")).split()[2:]
+    np.testing.assert_array_equal(np.array(written, float).reshape(3, 3), PLY_WORLD)
 
 
 def test_export_keeps_active_degree(tmp_path):
@@ -99,7 +106,7 @@ def test_export_keeps_active_degree(tmp_path):
     cam = np.array([3.0, 1.0, -2.0])
     sl = model.slice_at(5.0, torch.from_numpy(cam))
     means, _, _, sh = ply_gaussians(names, v)
-    d = (means - cam) / np.linalg.norm(means - cam, axis=1, keepdims=True)
+    d = (means - PLY_WORLD @ cam) / np.linalg.norm(means - PLY_WORLD @ cam, axis=1, keepdims=True)
     np.testing.assert_allclose(np.maximum(eval_real_sh(sh, d) + 0.5, 0), sl.colors.numpy(), atol=2e-5)
 
 

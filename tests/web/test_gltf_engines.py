@@ -1,12 +1,15 @@
-"""A glTF slice in the engines users have: PlayCanvas and Babylon.js (npm, pinned in package.json) load the ``.glb``
+"""A slice in the engines users have: PlayCanvas and Babylon.js (npm, pinned in package.json) load the ``.glb``
 export with their own ``KHR_gaussian_splatting`` readers, and from a camera of omg4's world turned into glTF's the way
-``asset.extras.from_omg4_world`` says, draw the slice upright where ``omg4 render`` draws it."""
+``asset.extras.from_omg4_world`` says, draw the slice upright where ``omg4 render`` draws it; the ``.ply`` export,
+turned into PlayCanvas's world by PlayCanvas's own ``splat-transform`` (as SuperSplat reads a ``.ply``), draws upright
+there from the same camera."""
 
 from __future__ import annotations
 
 import base64
 import io
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +28,9 @@ from omg4.testing.browser import served
 
 ROOT = Path(__file__).resolve().parents[2]
 MODULES = ROOT / "node_modules"
-pytestmark = pytest.mark.skipif(not (MODULES / "playcanvas").is_dir() or not (MODULES / "@babylonjs").is_dir(),
-                                reason="needs the npm packages of package.json (npm ci)")
+SPLAT_TRANSFORM = MODULES / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
+pytestmark = pytest.mark.skipif(not (MODULES / "playcanvas").is_dir() or not (MODULES / "@babylonjs").is_dir()
+                                or not SPLAT_TRANSFORM.is_file(), reason="needs the npm packages of package.json (npm ci)")
 WIDTH, HEIGHT = 96, 64
 
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,"></head>
@@ -154,6 +158,22 @@ def test_playcanvas_draws_the_glb_slice_upright_where_omg4_render_draws_it(chrom
     pose = camera_to_world @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV's camera axes to PlayCanvas's
     page = PAGE.replace("FOV", repr(float(np.degrees(fov)))).replace("POSE", json.dumps(pose.T.ravel().tolist()))
     assert_upright("playcanvas", drawn_by(chromium, folder, page), reference)
+
+
+def test_playcanvas_draws_the_ply_slice_upright_through_splat_transform(chromium, slice_and_view):
+    """splat-transform reads a ``.ply`` as SuperSplat does (3DGS's y-down world, turned 180° about z into
+    PlayCanvas's +Y-up one) and writes glTF: the export's ``.ply`` comes out in glTF's world, seen by the same
+    camera."""
+    folder, camera_to_world, fov, reference = slice_and_view
+    tau = float(np.mean(load_model(folder / "m.omg4").config.time_range))
+    assert main(["export", str(folder / "m.omg4"), "--out", str(folder / "slice.ply"), "--time", repr(tau)]) == 0
+    converted = subprocess.run(["node", str(SPLAT_TRANSFORM), "--overwrite", str(folder / "slice.ply"),
+                                str(folder / "from_ply.glb")], capture_output=True, text=True, timeout=120)
+    assert converted.returncode == 0, converted.stderr
+    pose = camera_to_world @ np.diag([1.0, -1.0, -1.0, 1.0])
+    page = PAGE.replace("FOV", repr(float(np.degrees(fov)))).replace("POSE", json.dumps(pose.T.ravel().tolist()))
+    assert_upright("splat_transform_playcanvas", drawn_by(chromium, folder, page.replace("slice.glb", "from_ply.glb")),
+                   reference)
 
 
 def test_babylon_draws_the_glb_slice_upright_where_omg4_render_draws_it(chromium, slice_and_view):

@@ -44,6 +44,9 @@ window.omg4Ready = (async () => {
   scene.add(new SparkRenderer({ renderer, ...OMG4_CONVENTIONS }));
   const mesh = new SplatMesh({ url: "slice.ply" });
   await mesh.initialized;
+  const turn = TURN;  // the .ply's from_omg4_world (its header): the mesh turned back into omg4's world
+  mesh.quaternion.setFromRotationMatrix(new THREE.Matrix4().set(...turn.slice(0, 3), 0, ...turn.slice(3, 6), 0,
+                                                                ...turn.slice(6), 0, 0, 0, 0, 1).transpose());
   scene.add(mesh);
   const camera = Omg4Splats.threeCamera(resized(preset, WIDTH, HEIGHT));
   let frames = 0;
@@ -83,7 +86,10 @@ def test_spark_draws_the_model_as_close_to_omg4_render_as_it_draws_omg4s_ply(chr
     (web / "node_modules").symlink_to(MODULES)
     time = 0.45
     assert main(["export", str(model), "--time", str(time), "--out", str(web / "slice.ply")]) == 0
-    (web / "ply.html").write_text(PLY_PAGE.replace("WIDTH", "64").replace("HEIGHT", "48"))
+    header = (web / "slice.ply").read_bytes().split(b"end_header")[0].decode().splitlines()
+    turn = [float(x) for x in next(ln for ln in header if ln.startswith("comment from_omg4_world")).split()[2:]]
+    (web / "ply.html").write_text(PLY_PAGE.replace("WIDTH", "64").replace("HEIGHT", "48").replace("TURN",
+                                                                                                   json.dumps(turn)))
     assert main(["render", "--model", str(model), "--data", str(tiny_scene_dir), "--time", str(time), "--out",
                  str(tmp_path / "ref.png")]) == 0
     reference = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64)

@@ -11,11 +11,11 @@ colour (SH degree 0) and opacity as normalized unsigned bytes, for viewers witho
 attributes are float32, one buffer view each, in one binary chunk; ``kernel`` ``ellipse``, ``colorSpace``
 ``srgb_rec709_display`` (the training images' display-referred sRGB).
 
-glTF is +Y up; omg4's normalized world is +Z up (:mod:`omg4.data.normalize`). The export turns the slice into glTF's
-convention, :data:`Y_UP`: (x, y, z) → (x, z, −y), baked into the positions, covariances and SH coefficients
-(:func:`omg4.io.ply_export.turned_covariances_and_sh`) rather than set as a node rotation, because a splat reader
-that reads the primitive's attributes alone still shows it upright. With a normalization (``--original-world``) the
-dataset's own world is written as it is, and ``asset.extras`` names its up direction.
+glTF is +Y up; omg4's normalized world is +Z up. The export turns the slice into glTF's convention
+(:data:`omg4.io.worlds.GLTF`: (x, y, z) → (x, z, −y)), baked into the positions, covariances and SH coefficients
+rather than set as a node rotation, because a splat reader that reads the primitive's attributes alone still shows
+it upright. With a normalization (``--original-world``) the dataset's own world is written as it is, and
+``asset.extras`` names its up direction.
 """
 
 from __future__ import annotations
@@ -31,16 +31,13 @@ from omg4.atomic import atomic_path
 from omg4.data.scene import Normalization
 from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians.sh import sh_to_rgb
-from omg4.io.ply_export import covariance_to_scale_rotation, turned_covariances_and_sh, world_slice
+from omg4.io import worlds
+from omg4.io.ply_export import covariance_to_scale_rotation, original_up, turned_slice, world_slice
 
 EXTENSION = "KHR_gaussian_splatting"
 MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 FLOAT, UNSIGNED_BYTE, ARRAY_BUFFER, POINTS = 5126, 5121, 34962, 0
 SH_COUNTS = (1, 4, 9, 16)
-
-Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-"""omg4's normalized world (+Z up) to glTF's (+Y up): a rotation of −90° about x, (x, y, z) → (x, z, −y)."""
-
 
 def sh_semantic(k: int) -> str:
     """The attribute semantic of SH coefficient ``k`` (3DGS order: degree l holds k = l², …, l² + 2l)."""
@@ -164,14 +161,13 @@ def export_gltf(path: str | os.PathLike, model, timestamp: float, *, normalizati
     ``asset.extras``. Returns the number of Gaussians written."""
     means, covars, opacities, sh = world_slice(model, timestamp, normalization)
     if normalization is None:  # glTF's +Y up (module docstring)
-        means, (covars, sh) = means @ Y_UP.T, turned_covariances_and_sh(covars, sh, Y_UP)
+        means, covars, sh = turned_slice(means, covars, sh, worlds.GLTF)
         extras = {"time": float(timestamp), "world": "normalized", "up": [0.0, 1.0, 0.0],
-                  "from_omg4_world": Y_UP.tolist()}
+                  "from_omg4_world": worlds.GLTF.tolist()}
     else:
-        up = np.asarray(normalization.rotation, np.float64).T @ [0.0, 0.0, 1.0]  # the normalized +z, there
-        extras = {"time": float(timestamp), "world": "original", "up": up.tolist()}
+        extras = {"time": float(timestamp), "world": "original", "up": original_up(normalization).tolist()}
     write_gltf_splats(path, means, covars, opacities, sh, extras=extras)
     return len(means)
 
 
-__all__ = ["EXTENSION", "Y_UP", "export_gltf", "read_gltf_splats", "sh_semantic", "write_gltf_splats"]
+__all__ = ["EXTENSION", "export_gltf", "read_gltf_splats", "sh_semantic", "write_gltf_splats"]

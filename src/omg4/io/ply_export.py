@@ -8,9 +8,11 @@ scale_0..2 rot_0..3``; ``f_rest`` is channel-major (all R coefficients, then G, 
 A 4D model at time τ becomes: centre = conditional mean, covariance = conditional
 covariance → log-scales + quaternion (eigendecomposition), opacity = logit(σ(o)·p_t),
 Gaussians with p_t ≤ the cull threshold dropped, and the 4D SH time terms at τ folded into
-3D SH (rt4dgs §1.4, §2). With a :class:`Normalization` the slice is mapped back to the
-dataset's original world (positions, covariances and the SH view directions). Written with
-numpy only (``plyfile`` is GPL).
+3D SH (rt4dgs §1.4, §2). The slice is written in the 3DGS viewers' y-down world
+(:data:`omg4.io.worlds.PLY`: (x, y, z) → (−x, −z, −y) of omg4's +Z-up one), so SuperSplat and PlayCanvas show it
+upright; a ``comment from_omg4_world`` header line holds the matrix. With a :class:`Normalization` the slice is
+mapped back to the dataset's original world instead (positions, covariances and the SH view directions), written
+as it is, and a ``comment up`` line names that world's up direction. Written with numpy only (``plyfile`` is GPL).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from omg4.data.scene import Normalization
 from omg4.errors import OMG4Error
 from omg4.gaussians.model import Gaussians4D, StaticSlice, static_slice
 from omg4.gaussians.sh import rgb_to_sh, sh_basis
+from omg4.io import worlds
 from omg4.render.view import TimeSlice
 
 
@@ -99,6 +102,17 @@ def turned_covariances_and_sh(covars: np.ndarray, sh: np.ndarray,
             np.einsum("kj,njc->nkc", sh_rotation_matrix(turn.T, degree), sh))
 
 
+def turned_slice(means: np.ndarray, covars: np.ndarray, sh: np.ndarray,
+                 turn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A slice's means [M, 3], covariances and SH in a world turned by ``turn`` (:mod:`omg4.io.worlds`)."""
+    return (means @ turn.T, *turned_covariances_and_sh(covars, sh, turn))
+
+
+def original_up(normalization: Normalization) -> np.ndarray:
+    """The normalized world's +z (omg4's up) in the dataset's original world."""
+    return np.asarray(normalization.rotation, np.float64).T @ [0.0, 0.0, 1.0]
+
+
 def _to_original_world(means: np.ndarray, covars: np.ndarray, sh: np.ndarray,
                        normalization: Normalization) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Map a slice from the normalized world (x_n = s (R x + t)) back to the original world."""
@@ -108,12 +122,13 @@ def _to_original_world(means: np.ndarray, covars: np.ndarray, sh: np.ndarray,
 
 
 def write_3dgs_ply(path: str | os.PathLike, means: np.ndarray, covars: np.ndarray, opacities: np.ndarray,
-                   sh: np.ndarray) -> None:
-    """Write Gaussians in the standard 3DGS layout (atomically).
+                   sh: np.ndarray, comments: tuple[str, ...] = ()) -> None:
+    """Write Gaussians in the standard 3DGS layout (atomically), in the world they are given.
 
     Args:
         means: [M, 3]; covars: [M, 3, 3]; opacities: [M] in (0, 1);
         sh: [M, K, 3] coefficient-major SH (K = 1, 4, 9 or 16; DC first).
+        comments: header ``comment`` lines (ASCII, one line each).
     """
     m, k = sh.shape[0], sh.shape[1]
     if k not in (1, 4, 9, 16):
@@ -130,7 +145,8 @@ def write_3dgs_ply(path: str | os.PathLike, means: np.ndarray, covars: np.ndarra
     if not np.isfinite(columns).all():
         raise OMG4Error(f"{path}: the model's values are not finite in float32 (NaN or beyond ±3.4e38); nothing "
                         "written")
-    header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {m}",
+    header = "\n".join(["ply", "format binary_little_endian 1.0", *[f"comment {c}" for c in comments],
+                        f"element vertex {m}",
                         *[f"property float {n}" for n in names], "end_header"]) + "\n"
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
@@ -144,12 +160,24 @@ def export_ply(path: str | os.PathLike, model, timestamp: float, *, normalizatio
     ``model``: a :class:`Gaussians4D` or a render-only model (a loaded checkpoint or decoded
     ``.omg4`` file, :func:`omg4.models.load_model`; its appearance MLPs give the SH). The
     model's active SH degrees are kept (spatial degree → f_rest count; temporal bands folded
-    at τ). With ``normalization`` the output is in the dataset's original world. A sequence of segments writes
-    the slice of the segment weighing most at ``timestamp``. Returns the number of Gaussians written.
+    at τ). The output is in the 3DGS viewers' world (module docstring), or with ``normalization`` in the dataset's
+    original one. A sequence of segments writes the slice of the segment weighing most at ``timestamp``. Returns
+    the number of Gaussians written.
     """
     means, covars, opacities, sh = world_slice(model, timestamp, normalization)
-    write_3dgs_ply(path, means, covars, opacities, sh)
+    write_3dgs_ply(path, *_in_ply_world(means, covars, opacities, sh, normalization))
     return len(means)
+
+
+def _in_ply_world(means, covars, opacities, sh, normalization: Normalization | None):
+    """:func:`write_3dgs_ply`'s arguments for a slice in omg4's world, or already in the original one: turned into the
+    3DGS viewers' world with its ``from_omg4_world`` comment, or as it is with its ``up`` comment."""
+    if normalization is not None:
+        return means, covars, opacities, sh, ("omg4 world: original",
+                                              "up " + " ".join(f"{x:.9g}" for x in original_up(normalization)))
+    means, covars, sh = turned_slice(means, covars, sh, worlds.PLY)
+    return means, covars, opacities, sh, ("omg4 world: normalized, y down (3DGS viewers)",
+                                          "from_omg4_world " + " ".join(f"{x:g}" for x in worlds.PLY.ravel()))
 
 
 def world_slice(model, timestamp: float, normalization: Normalization | None = None
@@ -189,17 +217,18 @@ def slice_in_float64(model, timestamp: float) -> StaticSlice:
 
 def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
                           normalization: Normalization | None = None) -> int:
-    """Write any model's :class:`TimeSlice` (view-dependent colours baked to DC) as a 3DGS ``.ply``."""
+    """Write any model's :class:`TimeSlice` (view-dependent colours baked to DC) as a 3DGS ``.ply``, in the world
+    :func:`export_ply` writes."""
     sl = {k: getattr(time_slice, k).detach().to("cpu", torch.float64).numpy()
           for k in ("means", "covars", "colors", "opacities")}
     means, covars, opacities = sl["means"], sl["covars"], sl["opacities"]
     sh = rgb_to_sh(sl["colors"])[:, None, :]
     if normalization is not None:
         means, covars, sh = _to_original_world(means, covars, sh, normalization)
-    write_3dgs_ply(path, means, covars, opacities, sh)
+    write_3dgs_ply(path, *_in_ply_world(means, covars, opacities, sh, normalization))
     return int(means.shape[0])
 
 
 __all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "turned_covariances_and_sh",
-           "write_3dgs_ply",
+           "turned_slice", "original_up", "write_3dgs_ply",
            "export_ply", "export_time_slice_ply", "model_in_float64", "slice_in_float64", "world_slice"]

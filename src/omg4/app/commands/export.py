@@ -2,7 +2,7 @@
 
 ``ply``: the standard 3DGS ``.ply`` of one time slice (or ``--times A:B:N``: N slices from A to
 B, written as ``<stem>_0000.ply``, ``<stem>_0001.ply``, … beside ``--out``) for the 3DGS viewers
-users already have (SuperSplat, PlayCanvas, …): :func:`omg4.io.ply_export.export_ply`.
+users already have (SuperSplat, PlayCanvas, …), in their y-down world: :func:`omg4.io.ply_export.export_ply`.
 ``gltf``: the same slices as glTF 2.0 binaries (``.glb``) with Khronos's ``KHR_gaussian_splatting``
 (:func:`omg4.io.gltf_export.export_gltf`), for engines that read splats from glTF.
 ``splatv``: the whole 4D model for the splaTV web viewer (:mod:`omg4.io.splatv`), with the
@@ -38,8 +38,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     when.add_argument("--times", metavar="A:B:N",
                       help="ply, gltf: N slices at evenly spaced times from A to B (inclusive)")
     p.add_argument("--original-world", action="store_true",
-                   help="ply, gltf: write in the dataset's original world (the model file's normalization) instead "
-                        "of the normalized one")
+                   help="ply, gltf: write the dataset's original world as it is (the model file's normalization "
+                        "undone) instead of omg4's turned into the format's convention (ply: y down as 3DGS viewers "
+                        "read it; gltf: +Y up)")
     p.add_argument("--data", type=Path, help="splatv, web: dataset folder whose cameras become the viewer's presets "
                                              "(default: one camera framing the model)")
     add_force_argument(p)
@@ -119,12 +120,13 @@ def run(args) -> int:
     outputs = _outputs(args.out, len(times))
     counts = [export_slice(path, model, t, normalization=normalization)
               for path, t in tqdm(list(zip(outputs, times)), desc="export", disable=len(times) == 1)]
-    world = "original" if normalization is not None else "normalized"
+    world = ("the dataset's original world" if normalization is not None else
+             {"ply": "omg4's world turned y down for 3DGS viewers", "gltf": "omg4's world turned +Y up"}[fmt])
     if len(outputs) == 1:
-        print(f"wrote {outputs[0]} ({counts[0]} Gaussians at t={times[0]:g}, {world} world)")
+        print(f"wrote {outputs[0]} ({counts[0]} Gaussians at t={times[0]:g}, {world})")
     else:
         print(f"wrote {outputs[0]} … {outputs[-1].name} ({len(outputs)} slices, {min(counts)}–{max(counts)} "
-              f"Gaussians, t {times[0]:g} to {times[-1]:g}, {world} world)")
+              f"Gaussians, t {times[0]:g} to {times[-1]:g}, {world})")
     return 0
 
 
