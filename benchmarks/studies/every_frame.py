@@ -8,7 +8,8 @@ The real scenes get a cpu-small baseline of 1,500 iterations and the ``cpu`` com
 
 For each seed: the scene, its baseline and SD scores once, then OMG4-M from the same baseline and scores once per
 variant (:data:`VARIANTS`): the paper's; lifetime-weighted SD scores (:func:`omg4.compress.score.lifetime_weights`);
-fine-tuning views drawn by each span's fall below the baseline (:mod:`omg4.compress.time_balance`); both. Each
+fine-tuning views drawn by each span's fall below the baseline (:mod:`omg4.compress.time_balance`); both; the
+default (both, with pruning's frame floor). Each
 file is decoded and evaluated on the test camera frame by frame. The record keeps every frame's ΔPSNR (OMG4-M −
 baseline), the mean, the worst frame, the 5th percentile and the file size of each, and — the mechanism of the
 score weighting — the share of each frame's visible baseline (opacity × temporal marginal, summed over the
@@ -38,13 +39,14 @@ from omg4.testing.records import save_record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 SHARED = Path(os.environ.get("OMG4_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
-VARIANTS = {"paper": {"score_weighting": "paper", "time_sampling": "uniform"},
-            "lifetime": {"score_weighting": "lifetime", "time_sampling": "uniform"},
-            "deficit": {"score_weighting": "paper", "time_sampling": "deficit"},
-            "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit"}}
+VARIANTS = {"paper": {"score_weighting": "paper", "time_sampling": "uniform", "frame_floor": 0.0},
+            "lifetime": {"score_weighting": "lifetime", "time_sampling": "uniform", "frame_floor": 0.0},
+            "deficit": {"score_weighting": "paper", "time_sampling": "deficit", "frame_floor": 0.0},
+            "lifetime+deficit": {"score_weighting": "lifetime", "time_sampling": "deficit", "frame_floor": 0.0},
+            "default": {}}
 """Each variant's :class:`~omg4.compress.pipeline.CompressConfig` fields beside the scene's: the paper's selection
-and draw (``omg4 compress --paper`` but for the coder: every variant is coded alike), either change beyond it, and both
-(the default)."""
+and draw (``omg4 compress --paper`` but for the coder: every variant is coded alike), either change beyond it, both,
+and the default (both and pruning's frame floor, :func:`omg4.compress.pruning.pruning_mask`)."""
 BASELINE_ITERATIONS = 1500
 
 
