@@ -10,10 +10,13 @@
 // each Gaussian's mean and opacity at τ and its colour coefficients; per frame each colour is evaluated for the
 // camera's position (the 4D SH and the appearance MLPs' view-dependent terms, as the player does) and written, with
 // the mean and opacity, into the SplatMesh's PackedSplats. Covariances do not change with time (the conditional
-// Σ_3D of Real-Time4DGS, FreeTimeGS's Σ): their scales and rotations are computed once, at load.
+// Σ_3D of Real-Time4DGS, FreeTimeGS's Σ): their scales and rotations are computed and packed once, at load; a frame
+// writes only the words that change — RGBA and the half-float centre — straight into Spark's packed array (four
+// 32-bit words a splat: RGBA bytes; centre x, y halves; centre z half and two quaternion bytes; three scale bytes
+// and one quaternion byte: Spark 2.2.0's setPackedSplat layout).
 
 import * as THREE from "three";
-import { PackedSplats, SplatMesh } from "@sparkjsdev/spark";
+import { PackedSplats, SplatMesh, floatToUint8, toHalf } from "@sparkjsdev/spark";
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
 import { Renderer, SLICED, context } from "./render/renderer.js";
@@ -76,20 +79,18 @@ export class Omg4Splats {
     this.timeRange = model.timeRange;
     this.slicer = new Renderer(context(document.createElement("canvas")), model);
     const n = model.numGaussians;
-    this.scales = [];
-    this.rotations = [];
-    const basis = new THREE.Matrix4();
-    for (let g = 0; g < n; g++) {
-      const { sigma, axes } = principalAxes(model.cov.subarray(6 * g, 6 * g + 6));
-      this.scales.push(new THREE.Vector3(...sigma));
-      basis.set(axes[0][0], axes[0][1], axes[0][2], 0, axes[1][0], axes[1][1], axes[1][2], 0, axes[2][0], axes[2][1],
-        axes[2][2], 0, 0, 0, 0, 1);
-      this.rotations.push(new THREE.Quaternion().setFromRotationMatrix(basis));
-    }
     this.packed = new PackedSplats({ maxSplats: Math.max(n, 1) });
+    const basis = new THREE.Matrix4();
+    const scale = new THREE.Vector3();
+    const rotation = new THREE.Quaternion();
     const zero = new THREE.Vector3();
     const black = new THREE.Color(0, 0, 0);
-    for (let g = 0; g < n; g++) this.packed.pushSplat(zero, this.scales[g], this.rotations[g], 0, black);
+    for (let g = 0; g < n; g++) {  // the scales and rotations, packed once (update writes the rest)
+      const { sigma, axes } = principalAxes(model.cov.subarray(6 * g, 6 * g + 6));
+      basis.set(axes[0][0], axes[0][1], axes[0][2], 0, axes[1][0], axes[1][1], axes[1][2], 0, axes[2][0], axes[2][1],
+        axes[2][2], 0, 0, 0, 0, 1);
+      this.packed.pushSplat(zero, scale.set(...sigma), rotation.setFromRotationMatrix(basis), 0, black);
+    }
     this.mesh = new SplatMesh({ packedSplats: this.packed });
     this.time = null;
     this._seenFrom = null;
@@ -109,15 +110,17 @@ export class Omg4Splats {
     const sliced = this.slicer.sliceAt(tau);
     const rgb = new Float64Array(3);
     const y = new Float64Array(16);
-    const mean = new THREE.Vector3();
-    const color = new THREE.Color();
+    const words = this.packed.packedArray;
     for (let g = 0; g < this.model.numGaussians; g++) {
       const o = SLICED * g;
       const opacity = sliced[o + 3];
-      mean.set(sliced[o], sliced[o + 1], sliced[o + 2]);
       if (opacity > 0) this.slicer.color(g, center, rgb, y);
-      color.setRGB(Math.min(rgb[0], 1), Math.min(rgb[1], 1), Math.min(rgb[2], 1));
-      this.packed.setSplat(g, mean, this.scales[g], this.rotations[g], opacity, color);
+      else rgb.fill(0);
+      const at = 4 * g;
+      words[at] = floatToUint8(rgb[0]) | floatToUint8(rgb[1]) << 8 | floatToUint8(rgb[2]) << 16
+        | floatToUint8(opacity) << 24;
+      words[at + 1] = toHalf(sliced[o]) | toHalf(sliced[o + 1]) << 16;
+      words[at + 2] = toHalf(sliced[o + 2]) | (words[at + 2] & 0xffff0000);  // the quaternion's bytes kept
     }
     this.packed.needsUpdate = true;
     this.time = tau;
