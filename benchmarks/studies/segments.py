@@ -21,7 +21,8 @@ Usage::
 
 ``prediction``: one capture trained as segments once, then compressed at each ``--key-intervals`` value (1: every
 segment coded alone; K: every K-th, the others predicted from the segment before, ``omg4 compress --key-interval``):
-bytes (per segment too), Mbit/s, PSNR/SSIM overall and on boundary and interior frames, flicker, and the time and
+bytes (per segment too), Mbit/s, PSNR/SSIM overall and on boundary and interior frames (and their gap to the trained
+segments' on the same frames), flicker, and the time and
 bytes of a seek to the last segment (decoding its chain back to its key segment in a fresh process state); with
 ``--whole-clip`` also one model of the whole capture trained for as many steps as all segments together (or
 ``--whole-iterations``; ``--key-intervals --whole-clip`` with no interval: that model alone). Every model is
@@ -282,18 +283,23 @@ def prediction(args) -> None:
         model = load_model(out)
         result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)
         split = frame_split(model, scene.test_views, model.ranges, model.meta["fps"])
+        if "trained" not in record:  # the trained segments (the baselines), scored on the same frames once
+            record["trained"] = frame_split(load_model(run_dir), scene.test_views, model.ranges, model.meta["fps"])
+        gap = {part: split[part]["psnr"] - record["trained"][part]["psnr"] for part in ("boundary", "interior")}
         index = read_index(out)
         row = {"key_interval": key_interval, "file_bytes": out.stat().st_size,
                "segment_bytes": [e.size for e in index.segments],
                "references": [e.reference for e in index.segments], "bitrate_mbps": result["bitrate_mbps"],
                "psnr": result["psnr"], "ssim": result["ssim"], "boundary": split["boundary"],
                "interior": split["interior"], "flicker": split["flicker"], "compress_s": compress_s,
+               "gap_to_trained_db": {**gap, "boundary_minus_interior": gap["boundary"] - gap["interior"]},
                "seek_to_last": seek_to_last(out), "num_gaussians": result["num_gaussians"],
                "carried_gaussians": [carried(out, e)[0] for e in index.segments],
                "carry_decisions": [carried(out, e)[1] for e in index.segments]}
         record["rows"].append(row)
         print(f"key interval {key_interval}: {row['file_bytes']:,} B ({row['segment_bytes']}), PSNR {row['psnr']:.3f}, "
-              f"boundary {split['boundary']['psnr']:.2f} / interior {split['interior']['psnr']:.2f}, seek "
+              f"boundary {split['boundary']['psnr']:.2f} / interior {split['interior']['psnr']:.2f} (against the "
+              f"trained segments {gap['boundary']:+.2f} / {gap['interior']:+.2f} dB), seek "
               f"{row['seek_to_last']['seconds']:.3f} s", flush=True)
     if args.whole_clip:  # one model of the whole capture, trained for as many steps as all the segments
         whole_dir, whole_out = work / "whole", work / f"whole_{args.preset}.omg4"
