@@ -8,7 +8,8 @@ that camera, PSNR of the picture turned (180°, upside down, mirrored) and wheth
 package (``npm pack`` of ``src/omg4/web``): the tarball's bytes and files. The npm packages of ``package.json``
 (``npm ci``) and Debian's ``chromium`` are needed.
 
-    python benchmarks/studies/engines.py omg4_demo/scene_M.omg4 --data omg4_demo/scene --forged 1200 --name demo
+    python benchmarks/studies/engines.py omg4_demo/scene_M.omg4 --data omg4_demo/scene --width 512 --forged 1200 \
+        --name demo
 
 Each run is recorded (commit, date, machine) in ``benchmarks/results/engines_<name>.json``.
 """
@@ -30,8 +31,9 @@ MODULES = REPO / "node_modules"
 RESULTS = REPO / "benchmarks" / "results"
 
 
-def view_of(path: Path, data: Path | None, tau: float | None):
-    """(model, its camera, the slice's time): the dataset's first test camera, or one framing a forged model."""
+def view_of(path: Path, data: Path | None, tau: float | None, width: int | None):
+    """(model, its camera, the slice's time): the dataset's first test camera (``width`` pixels wide, if given), or
+    one framing a forged model."""
     from omg4.models import load_model
     from omg4.render.paths import bounds_camera
 
@@ -42,15 +44,17 @@ def view_of(path: Path, data: Path | None, tau: float | None):
         return model, bounds_camera(model.values["xyz"].numpy(), 96, 64), tau
     from omg4.data import load_scene
 
-    scene = load_scene(data, decode=False, progress=False)
-    return model, scene.test_cameras()[0], tau
+    camera = load_scene(data, decode=False, progress=False).test_cameras()[0]
+    if width is not None:
+        camera = camera.resized(width, round(width * camera.height / camera.width))
+    return model, camera, tau
 
 
-def engine_rows(browser, path: Path, data: Path | None, tau: float | None, folder: Path) -> dict:
+def engine_rows(browser, path: Path, data: Path | None, tau: float | None, width: int | None, folder: Path) -> dict:
     from omg4.app.cli import main
     from omg4.testing import engines
 
-    model, camera, tau = view_of(path, data, tau)
+    model, camera, tau = view_of(path, data, tau, width)
     folder.mkdir(parents=True)
     for suffix in ("glb", "ply"):
         if main(["export", str(path), "--out", str(folder / f"slice.{suffix}"), "--time", repr(tau)]) != 0:
@@ -81,6 +85,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, help="the models' dataset folder")
     ap.add_argument("--forged", type=int, nargs="*", default=[], help="add files of this many random Gaussians")
     ap.add_argument("--time", type=float, help="the slice's time (default: the middle of the time range)")
+    ap.add_argument("--width", type=int, help="the dataset camera's width in pixels (default: the dataset's)")
     ap.add_argument("--name", default="demo", help="record name: benchmarks/results/engines_<name>.json")
     args = ap.parse_args()
     from omg4.testing import forge
@@ -96,7 +101,7 @@ def main() -> None:
         browser = Browser(tmp / "profile")
         try:
             for label, path, data in models:
-                row = {"model": label, **engine_rows(browser, path, data, args.time, tmp / f"m{len(rows)}")}
+                row = {"model": label, **engine_rows(browser, path, data, args.time, args.width, tmp / f"m{len(rows)}")}
                 for engine, r in row["engines"].items():
                     print(f"{label}: {engine}: {r['db']:.2f} dB ({'upright' if r['upright'] else 'NOT upright'}; "
                           f"turned {', '.join(f'{x:.2f}' for x in r['turned_db'])})", flush=True)
