@@ -61,7 +61,9 @@ export function principalAxes(c) {
 
 /** SparkRenderer options that draw as omg4's renderer does (gsplat's conventions): the 0.3 px² dilation without
  * opacity compensation, splats cut at 3.33σ and α ≥ 1/255, sorted by view depth. */
-export const OMG4_CONVENTIONS = { preBlurAmount: 0.3, blurAmount: 0, maxStdDev: 3.33, minAlpha: 1 / 255, sortRadial: false };
+const MIN_ALPHA = 1 / 255;
+
+export const OMG4_CONVENTIONS = { preBlurAmount: 0.3, blurAmount: 0, maxStdDev: 3.33, minAlpha: MIN_ALPHA, sortRadial: false };
 
 export class Omg4Splats {
   /** Fetch and decode the .omg4 file at `url` (a single model). */
@@ -91,6 +93,12 @@ export class Omg4Splats {
         axes[2][2], 0, 0, 0, 0, 1);
       this.packed.pushSplat(zero, scale.set(...sigma), rotation.setFromRotationMatrix(basis), 0, black);
     }
+    const words = this.packed.packedArray;
+    this._shape = new Uint32Array(2 * n);  // each Gaussian's constant words: quaternion bytes, scales
+    for (let g = 0; g < n; g++) {
+      this._shape[2 * g] = words[4 * g + 2] & 0xffff0000;
+      this._shape[2 * g + 1] = words[4 * g + 3];
+    }
     this.mesh = new SplatMesh({ packedSplats: this.packed });
     this.time = null;
     this._seenFrom = null;
@@ -111,17 +119,22 @@ export class Omg4Splats {
     const rgb = new Float64Array(3);
     const y = new Float64Array(16);
     const words = this.packed.packedArray;
+    const shape = this._shape;
+    let shown = 0;
     for (let g = 0; g < this.model.numGaussians; g++) {
       const o = SLICED * g;
       const opacity = sliced[o + 3];
-      if (opacity > 0) this.slicer.color(g, center, rgb, y);
-      else rgb.fill(0);
-      const at = 4 * g;
+      if (!(opacity >= MIN_ALPHA)) continue;  // culled at τ, or too faint to reach minAlpha anywhere: not drawn
+      this.slicer.color(g, center, rgb, y);
+      const at = 4 * shown++;
       words[at] = floatToUint8(rgb[0]) | floatToUint8(rgb[1]) << 8 | floatToUint8(rgb[2]) << 16
         | floatToUint8(opacity) << 24;
       words[at + 1] = toHalf(sliced[o]) | toHalf(sliced[o + 1]) << 16;
-      words[at + 2] = toHalf(sliced[o + 2]) | (words[at + 2] & 0xffff0000);  // the quaternion's bytes kept
+      words[at + 2] = toHalf(sliced[o + 2]) | shape[2 * g];
+      words[at + 3] = shape[2 * g + 1];
     }
+    this.packed.numSplats = shown;
+    this.shown = shown;
     this.packed.needsUpdate = true;
     this.time = tau;
     this._seenFrom = center;
