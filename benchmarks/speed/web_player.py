@@ -38,7 +38,7 @@ from omg4.testing.records import save_record
 REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "benchmarks" / "results"
 
-from omg4.testing.browser import Browser, open_player, served
+from omg4.testing.browser import Browser, data_url_image, open_player, served
 
 # time paused, the camera orbiting the focus a degree a frame: each frame drawn and read back (a finished frame)
 ORBIT = """import('./camera.js').then(({ lookAt }) => {
@@ -135,17 +135,12 @@ def reference_frame(model: Path, data: Path, tmp: Path) -> tuple[float, np.ndarr
 def page_psnr(browser: Browser, url: str, canvas: str, reference: np.ndarray, settle_s: float = 0.0) -> float:
     """PSNR of the page at ``url`` (its first frame, ``settle_s`` later) against ``reference``; ``canvas``: the
     expression of the page's canvas."""
-    import base64
-    import io
-
-    from PIL import Image
-
     from omg4.metrics import psnr
 
     open_player(browser, url, timeout=600)
     time.sleep(settle_s)
     png = browser.evaluate(f"{canvas}.toDataURL('image/png')")
-    page = np.asarray(Image.open(io.BytesIO(base64.b64decode(png.split(",", 1)[1]))).convert("RGB"), np.float64)
+    page = data_url_image(png)
     return psnr(page / 255.0, reference / 255.0)
 
 

@@ -4,13 +4,11 @@ with its error event — one line — leaving the page alive."""
 
 from __future__ import annotations
 
-import base64
-import io
 import json
 
 import numpy as np
 import pytest
-from omg4.testing.browser import served
+from omg4.testing.browser import data_url_image, served
 from PIL import Image
 
 from omg4.app.cli import main
@@ -63,7 +61,7 @@ def opened(browser, url: str) -> dict:
 
 def canvas(browser) -> np.ndarray:
     url = browser.evaluate("document.getElementById('scene').canvas.toDataURL('image/png')")
-    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), np.float64)
+    return data_url_image(url)
 
 
 def rendered(tmp_path, model, scene_dir, time: float) -> np.ndarray:

@@ -3,14 +3,12 @@ bit for bit, its WebGL2 renders against ``omg4 render``, forged files, and the e
 
 from __future__ import annotations
 
-import base64
-import io
 import json
 import time
 
 import numpy as np
 import pytest
-from omg4.testing.browser import DIGESTS, SEGMENT_DIGESTS, open_player, python_digests, served
+from omg4.testing.browser import DIGESTS, SEGMENT_DIGESTS, data_url_image, open_player, python_digests, served
 from PIL import Image
 
 from omg4.app.cli import main
@@ -92,7 +90,7 @@ def test_the_page_refuses_forged_carried_gaussians_in_one_line(chromium, tmp_pat
 
 def _canvas(browser) -> np.ndarray:
     url = browser.evaluate("document.querySelector('omg4-player').canvas.toDataURL('image/png')")
-    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), np.float64)
+    return data_url_image(url)
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:

@@ -6,14 +6,12 @@ three.js and Spark come from the npm packages of package.json (``npm ci``), noth
 
 from __future__ import annotations
 
-import base64
-import io
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from omg4.testing.browser import open_player, served
+from omg4.testing.browser import data_url_image, open_player, served
 from PIL import Image
 
 from omg4.app.cli import main
@@ -73,7 +71,7 @@ CANVAS = "document.querySelector('canvas').toDataURL('image/png')"
 def image(browser) -> np.ndarray:
     assert browser.evaluate(SETTLE, timeout=120)
     url = browser.evaluate(CANVAS)
-    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), np.float64)
+    return data_url_image(url)
 
 
 @pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])

@@ -32,7 +32,7 @@ from omg4.data.scene import Normalization
 from omg4.errors import CorruptFileError, OMG4Error
 from omg4.gaussians.sh import sh_to_rgb
 from omg4.io import worlds
-from omg4.io.ply_export import covariance_to_scale_rotation, original_up, turned_slice, world_slice
+from omg4.io.ply_export import covariance_to_scale_rotation, original_up, world_slice
 
 EXTENSION = "KHR_gaussian_splatting"
 MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -159,9 +159,8 @@ def export_gltf(path: str | os.PathLike, model, timestamp: float, *, normalizati
     """Write the time slice of ``model`` at ``timestamp`` as a ``.glb`` (``KHR_gaussian_splatting``): the slice
     :func:`omg4.io.ply_export.export_ply` writes, the same arguments; the time and world are recorded in
     ``asset.extras``. Returns the number of Gaussians written."""
-    means, covars, opacities, sh = world_slice(model, timestamp, normalization)
+    means, covars, opacities, sh = world_slice(model, timestamp, normalization, worlds.GLTF)
     if normalization is None:  # glTF's +Y up (module docstring)
-        means, covars, sh = turned_slice(means, covars, sh, worlds.GLTF)
         extras = {"time": float(timestamp), "world": "normalized", "up": [0.0, 1.0, 0.0],
                   "from_omg4_world": worlds.GLTF.tolist()}
     else:

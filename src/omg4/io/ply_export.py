@@ -102,9 +102,13 @@ def turned_covariances_and_sh(covars: np.ndarray, sh: np.ndarray,
             np.einsum("kj,njc->nkc", sh_rotation_matrix(turn.T, degree), sh))
 
 
-def turned_slice(means: np.ndarray, covars: np.ndarray, sh: np.ndarray,
-                 turn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A slice's means [M, 3], covariances and SH in a world turned by ``turn`` (:mod:`omg4.io.worlds`)."""
+def in_export_world(means: np.ndarray, covars: np.ndarray, sh: np.ndarray, normalization: Normalization | None,
+                    turn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A slice of omg4's normalized world (means [M, 3], covariances, SH) in the world an export writes: with
+    ``normalization``, the dataset's original world as it is; else omg4's turned by ``turn`` (:mod:`omg4.io.worlds`)
+    into the format's convention."""
+    if normalization is not None:
+        return _to_original_world(means, covars, sh, normalization)
     return (means @ turn.T, *turned_covariances_and_sh(covars, sh, turn))
 
 
@@ -164,33 +168,28 @@ def export_ply(path: str | os.PathLike, model, timestamp: float, *, normalizatio
     original one. A sequence of segments writes the slice of the segment weighing most at ``timestamp``. Returns
     the number of Gaussians written.
     """
-    means, covars, opacities, sh = world_slice(model, timestamp, normalization)
-    write_3dgs_ply(path, *_in_ply_world(means, covars, opacities, sh, normalization))
+    means, covars, opacities, sh = world_slice(model, timestamp, normalization, worlds.PLY)
+    write_3dgs_ply(path, means, covars, opacities, sh, _world_comments(normalization))
     return len(means)
 
 
-def _in_ply_world(means, covars, opacities, sh, normalization: Normalization | None):
-    """:func:`write_3dgs_ply`'s arguments for a slice in omg4's world, or already in the original one: turned into the
-    3DGS viewers' world with its ``from_omg4_world`` comment, or as it is with its ``up`` comment."""
+def _world_comments(normalization: Normalization | None) -> tuple[str, ...]:
+    """The header comments naming the world a ``.ply`` export writes (:func:`in_export_world`)."""
     if normalization is not None:
-        return means, covars, opacities, sh, ("omg4 world: original",
-                                              "up " + " ".join(f"{x:.9g}" for x in original_up(normalization)))
-    means, covars, sh = turned_slice(means, covars, sh, worlds.PLY)
-    return means, covars, opacities, sh, ("omg4 world: normalized, y down (3DGS viewers)",
-                                          "from_omg4_world " + " ".join(f"{x:g}" for x in worlds.PLY.ravel()))
+        return "omg4 world: original", "up " + " ".join(f"{x:.9g}" for x in original_up(normalization))
+    return ("omg4 world: normalized, y down (3DGS viewers)",
+            "from_omg4_world " + " ".join(f"{x:g}" for x in worlds.PLY.ravel()))
 
 
-def world_slice(model, timestamp: float, normalization: Normalization | None = None
+def world_slice(model, timestamp: float, normalization: Normalization | None, turn: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(means [M, 3], covariances [M, 3, 3], opacities [M], 3D SH [M, K, 3]) of the time slice of ``model`` at
-    ``timestamp`` (:func:`slice_in_float64`; a sequence: its segment weighing most there), float64, in the model's
-    normalized world or, with ``normalization``, the dataset's original one: what every slice export writes."""
+    ``timestamp`` (:func:`slice_in_float64`; a sequence: its segment weighing most there), float64, in the world an
+    export writes (:func:`in_export_world`: omg4's turned by ``turn``, or with ``normalization`` the dataset's)."""
     if hasattr(model, "segment_at"):
         model = model.segment_at(timestamp)
     sl = slice_in_float64(model, timestamp)
-    means, covars, sh = sl.means.numpy(), sl.covars.numpy(), sl.sh.numpy()
-    if normalization is not None:
-        means, covars, sh = _to_original_world(means, covars, sh, normalization)
+    means, covars, sh = in_export_world(sl.means.numpy(), sl.covars.numpy(), sl.sh.numpy(), normalization, turn)
     return means, covars, sl.opacities.numpy(), sh
 
 
@@ -221,14 +220,12 @@ def export_time_slice_ply(path: str | os.PathLike, time_slice: TimeSlice, *,
     :func:`export_ply` writes."""
     sl = {k: getattr(time_slice, k).detach().to("cpu", torch.float64).numpy()
           for k in ("means", "covars", "colors", "opacities")}
-    means, covars, opacities = sl["means"], sl["covars"], sl["opacities"]
-    sh = rgb_to_sh(sl["colors"])[:, None, :]
-    if normalization is not None:
-        means, covars, sh = _to_original_world(means, covars, sh, normalization)
-    write_3dgs_ply(path, *_in_ply_world(means, covars, opacities, sh, normalization))
+    means, covars, sh = in_export_world(sl["means"], sl["covars"], rgb_to_sh(sl["colors"])[:, None, :], normalization,
+                                        worlds.PLY)
+    write_3dgs_ply(path, means, covars, sl["opacities"], sh, _world_comments(normalization))
     return int(means.shape[0])
 
 
 __all__ = ["rotation_to_quaternion", "covariance_to_scale_rotation", "sh_rotation_matrix", "turned_covariances_and_sh",
-           "turned_slice", "original_up", "write_3dgs_ply",
+           "in_export_world", "original_up", "write_3dgs_ply",
            "export_ply", "export_time_slice_ply", "model_in_float64", "slice_in_float64", "world_slice"]

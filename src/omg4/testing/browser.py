@@ -1,6 +1,6 @@
 """Headless Chromium for the browser tests: started with software WebGL2 (SwiftShader) and driven over the DevTools
 protocol (navigate, evaluate, screenshot), a static file server (:func:`served`), the web player's page
-(:func:`open_player`), and the decoded arrays' digests on both sides (:data:`DIGESTS`, :func:`python_digests`).
+(:func:`open_player`), a canvas's picture (:func:`data_url_image`), and the decoded arrays' digests on both sides (:data:`DIGESTS`, :func:`python_digests`).
 ``CHROMIUM`` is None where Debian's ``chromium`` is missing."""
 
 from __future__ import annotations
@@ -70,6 +70,11 @@ DIGEST_BODY = """const hex = async (a) => Array.from(new Uint8Array(await crypto
   for (const [k, m] of Object.entries(p.mlp)) out[`mlp.${k}`] = await hex(m.values);
   return out;"""
 DIGESTS, SEGMENT_DIGESTS = (page.replace("DIGEST_BODY", DIGEST_BODY) for page in (DIGESTS, SEGMENT_DIGESTS))
+
+
+def data_url_image(data_url: str) -> np.ndarray:
+    """The RGB picture [H, W, 3] (float64, 0–255) of a canvas's ``toDataURL('image/png')``."""
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(data_url.split(",", 1)[1]))).convert("RGB"), np.float64)
 
 
 def python_digests(path, segment: int | None = None) -> dict[str, str]:

@@ -8,21 +8,18 @@ from the repository's ``node_modules`` (``npm ci``). Used by ``tests/web/test_gl
 
 from __future__ import annotations
 
-import base64
-import io
 import json
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 from omg4.data.scene import Camera
 from omg4.io import worlds
 from omg4.metrics import psnr
 from omg4.render.view import render_view
-from omg4.testing.browser import Browser, served
+from omg4.testing.browser import Browser, data_url_image, served
 
 PLAYCANVAS = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,"></head>
 <body style="margin: 0"><script type="module">
@@ -148,8 +145,7 @@ def drawn_by(browser: Browser, folder: Path, page: str, modules: Path) -> np.nda
             if browser.evaluate(f"location.href === {json.dumps(url + '/page.html')} && !!window.loaded"):
                 break
         data_url = browser.evaluate(SETTLED, timeout=120)
-    return np.asarray(Image.open(io.BytesIO(base64.b64decode(data_url.split(",", 1)[1]))).convert("RGB"),
-                      np.float64) / 255
+    return data_url_image(data_url) / 255
 
 
 def ply_to_glb(ply: Path, glb: Path, modules: Path) -> None:

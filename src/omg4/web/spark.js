@@ -59,10 +59,10 @@ export function principalAxes(c) {
   return { sigma, axes: v };
 }
 
+const MIN_ALPHA = 1 / 255;  // Spark's minAlpha here: a splat of lower opacity draws no pixel
+
 /** SparkRenderer options that draw as omg4's renderer does (gsplat's conventions): the 0.3 px² dilation without
  * opacity compensation, splats cut at 3.33σ and α ≥ 1/255, sorted by view depth. */
-const MIN_ALPHA = 1 / 255;
-
 export const OMG4_CONVENTIONS = { preBlurAmount: 0.3, blurAmount: 0, maxStdDev: 3.33, minAlpha: MIN_ALPHA, sortRadial: false };
 
 export class Omg4Splats {
@@ -134,7 +134,6 @@ export class Omg4Splats {
       words[at + 3] = shape[2 * g + 1];
     }
     this.packed.numSplats = shown;
-    this.shown = shown;
     this.packed.needsUpdate = true;
     this.time = tau;
     this._seenFrom = center;
