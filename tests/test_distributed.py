@@ -125,7 +125,11 @@ def test_compress_and_eval_on_two_ranks_equal_one_process(tiny_scene_dir, single
     view = load_scene(tiny_scene_dir, progress=False).test_views[2]
     images = [render_view(load_model(tmp_path / f"{n}.omg4"), view.camera, view.timestamp, backend="cpu")[0].image
               for n in ("one", "two")]
-    torch.testing.assert_close(images[0], images[1], atol=2e-3, rtol=0)
+    # gradients summed in another order: parameters differ at rounding level, and on some CPUs a nearest-codeword
+    # choice at a rounding-level tie falls the other way (seen: one pixel of 9,216 off by 3.1e-3); a rank that
+    # trains on its own views alone, or another Gaussian set, moves most pixels
+    diff = (images[0] - images[1]).abs()
+    assert diff.mean() < 1e-4 and (diff > 2e-3).float().mean() <= 1e-3 and diff.max() < 3e-2, (diff.mean(), diff.max())
     evals = []
     for nproc, name in ((None, "e1.json"), (2, "e2.json")):
         ok(omg4("eval", str(tiny_scene_dir), "--model", str(tmp_path / "one.omg4"), "--backend", "cpu", "--json",
