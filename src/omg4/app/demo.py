@@ -68,7 +68,7 @@ QUICK = DemoSettings(cameras=6, frames=8, width=96, height=64, train_iterations=
 """``omg4 demo --quick``: every step of the demo in seconds, to check an installation; its numbers mean nothing."""
 
 SMOKE_CHECK_NOTE = ("--quick is a smoke check of the installation (60 training steps, a few compression steps): its "
-                    "numbers are not the method's quality; omg4 demo without --quick measures it (about 7 minutes "
+                    "numbers are not the method's quality; omg4 demo without --quick measures it (about 4 to 6 minutes "
                     "on two CPU cores)")
 
 
