@@ -1,7 +1,7 @@
 """Headless Chromium for the browser tests: started with software WebGL2 (SwiftShader) and driven over the DevTools
 protocol (navigate, evaluate, screenshot), a static file server (:func:`served`), the web player's page
-(:func:`open_player`), a canvas's picture (:func:`data_url_image`), and the decoded arrays' digests on both sides (:data:`DIGESTS`, :func:`python_digests`).
-``CHROMIUM`` is None where Debian's ``chromium`` is missing."""
+(:func:`open_player`), a canvas's picture (:func:`data_url_image`), and the decoded arrays' digests on both sides
+(:data:`DIGESTS`, :func:`python_digests`). ``CHROMIUM`` is None where Debian's ``chromium`` is missing."""
 
 from __future__ import annotations
 
