@@ -66,14 +66,18 @@ class Setting:
 
 
 def settings_of(cls, prefix: str = "") -> dict[str, Setting]:
-    """Every field of the dataclass ``cls`` by dotted name; nested dataclass fields (also optional ones) expand."""
+    """Every field of the dataclass ``cls`` by dotted name; nested dataclass fields (also optional ones) expand, and a
+    field typed as a union of dataclasses (the training config's ``strategy``) expands every member's fields once (a
+    name two members share is one setting: theirs agree, the members being subclasses of one another's base)."""
     hints = typing.get_type_hints(cls)
     out: dict[str, Setting] = {}
     for f in dataclasses.fields(cls):
         kind = hints[f.name]
-        nested = _dataclass_in(kind)
-        if nested is not None:
-            out.update(settings_of(nested, prefix + f.name + "."))
+        nested = _dataclasses_in(kind)
+        if nested:
+            for member in nested:
+                for name, setting in settings_of(member, prefix + f.name + ".").items():
+                    out.setdefault(name, setting)
             continue
         default = f.default if f.default is not dataclasses.MISSING else (
             f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
@@ -81,14 +85,14 @@ def settings_of(cls, prefix: str = "") -> dict[str, Setting]:
     return out
 
 
-def _dataclass_in(kind) -> type | None:
-    """The dataclass of an annotation ``C`` or ``C | None``, else None."""
+def _dataclasses_in(kind) -> list[type]:
+    """The dataclasses of an annotation ``C``, ``C | None`` or ``C | D | …`` (empty when it holds none)."""
     if dataclasses.is_dataclass(kind):
-        return kind
-    args = [a for a in typing.get_args(kind) if a is not type(None)]
-    if _is_union(kind) and len(args) == 1 and dataclasses.is_dataclass(args[0]):
-        return args[0]
-    return None
+        return [kind]
+    if not _is_union(kind):
+        return []
+    members = [a for a in typing.get_args(kind) if a is not type(None)]
+    return members if all(dataclasses.is_dataclass(a) for a in members) else []
 
 
 def _is_union(kind) -> bool:
@@ -221,8 +225,10 @@ def type_name(kind) -> str:
 
 
 def apply_settings(config, values: dict[str, Any]):
-    """A copy of the dataclass instance ``config`` with the flat, checked ``values`` applied (nested ones too; an
-    unset nested config starts from its class's defaults)."""
+    """A copy of the dataclass instance ``config`` with the flat, checked ``values`` applied: its own fields first, then
+    the nested ones (an unset nested config starts from its class's defaults), so that a nested config its own fields
+    decide (the training config's ``strategy``, by the backbone) takes its settings as that class's. A nested name
+    that class lacks is a one-line error."""
     top: dict[str, Any] = {}
     nested: dict[str, dict[str, Any]] = {}
     for key, value in values.items():
@@ -231,13 +237,20 @@ def apply_settings(config, values: dict[str, Any]):
             nested.setdefault(head, {})[rest] = value
         else:
             top[head] = value
+    config = dataclasses.replace(config, **top)
     hints = typing.get_type_hints(type(config))
+    changed: dict[str, Any] = {}
     for head, inner in nested.items():
         current = getattr(config, head)
         if current is None:
-            current = _dataclass_in(hints[head])()
-        top[head] = apply_settings(current, inner)
-    return dataclasses.replace(config, **top)
+            current = _dataclasses_in(hints[head])[0]()
+        names = {f.name for f in dataclasses.fields(current)}
+        unknown = sorted(f"{head}.{key}" for key in inner if key.partition(".")[0] not in names)
+        if unknown:
+            raise OMG4Error(f"{type(config).__name__}'s {head} is {type(current).__name__}, which has no setting "
+                            f"{', '.join(unknown)}")
+        changed[head] = apply_settings(current, inner)
+    return dataclasses.replace(config, **changed) if changed else config
 
 
 def config_dict(config) -> dict[str, Any]:

@@ -10,10 +10,11 @@ FreeTimeGS (``backbone="freetimegs"``) trains on the same schedule with a fixed 
 relocates Gaussians whose opacity fell below ``relocate_opacity`` instead of densifying and
 pruning, never resets opacities, and adds the 4D regularization ``lambda_reg`` · mean σ·sg[p_t]
 until ``densify_until`` (FreeTimeGS §3.3–3.4). Which of these a run uses is its backbone's density control
-(:mod:`omg4.train.strategies`), whose settings the config holds nested as ``strategy`` (``strategy.densify_until``).
+(:mod:`omg4.train.strategies`), which the config holds, typed, as ``strategy`` (``strategy.densify_until``).
 Every field is settable by name (:mod:`omg4.settings`). The settings' earlier flat names (``densify_until``) still
 read in config files, records and ``--set`` (config files and ``--set`` with a one-line deprecation message), and
-:func:`make_config` takes the density control's settings by their own names.
+:func:`make_config` takes the density control's settings by their own names. Records of every earlier form are read
+by one function, :meth:`TrainConfig.from_dict`.
 """
 
 from __future__ import annotations
@@ -24,12 +25,15 @@ from typing import ClassVar
 import torch
 
 from omg4.errors import OMG4Error
+from omg4.gaussians.backbone import backbone_named
 from omg4.optimize.parameters import LEARNING_RATES as LR
 from omg4.settings import apply_settings, drop_removed, knob
-from omg4.train.strategies import StrategySettings
-from omg4.train.strategies.base import ScheduledEvents
+from omg4.train.strategies import STRATEGIES, Strategy, as_strategy, strategy_class
+from omg4.train.strategies.base import DensityStrategy, ScheduledEvents
+from omg4.train.strategies.densification import Densification
 
-STRATEGY_SETTINGS = tuple(f.name for f in fields(StrategySettings))
+STRATEGY_SETTINGS = tuple(dict.fromkeys(f.name for cls in (DensityStrategy, *STRATEGIES.values())
+                                        for f in fields(cls)))
 """The density controls' settings, nested under ``strategy``; their earlier flat names still work (deprecated)."""
 
 
@@ -62,8 +66,8 @@ class TrainConfig:
     duration_lr: float = knob(LR.duration_lr, "FreeTimeGS log-duration learning rate")
     backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
     device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
-    strategy: StrategySettings = field(
-        default_factory=StrategySettings, metadata={"help": "the density control's settings (omg4.train.strategies)"})
+    strategy: Strategy = field(
+        default_factory=Densification, metadata={"help": "the backbone's density control (omg4.train.strategies)"})
 
     MOVED_SETTINGS: ClassVar[dict[str, str]] = {name: f"strategy.{name}" for name in STRATEGY_SETTINGS}
     """Earlier flat names of settings, and where they are now (read with a one-line deprecation message)."""
@@ -72,6 +76,16 @@ class TrainConfig:
         "still_weight": (0.0, "the penalty on lasting Gaussians' motion did not pay (docs/results.md, 'Options "
                               "removed, and why'; benchmarks/results/segments_carry_synthetic240.json)")}
     """Settings no longer here: their "off" value, and why they went (:func:`omg4.settings.drop_removed`)."""
+
+    def __post_init__(self) -> None:
+        """The strategy is the backbone's density control: another one (``replace(cfg, backbone="freetimegs")``)
+        becomes the backbone's, keeping the settings both have (the schedule, the budget)."""
+        try:
+            cls = strategy_class(backbone_named(self.backbone))
+        except ValueError as exc:
+            raise OMG4Error(str(exc)) from None
+        if type(self.strategy) is not cls:
+            object.__setattr__(self, "strategy", as_strategy(cls, self.strategy))
 
     def with_strategy(self, **changes) -> "TrainConfig":
         """A copy with the density control's settings ``changes`` (``max_gaussians=…``)."""
@@ -82,15 +96,18 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(d: dict) -> "TrainConfig":
-        """The config a run's record holds (nested, or flat as records made before ``strategy`` were: read
-        silently, a record not being the user's writing)."""
+        """The config a run's record holds, in any form omg4 has written: nested (the backbone's strategy, or the
+        union of every strategy's settings that records held before each strategy had its own class, whose other
+        strategies' settings are dropped), or flat as records made before ``strategy`` were; read silently, a record
+        not being the user's writing."""
         names = {f.name for f in fields(TrainConfig)}
         d = drop_removed(TrainConfig, dict(d))
         kwargs = {k: (tuple(v) if k == "background" else v) for k, v in d.items() if k in names}
         inner = dict(kwargs.pop("strategy", None) or {})
         inner.update({k: v for k, v in d.items() if k in STRATEGY_SETTINGS})
-        known = {k: v for k, v in inner.items() if k in STRATEGY_SETTINGS}
-        return TrainConfig(**kwargs, strategy=StrategySettings(**known))
+        cls = strategy_class(backbone_named(kwargs.get("backbone", TrainConfig.backbone)))
+        own = {f.name for f in fields(cls)}
+        return TrainConfig(**kwargs, strategy=cls(**{k: v for k, v in inner.items() if k in own}))
 
 
 PRESETS: dict[str, dict] = {
@@ -136,9 +153,9 @@ def setting_of(cfg: TrainConfig, name: str):
 
 def make_config(preset: str = "official", overrides: dict | None = None, **settings) -> TrainConfig:
     """The preset's config with ``overrides`` (dotted names: ``{"strategy.densify_until": 2000}``) and ``settings``
-    (keyword arguments: the fields, ``strategy`` as a mapping or a :class:`StrategySettings`, and the density
-    control's settings by their own names, ``densify_until=2000``, each name being one setting) applied, ``None``
-    values ignored.
+    (keyword arguments: the fields, ``strategy`` as a mapping or a strategy, and the density control's settings by
+    their own names, ``densify_until=2000``) applied, ``None`` values ignored; the density control's settings are
+    those of the backbone's (:func:`omg4.train.strategies.strategy_class`).
 
     Overriding ``iterations`` scales the preset's schedule (densification window,
     opacity resets, SH degree steps, position decay) by the same factor, unless those are
@@ -151,7 +168,7 @@ def make_config(preset: str = "official", overrides: dict | None = None, **setti
     cfg = apply_settings(TrainConfig(), PRESETS[preset])
     given = dict(overrides or {})
     strategy = settings.pop("strategy", None)
-    if isinstance(strategy, StrategySettings):
+    if isinstance(strategy, DensityStrategy):
         strategy = {f.name: getattr(strategy, f.name) for f in fields(strategy)}
     given.update({f"strategy.{k}": v for k, v in (strategy or {}).items()})
     for name, value in settings.items():
@@ -159,8 +176,9 @@ def make_config(preset: str = "official", overrides: dict | None = None, **setti
     given = {k: v for k, v in given.items() if v is not None}
     if "iterations" in given:
         factor = given["iterations"] / cfg.iterations
+        own = {f"strategy.{f.name}" for f in fields(strategy_class(backbone_named(given.get("backbone", cfg.backbone))))}
         for name in SCHEDULE_FIELDS:
-            if name not in given:
+            if name not in given and (name in own or not name.startswith("strategy.")):
                 floor = MIN_DENSIFY_INTERVAL if name == "strategy.densify_interval" else 1
                 given[name] = max(floor, int(round(setting_of(cfg, name) * factor)))
     return apply_settings(cfg, given)

@@ -237,9 +237,9 @@ def test_opacity_reset_caps_at_one_percent_and_clears_only_the_opacity_moments()
 def _trainer_with_recorders(tiny_scene, tmp_path, monkeypatch, backbone="rt4dgs", **overrides):
     from omg4.train import Trainer, make_config
 
+    own = dict(max_gaussians=700) if backbone == "freetimegs" else dict(max_gaussians=0, opacity_reset_interval=6)
     cfg = make_config("cpu-small", iterations=20, batch_size=1, densify_from=2, densify_interval=3, densify_until=16,
-                      opacity_reset_interval=6, checkpoint_interval=0, backend="cpu", backbone=backbone,
-                      max_gaussians=700 if backbone == "freetimegs" else 0, **overrides)
+                      checkpoint_interval=0, backend="cpu", backbone=backbone, **own, **overrides)
     trainer = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None)
     calls = []
     monkeypatch.setattr(densify, "densify_and_prune", lambda *a, **k: calls.append(("densify", k)) or {})

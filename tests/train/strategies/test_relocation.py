@@ -152,8 +152,7 @@ def test_the_freetimegs_regularizer_weighs_in_until_densification_ends():
     times = torch.tensor([0.2, 0.7], dtype=torch.float64)
     p = model.params
     expected = 0.25 * opacity_regularizer(p["opacity"], p["t"], p["duration"], times)
-    torch.testing.assert_close(Relocation.from_config(cfg).regularizer(p, times, 99), expected)
-    assert Relocation.from_config(cfg).regularizer(p, times, 100) is None
-    from dataclasses import replace
-
-    assert Relocation.from_config(cfg.with_strategy(lambda_reg=0.0)).regularizer(p, times, 5) is None
+    assert type(cfg.strategy) is Relocation
+    torch.testing.assert_close(cfg.strategy.regularizer(p, times, 99), expected)
+    assert cfg.strategy.regularizer(p, times, 100) is None
+    assert cfg.with_strategy(lambda_reg=0.0).strategy.regularizer(p, times, 5) is None

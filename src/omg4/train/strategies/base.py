@@ -3,9 +3,9 @@
 A backbone names its strategy (:attr:`omg4.gaussians.backbone.Backbone.training`; the named ones are in
 :data:`omg4.train.strategies.STRATEGIES`). A backbone that names none trains a fixed set of Gaussians
 (:class:`DensityStrategy` itself). As gsplat's strategies, a strategy is a dataclass that owns its settings: its
-fields, with their defaults and help, which the run's config holds nested under ``strategy``
-(``TrainConfig.strategy``, ``--set strategy.<field>=…``; :meth:`DensityStrategy.from_config` builds the strategy
-from it). The run's ``seed`` is the run's, not a strategy setting (:data:`RUN_FIELDS`). The trainer calls, in order:
+fields, with their defaults and help; the run's config holds the backbone's strategy as ``strategy``
+(``TrainConfig.strategy``, ``--set strategy.<field>=…``), and :func:`omg4.train.strategies.strategy_for` gives the
+run a copy of it seeded by the run's ``seed`` (the run's, not a strategy setting). The trainer calls, in order:
 :meth:`~DensityStrategy.initial_points` once; then at every step :meth:`~DensityStrategy.collects_statistics`
 (whether the view-space gradient statistics are accumulated), :meth:`~DensityStrategy.regularizer` (a term
 added to the loss) and, after the optimizer step, :meth:`~DensityStrategy.after_step` (the density events).
@@ -19,9 +19,6 @@ import torch
 
 from omg4.settings import knob
 
-RUN_FIELDS = ("seed",)
-"""Strategy fields the run gives (from its own settings of the same names), not settings of the strategy."""
-
 
 @dataclasses.dataclass
 class DensityStrategy:
@@ -29,16 +26,6 @@ class DensityStrategy:
     events."""
 
     max_gaussians: int = knob(0, "cap on the Gaussian count (0: none); FreeTimeGS: its fixed budget")
-
-    @classmethod
-    def from_config(cls, cfg) -> "DensityStrategy":
-        """The strategy of the run ``cfg`` (a :class:`~omg4.train.config.TrainConfig`): each field from
-        ``cfg.strategy``'s setting of the same name (one it lacks keeps its default), :data:`RUN_FIELDS` from
-        ``cfg`` itself."""
-        settings, names = cfg.strategy, {f.name for f in dataclasses.fields(cls)}
-        values = {name: getattr(settings, name) for name in names if hasattr(settings, name)}
-        values.update({name: getattr(cfg, name) for name in RUN_FIELDS if name in names})
-        return cls(**values)
 
     def initial_points(self, xyz: torch.Tensor, rgb: torch.Tensor, generator: torch.Generator
                        ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -74,10 +61,10 @@ class ScheduledEvents(DensityStrategy):
     densify_from: int = knob(500, "first density event after this step")
     densify_until: int = knob(15_000, "no density events, statistics or regularization from this step on")
     densify_interval: int = knob(100, "steps between density events")
-    seed: int = 6666  # the run's (RUN_FIELDS), default as TrainConfig's
+    seed = 6666  # the run's, set by strategy_for (not a field: not a setting of the strategy)
 
     def collects_statistics(self, step: int) -> bool:
         return step < self.densify_until
 
 
-__all__ = ["RUN_FIELDS", "DensityStrategy", "ScheduledEvents"]
+__all__ = ["DensityStrategy", "ScheduledEvents"]
