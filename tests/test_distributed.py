@@ -24,11 +24,12 @@ from omg4.gaussians.checkpoint import load_gaussians
 pytestmark = pytest.mark.skipif(not torch.distributed.is_available(), reason="torch.distributed is not available")
 
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
-#: 30 steps at batch 2 spanning three densification events, an opacity reset (at 20) and the screen-size limit
-TRAIN = ["--preset", "cpu-small", "--iterations", "30", "--batch-size", "2", "--densify-interval", "10",
-         "--set", "strategy.densify_from=5", "--set", "strategy.densify_until=28", "--set", "strategy.opacity_reset_interval=20",
-         "--set", "strategy.densify_grad_threshold=1e-5", "--backend", "cpu", "--checkpoint-interval", "10",
-         "--test-interval", "0"]
+#: 30 steps at batch 2 spanning three density events (either backbone's)
+SCHEDULE = ["--preset", "cpu-small", "--iterations", "30", "--batch-size", "2", "--densify-interval", "10",
+            "--set", "strategy.densify_from=5", "--set", "strategy.densify_until=28", "--backend", "cpu",
+            "--checkpoint-interval", "10", "--test-interval", "0"]
+#: Real-Time4DGS's: three densification events, an opacity reset (at 20) and the screen-size limit
+TRAIN = [*SCHEDULE, "--set", "strategy.opacity_reset_interval=20", "--set", "strategy.densify_grad_threshold=1e-5"]
 
 
 def omg4(*args: str, nproc: int | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -76,7 +77,7 @@ def test_two_ranks_train_as_one_process_through_densification_and_a_reset(tiny_s
 
 
 def test_two_ranks_train_freetimegs_with_relocation_as_one_process(tiny_scene_dir, tmp_path):
-    args = [*TRAIN, "--backbone", "freetimegs", "--budget", "900", "--set", "strategy.relocate_opacity=0.3"]
+    args = [*SCHEDULE, "--backbone", "freetimegs", "--budget", "900", "--set", "strategy.relocate_opacity=0.3"]
     ok(omg4("train", str(tiny_scene_dir), "--out", str(tmp_path / "one"), *args))
     ok(omg4("train", str(tiny_scene_dir), "--out", str(tmp_path / "two"), *args, nproc=2))
     # the quaternions of Gaussians whose rotation gradient is at rounding level: Adam's normalized step (about its

@@ -1,9 +1,9 @@
-"""What a predicted segment's base layer (:mod:`omg4.compress.carry_stage`) saves and costs, per setting.
+"""What a predicted segment's base layer (:mod:`omg4.compress.stream`) saves and costs, per setting.
 
 One predicted segment of a segmented training run (``--segment``, default 1), compressed from the segment before as
 it decoded from an existing sequence file (so the key segment is the same in every row), once per ``--variants``
 entry: a ``carry`` setting (``0``, ``lasting``, ``auto`` or a tolerance), optionally with ``COVER``,
-``LASTING_MARGINAL`` or ``STILL`` (:mod:`omg4.compress.carry_stage`, :mod:`omg4.gaussians.visibility`) set for that
+``LASTING_MARGINAL`` or ``STILL`` (:mod:`omg4.compress.stream`) set for that
 run (``lasting:cover=0.5``, ``lasting:margin=0.8``, ``lasting:still=1e9`` for no limit on motion). Each row: the
 segment's bytes, its own and carried Gaussians, and PSNR / SSIM on the test camera over the segment's frames. Every
 compression runs in a fresh process, one at a time.
@@ -27,8 +27,18 @@ from omg4.testing.records import save_record
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 KNOBS = {"cover": "COVER", "margin": "LASTING_MARGINAL", "still": "STILL"}
-"""Variant knobs and the constants they set: ``COVER`` in omg4.compress.carry_stage, the others in
-omg4.gaussians.visibility (the lasting rule)."""
+"""Variant knobs and the constants of omg4.compress.stream they set (the base layer's cover, the lasting rule)."""
+
+
+def set_knobs(knobs: dict[str, float]) -> None:
+    """Set each constant of omg4.compress.stream named in ``knobs`` (one it does not have stops the study: a
+    constant that moved would otherwise be set where nothing reads it)."""
+    import omg4.compress.stream as stream
+
+    for name, value in knobs.items():
+        if not hasattr(stream, name):
+            raise SystemExit(f"omg4.compress.stream has no constant {name}")
+        setattr(stream, name, value)
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, float]]:
@@ -47,13 +57,12 @@ def one(args, setting: str, knobs: dict[str, float], out: Path) -> dict:
     """Compress and score the segment for one variant (in this process)."""
     import time
 
-    import omg4.compress.carry_stage as carry_stage
-    import omg4.gaussians.visibility as visibility
     from omg4.codec.payload import decode_payload
     from omg4.codec.references import reference_sections
     from omg4.codec.sequence import SegmentDecoder
     from omg4.compress.api import compress_to_file
     from omg4.compress.pipeline import CompressConfig
+    from omg4.compress.stream import SegmentBefore
     from omg4.data import load_scene
     from omg4.data.segments import read_run_plan, shared_frames
     from omg4.evaluate import evaluate
@@ -61,8 +70,7 @@ def one(args, setting: str, knobs: dict[str, float], out: Path) -> dict:
     from omg4.models.compact import CompactModel
     from omg4.optimize.teaching import taught_by
 
-    for name, value in knobs.items():
-        setattr(carry_stage if name == "COVER" else visibility, name, value)
+    set_knobs(knobs)
     plan = read_run_plan(args.run)
     k = args.segment
     before = SegmentDecoder(args.sequence).payload(k - 1)
@@ -73,7 +81,7 @@ def one(args, setting: str, knobs: dict[str, float], out: Path) -> dict:
     taught = taught_by(scene, CompactModel(before, "cpu"), shared_frames(seg_before, seg), background=cfg.background)
     baseline, _ = load_gaussians(Path(args.run) / seg["folder"] / "model.safetensors")
     t0 = time.perf_counter()
-    report = compress_to_file(baseline, taught, cfg, out, reference=reference_sections(before), log=lambda *_: None)
+    report = compress_to_file(baseline, taught, cfg, out, before=SegmentBefore.decoded(before), log=lambda *_: None)
     seconds = time.perf_counter() - t0
     model = CompactModel(decode_payload(out.read_bytes(), reference_sections(before)), "cpu")
     result = evaluate(model, scene.test_views, storage_bytes=out.stat().st_size, lpips_nets=(), progress=False)

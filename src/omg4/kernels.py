@@ -11,6 +11,7 @@ kernel is defined (numba binds the cache location at decoration time).
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import weakref
 from pathlib import Path
@@ -86,14 +87,20 @@ KERNEL_MODES = ("fused", "reference")
 ``reference``: the pure-torch forms everywhere (the reference the kernels are tested against). The rasterizer's
 kernels run in both."""
 
-_chosen_mode: str | None = None
-"""The kernels :func:`using_kernels` chose for the code it runs (a command: ``--kernels``; every thread sees it)."""
+KERNELS_HELP = ("per-Gaussian work on the CPU: fused (the numba kernels) or reference (the pure-torch forms they are "
+                "tested against); unset: $OMG4_KERNELS, else fused")
+"""The help of the configs' ``kernels`` field (:class:`~omg4.train.config.TrainConfig`,
+:class:`~omg4.compress.pipeline.CompressConfig`)."""
+
+_chosen_mode: contextvars.ContextVar[str | None] = contextvars.ContextVar("omg4_kernels", default=None)
+"""The kernels :func:`using_kernels` chose for the code it runs: a run's config's ``kernels`` (the trainer, the
+compression pipeline), a command's ``--kernels``."""
 
 
 def kernel_mode() -> str:
     """The kernels in use: :func:`using_kernels`'s choice, else ``$OMG4_KERNELS``, else ``fused``; the one place that
     decides (every operation with a kernel asks :func:`runs_cpu_kernels`, a model's frame :func:`fused_kernels`)."""
-    mode = _chosen_mode or os.environ.get("OMG4_KERNELS") or KERNEL_MODES[0]
+    mode = _chosen_mode.get() or os.environ.get("OMG4_KERNELS") or KERNEL_MODES[0]
     if mode not in KERNEL_MODES:
         raise ValueError(f"unknown kernels '{mode}' (OMG4_KERNELS): choose from {', '.join(KERNEL_MODES)}")
     return mode
@@ -102,15 +109,20 @@ def kernel_mode() -> str:
 @contextlib.contextmanager
 def using_kernels(mode: str | None) -> Iterator[None]:
     """Run the body with the ``mode`` kernels (:data:`KERNEL_MODES`; None: those already in use); the choice before
-    holds again after it."""
-    global _chosen_mode
-    if mode is not None and mode not in KERNEL_MODES:
-        raise ValueError(f"unknown kernels '{mode}': choose from {', '.join(KERNEL_MODES)}")
-    before, _chosen_mode = _chosen_mode, mode or _chosen_mode
+    holds again after it. The choice is the body's context's (a thread or task started inside keeps the choice it
+    started with)."""
+    check_kernels(mode)
+    token = _chosen_mode.set(mode or _chosen_mode.get())
     try:
         yield
     finally:
-        _chosen_mode = before
+        _chosen_mode.reset(token)
+
+
+def check_kernels(mode: str | None) -> None:
+    """A ``ValueError`` naming the choices unless ``mode`` is one of :data:`KERNEL_MODES` or None."""
+    if mode is not None and mode not in KERNEL_MODES:
+        raise ValueError(f"unknown kernels '{mode}': choose from {', '.join(KERNEL_MODES)}")
 
 
 def fused_kernels() -> bool:
@@ -138,5 +150,5 @@ def keeping_torch_threads() -> Iterator[None]:
             torch.set_num_threads(torch_threads)
 
 
-__all__ = ["FAST_MATH", "KERNEL_MODES", "as_numpy", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
+__all__ = ["FAST_MATH", "KERNEL_MODES", "KERNELS_HELP", "as_numpy", "check_kernels", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
            "fused_kernels", "resolve_cache_dir", "runs_cpu_kernels", "using_kernels"]

@@ -276,8 +276,9 @@ def test_train_force_keeps_the_old_run_when_the_initialization_fails(tiny_scene_
 
 
 def test_kernels_are_the_commands_choice_for_its_run_only(tiny_scene_dir, tmp_path, monkeypatch):
-    """``--kernels`` holds while the command runs, where every operation asks the one place that decides, and not
-    after it (nor does parsing ``--device`` choose); the command's own failure leaves the choice as it was."""
+    """``--kernels`` is the run's config's ``kernels`` (recorded) and holds while the command runs, where every
+    operation asks the one place that decides, and not after it (nor does parsing ``--device`` choose); the command's
+    own failure leaves the choice as it was."""
     from omg4.errors import OMG4Error
     from omg4.kernels import kernel_mode, runs_cpu_kernels
 
@@ -287,12 +288,38 @@ def test_kernels_are_the_commands_choice_for_its_run_only(tiny_scene_dir, tmp_pa
         seen.append((kernel_mode(), runs_cpu_kernels(torch.zeros(2))))
         raise OMG4Error("stop here")
 
-    monkeypatch.setattr("omg4.train.trainer.Trainer.train_step", recording_step)
+    monkeypatch.setattr("omg4.train.trainer.Trainer._train_step", recording_step)
     base = ["train", str(tiny_scene_dir), "--iterations", "2"]
     assert main([*base, "--out", str(tmp_path / "a"), "--kernels", "reference"]) == 2
     assert kernel_mode() == "fused" and runs_cpu_kernels(torch.zeros(2))
     assert main([*base, "--out", str(tmp_path / "b")]) == 2
-    assert seen == [("reference", False), ("fused", True)]
+    assert main([*base, "--out", str(tmp_path / "c"), "--set", "kernels=reference"]) == 2
+    assert seen == [("reference", False), ("fused", True), ("reference", False)]
+    recorded = [json.loads((tmp_path / run / "config.json").read_text())["train_config"]["kernels"] for run in "abc"]
+    assert recorded == ["reference", None, "reference"]
+
+
+def test_a_configs_kernels_hold_in_its_trainer_and_pipeline_only(tiny_scene, tmp_path, monkeypatch):
+    """The choice is the config's: the trainer's and the pipeline's steps run with it (from the library too, no
+    command around them), and it is gone after them; an unknown one is a one-line error."""
+    from omg4.compress.pipeline import CompressConfig, CompressionPipeline
+    from omg4.errors import OMG4Error
+    from omg4.kernels import kernel_mode
+    from omg4.train import Trainer, make_config
+
+    seen = []
+    monkeypatch.setattr("omg4.train.trainer.Trainer._train_step", lambda self, step: seen.append(kernel_mode()))
+    monkeypatch.setattr(CompressionPipeline, "_finetune_step", lambda self, step: seen.append(kernel_mode()))
+    cfg = make_config("cpu-small", iterations=1, checkpoint_interval=0, backend="cpu", kernels="reference")
+    trainer = Trainer(tiny_scene, cfg, tmp_path / "run", progress=False, log=lambda *_: None)
+    trainer.train_step(1)
+    pipeline = CompressionPipeline(trainer.model, tiny_scene, CompressConfig(schedule="tiny", kernels="reference"),
+                                   progress=False)
+    pipeline.finetune_step(1)
+    assert seen == ["reference", "reference"] and kernel_mode() == "fused"
+    with pytest.raises(OMG4Error, match="unknown kernels 'fast'") as caught:
+        make_config("cpu-small", kernels="fast")
+    assert "\n" not in str(caught.value)
 
 
 @pytest.mark.parametrize("name", ["model.safetensors", "config.json", "checkpoints/summary.json"])

@@ -17,6 +17,7 @@ from omg4.codec.references import reference_sections
 from omg4.compress.api import compress_to_file, refuse_held
 from omg4.compress.pipeline import CompressConfig
 from omg4.compress.schedule import StageLengths
+from omg4.compress.stream import SegmentBefore
 from omg4.data import load_scene
 from omg4.errors import OMG4Error
 from omg4.gaussians import GaussianConfig, Gaussians4D
@@ -82,7 +83,7 @@ def predicted(capture, model, out):
     scene, _, _, cfg, key = capture
     reference = reference_sections(decode_payload(key))
     report = compress_to_file(model, video_of(scene(4, 10), model), cfg, out, progress=False, log=lambda *_: None,
-                              reference=reference)
+                              before=SegmentBefore(reference))
     _, header, _ = read_versioned(out)
     return header, report["sections"], decode_payload(out, reference), decode_payload(key)
 

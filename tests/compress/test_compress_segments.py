@@ -203,6 +203,7 @@ def test_a_predicted_segment_carries_the_segment_befores_gaussians_as_they_decod
     from omg4.codec.references import reference_sections
     from omg4.compress.api import build_payload
     from omg4.compress.pipeline import CompressionPipeline
+    from omg4.compress.stream import SegmentBefore
     from omg4.models.compact import payload_values
 
     root, scenes = three_segments
@@ -214,7 +215,7 @@ def test_a_predicted_segment_carries_the_segment_befores_gaussians_as_they_decod
     for tolerance in (0.0, 4.0):
         pipeline = CompressionPipeline(baseline, scenes(4, 10), CompressConfig(lengths=LENGTHS, batch_size=1,
                                        backend="cpu", carry=tolerance), progress=False, log=lambda *_: None,
-                                       reference=reference)
+                                       before=SegmentBefore(reference))
         model = pipeline.run()
         encode_payload(build_payload(model, {"time_range": [4 / 30, 10 / 30]}), tmp_path / "p.omg4",
                        reference=reference)
@@ -243,7 +244,7 @@ def test_auto_decides_each_predicted_segments_carry_from_what_it_covers_and_info
     as many as it records; ``omg4 info`` prints the decision."""
     from omg4.app.cli import main
     from omg4.codec.container import read_versioned
-    from omg4.compress.carry_stage import AUTO_MIN_COVERED
+    from omg4.compress.stream import AUTO_MIN_COVERED
 
     out = _sequence(three_segments, tmp_path, 3, carry="auto")
     index = read_index(out)

@@ -17,12 +17,12 @@ import numpy as np
 from omg4 import distributed
 from omg4.codec.container import has_magic
 from omg4.codec.payload import CompactGrids, CompressedPayload, check_codec, decode_payload, encode_payload
-from omg4.codec.references import reference_sections
 from omg4.codec.rig import rig_json
 from omg4.codec.sequence import MAX_KEY_INTERVAL, read_index, valid_key_interval, write_sequence
 from omg4.compress.model import CompressibleModel
 from omg4.compress.pipeline import CompressConfig, CompressionPipeline
 from omg4.compress.score import SDScores
+from omg4.compress.stream import SegmentBefore
 from omg4.data.scene import Scene
 from omg4.data.segments import HOLD_LASTING_REMOVED, read_run_plan, shared_frames
 from omg4.errors import OMG4Error
@@ -84,14 +84,14 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
                      codec: str | None = None, stop_after: str | None = None, scores_path: str | Path | None = None,
                      paper_copy: str | Path | None = None, precision: CompactGrids = CompactGrids(),
                      progress: bool = False, log=None, check_replicas: int = 0,
-                     reference: dict[str, np.ndarray] | None = None) -> dict:
+                     before: SegmentBefore | None = None) -> dict:
     """Run OMG4 on ``baseline`` and write ``out`` (``codec``: None, the coder of ``cfg``'s mode; ``precision``: the
     compact codec's grids); returns a JSON-ready report. The file's header and the report name the mode of the
     run (:meth:`CompressConfig.mode`: ``"paper"``, ``"omg4"`` or which choices were mixed).
 
-    ``reference``: for a predicted segment of a sequence, the :func:`~omg4.codec.payload.reference_sections` of the
-    segment before, decoded; the compression keeps its codebooks and starts from its appearance MLPs
-    (``cfg.predicted_mlp``), and the file stores what it kept as references to it, the MLPs as their change, and no
+    ``before``: for a predicted segment of a sequence, the segment before, decoded (:mod:`omg4.compress.stream`); the
+    compression keeps its codebooks, starts from its appearance MLPs (``cfg.predicted_mlp``) and may carry its
+    Gaussians (``cfg.carry``), and the file stores what it kept as references to it, the MLPs as their change, and no
     camera rig (a sequence's rig is its first segment's; docs/file-format.md §8a).
 
     ``paper_copy``: also write the same pipeline result with the paper-faithful coder there (the
@@ -112,7 +112,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     t0 = time.perf_counter()
     scores = SDScores.load(scores_path, baseline.num_gaussians) if scores_path else None
     pipeline = CompressionPipeline(baseline, scene, cfg, scores=scores, progress=progress, log=log,
-                                   check_replicas=check_replicas, reference=reference)
+                                   check_replicas=check_replicas, before=before)
     scores_out, unsaved = out.with_name(out.name + ".scores.npz"), None
     if scores is None and any(s in cfg.stages for s in ("sample", "prune", "sample+prune")):
         unsaved = pipeline.ensure_scores()
@@ -123,7 +123,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     model = pipeline.run(stop_after=stop_after)
     meta = {"preset": pipeline.size.name, "stages": list(cfg.stages), "mode": cfg.mode(), "scene": scene.name,
             "time_range": list(scene.time_range), "normalization": scene.normalization.to_json()}
-    if reference is None:  # a predicted segment leaves the rig to its sequence's first segment
+    if before is None:  # a predicted segment leaves the rig to its sequence's first segment
         meta["rig"] = rig_json(scene.cameras(), len(scene.test_cameras()))
     if cfg.rate_weight:  # provenance of entropy-constrained codebooks; paper-faithful files stay as they were
         meta["rate_weight"] = cfg.rate_weight
@@ -132,6 +132,7 @@ def compress_to_file(baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, o
     paper: dict[str, int] = {}  # the paper coder's file size, when a copy is written
     sections: dict[str, int] = {}
     file_bytes = None
+    reference = before.sections if before is not None else None
     if main:
         if stop_after is not None:
             save_gaussians(out, model.to_gaussians(), {**meta, "stopped_after": stop_after})
@@ -183,7 +184,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     Every ``key_interval``-th segment (the first included) is a key segment, coded alone; each other one is
     predicted from the segment before (beyond the paper): compressed with that segment's decoded codebooks, kept as
     they are, and its appearance MLPs as a start (``cfg.predicted_mlp``), and stored with references to them and
-    the MLPs' change (``compress_to_file``'s ``reference``).
+    the MLPs' change (``compress_to_file``'s ``before``).
 
     One segment's scene and models are held at a time, and the segment before's compressed model: with ``teach``
     a segment's training views of the frames it shares with the one before show the crossfade from that model's
@@ -208,7 +209,7 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
     try:
         for i, seg in enumerate(plan["segments"]):
             predicted = previous is not None and i % key_interval != 0
-            reference = reference_sections(previous) if predicted else None
+            segment_before = SegmentBefore.decoded(previous) if predicted else None
             references.append(i - 1 if predicted else None)
             log(f"segment {seg['index']}: frames {seg['frames'][0]}-{seg['frames'][1] - 1}"
                 + (f", predicted from segment {i - 1}" if predicted else ", a key segment" if key_interval > 1 else ""))
@@ -223,13 +224,13 @@ def compress_segments(run_dir: str | Path, load_scene, cfg: CompressConfig, out:
             path = work / f"segment_{seg['index']:03d}.omg4"
             reports.append(compress_to_file(baseline, scene, cfg, path, precision=precision,
                                             progress=progress, log=log, check_replicas=check_replicas,
-                                            reference=reference))
+                                            before=segment_before))
             if main:
                 parts.append((tuple(seg["frames"]), tuple(seg["time_range"]), path.read_bytes()))
             if (teach or key_interval > 1) and seg is not plan["segments"][-1]:
                 # every rank decodes rank 0's file: the next segment's teacher and reference
                 blob = distributed.gather_objects(parts[-1][2] if main else None, "sharing the segment")[0]
-                previous = decode_payload(blob, reference)
+                previous = decode_payload(blob, segment_before.sections if segment_before is not None else None)
                 if teach:
                     teacher, before = CompactModel(previous, cfg.device), seg
             del scene, baseline

@@ -15,7 +15,6 @@ import torch
 from torch import Tensor
 
 from omg4.errors import OMG4Error
-from omg4.gaussians.appearance import AppearanceMLP
 from omg4.optimize.parameters import LEARNING_RATES
 
 FEATURE_LR = LEARNING_RATES.feature_lr  # f_static / f_view in the main Adam (omg4 §9): the backbone table's
@@ -77,12 +76,4 @@ def make_mlp_optimizer(mlp: torch.nn.Module, lr: float = MLP_LR, total_iteration
 PREDICTED_MLPS = ("tune", "keep")
 
 
-def reference_mlp(reference: dict | None, num_inputs: int) -> AppearanceMLP | None:
-    """A predicted segment's appearance MLPs to start from: its reference segment's decoded weights (``mlp.NAME`` of
-    :func:`omg4.codec.payload.reference_sections`); None without a reference or one without MLPs."""
-    state = {name[len("mlp."):]: w for name, w in (reference or {}).items() if name.startswith("mlp.")}
-    return AppearanceMLP.from_fp16_state(state, num_inputs) if state else None
-
-
-__all__ = ["FEATURE_LR", "MLP_LR", "PREDICTED_MLPS", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule",
-           "reference_mlp"]
+__all__ = ["FEATURE_LR", "MLP_LR", "PREDICTED_MLPS", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule"]

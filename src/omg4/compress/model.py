@@ -33,7 +33,7 @@ class CompressibleModel(ViewSlicer):
         self.quantizers: dict = {}  # SVQ attribute name -> SubVectorQuantizer
         self.carried: dict[str, torch.Tensor] = {}  # a predicted segment's Gaussians of the segment before, fixed
         self.carried_rows = None  # their rows there (numpy int64, ascending; omg4.codec.carry)
-        self.carry_decision = None  # a predicted segment's carry decision, as its header records it (compress.carry_stage)
+        self.carry_decision = None  # a predicted segment's carry decision, as its header records it (compress.stream)
 
     @staticmethod
     def from_gaussians(model: Gaussians4D) -> "CompressibleModel":

@@ -26,9 +26,8 @@ import torch
 from tqdm.auto import tqdm
 
 from omg4 import distributed
-from omg4.codec.carry import carried_gaussians, reference_count
 from omg4.compress import appearance_stage, merging, modes
-from omg4.compress.carry_stage import AUTO_MIN_COVERED, chosen_carry, valid_setting
+from omg4.compress.stream import AUTO_MIN_COVERED, SegmentBefore, chosen_carry, valid_setting
 from omg4.compress.model import CompressibleModel
 from omg4.compress.presets import SizePreset, size_preset
 from omg4.compress.pruning import check_frame_floor, pruning_mask
@@ -43,8 +42,8 @@ from omg4.errors import OMG4Error
 from omg4.gaussians import Gaussians4D
 from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.backbone import Backbone
+from omg4.kernels import KERNELS_HELP, check_kernels, using_kernels
 from omg4.metrics import psnr
-from omg4.models.compact import payload_values
 from omg4.optimize.parameters import (LEARNING_RATES, baseline_lrs, keep_rows, make_adam, rebuilt_adam, replace_param,
                                       set_position_lr, step_optimizers)
 from omg4.optimize.step import backward_batch, step_generator
@@ -97,6 +96,7 @@ class CompressConfig:
     codebook_lr: float = knob(1e-4, "learning rate of the SVQ codebooks")
     backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
     device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
+    kernels: str | None = knob(None, KERNELS_HELP)
     background: tuple[float, float, float] = knob((0.0, 0.0, 0.0), "background colour, RGB in [0, 1]")
     tau_gs: float | None = knob(None, "sampling ratio τ_GS, overriding the preset's")
     prune_quantile: float | None = knob(None, "pruning quantile p, overriding the preset's")
@@ -185,12 +185,13 @@ class CompressionPipeline:
     an unusable device, or one that does not suit ``cfg.backend``, is an :class:`OMG4Error` here.
     In a distributed job (:mod:`omg4.distributed`) every rank runs the same stages on a replica, scores and
     fine-tunes on its share of the views, and rank 0 alone logs; ``check_replicas`` > 0 compares the replicas
-    every that many iterations.
+    every that many iterations. ``before``: a predicted segment's segment before (:mod:`omg4.compress.stream`), whose
+    MLPs it starts from, whose codebooks it keeps and whose Gaussians it may carry; None: a segment coded alone.
     """
 
     def __init__(self, baseline: Gaussians4D, scene: Scene, cfg: CompressConfig, *, scores: SDScores | None = None,
                  progress: bool = True, log=None, check_replicas: int = 0,
-                 reference: dict[str, np.ndarray] | None = None):
+                 before: SegmentBefore | None = None):
         if not scene.train_views:
             raise OMG4Error("the scene has no training views")
         cfg = cfg.resolved()
@@ -206,6 +207,10 @@ class CompressionPipeline:
         if not (math.isfinite(cfg.rate_weight) and cfg.rate_weight >= 0):
             raise OMG4Error(f"the rate weight must be a finite number >= 0, got {cfg.rate_weight}")
         check_frame_floor(cfg.frame_floor)
+        try:
+            check_kernels(cfg.kernels)
+        except ValueError as exc:
+            raise OMG4Error(str(exc)) from None
         prunes = any(stage in cfg.stages for stage in ("prune", "sample+prune"))
         if prunes and cfg.frame_floor > 0 and scores is not None and scores.frame_rank is None:
             raise OMG4Error("the SD scores given have no frame ranks (written by an older omg4): compute them again, "
@@ -214,7 +219,7 @@ class CompressionPipeline:
         self.scene, self.cfg = scene, cfg
         self.progress, self.log = progress and self.world.main, (log or logger.info) if self.world.main else (lambda *_: None)
         self.check_replicas = check_replicas
-        self.reference = reference
+        self.before = before
         self.schema: Backbone = baseline.config.schema
         self.size = cfg.size(baseline.config.backbone)
         self.device = resolve_device(cfg.device)
@@ -324,9 +329,9 @@ class CompressionPipeline:
             self.model.params.pop(name)
         for name, value in features.items():
             self.model.params[name] = value.detach().clone().requires_grad_(True)
-        taken = appearance_stage.reference_mlp(self.reference, self.schema.mlp_inputs)
+        taken = self.before.mlp(self.schema.mlp_inputs) if self.before is not None else None
         trained = taken is None or self.cfg.predicted_mlp == "tune"
-        if taken is not None:  # a predicted segment: its reference's decoded MLPs, tuned or kept as they are
+        if taken is not None:  # a predicted segment: the segment before's decoded MLPs, tuned or kept as they are
             self.model.appearance = taken.to(self.device).requires_grad_(trained)
         else:
             torch.manual_seed(self.cfg.seed)
@@ -342,9 +347,9 @@ class CompressionPipeline:
 
     def _carry(self) -> None:
         """A predicted segment takes the segment before's decoded Gaussians in place of its own as ``cfg.carry`` says
-        (:mod:`omg4.compress.carry_stage`: the lasting base layer, ``auto`` where it covers enough, or a tolerance);
+        (:mod:`omg4.compress.stream`: the lasting base layer, ``auto`` where it covers enough, or a tolerance);
         they render from now on, fixed. The decision is kept on the model for the file's metadata."""
-        reference = payload_values(carried_gaussians(self.reference), self.schema)
+        reference = self.before.gaussians(self.schema)
         if set(reference) != set(self.model.params):
             raise OMG4Error(f"the segment before has the attributes {sorted(reference)}, this one "
                             f"{sorted(self.model.params)}: no Gaussian can be carried")
@@ -365,7 +370,7 @@ class CompressionPipeline:
         order = np.sort(decision.ref_rows)
         self.model.carried_rows = order
         self.model.carried = {k: v[torch.from_numpy(order)].to(self.device) for k, v in reference.items()}
-        self.log(f"carry: {order.size:,} of the segment before's {reference_count(self.reference):,} Gaussians, in "
+        self.log(f"carry: {order.size:,} of the segment before's {self.before.num_gaussians:,} Gaussians, in "
                  f"place of {int((~keep).sum()):,} of this segment's")
 
     def _remaining_after(self, name: str) -> int:
@@ -381,8 +386,8 @@ class CompressionPipeline:
                 raise OMG4Error(f"SVQ of '{attr}' needs {names}: run the appearance stage first")
             values = torch.cat([self.model.params[n].detach().reshape(self.model.num_gaussians, -1) for n in names], 1)
             sub_len, k = self.size.codebook(attr)
-            taken = SubVectorQuantizer.reference_codebooks(self.reference, attr, sub_len, values.shape[1])
-            if taken is not None:  # a predicted segment: its reference's decoded codebooks, kept as they are
+            taken = self.before.codebooks(attr, sub_len, values.shape[1]) if self.before is not None else None
+            if taken is not None:  # a predicted segment: the segment before's decoded codebooks, kept as they are
                 self.model.quantizers[attr] = SubVectorQuantizer.assign(values, taken).requires_grad_(False)
             else:
                 self.model.quantizers[attr] = SubVectorQuantizer.fit(values, sub_len, k, seed=self.cfg.seed,
@@ -453,7 +458,12 @@ class CompressionPipeline:
 
     # -------------------------------------------------------------------- training
     def finetune_step(self, step: int) -> float:
-        """One fine-tuning iteration (1-based ``step``); returns the mean batch loss."""
+        """One fine-tuning iteration (1-based ``step``), with the kernels of ``cfg.kernels``; returns the mean batch
+        loss."""
+        with using_kernels(self.cfg.kernels):
+            return self._finetune_step(step)
+
+    def _finetune_step(self, step: int) -> float:
         # the baseline's position decay, continued over the fine-tuning iterations
         set_position_lr(self.optimizer, self.cfg.baseline_iterations + step, init=self.cfg.position_lr_init,
                         final=self.cfg.position_lr_final, extent=self.extent,
@@ -477,7 +487,12 @@ class CompressionPipeline:
         return [*self.model.params.values(), *(p for m in modules for p in m.parameters())]
 
     def run(self, stop_after: str | None = None) -> CompressibleModel:
-        """Run every event and the fine-tuning between them; stop after the stage ``stop_after`` if given."""
+        """Run every event and the fine-tuning between them, with the kernels of ``cfg.kernels``; stop after the stage
+        ``stop_after`` if given."""
+        with using_kernels(self.cfg.kernels):
+            return self._run(stop_after)
+
+    def _run(self, stop_after: str | None) -> CompressibleModel:
         events = list(self.events)
         stop_iteration = None
         if stop_after is not None:

@@ -76,18 +76,6 @@ class SubVectorQuantizer(nn.Module):
             start += cb.shape[1]
         return cls([cb.float() for cb in codebooks], torch.stack(labels, dim=1)).to(values.device)
 
-    @staticmethod
-    def reference_codebooks(reference: dict | None, attr: str, sub_len: int, width: int) -> list[torch.Tensor] | None:
-        """The codebooks of attribute ``attr`` (``width`` wide in slots of ``sub_len``) that a predicted segment
-        takes from its reference (``svq.ATTR.codebookJ`` of :func:`omg4.codec.payload.reference_sections`), or None
-        where the reference has none of that layout (then the segment fits its own)."""
-        if reference is None:
-            return None
-        slots = [reference.get(f"svq.{attr}.codebook{j}") for j in range(width // sub_len)]
-        if any(cb is None or cb.ndim != 2 or cb.shape[1] != sub_len for cb in slots):
-            return None
-        return [torch.from_numpy(np.asarray(cb, np.float32)) for cb in slots]
-
     @property
     def num_gaussians(self) -> int:
         return int(self.indices.shape[0])

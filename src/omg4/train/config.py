@@ -26,6 +26,7 @@ import torch
 
 from omg4.errors import OMG4Error
 from omg4.gaussians.backbone import backbone_named
+from omg4.kernels import KERNELS_HELP, check_kernels
 from omg4.optimize.parameters import LEARNING_RATES as LR
 from omg4.settings import apply_settings, drop_removed, knob
 from omg4.train.strategies import STRATEGIES, Strategy, as_strategy, strategy_class
@@ -66,6 +67,7 @@ class TrainConfig:
     duration_lr: float = knob(LR.duration_lr, "FreeTimeGS log-duration learning rate")
     backend: str = knob("auto", "rasterizer: auto, cpu or gsplat")
     device: str = knob("cpu", "where tensors live: cpu, cuda, cuda:N or auto")
+    kernels: str | None = knob(None, KERNELS_HELP)
     strategy: Strategy = field(
         default_factory=Densification, metadata={"help": "the backbone's density control (omg4.train.strategies)"})
 
@@ -79,8 +81,10 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         """The strategy is the backbone's density control: another one (``replace(cfg, backbone="freetimegs")``)
-        becomes the backbone's, keeping the settings both have (the schedule, the budget)."""
+        becomes the backbone's, keeping the settings both have (the schedule, the budget). An unknown backbone or
+        kernels choice is a one-line error."""
         try:
+            check_kernels(self.kernels)
             cls = strategy_class(backbone_named(self.backbone))
         except ValueError as exc:
             raise OMG4Error(str(exc)) from None

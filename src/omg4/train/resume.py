@@ -4,7 +4,7 @@ A run folder's ``config.json`` records every :class:`~omg4.train.config.TrainCon
 (a segmented run: each segment's folder, the first segment's holding the run's own). Resuming takes those.
 A setting given again, or the preset named again, must agree with the record; one that differs is a one-line
 error, unless it comes as an explicit override (``omg4 train --resume --set iterations=6000``), which is applied and recorded. Where the
-run computes and how often it reports (device, rasterizer, test and checkpoint intervals) are the current
+run computes and how often it reports (device, rasterizer, kernels, test and checkpoint intervals) are the current
 command's choice: they do not change what is learnt.
 """
 
@@ -19,7 +19,7 @@ from omg4.settings import apply_settings
 from omg4.train.config import TrainConfig, setting_of
 from omg4.train.run_state import latest_iteration
 
-PLACEMENT_FIELDS = ("device", "backend", "test_interval", "checkpoint_interval")
+PLACEMENT_FIELDS = ("device", "backend", "kernels", "test_interval", "checkpoint_interval")
 """Fields a resumed run may take from the current command: where it computes and how often it reports."""
 
 

@@ -36,6 +36,7 @@ from omg4.errors import OMG4Error
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.backbone import backbone_named
 from omg4.gaussians.checkpoint import save_gaussians
+from omg4.kernels import using_kernels
 from omg4.metrics import psnr
 from omg4.optimize.parameters import baseline_lrs, make_adam, set_position_lr, step_optimizers
 from omg4.optimize.step import backward_batch, step_generator
@@ -163,7 +164,12 @@ class Trainer:
         return make_adam(self.model.params, baseline_lrs(self.cfg, self.extent, self.model.config.schema))
 
     def train_step(self, step: int) -> tuple[float, float]:
-        """One optimizer step (1-based ``step``); returns (mean loss, mean PSNR) of the batch."""
+        """One optimizer step (1-based ``step``), with the kernels of ``cfg.kernels``; returns (mean loss, mean PSNR)
+        of the batch."""
+        with using_kernels(self.cfg.kernels):
+            return self._train_step(step)
+
+    def _train_step(self, step: int) -> tuple[float, float]:
         cfg, model = self.cfg, self.model
         set_position_lr(self.optimizer, step, init=cfg.position_lr_init, final=cfg.position_lr_final,
                         extent=self.extent, max_steps=cfg.position_lr_max_steps)
@@ -197,10 +203,14 @@ class Trainer:
         return self.run_dir
 
     def run(self, stop_at: int | None = None) -> TrainResult:
-        """Train until ``cfg.iterations`` (or ``stop_at``, for tests of resuming).
+        """Train until ``cfg.iterations`` (or ``stop_at``, for tests of resuming), with the kernels of ``cfg.kernels``.
 
         Ctrl-C lets the step in progress finish, writes a checkpoint of it and raises ``KeyboardInterrupt``, so
         ``--resume`` loses no step (a second Ctrl-C stops at once; a distributed job stops at once)."""
+        with using_kernels(self.cfg.kernels):
+            return self._run(stop_at)
+
+    def _run(self, stop_at: int | None) -> TrainResult:
         cfg = self.cfg
         end = min(cfg.iterations, stop_at) if stop_at else cfg.iterations
         if self.world.main:

@@ -172,8 +172,9 @@ def add_device_arguments(p: argparse.ArgumentParser, backend: bool = True, *, fr
                             "or gsplat (cuda only)")
     p.add_argument("--device", default=None if from_settings else "cpu",
                    help=f"where to compute (default cpu): {DEVICE_HELP}")
-    # not in --help (a check of the kernels, not a setting): the per-Gaussian work on the fused numba kernels on the
-    # CPU (fused, the default; $OMG4_KERNELS) or as the pure-torch reference they are tested against (reference)
+    # not in --help (a check of the kernels): the per-Gaussian work on the fused numba kernels on the CPU (fused, the
+    # default; $OMG4_KERNELS) or as the pure-torch reference they are tested against (reference); a command with a
+    # config (train, compress) records it there as its ``kernels`` setting
     p.add_argument("--kernels", choices=list(KERNEL_MODES), default=None, help=argparse.SUPPRESS)
 
 

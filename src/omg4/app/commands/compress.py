@@ -29,7 +29,7 @@ from omg4.compress.schedule import MINIMIZING_STAGES, SCHEDULES, STAGE_NAMES
 #: the CompressConfig fields this command has its own flags for
 SHORTCUTS = ("paper", "preset", "schedule", "stages", "num_merge", "batch_size", "tau_gs", "prune_quantile", "rate_weight",
              "official_score_quirk", "score_weighting", "frame_floor", "time_sampling", "baseline_iterations", "background", "backend",
-             "device", "seed", "predicted_mlp", "codec", "key_interval")
+             "device", "seed", "predicted_mlp", "codec", "key_interval", "kernels")
 #: options of the command itself that a config file may set (as the record beside the output does)
 COMMAND_KEYS = ("codec", "grid_bits")
 

@@ -20,7 +20,8 @@ from omg4.train.segmented import PARALLEL_MODES
 #: the TrainConfig fields this command has its own flags for
 SHORTCUTS = ("iterations", "batch_size", "backbone", "strategy.max_gaussians", "strategy.densify_until",
              "strategy.densify_interval",
-             "test_interval", "checkpoint_interval", "num_random_points", "seed", "background", "backend", "device")
+             "test_interval", "checkpoint_interval", "num_random_points", "seed", "background", "backend", "device",
+             "kernels")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -115,7 +116,7 @@ def run(args) -> int:
              "backbone": args.backbone, "strategy.densify_until": args.densify_until,
              "strategy.densify_interval": args.densify_interval}
     flags.update(dict(test_interval=args.test_interval, checkpoint_interval=args.checkpoint_interval,
-                      num_random_points=args.num_random_points, seed=args.seed,
+                      num_random_points=args.num_random_points, seed=args.seed, kernels=args.kernels,
                       background=(1.0, 1.0, 1.0) if args.white_background else None))
     asked = {**settings, **{k: v for k, v in flags.items() if v is not None}}
     if recorded is not None:

@@ -11,8 +11,8 @@ import torch
 
 import numpy as np
 
-from omg4.compress.carry_stage import (AUTO_MIN_COVERED, COVER, LASTING_MARGINAL, STILL, base_layer, carry_matches,
-                                       chosen_carry, lasting, valid_setting)
+from omg4.compress.stream import (AUTO_MIN_COVERED, COVER, LASTING_MARGINAL, STILL, base_layer, carry_matches,
+                                  chosen_carry, lasting, valid_setting)
 from omg4.gaussians import GaussianConfig, Gaussians4D
 from omg4.gaussians.rotation import build_rotation_4d
 
@@ -100,6 +100,26 @@ def test_a_gaussian_lasts_through_a_segment_where_its_marginal_holds_at_both_end
     long["scaling_t"][:] = -6.0
     long["scaling"][:] = -6.0  # a few ms at most: none lasts half a second
     assert not lasting(long, m.config, (a, b)).any()
+
+
+def test_the_base_layer_studys_knobs_set_the_constants_the_lasting_rule_reads(monkeypatch):
+    import runpy
+    from pathlib import Path
+
+    import omg4.compress.stream as stream
+
+    study = runpy.run_path(str(Path(__file__).parents[2] / "benchmarks" / "studies" / "base_layer.py"))
+    m = model("rt4dgs")
+    own = values_of(m)
+    own["scaling_t"] = own["scaling_t"] + 1.0
+    before = lasting(own, m.config, (0.5, 1.5))
+    for name in ("STILL", "LASTING_MARGINAL", "COVER"):
+        monkeypatch.setattr(stream, name, getattr(stream, name))  # each restored after the test
+    study["set_knobs"]({"STILL": 1e9})  # no limit on motion: the Gaussians that last but move away count too
+    after = lasting(own, m.config, (0.5, 1.5))
+    assert (after >= before).all() and after.sum() > before.sum()
+    with pytest.raises(SystemExit, match="no constant NOPE"):
+        study["set_knobs"]({"NOPE": 1.0})
 
 
 @pytest.mark.parametrize("backbone", ["rt4dgs", "freetimegs"])

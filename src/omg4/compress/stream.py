@@ -1,5 +1,10 @@
-"""Which Gaussians of the segment before a predicted segment takes in place of its own (beyond the paper;
-docs/file-format.md §8b).
+"""A long capture coded as a stream: what a predicted segment takes of the segment before (beyond the paper;
+docs/file-format.md §8a–8b), in one place — the segment before itself (:class:`SegmentBefore`: its decoded appearance
+MLPs, codebooks and Gaussians), the lasting rule (:func:`lasting`), the base layer (:func:`base_layer`) and the carry
+decision (:func:`chosen_carry`). The compression pipeline and :func:`omg4.compress.api.compress_to_file` take a
+predicted segment's link to the stream as one :class:`SegmentBefore` (None: a key segment, coded alone). What a
+segment learns where it overlaps the one before (the crossfade) is :mod:`omg4.optimize.teaching`, below training and
+compression, which both fit it.
 
 A long capture's lasting content — the static set, the slow background — is in every segment, and every segment
 learns it again, each a little differently, so coded segment by segment it is paid for in each. At the appearance
@@ -33,7 +38,12 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from omg4.codec.carry import carried_gaussians, reference_count
+from omg4.codec.payload import CompressedPayload
+from omg4.codec.references import reference_sections
+from omg4.gaussians.appearance import AppearanceMLP
 from omg4.gaussians.visibility import least_marginal
+from omg4.models.compact import payload_values
 
 
 LASTING_MARGINAL = 0.5
@@ -178,6 +188,45 @@ def chosen_carry(own: dict[str, torch.Tensor], reference: dict[str, torch.Tensor
     return CarryDecision(setting, "lasting", own_rows, ref_rows, covered=covered)
 
 
+@dataclasses.dataclass(frozen=True)
+class SegmentBefore:
+    """The segment a predicted segment is coded from: its decoded sections by name
+    (:func:`omg4.codec.references.reference_sections`: MLP weights, codebooks, per-Gaussian arrays), which the file
+    refers to (the codec takes ``sections``), and what the predicted segment takes of them."""
+
+    sections: dict[str, np.ndarray]
+
+    @classmethod
+    def decoded(cls, payload: CompressedPayload) -> "SegmentBefore":
+        """The segment before as its decoder gave it (a :class:`~omg4.codec.payload.CompressedPayload`)."""
+        return cls(reference_sections(payload))
+
+    def mlp(self, num_inputs: int) -> AppearanceMLP | None:
+        """The appearance MLPs the predicted segment starts from: the segment before's decoded weights (``mlp.NAME``);
+        None where it has none."""
+        state = {name[len("mlp."):]: w for name, w in self.sections.items() if name.startswith("mlp.")}
+        return AppearanceMLP.from_fp16_state(state, num_inputs) if state else None
+
+    def codebooks(self, attr: str, sub_len: int, width: int) -> list[torch.Tensor] | None:
+        """The codebooks of attribute ``attr`` (``width`` wide in slots of ``sub_len``) the predicted segment keeps as
+        they are (``svq.ATTR.codebookJ``), or None where the segment before has none of that layout (then the segment
+        fits its own)."""
+        slots = [self.sections.get(f"svq.{attr}.codebook{j}") for j in range(width // sub_len)]
+        if any(cb is None or cb.ndim != 2 or cb.shape[1] != sub_len for cb in slots):
+            return None
+        return [torch.from_numpy(np.asarray(cb, np.float32)) for cb in slots]
+
+    @property
+    def num_gaussians(self) -> int:
+        """How many Gaussians the segment before holds (one-line CorruptFileError where its sections lack them)."""
+        return reference_count(self.sections)
+
+    def gaussians(self, schema) -> dict[str, torch.Tensor]:
+        """The segment before's decoded Gaussians, per-Gaussian values by the names of ``schema`` (a backbone): what a
+        predicted segment may carry."""
+        return payload_values(carried_gaussians(self.sections), schema)
+
+
 def valid_setting(setting) -> bool:
     """Whether ``setting`` is a carry setting: :data:`AUTO`, :data:`LASTING` or a finite tolerance ≥ 0."""
     if setting in (AUTO, LASTING):
@@ -187,4 +236,5 @@ def valid_setting(setting) -> bool:
 
 
 __all__ = ["AUTO", "AUTO_MIN_COVERED", "COVER", "CANDIDATES", "LASTING", "LASTING_MARGINAL", "STILL", "CarryDecision",
+           "SegmentBefore",
            "base_layer", "carry_matches", "chosen_carry", "largest_scale", "lasting", "valid_setting"]
