@@ -150,5 +150,6 @@ def keeping_torch_threads() -> Iterator[None]:
             torch.set_num_threads(torch_threads)
 
 
-__all__ = ["FAST_MATH", "KERNEL_MODES", "KERNELS_HELP", "as_numpy", "check_kernels", "configure_numba_cache", "keeping_torch_threads", "kernel_mode",
-           "fused_kernels", "resolve_cache_dir", "runs_cpu_kernels", "using_kernels"]
+__all__ = ["FAST_MATH", "KERNEL_MODES", "KERNELS_HELP", "as_numpy", "check_kernels", "configure_numba_cache",
+           "keeping_torch_threads", "kernel_mode", "fused_kernels", "resolve_cache_dir", "runs_cpu_kernels",
+           "using_kernels"]

@@ -76,4 +76,5 @@ def make_mlp_optimizer(mlp: torch.nn.Module, lr: float = MLP_LR, total_iteration
 PREDICTED_MLPS = ("tune", "keep")
 
 
-__all__ = ["FEATURE_LR", "MLP_LR", "PREDICTED_MLPS", "init_appearance_features", "make_mlp_optimizer", "mlp_lr_schedule"]
+__all__ = ["FEATURE_LR", "MLP_LR", "PREDICTED_MLPS", "init_appearance_features", "make_mlp_optimizer",
+           "mlp_lr_schedule"]

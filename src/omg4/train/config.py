@@ -180,7 +180,8 @@ def make_config(preset: str = "official", overrides: dict | None = None, **setti
     given = {k: v for k, v in given.items() if v is not None}
     if "iterations" in given:
         factor = given["iterations"] / cfg.iterations
-        own = {f"strategy.{f.name}" for f in fields(strategy_class(backbone_named(given.get("backbone", cfg.backbone))))}
+        backbone = backbone_named(given.get("backbone", cfg.backbone))
+        own = {f"strategy.{f.name}" for f in fields(strategy_class(backbone))}
         for name in SCHEDULE_FIELDS:
             if name not in given and (name in own or not name.startswith("strategy.")):
                 floor = MIN_DENSIFY_INTERVAL if name == "strategy.densify_interval" else 1
