@@ -54,6 +54,35 @@ window.omg4Ready = (async () => {
 })();
 </script></body></html>"""
 
+# the model fed by Omg4Splats into a SparkRenderer with Spark's own splat shaders or with leanSplatShaders' (LEAN)
+FED_PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
+<script type="importmap">{"imports": {"three": "./node_modules/three/build/three.module.js",
+  "three/addons/": "./node_modules/three/examples/jsm/",
+  "@sparkjsdev/spark": "./node_modules/@sparkjsdev/spark/dist/spark.module.js"}}</script></head>
+<body style="margin: 0"><script type="module">
+import * as THREE from "three";
+import { SparkRenderer } from "@sparkjsdev/spark";
+import { cameraFromJson, resized } from "./camera.js";
+import { OMG4_CONVENTIONS, Omg4Splats, leanSplatShaders } from "./spark.js";
+window.omg4Ready = (async () => {
+  const preset = (await (await fetch("cameras.json")).json()).cameras.map(cameraFromJson)[0];
+  const splats = await Omg4Splats.load("model.omg4");
+  const renderer = new THREE.WebGLRenderer({ preserveDrawingBuffer: true });
+  renderer.setSize(WIDTH, HEIGHT);
+  document.body.appendChild(renderer.domElement);
+  const scene = new THREE.Scene();
+  const spark = new SparkRenderer({ renderer, ...OMG4_CONVENTIONS });
+  scene.add(LEAN ? leanSplatShaders(spark) : spark);
+  scene.add(splats.mesh);
+  const camera = Omg4Splats.threeCamera(resized(preset, WIDTH, HEIGHT));
+  let frames = 0;
+  window.omg4Spark = { scene, get frames() { return frames; } };
+  await new Promise((done) => renderer.setAnimationLoop(() => {
+    splats.update(TIME, camera); renderer.render(scene, camera); if (++frames === 3) done(); }));
+  return { lean: spark.material.vertexShader.includes("gl_VertexID") };
+})();
+</script></body></html>"""
+
 # Spark sorts on a worker, frames after the first: wait until its SparkRenderer (Spark 2.2.0, package.json) has sorted
 # and has nothing left to sort, then for two frames drawn in that order
 SETTLE = """(async () => {
@@ -104,6 +133,33 @@ def test_spark_draws_the_model_as_close_to_omg4_render_as_it_draws_omg4s_ply(chr
     print(json.dumps({"backbone": backbone, "spark_fed_db": fed_db, "spark_own_ply_db": own_db}))
     assert own_db > 20, own_db  # Spark itself draws omg4's slice recognizably
     assert fed_db >= own_db - 1.0, (fed_db, own_db)
+
+
+def test_the_lean_splat_shaders_draw_what_sparks_own_draw(chromium, tmp_path, tiny_scene_dir):
+    """leanSplatShaders (one draw of six vertices a splat, the branches an omg4 splat never takes left out) against
+    Spark 2.2.0's own shaders on the same feed: the same picture, and the edit took (the warning path would keep Spark's
+    shaders and pass the picture check alone)."""
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, 1200, codec="compact", seed=11, codebook_scale=0.25)
+    web = tmp_path / "web"
+    assert main(["export", str(model), "--format", "web", "--data", str(tiny_scene_dir), "--out", str(web)]) == 0
+    (web / "node_modules").symlink_to(MODULES)
+    pictures, ready = {}, {}
+    with served(web) as url:
+        for lean in (False, True):
+            page = FED_PAGE.replace("WIDTH", "160").replace("HEIGHT", "120").replace("TIME", "0.45")
+            (web / f"fed_{lean}.html").write_text(page.replace("LEAN", json.dumps(lean)))
+            chromium.call("Page.navigate", url=f"{url}/fed_{lean}.html")
+            ready[lean] = chromium.evaluate("new Promise((done) => { const wait = () => window.omg4Ready ? "
+                                            "window.omg4Ready.then(done) : setTimeout(wait, 50); wait(); })",
+                                            timeout=120)
+            pictures[lean] = image(chromium).astype(np.int64)
+            ready[lean]["vertices"] = chromium.evaluate(
+                "window.omg4Spark.scene.children.find((c) => 'sortDirty' in c).geometry.drawRange.count")
+    assert ready[True]["lean"] and not ready[False]["lean"], ready
+    assert ready[True]["vertices"] > 0 and ready[True]["vertices"] % 6 == 0, ready  # splats drawn, six vertices each
+    assert pictures[False].std() > 10
+    assert np.abs(pictures[True] - pictures[False]).max() <= 1
 
 
 def test_the_spark_page_says_what_is_missing_without_three_and_spark(chromium, tmp_path):

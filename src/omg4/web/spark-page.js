@@ -6,7 +6,7 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkRenderer } from "@sparkjsdev/spark";
 import { cameraFromJson, chosenPreset, framed, resized, rigCameras } from "./camera.js";
-import { OMG4_CONVENTIONS, Omg4Splats } from "./spark.js";
+import { OMG4_CONVENTIONS, Omg4Splats, leanSplatShaders } from "./spark.js";
 
 const params = new URLSearchParams(location.search);
 
@@ -28,7 +28,7 @@ async function main() {
   renderer.setSize(width, height);
   document.body.appendChild(renderer.domElement);
   const scene = new THREE.Scene();
-  scene.add(new SparkRenderer({ renderer, ...OMG4_CONVENTIONS }));
+  scene.add(leanSplatShaders(new SparkRenderer({ renderer, ...OMG4_CONVENTIONS })));
   scene.add(splats.mesh);
   const camera = Omg4Splats.threeCamera(view);
   const [t0, t1] = splats.timeRange;

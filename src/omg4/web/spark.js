@@ -1,8 +1,9 @@
 // omg4 in a three.js scene of one's own, drawn by Spark (@sparkjsdev/spark: it sorts and rasterizes the splats):
 // Omg4Splats decodes an .omg4 file and keeps a Spark SplatMesh holding its Gaussians at the time it plays.
 //
-//   import { Omg4Splats } from "./omg4/spark.js";   // "three" and "@sparkjsdev/spark" from the page's import map
+//   import { OMG4_CONVENTIONS, Omg4Splats, leanSplatShaders } from "./omg4/spark.js";  // three, Spark: import map
 //   const splats = await Omg4Splats.load("omg4/model.omg4");
+//   scene.add(leanSplatShaders(new SparkRenderer({ renderer, ...OMG4_CONVENTIONS })));
 //   scene.add(splats.mesh);                                   // the model's world, +z up: rotate the mesh to taste
 //   renderer.setAnimationLoop((ms) => { splats.update(t, camera); renderer.render(scene, camera); });
 //
@@ -13,7 +14,8 @@
 // Σ_3D of Real-Time4DGS, FreeTimeGS's Σ): their scales and rotations are computed and packed once, at load; a frame
 // writes only the words that change — RGBA and the half-float centre — straight into Spark's packed array (four
 // 32-bit words a splat: RGBA bytes; centre x, y halves; centre z half and two quaternion bytes; three scale bytes
-// and one quaternion byte: Spark 2.2.0's setPackedSplat layout).
+// and one quaternion byte: Spark 2.2.0's setPackedSplat layout). leanSplatShaders draws the same picture with less
+// work per splat and per pixel, which decides the frame rate where WebGL runs in software (SwiftShader).
 
 import * as THREE from "three";
 import { PackedSplats, SplatMesh, floatToUint8, toHalf } from "@sparkjsdev/spark";
@@ -60,6 +62,66 @@ export function principalAxes(c) {
 }
 
 const MIN_ALPHA = 1 / 255;  // Spark's minAlpha here: a splat of lower opacity draws no pixel
+
+/** The highest opacity byte a splat is given. Spark's accumulator keeps half the opacity in 8 bits and doubles it to
+ * draw, so a byte of 255 (opacity ≥ 0.998) comes back as 128 / 127.5 > 1: Spark's LOD opacity, drawn with another
+ * kernel (and a wider cut-off); 254 comes back as 0.996 ≤ 1, drawn as every other splat (omg4 caps α at 0.999). */
+const MAX_OPACITY_BYTE = 254;
+
+// Spark 2.2.0's splat shaders (SparkRenderer's material), where leanSplatShaders edits them
+const VERTEX_MAIN = "void main() {\n";
+const VERTEX_COLOUR = "    vRgba = rgba;\n";
+const FRAGMENT_TO_LINEAR = "    if (encodeLinear) {\n        rgba.rgb = srgbToLinear(rgba.rgb);\n    }\n";
+const FRAGMENT_KERNELS = [
+  "        if (rgba.a <= 1.0) {",
+  "            rgba.a = mix(rgba.a, rgba.a * exp(-0.5 * z2), falloff);",
+  "        } else {",
+  "            float a = exp((rgba.a*rgba.a - 1.0) / 2.718281828459045);",
+  "            float alpha = 1.0 - pow(1.0 - exp(-0.5 * z2), a);",
+  "            rgba.a = mix(1.0, alpha, falloff);",
+  "        }\n"].join("\n");
+const FRAGMENT_KERNEL = "        rgba.a = mix(rgba.a, rgba.a * exp(-0.5 * z2), falloff);\n";
+// a splat's two triangles from gl_VertexID, six vertices a splat: Spark's quad (corners ±1), triangles 0 1 2, 0 2 3
+const SIX_VERTICES = `
+    int splatInstance = gl_VertexID / 6;
+    int corner = gl_VertexID - 6 * splatInstance;
+    vec3 position = vec3((corner == 1 || corner == 2 || corner == 4) ? 1.0 : -1.0,
+                         (corner == 2 || corner == 4 || corner == 5) ? 1.0 : -1.0, 0.0);
+`;
+
+/** A SparkRenderer's geometry for the vertex shader of leanSplatShaders: no attributes (the shader makes each
+ * corner); the splat count Spark sets each frame (as an instance count) sets the draw's range, six vertices a splat. */
+class SplatQuads extends THREE.BufferGeometry {
+  get instanceCount() { return this.drawRange.count / 6; }
+
+  set instanceCount(count) { this.setDrawRange(0, 6 * count); }
+}
+
+/** `spark` (a SparkRenderer of Spark 2.2.0) drawing the same picture for less: its splats in one draw of six vertices
+ * each rather than one instance each (software WebGL pays for each instance as for a draw: about 4,000 splats cost
+ * more than the pixels), and its fragment shader without the branches that no Omg4Splats pixel takes — a shader runs
+ * both sides of a branch in software — the sRGB → linear conversion (for linear render targets only) moved to the
+ * vertex shader, where a splat's colour is constant (the same up to rounding), and the kernel of Spark's LOD
+ * opacities (> 1; Omg4Splats gives none, see MAX_OPACITY_BYTE) left out: meant for a SparkRenderer drawing
+ * Omg4Splats, not Spark's LOD splats. Another Spark version's shaders are left as they are (with a warning).
+ * Returns `spark`. */
+export function leanSplatShaders(spark) {
+  const material = spark.material;
+  const vertex = material.vertexShader, fragment = material.fragmentShader;
+  if (!(vertex.includes(VERTEX_MAIN) && vertex.includes(VERTEX_COLOUR) && vertex.includes("gl_InstanceID")
+        && fragment.includes(FRAGMENT_TO_LINEAR) && fragment.includes(FRAGMENT_KERNELS))) {
+    console.warn("leanSplatShaders: not Spark 2.2.0's splat shaders; left as they are");
+    return spark;
+  }
+  material.vertexShader = vertex.replace(VERTEX_MAIN, `uniform bool encodeLinear;\n\n${VERTEX_MAIN}${SIX_VERTICES}`)
+    .replaceAll("gl_InstanceID", "splatInstance")
+    .replace(VERTEX_COLOUR, `${VERTEX_COLOUR}    if (encodeLinear) vRgba.rgb = srgbToLinear(vRgba.rgb);\n`);
+  material.fragmentShader = fragment.replace(FRAGMENT_TO_LINEAR, "").replace(FRAGMENT_KERNELS, FRAGMENT_KERNEL);
+  material.needsUpdate = true;
+  spark.geometry.dispose();
+  spark.geometry = new SplatQuads();
+  return spark;
+}
 
 /** SparkRenderer options that draw as omg4's renderer does (gsplat's conventions): the 0.3 px² dilation without
  * opacity compensation, splats cut at 3.33σ and α ≥ 1/255, sorted by view depth. */
@@ -128,7 +190,7 @@ export class Omg4Splats {
       this.slicer.color(g, center, rgb, y);
       const at = 4 * shown++;
       words[at] = floatToUint8(rgb[0]) | floatToUint8(rgb[1]) << 8 | floatToUint8(rgb[2]) << 16
-        | floatToUint8(opacity) << 24;
+        | Math.min(floatToUint8(opacity), MAX_OPACITY_BYTE) << 24;
       words[at + 1] = toHalf(sliced[o]) | toHalf(sliced[o + 1]) << 16;
       words[at + 2] = toHalf(sliced[o + 2]) | shape[2 * g];
       words[at + 3] = shape[2 * g + 1];
