@@ -248,7 +248,7 @@ def apply_settings(config, values: dict[str, Any]):
         unknown = sorted(f"{head}.{key}" for key in inner if key.partition(".")[0] not in names)
         if unknown:
             raise OMG4Error(f"{type(config).__name__}'s {head} is {type(current).__name__}, which has no setting "
-                            f"{', '.join(unknown)}")
+                            f"{', '.join(unknown)} (its settings: {', '.join(sorted(names))})")
         changed[head] = apply_settings(current, inner)
     return dataclasses.replace(config, **changed) if changed else config
 
