@@ -162,6 +162,38 @@ def test_the_lean_splat_shaders_draw_what_sparks_own_draw(chromium, tmp_path, ti
     assert np.abs(pictures[True] - pictures[False]).max() <= 1
 
 
+def test_the_spark_page_shows_a_new_time_seen_from_the_same_camera(chromium, tmp_path, tiny_scene_dir):
+    """The page paused at one time, then fed another with its camera still: Spark generates its splats again (it does
+    not see a changed packed array by itself; a FreeTimeGS model culls no Gaussian at either time, so their count does
+    not change either) and draws the picture a page opened at that time draws."""
+    model = tmp_path / "m.omg4"
+    forge.valid_file(model, 3000, codec="compact", seed=5, codebook_scale=0.25, backbone="freetimegs")
+    web = tmp_path / "web"
+    assert main(["export", str(model), "--format", "web", "--data", str(tiny_scene_dir), "--out", str(web)]) == 0
+    (web / "node_modules").symlink_to(MODULES)
+    # the page's frames from now on at time 0.6, until Spark has sorted again (a sort that starts later; at most 300
+    # frames), when image() waits for that sort
+    later = """(async () => {
+      const page = window.omg4Spark;
+      const spark = page.scene.children.find((c) => "sortDirty" in c);
+      const start = performance.now();
+      let frames = 0;
+      page.renderer.setAnimationLoop(() => {
+        page.splats.update(0.6, page.camera); page.renderer.render(page.scene, page.camera); frames += 1; });
+      window.omg4Spark = { scene: page.scene, get frames() { return frames; } };
+      while (frames < 300 && !(spark.lastSortTime > start)) await new Promise((r) => requestAnimationFrame(r));
+      return true; })()"""
+    with served(web) as url:
+        assert "ready" in open_player(chromium, f"{url}/spark.html?width=64&height=48&time=0.3")
+        earlier = image(chromium).astype(np.int64)
+        assert chromium.evaluate(later)
+        fed_later = image(chromium).astype(np.int64)
+        assert "ready" in open_player(chromium, f"{url}/spark.html?width=64&height=48&time=0.6")
+        opened_later = image(chromium).astype(np.int64)
+    assert np.abs(opened_later - earlier).mean() > 1  # the two times look different
+    assert np.abs(fed_later - opened_later).max() <= 1
+
+
 def test_the_spark_page_says_what_is_missing_without_three_and_spark(chromium, tmp_path):
     forge.valid_file(tmp_path / "m.omg4", 300, codec="compact", seed=4)
     assert main(["export", str(tmp_path / "m.omg4"), "--format", "web", "--out", str(tmp_path / "web")]) == 0

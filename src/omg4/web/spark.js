@@ -8,20 +8,22 @@
 //   renderer.setAnimationLoop((ms) => { splats.update(t, camera); renderer.render(scene, camera); });
 //
 // Per new time the slice pass of the player's renderer (render/renderer.js, in a WebGL2 context of its own) gives
-// each Gaussian's mean and opacity at τ and its colour coefficients; per frame each colour is evaluated for the
-// camera's position (the 4D SH and the appearance MLPs' view-dependent terms, as the player does) and written, with
-// the mean and opacity, into the SplatMesh's PackedSplats. Covariances do not change with time (the conditional
-// Σ_3D of Real-Time4DGS, FreeTimeGS's Σ): their scales and rotations are computed and packed once, at load; a frame
-// writes only the words that change — RGBA and the half-float centre — straight into Spark's packed array (four
-// 32-bit words a splat: RGBA bytes; centre x, y halves; centre z half and two quaternion bytes; three scale bytes
-// and one quaternion byte: Spark 2.2.0's setPackedSplat layout). leanSplatShaders draws the same picture with less
-// work per splat and per pixel, which decides the frame rate where WebGL runs in software (SwiftShader).
+// each Gaussian's mean and opacity at τ and its colour coefficients, left on the GPU; per new time or camera position
+// the pack pass (packShader) evaluates each colour for the camera's position (the 4D SH and the appearance MLPs'
+// view-dependent terms, as the player does) and writes every Gaussian's four 32-bit words of Spark 2.2.0's packed
+// layout (setPackedSplat's: RGBA bytes; centre x, y halves; centre z half and two quaternion bytes; three scale bytes
+// and one quaternion byte), which one read-back copies into the SplatMesh's PackedSplats — no loop over the
+// Gaussians in JavaScript. Covariances do not change with time (the conditional Σ_3D of Real-Time4DGS, FreeTimeGS's
+// Σ): their scales and rotations are packed once, at load, and the pack pass copies those words through.
+// leanSplatShaders draws the same picture with less work per splat and per pixel, which decides the frame rate where
+// WebGL runs in software (SwiftShader).
 
 import * as THREE from "three";
-import { PackedSplats, SplatMesh, floatToUint8, toHalf } from "@sparkjsdev/spark";
+import { PackedSplats, SplatMesh } from "@sparkjsdev/spark";
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
-import { Renderer, SLICED, context } from "./render/renderer.js";
+import { Renderer, SLICED, basisGlsl, compile, context } from "./render/renderer.js";
+import { NOTHING } from "./render/shaders.js";
 
 /** Eigen-decomposition of the symmetric 3×3 matrix (xx, xy, xz, yy, yz, zz) by Jacobi rotations: the standard
  * deviations along its axes and the rotation whose columns are those axes (a proper rotation). */
@@ -67,6 +69,108 @@ const MIN_ALPHA = 1 / 255;  // Spark's minAlpha here: a splat of lower opacity d
  * draw, so a byte of 255 (opacity ≥ 0.998) comes back as 128 / 127.5 > 1: Spark's LOD opacity, drawn with another
  * kernel (and a wider cut-off); 254 comes back as 0.996 ≤ 1, drawn as every other splat (omg4 caps α at 0.999). */
 const MAX_OPACITY_BYTE = 254;
+
+/** The pack pass for `model` (GLSL ES 3.00, one vertex per Gaussian, its output captured by transform feedback): from
+ * the slice pass's floats (μ at τ, opacity, Q_0..Q_15 in 13 vec4s) and the Gaussian's constant shape words, its four
+ * words of Spark's layout — the colour from u_center, max(Σ_k Y_k(d)·Q_k + 0.5, 0) with d from the camera to the mean
+ * at τ (or the canonical mean) as Renderer.color has it, and the opacity, as Spark's floatToUint8 rounds them (the
+ * opacity byte at most MAX_OPACITY_BYTE); the centre as halves. A Gaussian below MIN_ALPHA gets four zero words:
+ * zero scales, an empty slot to Spark, which leaves it out of its sort and its draw as if it were not there. */
+function packShader(model) {
+  // Q_k's rgb: floats 3k, 3k + 1, 3k + 2 of the 48 in a_q0..a_q11
+  const q = (k) => `vec3(${[0, 1, 2].map((c) => `a_q${(3 * k + c) >> 2}.${"xyzw"[(3 * k + c) & 3]}`).join(", ")})`;
+  const terms = basisGlsl(model.activeSh[0]).map((y, k) => `\n      + (${y}) * ${q(k)}`).join("");
+  const canonical = model.config.sh_direction === "canonical";
+  const inputs = [
+    "layout(location = 0) in vec4 a_mean;  // μ at τ, opacity (0: culled)",
+    ...Array.from({ length: 12 }, (_, i) => `layout(location = ${i + 1}) in vec4 a_q${i};`),
+    "layout(location = 13) in uvec2 a_shape;  // word 2's quaternion bytes (its high half), word 3",
+    ...(canonical ? ["layout(location = 14) in vec3 a_xyz;  // the canonical mean"] : []),
+  ];
+  return `#version 300 es
+precision highp float;
+precision highp int;
+${inputs.join("\n")}
+uniform vec3 u_center;  // the camera, in the model's world
+flat out uvec4 v_words;
+
+uint toByte(float v) { return uint(floor(clamp(v, 0.0, 1.0) * 255.0 + 0.5)); }
+
+void main() {
+  float opacity = a_mean.w;
+  if (!(opacity >= ${MIN_ALPHA})) {
+    v_words = uvec4(0u);
+    return;
+  }
+  vec3 d = ${canonical ? "a_xyz" : "a_mean.xyz"} - u_center;
+  d /= max(length(d), 1e-12);
+  float x = d.x, y = d.y, z = d.z, xx = x * x, yy = y * y, zz = z * z;
+  vec3 rgb = max(vec3(0.5)${terms}, 0.0);
+  uint alpha = min(toByte(opacity), ${MAX_OPACITY_BYTE}u);
+  v_words = uvec4(toByte(rgb.r) | toByte(rgb.g) << 8 | toByte(rgb.b) << 16 | alpha << 24, packHalf2x16(a_mean.xy),
+                  packHalf2x16(vec2(a_mean.z, 0.0)) | a_shape.x, a_shape.y);
+}
+`;
+}
+
+/** The pack pass (packShader) of `slicer`'s model in its context: its input, the slice pass's output buffer, and its
+ * output, a buffer of four words a Gaussian. `shape`: each Gaussian's two constant words (word 2's quaternion bytes,
+ * word 3). */
+class PackPass {
+  constructor(slicer, shape) {
+    const gl = slicer.gl;
+    const { model } = slicer;
+    this.gl = gl;
+    this.slicer = slicer;
+    this.program = compile(gl, packShader(model), NOTHING, ["v_words"]);
+    this.uCenter = gl.getUniformLocation(this.program, "u_center");
+    this.vao = gl.createVertexArray();
+    gl.bindVertexArray(this.vao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, slicer.feedback);
+    for (let location = 0; location < 13; location++) {
+      gl.enableVertexAttribArray(location);
+      gl.vertexAttribPointer(location, 4, gl.FLOAT, false, 4 * SLICED, 16 * location);
+    }
+    gl.bindBuffer(gl.ARRAY_BUFFER, gl.createBuffer());
+    gl.bufferData(gl.ARRAY_BUFFER, shape, gl.STATIC_DRAW);
+    gl.enableVertexAttribArray(13);
+    gl.vertexAttribIPointer(13, 2, gl.UNSIGNED_INT, 8, 0);
+    if (model.config.sh_direction === "canonical") {
+      gl.bindBuffer(gl.ARRAY_BUFFER, gl.createBuffer());
+      gl.bufferData(gl.ARRAY_BUFFER, model.xyz, gl.STATIC_DRAW);
+      gl.enableVertexAttribArray(14);
+      gl.vertexAttribPointer(14, 3, gl.FLOAT, false, 12, 0);
+    }
+    gl.bindVertexArray(null);
+    gl.bindBuffer(gl.ARRAY_BUFFER, null);
+    this.words = gl.createBuffer();
+    gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, this.words);
+    gl.bufferData(gl.TRANSFORM_FEEDBACK_BUFFER, 16 * model.numGaussians, gl.DYNAMIC_READ);
+    gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, null);
+  }
+
+  /** Every Gaussian's words at time `tau` seen from `center` ([x, y, z], the model's world) into `out` (a
+   * Uint32Array of four words a Gaussian or more: Spark's packed array). */
+  run(tau, center, out) {
+    const gl = this.gl;
+    const n = this.slicer.model.numGaussians;
+    this.slicer.sliceOnGpu(tau);
+    gl.useProgram(this.program);
+    gl.uniform3f(this.uCenter, center[0], center[1], center[2]);
+    gl.bindVertexArray(this.vao);
+    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, this.words);
+    gl.enable(gl.RASTERIZER_DISCARD);
+    gl.beginTransformFeedback(gl.POINTS);
+    gl.drawArrays(gl.POINTS, 0, n);
+    gl.endTransformFeedback();
+    gl.disable(gl.RASTERIZER_DISCARD);
+    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
+    gl.bindVertexArray(null);
+    gl.bindBuffer(gl.COPY_READ_BUFFER, this.words);
+    gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, out, 0, 4 * n);
+    gl.bindBuffer(gl.COPY_READ_BUFFER, null);
+  }
+}
 
 // Spark 2.2.0's splat shaders (SparkRenderer's material), where leanSplatShaders edits them
 const VERTEX_MAIN = "void main() {\n";
@@ -156,11 +260,12 @@ export class Omg4Splats {
       this.packed.pushSplat(zero, scale.set(...sigma), rotation.setFromRotationMatrix(basis), 0, black);
     }
     const words = this.packed.packedArray;
-    this._shape = new Uint32Array(2 * n);  // each Gaussian's constant words: quaternion bytes, scales
+    const shape = new Uint32Array(2 * n);  // each Gaussian's constant words: quaternion bytes, scales
     for (let g = 0; g < n; g++) {
-      this._shape[2 * g] = words[4 * g + 2] & 0xffff0000;
-      this._shape[2 * g + 1] = words[4 * g + 3];
+      shape[2 * g] = words[4 * g + 2] & 0xffff0000;
+      shape[2 * g + 1] = words[4 * g + 3];
     }
+    this.packer = new PackPass(this.slicer, shape);
     this.mesh = new SplatMesh({ packedSplats: this.packed });
     this.time = null;
     this._seenFrom = null;
@@ -177,26 +282,9 @@ export class Omg4Splats {
     camera.getWorldPosition(this._center).applyMatrix4(this._inverse.copy(this.mesh.matrixWorld).invert());
     const center = [this._center.x, this._center.y, this._center.z];
     if (tau === this.time && center.every((v, k) => v === this._seenFrom?.[k])) return;  // the splats hold this view
-    const sliced = this.slicer.sliceAt(tau);
-    const rgb = new Float64Array(3);
-    const y = new Float64Array(16);
-    const words = this.packed.packedArray;
-    const shape = this._shape;
-    let shown = 0;
-    for (let g = 0; g < this.model.numGaussians; g++) {
-      const o = SLICED * g;
-      const opacity = sliced[o + 3];
-      if (!(opacity >= MIN_ALPHA)) continue;  // culled at τ, or too faint to reach minAlpha anywhere: not drawn
-      this.slicer.color(g, center, rgb, y);
-      const at = 4 * shown++;
-      words[at] = floatToUint8(rgb[0]) | floatToUint8(rgb[1]) << 8 | floatToUint8(rgb[2]) << 16
-        | Math.min(floatToUint8(opacity), MAX_OPACITY_BYTE) << 24;
-      words[at + 1] = toHalf(sliced[o]) | toHalf(sliced[o + 1]) << 16;
-      words[at + 2] = toHalf(sliced[o + 2]) | shape[2 * g];
-      words[at + 3] = shape[2 * g + 1];
-    }
-    this.packed.numSplats = shown;
-    this.packed.needsUpdate = true;
+    this.packer.run(tau, center, this.packed.packedArray);  // every Gaussian: those culled at τ are empty slots
+    this.packed.needsUpdate = true;  // the packed array to upload
+    this.mesh.needsUpdate = true;  // and its splats to generate again: Spark does not see a changed packed array
     this.time = tau;
     this._seenFrom = center;
   }

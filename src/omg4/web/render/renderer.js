@@ -41,7 +41,19 @@ function basis(x, y, z, degree, out) {
   return out;
 }
 
-function compile(gl, vertex, fragment, varyings = null) {
+/** The same Y_0..Y_{(degree + 1)² − 1} as GLSL expressions of the unit direction's x, y, z and their squares xx, yy,
+ * zz (a shader's own evaluation of the colour). */
+export function basisGlsl(degree) {
+  const terms = [`${C0}`, `${-C1} * y`, `${C1} * z`, `${-C1} * x`,
+    `${C2[0]} * x * y`, `${C2[1]} * y * z`, `${C2[2]} * (2.0 * zz - xx - yy)`, `${C2[3]} * x * z`,
+    `${C2[4]} * (xx - yy)`,
+    `${C3[0]} * y * (3.0 * xx - yy)`, `${C3[1]} * x * y * z`, `${C3[2]} * y * (4.0 * zz - xx - yy)`,
+    `${C3[3]} * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)`, `${C3[4]} * x * (4.0 * zz - xx - yy)`,
+    `${C3[5]} * z * (xx - yy)`, `${C3[6]} * x * (xx - 3.0 * yy)`];
+  return terms.slice(0, (degree + 1) ** 2);
+}
+
+export function compile(gl, vertex, fragment, varyings = null) {
   const program = gl.createProgram();
   for (const [type, source] of [[gl.VERTEX_SHADER, vertex], [gl.FRAGMENT_SHADER, fragment]]) {
     const shader = gl.createShader(type);
@@ -135,6 +147,7 @@ export class Renderer {
     gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, this.feedback);
     gl.bufferData(gl.TRANSFORM_FEEDBACK_BUFFER, n * 4 * SLICED, gl.DYNAMIC_READ);
     gl.bindBuffer(gl.TRANSFORM_FEEDBACK_BUFFER, null);
+    this.feedbackAt = null;
     this.sliced = new Float32Array(n * SLICED);  // per Gaussian: μ at τ, opacity, then Q_0..Q_15 (rgb each)
     this.slicedAt = null;
     // quads as plain indexed triangles, four vertices per Gaussian (software GL draws instances one by one)
@@ -204,8 +217,8 @@ export class Renderer {
     this.target = { texture, framebuffer, width, height };
   }
 
-  /** The Gaussians at time `tau`: their means, opacities and colour coefficients (for any view). */
-  _sliceAt(tau) {
+  /** The Gaussians at time `tau` into `feedback`: their means, opacities and colour coefficients (for any view). */
+  _slicePass(tau) {
     const gl = this.gl;
     const model = this.model;
     const [t0, t1] = model.timeRange;
@@ -229,9 +242,6 @@ export class Renderer {
     gl.disable(gl.RASTERIZER_DISCARD);
     gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
     gl.bindVertexArray(null);
-    gl.bindBuffer(gl.COPY_READ_BUFFER, this.feedback);
-    gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, this.sliced);
-    gl.bindBuffer(gl.COPY_READ_BUFFER, null);
   }
 
   /** Visible Gaussians back to front (descending view depth; ties: descending index, the reverse of the
@@ -293,12 +303,24 @@ export class Renderer {
     return rgb;
   }
 
+  /** The Gaussians at time `tau` left on the GPU (the slice pass, skipped when `feedback` holds that time already):
+   * `feedback`, the SLICED floats a Gaussian of `sliced` (sliceAt) without reading them back. */
+  sliceOnGpu(tau) {
+    if (this.feedbackAt === tau) return this.feedback;
+    this._bind();
+    this._slicePass(tau);
+    this.feedbackAt = tau;
+    return this.feedback;
+  }
+
   /** The Gaussians at time `tau` (the slice pass, skipped when it is the time sliced last): `sliced`, per Gaussian
    * μ at τ, opacity (0: culled), then the colour's coefficients Q_0..Q_15 (rgb each), for any view. */
   sliceAt(tau) {
     if (this.slicedAt === tau) return this.sliced;
-    this._bind();
-    this._sliceAt(tau);
+    const gl = this.gl;
+    gl.bindBuffer(gl.COPY_READ_BUFFER, this.sliceOnGpu(tau));
+    gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, this.sliced);
+    gl.bindBuffer(gl.COPY_READ_BUFFER, null);
     this.slicedAt = tau;
     return this.sliced;
   }
