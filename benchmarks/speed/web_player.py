@@ -207,7 +207,7 @@ def main() -> None:
 
     width, height = (int(v) for v in args.size.split("x"))
     rows = []
-    # Chromium's helper processes may still write its profile in there as it closes: a finished run keeps its record
+    # Chromium's child processes may still write its profile in there as it closes: a finished run keeps its record
     with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as tmp:
         tmp = Path(tmp)
         models = [(str(m), m) for m in args.models]

@@ -92,7 +92,7 @@ def main() -> None:
     from omg4.testing.browser import Browser
 
     rows = []
-    # Chromium's helper processes may still write its profile in there as it closes: a finished run keeps its record
+    # Chromium's child processes may still write its profile in there as it closes: a finished run keeps its record
     with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as tmp:
         tmp = Path(tmp)
         models = [(str(m), m, args.data) for m in args.models]
