@@ -23,14 +23,17 @@ MODULES = ROOT / "node_modules"
 pytestmark = pytest.mark.skipif(not (MODULES / "@sparkjsdev" / "spark").is_dir() or not (MODULES / "three").is_dir(),
                                 reason="needs the npm packages of package.json (npm ci)")
 
-# Spark's own loader drawing a .ply, from the camera the spark page uses (same conventions, same camera code)
-PLY_PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
+# a test page's head: three.js and Spark from package.json's npm packages, a module script follows
+PAGE_HEAD = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
 <script type="importmap">{"imports": {"three": "./node_modules/three/build/three.module.js",
   "three/addons/": "./node_modules/three/examples/jsm/",
   "@sparkjsdev/spark": "./node_modules/@sparkjsdev/spark/dist/spark.module.js"}}</script></head>
 <body style="margin: 0"><script type="module">
 import * as THREE from "three";
-import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
+"""
+
+# Spark's own loader drawing a .ply, from the camera the spark page uses (same conventions, same camera code)
+PLY_PAGE = PAGE_HEAD + """import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
 import { cameraFromJson, resized } from "./camera.js";
 import { OMG4_CONVENTIONS, Omg4Splats } from "./spark.js";
 window.omg4Ready = (async () => {
@@ -55,13 +58,7 @@ window.omg4Ready = (async () => {
 </script></body></html>"""
 
 # the model fed by Omg4Splats into a SparkRenderer with Spark's own splat shaders or with leanSplatShaders' (LEAN)
-FED_PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
-<script type="importmap">{"imports": {"three": "./node_modules/three/build/three.module.js",
-  "three/addons/": "./node_modules/three/examples/jsm/",
-  "@sparkjsdev/spark": "./node_modules/@sparkjsdev/spark/dist/spark.module.js"}}</script></head>
-<body style="margin: 0"><script type="module">
-import * as THREE from "three";
-import { SparkRenderer } from "@sparkjsdev/spark";
+FED_PAGE = PAGE_HEAD + """import { SparkRenderer } from "@sparkjsdev/spark";
 import { cameraFromJson, resized } from "./camera.js";
 import { OMG4_CONVENTIONS, Omg4Splats, leanSplatShaders } from "./spark.js";
 window.omg4Ready = (async () => {
