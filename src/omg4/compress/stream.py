@@ -1,10 +1,10 @@
 """A long capture coded as a stream: what a predicted segment takes of the segment before (beyond the paper;
 docs/file-format.md §8a–8b), in one place — the segment before itself (:class:`SegmentBefore`: its decoded
 appearance MLPs, codebooks and Gaussians), the lasting rule (:func:`lasting`), the base layer (:func:`base_layer`)
-and the carry decision (:func:`chosen_carry`). The compression pipeline and :func:`omg4.compress.api.compress_to_file` take a
-predicted segment's link to the stream as one :class:`SegmentBefore` (None: a key segment, coded alone). What a
-segment learns where it overlaps the one before (the crossfade) is :mod:`omg4.optimize.teaching`, below training and
-compression, which both fit it.
+and the carry decision (:func:`chosen_carry`). The compression pipeline and
+:func:`omg4.compress.api.compress_to_file` take a predicted segment's link to the stream as one
+:class:`SegmentBefore` (None: a key segment, coded alone). What a segment learns where it overlaps the one before
+(the crossfade) is :mod:`omg4.optimize.teaching`, below training and compression, which both fit it.
 
 A long capture's lasting content — the static set, the slow background — is in every segment, and every segment
 learns it again, each a little differently, so coded segment by segment it is paid for in each. At the appearance

@@ -22,7 +22,7 @@ import * as THREE from "three";
 import { PackedSplats, SplatMesh } from "@sparkjsdev/spark";
 import { decodePayload } from "./decoder/payload.js";
 import { buildModel } from "./model.js";
-import { Renderer, SLICED, basisGlsl, compile, context } from "./render/renderer.js";
+import { Renderer, SLICED, basisGlsl, compile, context, feedbackPass, readBack } from "./render/renderer.js";
 import { NOTHING } from "./render/shaders.js";
 
 /** Eigen-decomposition of the symmetric 3×3 matrix (xx, xy, xz, yy, yz, zz) by Jacobi rotations: the standard
@@ -72,10 +72,10 @@ const MAX_OPACITY_BYTE = 254;
 
 /** The pack pass for `model` (GLSL ES 3.00, one vertex per Gaussian, its output captured by transform feedback): from
  * the slice pass's floats (μ at τ, opacity, Q_0..Q_15 in 13 vec4s) and the Gaussian's constant shape words, its four
- * words of Spark's layout — the colour from u_center, max(Σ_k Y_k(d)·Q_k + 0.5, 0) with d from the camera to the mean
- * at τ (or the canonical mean) as Renderer.color has it, and the opacity, as Spark's floatToUint8 rounds them (the
- * opacity byte at most MAX_OPACITY_BYTE); the centre as halves. A Gaussian below MIN_ALPHA gets four zero words:
- * zero scales, an empty slot to Spark, which leaves it out of its sort and its draw as if it were not there. */
+ * words of Spark's layout — the colour from u_center, max(Σ_k Y_k(d)·Q_k + 0.5, 0) with d from the camera to the
+ * mean at τ (or the canonical mean) as Renderer.color has it, and the opacity, as Spark's floatToUint8 rounds them
+ * (the opacity byte at most MAX_OPACITY_BYTE); the centre as halves. A Gaussian below MIN_ALPHA gets four zero
+ * words: zero scales, an empty slot to Spark, which leaves it out of its sort and its draw as if it were not there. */
 function packShader(model) {
   // Q_k's rgb: floats 3k, 3k + 1, 3k + 2 of the 48 in a_q0..a_q11
   const q = (k) => `vec3(${[0, 1, 2].map((c) => `a_q${(3 * k + c) >> 2}.${"xyzw"[(3 * k + c) & 3]}`).join(", ")})`;
@@ -157,18 +157,8 @@ class PackPass {
     this.slicer.sliceOnGpu(tau);
     gl.useProgram(this.program);
     gl.uniform3f(this.uCenter, center[0], center[1], center[2]);
-    gl.bindVertexArray(this.vao);
-    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, this.words);
-    gl.enable(gl.RASTERIZER_DISCARD);
-    gl.beginTransformFeedback(gl.POINTS);
-    gl.drawArrays(gl.POINTS, 0, n);
-    gl.endTransformFeedback();
-    gl.disable(gl.RASTERIZER_DISCARD);
-    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
-    gl.bindVertexArray(null);
-    gl.bindBuffer(gl.COPY_READ_BUFFER, this.words);
-    gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, out, 0, 4 * n);
-    gl.bindBuffer(gl.COPY_READ_BUFFER, null);
+    feedbackPass(gl, this.vao, this.words, n);
+    readBack(gl, this.words, out, 4 * n);
   }
 }
 

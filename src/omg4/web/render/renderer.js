@@ -53,6 +53,27 @@ export function basisGlsl(degree) {
   return terms.slice(0, (degree + 1) ** 2);
 }
 
+/** One vertex per point of `count` through the program in use, with `vao`'s inputs, its varyings captured into
+ * `buffer` by transform feedback, nothing rasterized (a per-Gaussian pass). */
+export function feedbackPass(gl, vao, buffer, count) {
+  gl.bindVertexArray(vao);
+  gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, buffer);
+  gl.enable(gl.RASTERIZER_DISCARD);
+  gl.beginTransformFeedback(gl.POINTS);
+  gl.drawArrays(gl.POINTS, 0, count);
+  gl.endTransformFeedback();
+  gl.disable(gl.RASTERIZER_DISCARD);
+  gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
+  gl.bindVertexArray(null);
+}
+
+/** `buffer`'s contents into the typed array `out` (its first `length` elements; all of them by default). */
+export function readBack(gl, buffer, out, length = out.length) {
+  gl.bindBuffer(gl.COPY_READ_BUFFER, buffer);
+  gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, out, 0, length);
+  gl.bindBuffer(gl.COPY_READ_BUFFER, null);
+}
+
 export function compile(gl, vertex, fragment, varyings = null) {
   const program = gl.createProgram();
   for (const [type, source] of [[gl.VERTEX_SHADER, vertex], [gl.FRAGMENT_SHADER, fragment]]) {
@@ -233,15 +254,7 @@ export class Renderer {
     const term = new Float32Array(4 * h4);
     if (model.positionTerm) term.set(timeTerm(model, (tau - t0) / (t1 - t0)));
     gl.uniform4fv(u("u_timeTerm"), term);
-    gl.bindVertexArray(this.emptyVao);
-    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, this.feedback);
-    gl.enable(gl.RASTERIZER_DISCARD);
-    gl.beginTransformFeedback(gl.POINTS);
-    gl.drawArrays(gl.POINTS, 0, model.numGaussians);
-    gl.endTransformFeedback();
-    gl.disable(gl.RASTERIZER_DISCARD);
-    gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
-    gl.bindVertexArray(null);
+    feedbackPass(gl, this.emptyVao, this.feedback, model.numGaussians);
   }
 
   /** Visible Gaussians back to front (descending view depth; ties: descending index, the reverse of the
@@ -317,10 +330,7 @@ export class Renderer {
    * μ at τ, opacity (0: culled), then the colour's coefficients Q_0..Q_15 (rgb each), for any view. */
   sliceAt(tau) {
     if (this.slicedAt === tau) return this.sliced;
-    const gl = this.gl;
-    gl.bindBuffer(gl.COPY_READ_BUFFER, this.sliceOnGpu(tau));
-    gl.getBufferSubData(gl.COPY_READ_BUFFER, 0, this.sliced);
-    gl.bindBuffer(gl.COPY_READ_BUFFER, null);
+    readBack(this.gl, this.sliceOnGpu(tau), this.sliced);
     this.slicedAt = tau;
     return this.sliced;
   }
